@@ -1,0 +1,1 @@
+"""The HTTP gateway (FastAPI on uvicorn) in front of the RangeRet workers."""

@@ -1,0 +1,1 @@
+"""RangeRet on Ray: the streaming batch pipeline, the job entrypoint and the single-scan actor pool."""
