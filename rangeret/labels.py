@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from functools import cache
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -163,5 +162,4 @@ def load_label_config(path: Path | str | None = None) -> LabelConfig:
 @cache
 def semantickitti() -> LabelConfig:
     """The bundled SemanticKITTI configuration (20 training classes, class 0 ignored)."""
-    with resources.as_file(resources.files("rangeret") / "data" / "semantickitti.json") as p:
-        return LabelConfig.from_json(p)
+    return LabelConfig.from_json(Path(__file__).with_name("data") / "semantickitti.json")

@@ -129,7 +129,7 @@ def discover(
     """List the scans of `sequences` under `root`, sorted, matched to their labels by name.
 
     With `with_labels`, a scan without a label file and a label file without a scan are
-    problems. A missing sequence folder is a problem unless `missing_ok` (partial copies).
+    problems. A missing or empty sequence folder is a problem unless `missing_ok` (partial copies).
     """
     root = Path(root)
     result = Discovery(root=root, sequences=[])
@@ -141,7 +141,7 @@ def discover(
             continue
         result.sequences.append(seq)
         scans = _stems(vdir, ".bin")
-        if not scans:
+        if not scans and not missing_ok:
             result.problems.append(f"{vdir} holds no .bin scan")
         labels = _stems(labels_dir(root, seq), ".label") if with_labels else {}
         if with_labels:

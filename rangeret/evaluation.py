@@ -1,0 +1,76 @@
+"""Evaluating a predictions tree against a dataset's ground truth, scan by scan.
+
+Every scan of the chosen sequences must have ground truth and a prediction of the same length;
+anything missing or malformed is listed by file before any number is given, so a result is never
+computed on a silent subset.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+from tqdm import tqdm
+
+from rangeret.io import ScanFormatError, read_labels, scan_num_points
+from rangeret.labels import LabelConfig, semantickitti
+from rangeret.layout import discover, prediction_path
+from rangeret.metrics import EvaluationReport, RawLabelEvaluator
+
+log = logging.getLogger(__name__)
+
+
+class EvaluationError(ValueError):
+    """Predictions or ground truth that cannot be evaluated; `problems` names every file."""
+
+    def __init__(self, problems: Sequence[str]) -> None:
+        self.problems = list(problems)
+        shown = "; ".join(self.problems[:5])
+        more = f" (and {len(self.problems) - 5} more)" if len(self.problems) > 5 else ""
+        super().__init__(f"{len(self.problems)} problem(s): {shown}{more}")
+
+
+def evaluate_predictions(
+    dataset: Path | str,
+    predictions: Path | str,
+    sequences: Sequence[str],
+    config: LabelConfig | None = None,
+    checkpoint_sha256: str | None = None,
+    progress: bool = False,
+) -> EvaluationReport:
+    """Evaluate `PRED/sequences/XX/predictions` against `ROOT/sequences/XX/labels`.
+
+    Raises `EvaluationError` listing every missing label or prediction file and every file whose
+    length does not match its scan.
+    """
+    config = config or semantickitti()
+    found = discover(dataset, sequences, with_labels=True)
+    problems = list(found.problems)
+    pairs = []
+    for entry in found.scans:
+        pred = prediction_path(predictions, entry.sequence, entry.name)
+        if not pred.is_file():
+            problems.append(f"{pred} is missing (no prediction for scan {entry.key})")
+        elif entry.label_path is not None:
+            pairs.append((entry, pred))
+    if problems:
+        raise EvaluationError(problems)
+    if not pairs:
+        raise EvaluationError([f"no labelled scan found in sequences {', '.join(sequences)}"])
+
+    evaluator = RawLabelEvaluator(config)
+    for entry, pred in tqdm(pairs, desc="evaluate", unit="scan", disable=not progress):
+        try:
+            n = scan_num_points(entry.scan_path)
+            gt_raw = read_labels(entry.label_path, num_points=n)
+            pred_raw = read_labels(pred, num_points=n)
+        except ScanFormatError as exc:
+            problems.append(str(exc))
+            continue
+        evaluator.add(pred_raw, gt_raw)
+    if problems:
+        raise EvaluationError(problems)
+    report = evaluator.report(found.sequences, checkpoint_sha256)
+    log.info("evaluated %d scans (%d points): mIoU %.4f", report.num_scans, report.num_points, report.miou)
+    return report

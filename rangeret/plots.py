@@ -1,0 +1,82 @@
+"""PNG plots of an evaluation: the row-normalised confusion matrix and per-class IoU bars."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from rangeret.labels import LabelConfig, semantickitti
+from rangeret.metrics import EvaluationReport
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_confusion(report: EvaluationReport, path: Path | str) -> Path:
+    """Confusion matrix of the evaluated classes, each ground-truth row normalised to 1 (recall)."""
+    plt = _pyplot()
+    include = report.confusion.include
+    names = [report.class_names[c] for c in include]
+    gt_by_pred = report.confusion.matrix[np.ix_(include, include)].T.astype(np.float64)
+    rows = gt_by_pred.sum(axis=1, keepdims=True)
+    norm = np.divide(gt_by_pred, rows, out=np.zeros_like(gt_by_pred), where=rows > 0)
+
+    fig, ax = plt.subplots(figsize=(10, 9))
+    im = ax.imshow(norm, cmap="Blues", vmin=0, vmax=1)
+    ax.set_xticks(range(len(names)), names, rotation=60, ha="right")
+    ax.set_yticks(range(len(names)), names)
+    ax.set_xlabel("predicted class")
+    ax.set_ylabel("ground-truth class")
+    ax.set_title(f"Confusion matrix (rows normalised), mIoU {100 * report.miou:.1f} %")
+    for i in range(len(names)):
+        for j in range(len(names)):
+            if norm[i, j] >= 0.005:
+                ax.text(j, i, f"{100 * norm[i, j]:.0f}", ha="center", va="center", fontsize=6,
+                        color="white" if norm[i, j] > 0.5 else "black")
+    fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="share of the ground-truth class")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_iou(report: EvaluationReport, path: Path | str, config: LabelConfig | None = None) -> Path:
+    """Bar chart of per-class IoU in the classes' SemanticKITTI colours, with the mIoU line."""
+    plt = _pyplot()
+    config = config or semantickitti()
+    include = report.confusion.include
+    iou = report.confusion.iou()[include] * 100
+    colours = config.class_rgb()[include] / 255.0 if config.num_classes == len(report.class_names) else None
+
+    fig, ax = plt.subplots(figsize=(11, 4.5))
+    ax.bar(range(len(include)), iou, color=colours, edgecolor="black", linewidth=0.5)
+    ax.axhline(100 * report.miou, color="crimson", linestyle="--", label=f"mIoU {100 * report.miou:.1f} %")
+    ax.set_xticks(range(len(include)), [report.class_names[c] for c in include], rotation=60, ha="right")
+    ax.set_ylim(0, 100)
+    ax.set_ylabel("IoU (%)")
+    ax.set_title(f"Per-class IoU over {report.num_scans:,} scans")
+    ax.legend(loc="upper right")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def write_plots(report: EvaluationReport, folder: Path | str) -> list[Path]:
+    """Write `confusion.png` and `iou.png` into `folder`."""
+    folder = Path(folder)
+    return [plot_confusion(report, folder / "confusion.png"), plot_iou(report, folder / "iou.png")]
+
+
+def _save(fig, path: Path | str) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    fig.clf()
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return path
