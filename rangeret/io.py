@@ -94,7 +94,16 @@ def read_labels(path: str | os.PathLike[str], num_points: int | None = None) -> 
     With `num_points`, a file with another number of labels raises `ScanFormatError`.
     """
     path = Path(path)
-    return parse_labels(path.read_bytes(), str(path), num_points).copy()
+    size = path.stat().st_size
+    if size % LABEL_BYTES:
+        raise ScanFormatError(
+            path, f"size {size} bytes is not a multiple of {LABEL_BYTES} (one uint32 per point)"
+        )
+    if num_points is not None and size // LABEL_BYTES != num_points:
+        raise ScanFormatError(
+            path, f"holds {size // LABEL_BYTES} labels but the scan has {num_points} points"
+        )
+    return np.fromfile(path, dtype=LABEL_DTYPE).astype(np.uint32, copy=False)
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes | memoryview) -> None:

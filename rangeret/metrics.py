@@ -27,14 +27,21 @@ def confusion_counts(pred: np.ndarray, gt: np.ndarray, num_classes: int) -> np.n
     gt = np.asarray(gt).reshape(-1)
     if pred.shape != gt.shape:
         raise ValueError(f"{pred.size} predictions for {gt.size} ground-truth labels")
-    if pred.size and (
-        min(pred.min(), gt.min()) < 0 or max(pred.max(), gt.max()) >= num_classes
-    ):
-        raise ValueError(f"class ids must lie in 0..{num_classes - 1}")
-    index = pred.astype(np.intp) * num_classes + gt
-    return np.bincount(index, minlength=num_classes * num_classes).reshape(
-        num_classes, num_classes
-    ).astype(np.int64, copy=False)
+    cells = num_classes * num_classes
+    # With gt in range, a negative prediction gives a negative index (bincount refuses it) and a
+    # prediction >= C an index past the last cell, so only gt needs an explicit range check.
+    if gt.size and (gt.max() >= num_classes or (gt.dtype.kind == "i" and gt.min() < 0)):
+        raise ValueError(f"ground-truth class ids must lie in 0..{num_classes - 1}")
+    # uint8 classes (what the label lookup tables give) combine in uint16 without a wide copy.
+    narrow = pred.dtype == gt.dtype == np.uint8 and cells <= 1 << 16
+    wide = np.uint16 if narrow else np.intp
+    try:
+        counts = np.bincount(pred.astype(wide) * wide(num_classes) + gt, minlength=cells)
+    except ValueError:
+        counts = np.empty(0)
+    if counts.size != cells:
+        raise ValueError(f"predicted class ids must lie in 0..{num_classes - 1}")
+    return counts.reshape(num_classes, num_classes).astype(np.int64, copy=False)
 
 
 @dataclass
@@ -207,7 +214,7 @@ class RawLabelEvaluator:
         n = self.config.num_classes
         self._n = n
         # Unknown ids map to the extra class n, folded into class 0 when the matrix is read.
-        lut = np.full(1 << 16, n, dtype=np.uint16)
+        lut = np.full(1 << 16, n, dtype=np.uint8)
         for raw, cls in self.config.raw_to_class.items():
             lut[raw] = cls
         self._lut = lut
@@ -219,10 +226,9 @@ class RawLabelEvaluator:
         """Count one scan's raw predicted and ground-truth labels (same length)."""
         if pred_raw.shape != gt_raw.shape:
             raise ValueError(f"{pred_raw.size} predictions for {gt_raw.size} ground-truth labels")
-        p = self._lut[_low16(pred_raw)]
-        g = self._lut[_low16(gt_raw)]
-        index = p * np.uint16(self._n + 1) + g
-        self._counts += np.bincount(index, minlength=self._counts.size)
+        p = self._lut.take(_low16(pred_raw))
+        g = self._lut.take(_low16(gt_raw))
+        self._counts += confusion_counts(p, g, self._n + 1).reshape(-1)
         self.num_scans += 1
         self.num_points += int(pred_raw.size)
 

@@ -114,13 +114,18 @@ def project_with(points: np.ndarray, config: ProjectionConfig) -> Projection:
     h, w = config.height, config.width
     n = pts.shape[0]
 
-    xyz = pts[:, :3]
+    # Channel-major copy: contiguous columns make every later gather and ufunc cheaper.
+    cols = np.ascontiguousarray(pts.T)
     with np.errstate(invalid="ignore", over="ignore"):
-        depth = np.sqrt(xyz[:, 0] * xyz[:, 0] + xyz[:, 1] * xyz[:, 1] + xyz[:, 2] * xyz[:, 2])
-    valid = np.isfinite(depth) & (depth > 0) & np.isfinite(pts[:, 3])
-    idx = np.flatnonzero(valid)
-    d = depth[idx]
-    x, y, z = xyz[idx, 0], xyz[idx, 1], xyz[idx, 2]
+        depth = np.sqrt(cols[0] * cols[0] + cols[1] * cols[1] + cols[2] * cols[2])
+    valid = np.isfinite(depth) & (depth > 0) & np.isfinite(cols[3])
+    if valid.all():
+        idx = np.arange(n)
+        d = depth
+    else:
+        idx = np.flatnonzero(valid)
+        cols, d = cols[:, idx], depth[idx]
+    x, y, z = cols[0], cols[1], cols[2]
 
     fov_up = abs(config.fov_up) / 180.0 * np.pi
     fov_down = abs(config.fov_down) / 180.0 * np.pi
@@ -132,29 +137,32 @@ def project_with(points: np.ndarray, config: ProjectionConfig) -> Projection:
     u = np.clip(np.floor(u), 0, w - 1).astype(np.int64)
     v = np.clip(np.floor(v), 0, h - 1).astype(np.int64)
 
-    # Closest point wins; among equal depths the lower index. Non-negative float32 depths
-    # order like their bit patterns, so one stable sort on (pixel, depth) decides every pixel.
+    # Closest point wins, among equal depths the lower index: two scatter-minimum passes, first
+    # over depths, then over the indices of the points that reach their pixel's minimum.
     pixel = v * w + u
-    key = (pixel.astype(np.uint64) << np.uint64(32)) | d.view(np.uint32).astype(np.uint64)
-    order = np.argsort(key, kind="stable")
-    sorted_pixel = pixel[order]
-    first = np.ones(order.size, dtype=bool)
-    first[1:] = sorted_pixel[1:] != sorted_pixel[:-1]
-    winners = order[first]
-    win_pixel = sorted_pixel[first]
+    nearest = np.full(h * w, np.inf, dtype=np.float32)
+    np.minimum.at(nearest, pixel, d)
+    candidates = np.flatnonzero(d == nearest[pixel])
+    first = np.full(h * w, idx.size, dtype=np.int64)
+    np.minimum.at(first, pixel[candidates], candidates)
+    win_pixel = np.flatnonzero(first < idx.size)
+    winners = first[win_pixel]
 
     proj_idx = np.full(h * w, -1, dtype=np.int64)
     proj_idx[win_pixel] = idx[winners]
     proj_range = np.full(h * w, -1.0, dtype=np.float32)
     proj_range[win_pixel] = d[winners]
 
-    means = np.asarray(config.means, dtype=np.float32)[:, None]
-    stds = np.asarray(config.stds, dtype=np.float32)[:, None]
-    channels = np.empty((5, winners.size), dtype=np.float32)
-    channels[0] = d[winners]
-    channels[1:] = pts[idx[winners]].T
-    image = np.zeros((5, h * w), dtype=np.float32)
-    image[:, win_pixel] = (channels - means) / stds
+    # Pixel-major while scattering (one 20-byte row per pixel), channel-major in the result.
+    means = np.asarray(config.means, dtype=np.float32)
+    stds = np.asarray(config.stds, dtype=np.float32)
+    channels = np.empty((winners.size, 5), dtype=np.float32)
+    channels[:, 0] = d[winners]
+    channels[:, 1:] = cols[:, winners].T
+    channels -= means
+    channels /= stds
+    image = np.zeros((h * w, 5), dtype=np.float32)
+    image[win_pixel] = channels
 
     proj_x = np.full(n, -1, dtype=np.int64)
     proj_y = np.full(n, -1, dtype=np.int64)
@@ -164,7 +172,7 @@ def project_with(points: np.ndarray, config: ProjectionConfig) -> Projection:
     unproj_range[idx] = d
 
     return Projection(
-        image=image.reshape(5, h, w),
+        image=np.ascontiguousarray(image.T).reshape(5, h, w),
         mask=(proj_idx >= 0).reshape(h, w),
         proj_range=proj_range.reshape(h, w),
         proj_idx=proj_idx.reshape(h, w),

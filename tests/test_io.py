@@ -75,7 +75,7 @@ def test_label_count_mismatch_names_file(tmp_path):
 def test_truncated_scan_size_check_without_reading(tmp_path):
     path = tmp_path / "t.bin"
     path.write_bytes(b"\x00" * 33)
-    with pytest.raises(ScanFormatError, match="t.bin"):
+    with pytest.raises(ScanFormatError, match=r"t\.bin"):
         scan_num_points(path)
 
 

@@ -50,7 +50,7 @@ def test_bincount_matches_add_at():
     rng = np.random.default_rng(2)
     pred, gt = rng.integers(0, 20, 50_000), rng.integers(0, 20, 50_000)
     np.testing.assert_array_equal(confusion_counts(pred, gt, 20), add_at_confusion(pred, gt, 20))
-    with pytest.raises(ValueError, match="0..19"):
+    with pytest.raises(ValueError, match=r"0\.\.19"):
         confusion_counts(np.array([20]), np.array([0]), 20)
     with pytest.raises(ValueError, match="3 predictions for 2"):
         confusion_counts(np.zeros(3, int), np.zeros(2, int), 20)

@@ -1,0 +1,236 @@
+"""The `rangeret` command: evaluation, submission archives and the example run.
+
+Each subcommand exits 0 on success and 1 with a one-line reason (then the details) on any
+problem with its input; it never shows a traceback for bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from rangeret.evaluation import EvaluationError
+from rangeret.io import ScanFormatError
+from rangeret.labels import LabelConfig, load_label_config
+from rangeret.layout import DatasetLayoutError, resolve_sequences
+from rangeret.submission import SubmissionError
+
+log = logging.getLogger("rangeret")
+
+_MAX_DETAILS = 30
+
+
+class CommandError(Exception):
+    """A failure to report to the user as one line, with optional details below it."""
+
+    def __init__(self, reason: str, details: Sequence[str] = ()) -> None:
+        super().__init__(reason)
+        self.reason = reason
+        self.details = list(details)
+
+
+def _add_selection(parser: argparse.ArgumentParser, splits: Sequence[str]) -> None:
+    group = parser.add_mutually_exclusive_group(required=True)
+    group.add_argument("--split", choices=list(splits), help="an official split of the label configuration")
+    group.add_argument(
+        "--sequences",
+        nargs="+",
+        metavar="XX",
+        help="sequence folder names (also data outside the official splits)",
+    )
+
+
+def _add_label_config(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--label-config",
+        type=Path,
+        metavar="FILE",
+        help="label configuration (.json of this project or an official semantic-kitti .yaml); "
+        "default: the bundled SemanticKITTI one",
+    )
+
+
+def _label_config(args: argparse.Namespace) -> LabelConfig:
+    try:
+        return load_label_config(args.label_config)
+    except (OSError, ValueError, KeyError) as exc:
+        raise CommandError(f"cannot read the label configuration {args.label_config}: {exc}") from exc
+
+
+def _sequences(args: argparse.Namespace, config: LabelConfig) -> list[str]:
+    return resolve_sequences(split=args.split, sequences=args.sequences, config=config)
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    """Evaluate a predictions tree against ground truth with the official semantics."""
+    from rangeret.evaluation import evaluate_predictions
+
+    config = _label_config(args)
+    sequences = _sequences(args, config)
+    report = evaluate_predictions(
+        args.dataset, args.predictions, sequences, config=config, progress=not args.quiet
+    )
+    print(report.table())
+    for note in report.notes:
+        log.warning(note)
+    if args.json:
+        report.write_json(args.json)
+        print(f"report: {args.json}")
+    if args.plots:
+        from rangeret.plots import write_plots
+
+        for path in write_plots(report, args.plots):
+            print(f"plot: {path}")
+    return 0
+
+
+def cmd_submission(args: argparse.Namespace) -> int:
+    """Write and validate the CodaLab/Codabench zip of a predictions tree."""
+    from rangeret.submission import write_submission
+
+    check = write_submission(
+        args.predictions,
+        args.dataset,
+        args.out,
+        allow_partial=args.allow_partial,
+        description=args.description,
+        config=_label_config(args),
+        progress=not args.quiet,
+    )
+    print(check.summary())
+    if check.partial:
+        log.warning("this is a partial archive: the benchmark server refuses it; use it for tests only")
+    return 0
+
+
+def cmd_validate_submission(args: argparse.Namespace) -> int:
+    """Validate a submission zip against the dataset and the official test split."""
+    from rangeret.submission import validate_submission
+
+    check = validate_submission(
+        args.archive,
+        args.dataset,
+        allow_partial=args.allow_partial,
+        config=_label_config(args),
+        progress=not args.quiet,
+    )
+    if not check.ok:
+        raise CommandError(
+            f"{args.archive} would be refused: {len(check.problems)} problem(s), the first: "
+            f"{check.problems[0]}",
+            check.problems,
+        )
+    print(check.summary())
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Run evaluation and submission end to end on a small simulated example."""
+    from rangeret.demo import run_demo
+
+    run_demo(args.out, progress=not args.quiet)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the `rangeret` command and its subcommands."""
+    parser = argparse.ArgumentParser(
+        prog="rangeret",
+        description="RangeRet LiDAR semantic segmentation: evaluation, submissions and more.",
+    )
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    common.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    splits = ("train", "valid", "test")
+
+    p = sub.add_parser("evaluate", parents=[common], help="per-class IoU of predictions against ground truth")
+    p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
+    p.add_argument("--predictions", type=Path, required=True, metavar="PRED")
+    _add_selection(p, splits)
+    p.add_argument("--json", type=Path, metavar="FILE", help="write the JSON report here")
+    p.add_argument("--plots", type=Path, metavar="DIR", help="write confusion.png and iou.png here")
+    _add_label_config(p)
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("submission", parents=[common], help="write and validate a CodaLab/Codabench zip")
+    p.add_argument("--predictions", type=Path, required=True, metavar="PRED")
+    p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
+    p.add_argument("--out", type=Path, required=True, metavar="FILE.zip")
+    p.add_argument(
+        "--allow-partial",
+        action="store_true",
+        help="accept a dataset with missing test sequences or scans (an archive for tests only)",
+    )
+    p.add_argument("--description", metavar="TEXT", help="text of description.txt in the archive")
+    _add_label_config(p)
+    p.set_defaults(func=cmd_submission)
+
+    p = sub.add_parser("validate-submission", parents=[common], help="check a submission zip before uploading it")
+    p.add_argument("archive", type=Path, metavar="FILE.zip")
+    p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
+    p.add_argument(
+        "--allow-partial",
+        action="store_true",
+        help="accept a dataset with missing test sequences or scans (an archive for tests only)",
+    )
+    _add_label_config(p)
+    p.set_defaults(func=cmd_validate_submission)
+
+    p = sub.add_parser("demo", parents=[common], help="the whole pipeline on a small simulated example")
+    p.add_argument("--out", type=Path, metavar="DIR", help="results folder (default: a new one)")
+    p.set_defaults(func=cmd_demo)
+    return parser
+
+
+_USER_ERRORS: tuple[type[BaseException], ...] = (
+    ScanFormatError,
+    DatasetLayoutError,
+    EvaluationError,
+    SubmissionError,
+    FileNotFoundError,
+    ValueError,
+)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the `rangeret` command."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    func: Callable[[argparse.Namespace], int] = args.func
+    try:
+        return func(args)
+    except CommandError as exc:
+        return _fail(args.command, exc.reason, exc.details)
+    except (EvaluationError, SubmissionError) as exc:
+        return _fail(args.command, _first_line(exc), exc.problems)
+    except _USER_ERRORS as exc:
+        return _fail(args.command, str(exc))
+    except KeyboardInterrupt:
+        return _fail(args.command, "interrupted", code=130)
+
+
+def _first_line(exc: EvaluationError | SubmissionError) -> str:
+    n = len(exc.problems)
+    return f"{n} problem(s), the first: {exc.problems[0]}" if n else str(exc)
+
+
+def _fail(command: str, reason: str, details: Sequence[str] = (), code: int = 1) -> int:
+    print(f"rangeret {command}: error: {reason}", file=sys.stderr)
+    if len(details) > 1:
+        for line in details[:_MAX_DETAILS]:
+            print(f"  - {line}", file=sys.stderr)
+        if len(details) > _MAX_DETAILS:
+            print(f"  ... and {len(details) - _MAX_DETAILS} more", file=sys.stderr)
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())
