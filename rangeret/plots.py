@@ -54,12 +54,14 @@ def plot_iou(report: EvaluationReport, path: Path | str, config: LabelConfig | N
     colours = config.class_rgb()[include] / 255.0 if config.num_classes == len(report.class_names) else None
 
     fig, ax = plt.subplots(figsize=(11, 4.5))
-    ax.bar(range(len(include)), iou, color=colours, edgecolor="black", linewidth=0.5)
+    bars = ax.bar(range(len(include)), iou, color=colours, edgecolor="black", linewidth=0.5)
+    ax.bar_label(bars, labels=[f"{v:.1f}" for v in iou], fontsize=7, padding=2)
     ax.axhline(100 * report.miou, color="crimson", linestyle="--", label=f"mIoU {100 * report.miou:.1f} %")
     ax.set_xticks(range(len(include)), [report.class_names[c] for c in include], rotation=60, ha="right")
     ax.set_ylim(0, 100)
     ax.set_ylabel("IoU (%)")
-    ax.set_title(f"Per-class IoU over {report.num_scans:,} scans")
+    scans = f"{report.num_scans:,} scan{'' if report.num_scans == 1 else 's'}"
+    ax.set_title(f"Per-class IoU over {scans}")
     ax.legend(loc="upper right")
     fig.tight_layout()
     return _save(fig, path)
