@@ -104,6 +104,33 @@ class LabelConfig:
                 f"unknown split {name!r}; the label configuration has {sorted(self.splits)}"
             ) from None
 
+    def to_dict(self) -> dict:
+        """Plain-data form (JSON-safe), as stored in checkpoints and reports."""
+        return {
+            "class_names": list(self.class_names),
+            "class_raw_ids": list(self.class_raw_ids),
+            "ignored": list(self.ignored),
+            "raw_names": {str(k): v for k, v in self.raw_names.items()},
+            "raw_to_class": {str(k): v for k, v in self.raw_to_class.items()},
+            "raw_bgr": {str(k): list(v) for k, v in self.raw_bgr.items()},
+            "raw_frequency": {str(k): v for k, v in self.raw_frequency.items()},
+            "splits": {k: list(v) for k, v in self.splits.items()},
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> LabelConfig:
+        """Rebuild a configuration from `to_dict()`'s form."""
+        return cls(
+            class_names=tuple(data["class_names"]),
+            class_raw_ids=tuple(int(v) for v in data["class_raw_ids"]),
+            ignored=tuple(bool(v) for v in data["ignored"]),
+            raw_names={int(k): v for k, v in data.get("raw_names", {}).items()},
+            raw_to_class={int(k): int(v) for k, v in data["raw_to_class"].items()},
+            raw_bgr={int(k): tuple(v) for k, v in data.get("raw_bgr", {}).items()},
+            raw_frequency={int(k): float(v) for k, v in data.get("raw_frequency", {}).items()},
+            splits={k: tuple(v) for k, v in data.get("splits", {}).items()},
+        )
+
     @classmethod
     def from_json(cls, path: Path | str) -> LabelConfig:
         """Load the project's own JSON layout."""

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
-from rangeret.labels import load_label_config, semantickitti
+from rangeret.labels import LabelConfig, load_label_config, semantickitti
 
 
 def test_bundled_config_equals_official_yaml(shared_dir):
@@ -41,3 +43,10 @@ def test_raw_to_class_masks_instances_and_unknown_ids():
     np.testing.assert_array_equal(cfg.to_raw(np.array([0, 1, 9, 19])), [0, 10, 40, 81])
     assert cfg.valid_prediction_ids == frozenset(cfg.class_raw_ids)
     assert cfg.class_rgb()[1].tolist() == [100, 150, 245]
+
+
+def test_dict_round_trip():
+    cfg = semantickitti()
+    again = LabelConfig.from_dict(json.loads(json.dumps(cfg.to_dict())))
+    assert again == cfg
+    np.testing.assert_array_equal(again.raw_lut, cfg.raw_lut)
