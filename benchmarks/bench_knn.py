@@ -1,0 +1,65 @@
+"""kNN refinement time on the real scan's test vector (123,389 points, 64 x 1024).
+
+Run by hand: `python benchmarks/bench_knn.py`. Prints medians for the release parameters
+(k 7, search 7) and RangeNet++'s (k 5, search 5) on the CPU with torch's threads and with one
+thread, and on CUDA when there is one, with points/s and the ratio to the published code's
+0.22 s on this CPU (target: at most 60 ms). Timings need the cores to themselves.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import torch
+from _common import SHARED, median_time
+
+from rangeret.knn import refine
+
+FIXTURE = SHARED / "fixtures" / "knn-semantickitti-scan.npz"
+INPUTS = ("proj_range", "unproj_range", "proj_argmax", "proj_x", "proj_y")
+PUBLISHED_S = 0.22
+TARGET_MS = 60.0
+PARAMETERS = [(7, 7), (5, 5)]
+
+
+def main() -> None:
+    if not FIXTURE.exists():
+        sys.exit(f"{FIXTURE} is missing: the benchmark needs ../shared beside the project")
+    with np.load(FIXTURE) as data:
+        arrays = {name: data[name] for name in INPUTS}
+        expected = {(k, s): data[f"expected_knn{k}_search{s}"] for k, s in PARAMETERS}
+    points = len(arrays["unproj_range"])
+    print(f"kNN refinement of one scan ({points:,} points, 64 x 1024), median of 21 runs:")
+    threads = torch.get_num_threads()
+    runs = [("cpu", threads)] + ([("cpu", 1)] if threads > 1 else [])
+    runs += [("cuda", threads)] if torch.cuda.is_available() else []
+    for device, run_threads in runs:
+        torch.set_num_threads(run_threads)
+        label = f"{device} ({run_threads} thread{'s' if run_threads > 1 else ''})"
+        tensors = [torch.from_numpy(arrays[name]).to(device) for name in INPUTS]
+        for k, search in PARAMETERS:
+            result, seconds = time_one(tensors, k, search)
+            agree = (result == expected[k, search]).mean()
+            print(
+                f"  {label:15} k {k} search {search}: {1e3 * seconds:7.2f} ms  "
+                f"{points / seconds / 1e6:6.2f} M points/s  "
+                f"{PUBLISHED_S / seconds:5.1f} x faster than the published {1e3 * PUBLISHED_S:.0f} ms  "
+                f"(target {TARGET_MS:.0f} ms; {100 * agree:.3f} % equal to the published output)"
+            )
+
+
+def time_one(tensors: list[torch.Tensor], k: int, search: int) -> tuple[np.ndarray, float]:
+    """The result and the median time of `refine` (synchronising CUDA so its time counts)."""
+
+    def run() -> torch.Tensor:
+        out = refine(*tensors, k=k, search=search, sigma=1.0, cutoff=1.0)
+        if out.device.type == "cuda":
+            torch.cuda.synchronize()
+        return out
+
+    return run().cpu().numpy(), median_time(run, repeat=21, warmup=2)
+
+
+if __name__ == "__main__":
+    main()
