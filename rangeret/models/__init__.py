@@ -1,0 +1,29 @@
+"""RangeRet networks: the thesis model with its ablations and the released circular-retention model.
+
+`build_model(name, height, width, num_classes, **overrides)` builds one by name (`list_models()`);
+`load_checkpoint(path, ...)` loads a published state_dict or the project's own self-describing
+checkpoint, which `save_checkpoint` writes. Modules map to the thesis: `stem` (REM), `embedding`
+(VEM), `decay`, `position`, `mixing` and `retention` (multi-scale retention), `ffn`, `backbone`
+(RetNet blocks), `head` (Semantic Head), `rangeret` (the whole network), `configs`, `checkpoint`.
+"""
+
+from rangeret.models.checkpoint import (
+    CheckpointError,
+    CheckpointInfo,
+    build_model,
+    load_checkpoint,
+    save_checkpoint,
+)
+from rangeret.models.configs import ModelConfig, list_models
+from rangeret.models.rangeret import RangeRet
+
+__all__ = [
+    "CheckpointError",
+    "CheckpointInfo",
+    "ModelConfig",
+    "RangeRet",
+    "build_model",
+    "list_models",
+    "load_checkpoint",
+    "save_checkpoint",
+]
