@@ -32,7 +32,8 @@ class CommandError(Exception):
         self.details = list(details)
 
 
-def _add_selection(parser: argparse.ArgumentParser, splits: Sequence[str]) -> None:
+def add_selection(parser: argparse.ArgumentParser, splits: Sequence[str]) -> None:
+    """--split or --sequences, exactly one of them."""
     group = parser.add_mutually_exclusive_group(required=True)
     group.add_argument("--split", choices=list(splits), help="an official split of the label configuration")
     group.add_argument(
@@ -60,8 +61,82 @@ def _label_config(args: argparse.Namespace) -> LabelConfig:
         raise CommandError(f"cannot read the label configuration {args.label_config}: {exc}") from exc
 
 
-def _sequences(args: argparse.Namespace, config: LabelConfig) -> list[str]:
+def selected_sequences(args: argparse.Namespace, config: LabelConfig) -> list[str]:
+    """The sequences chosen by --split or --sequences."""
     return resolve_sequences(split=args.split, sequences=args.sequences, config=config)
+
+
+def add_network_options(parser: argparse.ArgumentParser, checkpoint_required: bool = True) -> None:
+    """The options shared by every command that runs a network (predict, serve, the Ray job)."""
+    g = parser.add_argument_group("network")
+    g.add_argument("--model", choices=["rangeret-thesis", "rangeret-cir"],
+                   help="network name; recognised from the checkpoint when omitted")
+    g.add_argument("--checkpoint", type=Path, required=checkpoint_required, metavar="FILE",
+                   help="weights: the project's own checkpoint or a published .pt file")
+    g.add_argument("--height", type=int, help="range image rows (published files: default 64)")
+    g.add_argument("--width", type=int, help="range image columns (published files: default 1024)")
+    g.add_argument("--fov-up", type=float, metavar="DEG", help="upper vertical field of view (default 3)")
+    g.add_argument("--fov-down", type=float, metavar="DEG", help="lower vertical field of view (default -25)")
+    g.add_argument("--batch-size", type=int, default=1, metavar="N", help="scans per network pass (default 1)")
+    g.add_argument("--no-knn", action="store_true", help="take each point's pixel class, without kNN refinement")
+    g.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],
+                   help="auto picks CUDA when present (default)")
+    g.add_argument("--tta-flip", action="store_true", help="test-time augmentation: add the mirrored view")
+    g.add_argument("--tta-shifts", type=int, default=0, metavar="N",
+                   help="test-time augmentation: add N azimuth-rotated views")
+
+
+def spec_from_args(args: argparse.Namespace):
+    """A `PredictorSpec` from the shared network options (checked, not loaded yet)."""
+    from rangeret.inference import KnnSettings, PredictorSpec, TtaSettings
+
+    if args.batch_size < 1:
+        raise CommandError(f"--batch-size must be at least 1, got {args.batch_size}")
+    if args.tta_shifts < 0:
+        raise CommandError(f"--tta-shifts must not be negative, got {args.tta_shifts}")
+    tta = TtaSettings(flip=args.tta_flip, shifts=args.tta_shifts) if (args.tta_flip or args.tta_shifts) else None
+    return PredictorSpec(
+        checkpoint=str(args.checkpoint),
+        model=args.model,
+        height=args.height,
+        width=args.width,
+        fov_up=args.fov_up,
+        fov_down=args.fov_down,
+        device=args.device,
+        knn=None if args.no_knn else KnnSettings(),
+        tta=tta,
+    )
+
+
+def predictor_from_args(args: argparse.Namespace):
+    """A loaded `Predictor` from the shared network options, announced in the log."""
+    predictor = spec_from_args(args).build()
+    info = predictor.describe()
+    log.info(
+        "%s from %s (sha256 %s) at %dx%d on %s",
+        info["model"], info["checkpoint"], (info["checkpoint_sha256"] or "")[:12],
+        predictor.projection_config.height, predictor.projection_config.width, predictor.device,
+    )
+    return predictor
+
+
+def cmd_predict(args: argparse.Namespace) -> int:
+    """Predict every scan of a split or of chosen sequences into a predictions tree."""
+    from rangeret.predict import predict_tree
+
+    sequences = selected_sequences(args, load_label_config(None))
+    predictor = predictor_from_args(args)
+    summary = predict_tree(
+        predictor, args.dataset, sequences, args.out, batch_size=args.batch_size, progress=not args.quiet
+    )
+    print(summary.text())
+    if not summary.ok:
+        raise CommandError(
+            f"{len(summary.failed)} of {summary.total} scans could not be predicted "
+            f"(every other scan was written to {args.out})",
+            [f"{k}: {v}" for k, v in summary.failed.items()],
+        )
+    return 0
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -69,7 +144,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from rangeret.evaluation import evaluate_predictions
 
     config = _label_config(args)
-    sequences = _sequences(args, config)
+    sequences = selected_sequences(args, config)
     report = evaluate_predictions(
         args.dataset, args.predictions, sequences, config=config, progress=not args.quiet
     )
@@ -147,10 +222,17 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     splits = ("train", "valid", "test")
 
+    p = sub.add_parser("predict", parents=[common], help="label every scan of a split or of sequences")
+    p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
+    add_selection(p, splits)
+    p.add_argument("--out", type=Path, required=True, metavar="PRED", help="predictions tree to write")
+    add_network_options(p)
+    p.set_defaults(func=cmd_predict)
+
     p = sub.add_parser("evaluate", parents=[common], help="per-class IoU of predictions against ground truth")
     p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
     p.add_argument("--predictions", type=Path, required=True, metavar="PRED")
-    _add_selection(p, splits)
+    add_selection(p, splits)
     p.add_argument("--json", type=Path, metavar="FILE", help="write the JSON report here")
     p.add_argument("--plots", type=Path, metavar="DIR", help="write confusion.png and iou.png here")
     _add_label_config(p)
@@ -192,7 +274,7 @@ _USER_ERRORS: tuple[type[BaseException], ...] = (
     EvaluationError,
     SubmissionError,
     FileNotFoundError,
-    ValueError,
+    ValueError,  # CheckpointError and the other input errors of the library derive from it
 )
 
 

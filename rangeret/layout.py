@@ -128,8 +128,8 @@ def discover(
 ) -> Discovery:
     """List the scans of `sequences` under `root`, sorted, matched to their labels by name.
 
-    With `with_labels`, a scan without a label file and a label file without a scan are
-    problems. A missing or empty sequence folder is a problem unless `missing_ok` (partial copies).
+    Label files found are always attached; with `with_labels` they are required, and a scan
+    without a label file and a label file without a scan are problems. A missing or empty sequence folder is a problem unless `missing_ok` (partial copies).
     """
     root = Path(root)
     result = Discovery(root=root, sequences=[])
@@ -143,7 +143,7 @@ def discover(
         scans = _stems(vdir, ".bin")
         if not scans and not missing_ok:
             result.problems.append(f"{vdir} holds no .bin scan")
-        labels = _stems(labels_dir(root, seq), ".label") if with_labels else {}
+        labels = _stems(labels_dir(root, seq), ".label")
         if with_labels:
             for stem in sorted(scans.keys() - labels.keys()):
                 result.problems.append(

@@ -1,0 +1,345 @@
+"""From points to raw SemanticKITTI labels: projection, the network, kNN refinement, raw ids.
+
+`Predictor` holds a loaded network and the options of a run. Its stages are separate methods
+(`project`, `network`, `refine`, `to_raw`) so a pipeline can run them on different workers;
+`predict` and `predict_batch` chain them for one process. Output is deterministic: the same
+weights, options and batch size give the same labels everywhere.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from collections import defaultdict
+from collections.abc import Iterator, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from rangeret.knn import refine as knn_refine
+from rangeret.labels import LabelConfig, semantickitti
+from rangeret.models import load_checkpoint
+from rangeret.projection import Projection, ProjectionConfig, project_with
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class KnnSettings:
+    """kNN refinement parameters; the defaults are those the released checkpoints were scored with."""
+
+    k: int = 7
+    search: int = 7
+    sigma: float = 1.0
+    cutoff: float = 1.0
+
+
+@dataclass(frozen=True)
+class TtaSettings:
+    """Test-time augmentation: mirror the range image and/or rotate it in azimuth, average logits."""
+
+    flip: bool = True
+    shifts: int = 0
+
+    def views(self, width: int) -> list[tuple[bool, int]]:
+        """(flipped, column shift) of every view, the identity first."""
+        shifts = [round(i * width / (self.shifts + 1)) for i in range(self.shifts + 1)]
+        return [(f, s) for f in ([False, True] if self.flip else [False]) for s in shifts]
+
+
+@dataclass(frozen=True)
+class PredictorSpec:
+    """Everything needed to build the same `Predictor` in another process (a Ray worker)."""
+
+    checkpoint: str
+    model: str | None = None
+    height: int | None = None
+    width: int | None = None
+    fov_up: float | None = None
+    fov_down: float | None = None
+    device: str = "auto"
+    knn: KnnSettings | None = KnnSettings()
+    tta: TtaSettings | None = None
+
+    def build(self) -> Predictor:
+        """Load the checkpoint and make the predictor."""
+        return Predictor.from_checkpoint(
+            self.checkpoint,
+            model=self.model,
+            height=self.height,
+            width=self.width,
+            fov_up=self.fov_up,
+            fov_down=self.fov_down,
+            device=self.device,
+            knn=self.knn,
+            tta=self.tta,
+        )
+
+
+def select_device(device: str | torch.device = "auto") -> torch.device:
+    """`auto` picks CUDA when torch sees a GPU and the CPU otherwise; `cuda` without one is an error."""
+    if str(device) == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda was asked for but torch sees no CUDA device")
+    return dev
+
+
+@dataclass
+class StageTimes:
+    """Seconds spent in each stage, and how many scans went through it."""
+
+    seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+    scans: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+
+    @contextlib.contextmanager
+    def stage(self, name: str, scans: int = 1) -> Iterator[None]:
+        """Time the body as `scans` scans of stage `name` (safe to use from several threads)."""
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            elapsed = time.perf_counter() - start
+            with self._lock:
+                self.seconds[name] += elapsed
+                self.scans[name] += scans
+
+    def merge(self, other: StageTimes) -> None:
+        """Add another record's times and counts."""
+        for k, v in other.seconds.items():
+            self.seconds[k] += v
+        for k, v in other.scans.items():
+            self.scans[k] += v
+
+    def per_scan_ms(self) -> dict[str, float]:
+        """Mean milliseconds per scan of each stage."""
+        return {k: 1e3 * v / max(self.scans[k], 1) for k, v in self.seconds.items()}
+
+
+@dataclass
+class ScanPrediction:
+    """The result for one scan: raw labels (one per point) and what led to them."""
+
+    labels: np.ndarray
+    classes: np.ndarray
+    probabilities: np.ndarray | None = None
+
+
+class Predictor:
+    """A loaded network plus the projection, refinement and label map of a run."""
+
+    def __init__(
+        self,
+        network: torch.nn.Module,
+        projection: ProjectionConfig,
+        label_config: LabelConfig | None = None,
+        device: str | torch.device = "auto",
+        knn: KnnSettings | None = KnnSettings(),
+        tta: TtaSettings | None = None,
+        checkpoint_sha256: str | None = None,
+    ) -> None:
+        self.device = select_device(device)
+        self.network_module = network.to(self.device).eval()
+        self.projection_config = projection
+        self.label_config = label_config or semantickitti()
+        self.knn = knn
+        self.tta = tta
+        self.checkpoint_sha256 = checkpoint_sha256
+        self.times = StageTimes()
+        self.num_classes = self.label_config.num_classes
+
+    @classmethod
+    def from_checkpoint(
+        cls,
+        path: str | Path,
+        model: str | None = None,
+        height: int | None = None,
+        width: int | None = None,
+        fov_up: float | None = None,
+        fov_down: float | None = None,
+        device: str | torch.device = "auto",
+        knn: KnnSettings | None = KnnSettings(),
+        tta: TtaSettings | None = None,
+    ) -> Predictor:
+        """A predictor for a checkpoint file: the project's own (self-describing) or a published one.
+
+        Published files record no resolution or field of view: they come from the arguments
+        (default 64 x 1024, fov 3 / -25 degrees, the HDL-64E's).
+        """
+        network = load_checkpoint(path, model=model, height=height, width=width)
+        info = network.checkpoint_info
+        projection = projection_for(info, fov_up, fov_down)
+        labels = _label_config_from(info.label_config)
+        return cls(network, projection, labels, device, knn, tta, checkpoint_sha256=info.sha256)
+
+    def describe(self) -> dict:
+        """Plain-data description of the run's settings, for logs and reports."""
+        info = getattr(self.network_module, "checkpoint_info", None)
+        return {
+            "model": getattr(info, "name", type(self.network_module).__name__),
+            "checkpoint": getattr(info, "path", None),
+            "checkpoint_sha256": self.checkpoint_sha256,
+            "projection": self.projection_config.to_dict(),
+            "knn": asdict(self.knn) if self.knn else None,
+            "tta": asdict(self.tta) if self.tta else None,
+            "device": str(self.device),
+        }
+
+    # Stages -------------------------------------------------------------------------------
+
+    def project(self, points: np.ndarray) -> Projection:
+        """Stage 1 (CPU): the scan's range image and every point's pixel."""
+        with self.times.stage("project"):
+            return project_with(points, self.projection_config)
+
+    @torch.inference_mode()
+    def network(self, projections: Sequence[Projection]) -> torch.Tensor:
+        """Stage 2: float32 logits (B, C, H, W) for a batch of projected scans, on the device."""
+        with self.times.stage("network", len(projections)):
+            batch = torch.from_numpy(np.stack([p.image for p in projections])).to(self.device)
+            logits = self._forward(batch) if self.tta is None else self._forward_tta(batch)
+            if self.device.type == "cuda":
+                torch.cuda.synchronize(self.device)
+            return logits
+
+    def refine(self, projection: Projection, logits: torch.Tensor) -> np.ndarray:
+        """Stage 3: per-point training classes from one scan's (C, H, W) logits."""
+        with self.times.stage("refine"):
+            argmax = logits.argmax(dim=0)
+            if self.knn is None:
+                valid = projection.proj_x >= 0
+                classes = np.zeros(projection.num_points, dtype=np.int64)
+                pixels = argmax.cpu().numpy()
+                classes[valid] = pixels[projection.proj_y[valid], projection.proj_x[valid]]
+                return classes
+            device = argmax.device
+            classes = knn_refine(
+                torch.from_numpy(projection.proj_range).to(device),
+                torch.from_numpy(projection.unproj_range).to(device),
+                argmax,
+                torch.from_numpy(projection.proj_x).to(device),
+                torch.from_numpy(projection.proj_y).to(device),
+                k=self.knn.k,
+                search=self.knn.search,
+                sigma=self.knn.sigma,
+                cutoff=self.knn.cutoff,
+                num_classes=self.num_classes,
+            )
+            return classes.cpu().numpy()
+
+    def to_raw(self, classes: np.ndarray) -> np.ndarray:
+        """Stage 4: raw SemanticKITTI ids (uint32) of training classes."""
+        return self.label_config.to_raw(classes)
+
+    def probabilities(self, projection: Projection, logits: torch.Tensor) -> np.ndarray:
+        """(N, C) float32 softmax of each point's pixel; zeros for points without a pixel."""
+        probs = torch.softmax(logits.float(), dim=0).cpu().numpy()
+        out = np.zeros((projection.num_points, probs.shape[0]), dtype=np.float32)
+        valid = projection.proj_x >= 0
+        out[valid] = probs[:, projection.proj_y[valid], projection.proj_x[valid]].T
+        return out
+
+    # Whole scans ---------------------------------------------------------------------------
+
+    def predict(self, points: np.ndarray, with_probabilities: bool = False) -> ScanPrediction:
+        """Raw labels, one per point, for one (N, 4) scan."""
+        return self.predict_batch([points], with_probabilities)[0]
+
+    def predict_batch(
+        self, scans: Sequence[np.ndarray], with_probabilities: bool = False
+    ) -> list[ScanPrediction]:
+        """Raw labels for several scans, run through the network as one batch."""
+        projections = [self.project(p) for p in scans]
+        logits = self.network(projections)
+        return [
+            self.finish(p, out, with_probabilities)
+            for p, out in zip(projections, logits, strict=True)
+        ]
+
+    def finish(
+        self, projection: Projection, logits: torch.Tensor, with_probabilities: bool = False
+    ) -> ScanPrediction:
+        """Refinement and raw ids for one scan whose logits are known."""
+        classes = self.refine(projection, logits)
+        probs = self.probabilities(projection, logits) if with_probabilities else None
+        return ScanPrediction(labels=self.to_raw(classes), classes=classes, probabilities=probs)
+
+    # Internals -----------------------------------------------------------------------------
+
+    def _forward(self, batch: torch.Tensor) -> torch.Tensor:
+        if self.device.type == "cuda":
+            with torch.autocast("cuda", dtype=torch.float16):
+                return self.network_module(batch).float()
+        return self.network_module(batch).float()
+
+    def _forward_tta(self, batch: torch.Tensor) -> torch.Tensor:
+        """Mean logits over mirrored and azimuth-rotated views, each mapped back to the original."""
+        width = batch.shape[-1]
+        total = None
+        views = self.tta.views(width)
+        for flipped, shift in views:
+            view = _transform(batch, flipped, shift, self.projection_config)
+            logits = self._forward(view)
+            if shift:
+                logits = torch.roll(logits, -shift, dims=-1)
+            if flipped:
+                logits = torch.flip(logits, dims=[-1])
+            total = logits if total is None else total + logits
+        return total / len(views)
+
+
+def _transform(batch: torch.Tensor, flipped: bool, shift: int, config: ProjectionConfig) -> torch.Tensor:
+    """A view of normalised range images as if the scene were mirrored (y -> -y) and/or rotated.
+
+    Mirroring flips the columns; rotating by `shift` columns rolls them. The x and y channels are
+    transformed with the scene, so the view looks like a real scan to the network.
+    """
+    if not flipped and not shift:
+        return batch
+    out = batch.clone()
+    mask = (batch != 0).any(dim=1, keepdim=True)
+    means = torch.tensor(config.means, dtype=batch.dtype, device=batch.device)
+    stds = torch.tensor(config.stds, dtype=batch.dtype, device=batch.device)
+    x = batch[:, 1] * stds[1] + means[1]
+    y = batch[:, 2] * stds[2] + means[2]
+    if flipped:
+        y = -y
+        out = torch.flip(out, dims=[-1])
+        x, y, mask = torch.flip(x, dims=[-1]), torch.flip(y, dims=[-1]), torch.flip(mask, dims=[-1])
+    if shift:
+        # Column u holds yaw = -atan2(y, x); moving content right by `shift` columns is a rotation
+        # of the points by -2 pi shift / W about z.
+        angle = -2 * np.pi * shift / batch.shape[-1]
+        cos, sin = float(np.cos(angle)), float(np.sin(angle))
+        x, y = cos * x - sin * y, sin * x + cos * y
+        out = torch.roll(out, shift, dims=-1)
+        x, y, mask = (torch.roll(t, shift, dims=-1) for t in (x, y, mask))
+    out[:, 1] = torch.where(mask[:, 0], (x - means[1]) / stds[1], 0)
+    out[:, 2] = torch.where(mask[:, 0], (y - means[2]) / stds[2], 0)
+    return out
+
+
+def projection_for(info, fov_up: float | None = None, fov_down: float | None = None) -> ProjectionConfig:
+    """The projection a checkpoint's network expects: its stored parameters (the project's own
+    files) or the HDL-64E defaults (published files), at the network's resolution."""
+    stored = dict(info.projection or {})
+    stored.update(height=info.config["height"], width=info.config["width"])
+    if fov_up is not None:
+        stored["fov_up"] = fov_up
+    if fov_down is not None:
+        stored["fov_down"] = fov_down
+    for key in ("means", "stds"):
+        if key in stored:
+            stored[key] = tuple(stored[key])
+    return ProjectionConfig(**stored)
+
+
+def _label_config_from(record: dict | None) -> LabelConfig:
+    """The label configuration stored in a checkpoint, or SemanticKITTI's for published files."""
+    return LabelConfig.from_dict(record) if record else semantickitti()
