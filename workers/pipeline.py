@@ -1,0 +1,273 @@
+"""The streaming prediction pipeline on Ray Data: read + project -> network + kNN -> write.
+
+Scans are grouped into batches on the driver, in the same order and with the same composition as
+`rangeret predict` uses, so both give bit-identical labels. Each batch flows through three stages:
+
+- `read_and_project` (CPU tasks, a fraction of a core each): reads the scans and projects them;
+  a scan that cannot be read travels on as a named failure.
+- `ModelWorker` (an actor pool: one GPU each when the cluster has GPUs, CPU actors otherwise): the
+  network on the batch, then kNN refinement and raw ids on the actor's device.
+- `write_results` (CPU tasks): atomic writes of the label files and, for labelled scans, per-scan
+  confusion matrices, summed per batch.
+
+The driver sums the matrices (reduction by addition) and logs progress. Ray Data restarts dead
+actors and retries their tasks, and re-runs lost tasks on other nodes, so a crash costs no scan;
+every write is atomic, so a retried batch leaves the same files.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import pickle
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from rangeret.inference import PredictorSpec, StageTimes
+from rangeret.io import ScanFormatError, read_labels, read_scan, write_labels
+from rangeret.labels import LabelConfig, semantickitti
+from rangeret.layout import ScanEntry, prediction_path
+from rangeret.metrics import RawLabelEvaluator
+from rangeret.projection import ProjectionConfig, project_with
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PipelineOptions:
+    """How the pipeline runs: batch size, model actors and the CPU share of each stage."""
+
+    batch_size: int = 1
+    actors: int | None = None
+    use_gpu: bool | None = None
+    read_cpus: float = 0.5
+    write_cpus: float = 0.25
+    actor_cpus: float = 1.0
+    progress_interval: float = 10.0
+
+
+@dataclass
+class PipelineResult:
+    """What the pipeline did: scans written, failures by scan, the summed confusion counts."""
+
+    written: int = 0
+    points: int = 0
+    failed: dict[str, str] = field(default_factory=dict)
+    evaluator: RawLabelEvaluator = field(default_factory=RawLabelEvaluator)
+    times: StageTimes = field(default_factory=StageTimes)
+    seconds: float = 0.0
+    actors: int = 0
+    devices: list[str] = field(default_factory=list)
+
+
+def _entry_record(entry: ScanEntry) -> list:
+    return [entry.sequence, entry.name, str(entry.scan_path), str(entry.label_path) if entry.label_path else None]
+
+
+def _entry_from(record: Sequence) -> ScanEntry:
+    seq, name, scan, label = record
+    return ScanEntry(seq, name, Path(scan), Path(label) if label else None)
+
+
+def read_and_project(row: dict, projection: ProjectionConfig) -> dict:
+    """Stage 1: read and project every scan of a batch; unreadable scans become named failures."""
+    times = StageTimes()
+    items = []
+    for record in json.loads(row["entries"]):
+        entry = _entry_from(record)
+        try:
+            with times.stage("read"):
+                points = read_scan(entry.scan_path)
+        except (ScanFormatError, OSError) as exc:
+            items.append((None, str(exc)))
+            continue
+        with times.stage("project"):
+            items.append((project_with(points, projection), None))
+    return {
+        "batch": row["batch"],
+        "entries": row["entries"],
+        "payload": pickle.dumps(items, protocol=pickle.HIGHEST_PROTOCOL),
+        "times": json.dumps([dict(times.seconds), dict(times.scans)]),
+    }
+
+
+class ModelWorker:
+    """Stage 2 (an actor): the network on a batch, then kNN refinement and raw ids."""
+
+    def __init__(self, spec: PredictorSpec, cpus: float) -> None:
+        import torch
+
+        torch.set_num_threads(max(1, int(cpus)))
+        self.predictor = spec.build()
+        self.device = str(self.predictor.device)
+        log.info("model worker %d on %s", os.getpid(), self.device)
+
+    def __call__(self, batch: dict) -> dict:
+        out_payload, out_times, devices = [], [], []
+        for payload in batch["payload"]:
+            items = pickle.loads(payload)
+            self.predictor.times = StageTimes()
+            good = [proj for proj, err in items if err is None]
+            logits = self.predictor.network(good) if good else []
+            done = iter(self.predictor.finish(p, lg) for p, lg in zip(good, logits, strict=True))
+            results = [(None, err) if err is not None else (next(done).labels, None) for _, err in items]
+            out_payload.append(pickle.dumps(results, protocol=pickle.HIGHEST_PROTOCOL))
+            t = self.predictor.times
+            out_times.append(json.dumps([dict(t.seconds), dict(t.scans)]))
+            devices.append(f"{self.device}@{os.getpid()}")
+        return {
+            "batch": batch["batch"],
+            "entries": batch["entries"],
+            "payload": out_payload,
+            "times": [_merge_times(a, b) for a, b in zip(batch["times"], out_times, strict=True)],
+            "worker": devices,
+        }
+
+
+def write_results(row: dict, out: str, label_config: LabelConfig) -> dict:
+    """Stage 3: atomic label writes, and the confusion counts of the batch's labelled scans."""
+    evaluator = RawLabelEvaluator(label_config)
+    times = StageTimes()
+    status = []
+    points = 0
+    for record, (labels, error) in zip(json.loads(row["entries"]), pickle.loads(row["payload"]), strict=True):
+        entry = _entry_from(record)
+        if error is not None:
+            status.append(error)
+            continue
+        try:
+            with times.stage("write"):
+                write_labels(prediction_path(out, entry.sequence, entry.name), labels)
+            if entry.label_path is not None:
+                evaluator.add(labels, read_labels(entry.label_path, num_points=labels.size))
+        except (OSError, ScanFormatError) as exc:
+            status.append(str(exc))
+            continue
+        points += int(labels.size)
+        status.append(None)
+    return {
+        "batch": row["batch"],
+        "entries": row["entries"],
+        "status": json.dumps(status),
+        "points": points,
+        "counts": pickle.dumps(evaluator, protocol=pickle.HIGHEST_PROTOCOL),
+        "times": _merge_times(row["times"], json.dumps([dict(times.seconds), dict(times.scans)])),
+        "worker": row["worker"],
+    }
+
+
+def _merge_times(a: str, b: str) -> str:
+    sa, ca = json.loads(a)
+    sb, cb = json.loads(b)
+    for k, v in sb.items():
+        sa[k] = sa.get(k, 0.0) + v
+    for k, v in cb.items():
+        ca[k] = ca.get(k, 0) + v
+    return json.dumps([sa, ca])
+
+
+def cluster_gpus() -> int:
+    """Number of GPUs the connected Ray cluster offers (0 on CPU-only clusters)."""
+    import ray
+
+    return int(ray.cluster_resources().get("GPU", 0))
+
+
+def run_pipeline(
+    spec: PredictorSpec,
+    projection: ProjectionConfig,
+    entries: Sequence[ScanEntry],
+    out: Path | str,
+    options: PipelineOptions = PipelineOptions(),
+    label_config: LabelConfig | None = None,
+) -> PipelineResult:
+    """Predict `entries` into the tree at `out` on the connected Ray cluster.
+
+    `projection` must be the one `spec`'s predictor uses (`rangeret.inference.projection_for`).
+    """
+    import ray
+    import ray.data
+
+    label_config = label_config or semantickitti()
+    out = str(out)
+    gpus = cluster_gpus()
+    use_gpu = gpus > 0 if options.use_gpu is None else options.use_gpu
+    if use_gpu and not gpus:
+        raise ValueError("GPU actors were asked for but the Ray cluster has no GPU")
+    actors = options.actors or (gpus if use_gpu else 1)
+    result = PipelineResult(actors=actors)
+    if not entries:
+        return result
+
+    batches = [
+        {"batch": i, "entries": json.dumps([_entry_record(e) for e in entries[s : s + options.batch_size]])}
+        for i, s in enumerate(range(0, len(entries), options.batch_size))
+    ]
+    ctx = ray.data.DataContext.get_current()
+    ctx.enable_progress_bars = False
+    ctx.execution_options.preserve_order = False
+
+    actor_resources = {"num_gpus": 1} if use_gpu else {"num_cpus": options.actor_cpus}
+    worker_spec = spec if use_gpu or spec.device != "auto" else _cpu_spec(spec)
+    ds = ray.data.from_items(batches, override_num_blocks=len(batches))
+    ds = ds.map(read_and_project, fn_kwargs={"projection": projection}, num_cpus=options.read_cpus)
+    ds = ds.map_batches(
+        ModelWorker,
+        fn_constructor_kwargs={"spec": worker_spec, "cpus": options.actor_cpus},
+        compute=ray.data.ActorPoolStrategy(size=actors),
+        batch_size=1,
+        **actor_resources,
+    )
+    ds = ds.map(write_results, fn_kwargs={"out": out, "label_config": label_config}, num_cpus=options.write_cpus)
+
+    start = time.perf_counter()
+    last_log = start
+    total = len(entries)
+    seen = 0
+    devices: set[str] = set()
+    for row in ds.iter_rows():
+        for record, error in zip(json.loads(row["entries"]), json.loads(row["status"]), strict=True):
+            seen += 1
+            if error is None:
+                result.written += 1
+            else:
+                result.failed[f"{record[0]}/{record[1]}"] = error
+        result.points += int(row["points"])
+        result.evaluator.merge(pickle.loads(row["counts"]))
+        seconds, scans = json.loads(row["times"])
+        for k, v in seconds.items():
+            result.times.seconds[k] += v
+            result.times.scans[k] += scans[k]
+        devices.add(row["worker"])
+        now = time.perf_counter()
+        if now - last_log >= options.progress_interval or seen == total:
+            rate = seen / (now - start)
+            left = (total - seen) / rate if rate else float("inf")
+            log.info("%d / %d scans done (%d failed), %.2f scans/s, about %.0f s left",
+                     seen, total, len(result.failed), rate, left)
+            last_log = now
+    result.seconds = time.perf_counter() - start
+    result.devices = sorted(devices)
+    return result
+
+
+def _cpu_spec(spec: PredictorSpec) -> PredictorSpec:
+    """The spec pinned to the CPU, for CPU actors on clusters whose nodes may still see GPUs."""
+    from dataclasses import replace
+
+    return replace(spec, device="cpu")
+
+
+def count_labels(entries: Iterable[ScanEntry], out: Path | str, label_config: LabelConfig) -> RawLabelEvaluator:
+    """Confusion counts of scans predicted earlier (skipped on resume), read from their files."""
+    evaluator = RawLabelEvaluator(label_config)
+    for entry in entries:
+        if entry.label_path is None:
+            continue
+        pred = read_labels(prediction_path(out, entry.sequence, entry.name))
+        evaluator.add(pred, read_labels(entry.label_path, num_points=pred.size))
+    return evaluator
+

@@ -1,0 +1,174 @@
+"""`python -m workers.predict_job`: predict a split on a Ray cluster, then report and archive.
+
+    ray job submit --working-dir . -- python -m workers.predict_job --dataset ROOT --split test \\
+        --out PRED --submission submission.zip --checkpoint rangeret-kitti-657.pt
+
+Connects to the cluster in RAY_ADDRESS (set by `ray job submit`), or starts a local Ray when
+none is set. On a multi-node cluster ROOT and PRED must be on storage every node mounts. The job
+writes the predictions tree; for labelled scans the evaluation report (JSON and PNGs); with
+`--submission` the validated archive. Scans already predicted are skipped (resume); the job
+exits non-zero when any scan could not be predicted, naming each one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from rangeret.cli import (
+    CommandError,
+    add_network_options,
+    add_selection,
+    selected_sequences,
+    spec_from_args,
+)
+from rangeret.inference import projection_for
+from rangeret.labels import LabelConfig, load_label_config
+from rangeret.predict import RUN_INFO, PredictSummary, is_complete, list_scans
+from workers.pipeline import PipelineOptions, count_labels, run_pipeline
+
+log = logging.getLogger("workers.predict_job")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Arguments of the job: the dataset selection, outputs, actors and the shared network options."""
+    p = argparse.ArgumentParser(prog="python -m workers.predict_job", description=__doc__.split("\n\n")[0])
+    p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
+    add_selection(p, ("train", "valid", "test"))
+    p.add_argument("--out", type=Path, required=True, metavar="PRED", help="predictions tree to write")
+    p.add_argument("--submission", type=Path, metavar="FILE.zip", help="also write the validated archive")
+    p.add_argument("--allow-partial", action="store_true",
+                   help="archive a dataset without the full test split (for tests only)")
+    p.add_argument("--report", type=Path, metavar="FILE.json",
+                   help="evaluation report of the labelled scans (PNGs beside it)")
+    p.add_argument("--actors", type=int, metavar="N", help="model actors (default: one per GPU, or 1)")
+    p.add_argument("--read-cpus", type=float, default=0.5, help="CPU share of each read + project task")
+    p.add_argument("--actor-cpus", type=float, default=1.0, help="CPUs of each CPU model actor")
+    p.add_argument("-q", "--quiet", action="store_true", help="less logging")
+    add_network_options(p)
+    return p
+
+
+def connect(address: str | None) -> None:
+    """Join the cluster at `address` (or RAY_ADDRESS); start a local Ray when there is none."""
+    import ray
+
+    if ray.is_initialized():
+        return
+    address = address or os.environ.get("RAY_ADDRESS")
+    if address:
+        ray.init(address=address, log_to_driver=True)
+    else:
+        ray.init(include_dashboard=False)
+    res = ray.cluster_resources()
+    log.info("Ray cluster: %d nodes, %g CPUs, %g GPUs", len(ray.nodes()), res.get("CPU", 0), res.get("GPU", 0))
+
+
+def run(args: argparse.Namespace, label_config: LabelConfig | None = None) -> int:
+    """Run the job for parsed arguments; returns the exit code."""
+    from rangeret.models import load_checkpoint
+
+    label_config = label_config or load_label_config(None)
+    spec = spec_from_args(args)
+    if args.actors is not None and args.actors < 1:
+        raise CommandError(f"--actors must be at least 1, got {args.actors}")
+    info = load_checkpoint(spec.checkpoint, model=spec.model, height=spec.height, width=spec.width).checkpoint_info
+    projection = projection_for(info, spec.fov_up, spec.fov_down)
+    sequences = selected_sequences(args, label_config)
+    entries = list_scans(args.dataset, sequences)
+    done = [e for e in entries if is_complete(e, args.out)]
+    pending = [e for e in entries if not is_complete(e, args.out)]
+    log.info("%d scans in %s: %d to predict, %d already done", len(entries), ", ".join(sequences),
+             len(pending), len(done))
+    _write_run_info(args, info, projection, sequences)
+
+    connect(None)
+    options = PipelineOptions(batch_size=args.batch_size, actors=args.actors, read_cpus=args.read_cpus,
+                              actor_cpus=args.actor_cpus, use_gpu=None if args.device == "auto" else args.device == "cuda")
+    result = run_pipeline(spec, projection, pending, args.out, options, label_config)
+    log.info("model actors: %s", ", ".join(result.devices) or "none needed")
+
+    summary = PredictSummary(total=len(entries), written=result.written, skipped=len(done),
+                             points=result.points, seconds=result.seconds, failed=result.failed,
+                             times=result.times)
+    print(summary.text())
+
+    evaluator = result.evaluator
+    evaluator.merge(count_labels(done, args.out, label_config))
+    if evaluator.num_scans and not result.failed:
+        report = evaluator.report(sequences, info.sha256)
+        print(report.table())
+        if args.report:
+            from rangeret.plots import write_plots
+
+            report.write_json(args.report)
+            plots = write_plots(report, args.report.with_name(args.report.stem + "-plots"))
+            print(f"report: {args.report}; plots: {', '.join(map(str, plots))}")
+    elif args.report and not evaluator.num_scans:
+        log.warning("no scan of %s has ground truth: no evaluation report", ", ".join(sequences))
+
+    if result.failed:
+        raise CommandError(
+            f"{len(result.failed)} of {len(entries)} scans could not be predicted "
+            f"(every other scan was written to {args.out})",
+            [f"{k}: {v}" for k, v in result.failed.items()],
+        )
+    if args.submission:
+        from rangeret.submission import write_submission
+
+        check = write_submission(args.out, args.dataset, args.submission, allow_partial=args.allow_partial,
+                                 description=_description(info), config=label_config, progress=not args.quiet)
+        print(check.summary())
+    return 0
+
+
+def _description(info) -> str:
+    return (
+        f"RangeRet ({info.name}) predictions\n"
+        f"checkpoint sha256: {info.sha256}\n"
+        f"written {time.strftime('%Y-%m-%d')} by the rangeret service"
+    )
+
+
+def _write_run_info(args: argparse.Namespace, info, projection, sequences: Sequence[str]) -> None:
+    args.out.mkdir(parents=True, exist_ok=True)
+    record = {
+        "model": info.name,
+        "checkpoint": str(args.checkpoint),
+        "checkpoint_sha256": info.sha256,
+        "projection": projection.to_dict(),
+        "knn": not args.no_knn,
+        "batch_size": args.batch_size,
+        "dataset": str(args.dataset),
+        "sequences": list(sequences),
+        "runner": "workers.predict_job",
+        "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+    (args.out / RUN_INFO).write_text(json.dumps(record, indent=2) + "\n")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point: parse, run, and turn input errors into one-line messages and exit code 1."""
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        return run(args)
+    except CommandError as exc:
+        print(f"predict_job: error: {exc.reason}", file=sys.stderr)
+        for line in exc.details[:30]:
+            print(f"  - {line}", file=sys.stderr)
+        return 1
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"predict_job: error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
