@@ -1,0 +1,125 @@
+"""The Ray pipeline and the single-scan pool on a local Ray: same labels as `rangeret predict`,
+resume, and a model actor killed mid-run."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from workers_helpers import build_tree, kill_actor_when, small_weights, tree_bytes
+
+from rangeret.cli import main as rangeret_main
+from rangeret.inference import PredictorSpec
+from rangeret.io import read_scan
+from workers.predict_job import main as job_main
+
+pytestmark = pytest.mark.slow
+
+NET = ["--checkpoint", "{w}", "--height", "32", "--width", "256", "--device", "cpu"]
+
+
+@pytest.fixture(scope="module")
+def ray_local():
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("workers")
+    return build_tree(folder / "data", labelled=3, unlabelled=2), small_weights(folder)
+
+
+def _net(weights, *extra):
+    return [a.format(w=weights) for a in NET] + list(extra)
+
+
+@pytest.mark.parametrize("batch", ["1", "2"])
+def test_job_equals_rangeret_predict_and_evaluate(ray_local, setup, tmp_path, batch, capsys):
+    data, weights = setup
+    seqs = ["--sequences", "08", "11"]
+    assert rangeret_main(["predict", "-q", "--dataset", str(data), "--out", str(tmp_path / "single"), *seqs,
+                          *_net(weights, "--batch-size", batch)]) == 0
+    code = job_main(["-q", "--dataset", str(data), "--out", str(tmp_path / "ray"), *seqs, "--report",
+                     str(tmp_path / "report.json"), "--actors", "1", "--read-cpus", "0.25",
+                     *_net(weights, "--batch-size", batch)])
+    assert code == 0
+    single, distributed = tree_bytes(tmp_path / "single"), tree_bytes(tmp_path / "ray")
+    assert len(single) == 5 and single == distributed
+    assert rangeret_main(["evaluate", "-q", "--dataset", str(data), "--predictions", str(tmp_path / "ray"),
+                          "--sequences", "08", "--json", str(tmp_path / "eval.json")]) == 0
+    job_report = json.loads((tmp_path / "report.json").read_text())
+    eval_report = json.loads((tmp_path / "eval.json").read_text())
+    assert job_report["confusion"] == eval_report["confusion"]
+    assert job_report["miou"] == eval_report["miou"]
+    assert (tmp_path / "report-plots" / "iou.png").exists()
+    capsys.readouterr()
+
+
+def test_job_resumes_and_names_bad_scans(ray_local, setup, tmp_path, capsys):
+    data, weights = setup
+    args = ["-q", "--dataset", str(data), "--out", str(tmp_path / "p"), "--sequences", "08", "11",
+            "--read-cpus", "0.25", *_net(weights)]
+    assert job_main(args) == 0
+    first = tree_bytes(tmp_path / "p")
+    victim = tmp_path / "p" / "sequences" / "08" / "predictions" / "000001.label"
+    victim.unlink()
+    capsys.readouterr()
+    assert job_main(args) == 0
+    assert "1 written, 4 already done, 0 failed" in capsys.readouterr().out
+    assert tree_bytes(tmp_path / "p") == first
+
+    bad = tmp_path / "bad"
+    build_tree(bad, labelled=2, unlabelled=1)
+    (bad / "sequences" / "11" / "velodyne" / "000002.bin").write_bytes(b"\x00" * 7)
+    code = job_main(["-q", "--dataset", str(bad), "--out", str(tmp_path / "q"), "--sequences", "08", "11",
+                     "--read-cpus", "0.25", *_net(weights)])
+    out = capsys.readouterr()
+    assert code == 1
+    assert "FAILED 11/000002" in out.out and "multiple of 16" in out.out
+    assert "1 of 3 scans could not be predicted" in out.err
+    assert len(tree_bytes(tmp_path / "q")) == 2
+
+
+def test_a_model_actor_killed_mid_run_costs_no_scan(ray_local, tmp_path, setup, capsys):
+    _, weights = setup
+    data = build_tree(tmp_path / "data", labelled=4, unlabelled=6)
+    assert rangeret_main(["predict", "-q", "--dataset", str(data), "--out", str(tmp_path / "single"),
+                          "--sequences", "08", "11", *_net(weights)]) == 0
+    out = tmp_path / "ray"
+    killer = kill_actor_when(lambda: len(list(out.rglob("*.label"))) >= 2)
+    code = job_main(["-q", "--dataset", str(data), "--out", str(out), "--sequences", "08", "11",
+                     "--read-cpus", "0.25", *_net(weights)])
+    killer.join(timeout=5)
+    assert killer.killed, "no model actor was killed: the test did not exercise a crash"
+    assert code == 0
+    assert tree_bytes(out) == tree_bytes(tmp_path / "single")
+    capsys.readouterr()
+
+
+def test_scan_pool_serves_batches_and_survives_a_crash(ray_local, setup):
+    from workers.pool import ScanPool
+
+    data, weights = setup
+    spec = PredictorSpec(checkpoint=str(weights), height=32, width=256, device="cpu")
+    predictor = spec.build()
+    scans = [read_scan(p) for p in sorted(data.rglob("*.bin"))[:2]]
+    pool = ScanPool(spec, actors=1, actor_cpus=1.0)
+    try:
+        assert pool.wait_ready(timeout=120)[0]["model"] == "rangeret-cir"
+        labels = pool.predict(scans)
+        expected = [r.labels for r in predictor.predict_batch(scans)]
+        assert all(np.array_equal(a, b) for a, b in zip(labels, expected, strict=True))
+        raw = pool.predict(scans[:1], knn=False)[0]
+        assert raw.shape == scans[0][:, 0].shape
+        killer = kill_actor_when(lambda: True, class_part="ScanWorker")
+        killer.join(timeout=30)
+        assert killer.killed
+        again = pool.predict(scans[:1])
+        assert np.array_equal(again[0], expected[0])
+        assert pool.health()["ok"]
+    finally:
+        pool.shutdown()

@@ -1,0 +1,167 @@
+"""A long-lived pool of model actors that labels single scans, in batches, for the gateway.
+
+`ScanPool` keeps `actors` Ray actors with the network loaded (one GPU each when asked, CPU
+otherwise) and sends each batch to the least busy one; Ray restarts an actor that dies and
+retries its calls, so a crash costs a delay, not a request. `LocalScanPool` has the same interface
+and runs the network in this process, for a gateway without a cluster.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import threading
+from collections.abc import Sequence
+
+import numpy as np
+
+from rangeret.inference import Predictor, PredictorSpec
+
+log = logging.getLogger(__name__)
+
+
+class ScanWorker:
+    """The state of one model actor: a loaded predictor, with and without kNN refinement."""
+
+    def __init__(self, spec: PredictorSpec, cpus: float = 1.0) -> None:
+        import torch
+
+        torch.set_num_threads(max(1, int(cpus)))
+        self.with_knn = spec.build()
+        knn = self.with_knn.knn
+        self.without_knn = Predictor(
+            self.with_knn.network_module,
+            self.with_knn.projection_config,
+            self.with_knn.label_config,
+            self.with_knn.device,
+            knn=None,
+            tta=self.with_knn.tta,
+            checkpoint_sha256=self.with_knn.checkpoint_sha256,
+        )
+        if knn is None:
+            self.with_knn = self.without_knn
+
+    def info(self) -> dict:
+        """Who this worker is: process, device and model, for health checks."""
+        return {"pid": os.getpid(), **self.with_knn.describe()}
+
+    def predict(self, scans: Sequence[np.ndarray], knn: bool = True) -> list[np.ndarray]:
+        """Raw labels (uint32, one per point) for a batch of (N, 4) scans."""
+        predictor = self.with_knn if knn else self.without_knn
+        return [r.labels for r in predictor.predict_batch(list(scans))]
+
+
+class ScanPool:
+    """Model actors on the connected Ray cluster, serving batches of scans."""
+
+    def __init__(
+        self,
+        spec: PredictorSpec,
+        actors: int | None = None,
+        use_gpu: bool | None = None,
+        actor_cpus: float = 1.0,
+    ) -> None:
+        import ray
+
+        gpus = int(ray.cluster_resources().get("GPU", 0))
+        use_gpu = gpus > 0 if use_gpu is None else use_gpu
+        if use_gpu and not gpus:
+            raise ValueError("GPU actors were asked for but the Ray cluster has no GPU")
+        count = actors or (gpus if use_gpu else 1)
+        resources = {"num_gpus": 1} if use_gpu else {"num_cpus": actor_cpus}
+        remote = ray.remote(max_restarts=-1, max_task_retries=-1, **resources)(ScanWorker)
+        self.actors = [remote.remote(spec, actor_cpus) for _ in range(count)]
+        self._busy = [0] * count
+        self._lock = threading.Lock()
+        self.backend = "ray"
+
+    def wait_ready(self, timeout: float | None = None) -> list[dict]:
+        """Block until every actor has loaded its network; return their descriptions."""
+        import ray
+
+        return ray.get([a.info.remote() for a in self.actors], timeout=timeout)
+
+    def _pick(self) -> int:
+        with self._lock:
+            index = min(range(len(self.actors)), key=self._busy.__getitem__)
+            self._busy[index] += 1
+            return index
+
+    def _release(self, index: int) -> None:
+        with self._lock:
+            self._busy[index] -= 1
+
+    def predict(self, scans: Sequence[np.ndarray], knn: bool = True) -> list[np.ndarray]:
+        """Labels for a batch of scans, computed on the least busy actor (blocking)."""
+        import ray
+
+        index = self._pick()
+        try:
+            return ray.get(self.actors[index].predict.remote(list(scans), knn))
+        finally:
+            self._release(index)
+
+    async def predict_async(self, scans: Sequence[np.ndarray], knn: bool = True) -> list[np.ndarray]:
+        """`predict` for an event loop: awaits the actor without blocking the loop."""
+        index = self._pick()
+        try:
+            return await self.actors[index].predict.remote(list(scans), knn)
+        finally:
+            self._release(index)
+
+    def queue_depth(self) -> int:
+        """Batches sent to the actors and not answered yet."""
+        with self._lock:
+            return sum(self._busy)
+
+    def health(self) -> dict:
+        """Actors and their state, for `/healthz`."""
+        import ray
+
+        try:
+            infos = ray.get([a.info.remote() for a in self.actors], timeout=10)
+            return {"backend": "ray", "ok": True, "actors": infos}
+        except Exception as exc:  # a health check reports, it does not raise
+            return {"backend": "ray", "ok": False, "error": str(exc)}
+
+    def shutdown(self) -> None:
+        """Stop the actors."""
+        import ray
+
+        for actor in self.actors:
+            ray.kill(actor)
+        self.actors = []
+
+
+class LocalScanPool:
+    """The same interface as `ScanPool`, running the network in this process (one batch at a time)."""
+
+    def __init__(self, spec: PredictorSpec) -> None:
+        self.worker = ScanWorker(spec, cpus=float(os.cpu_count() or 1))
+        self._lock = threading.Lock()
+        self._waiting = 0
+        self.backend = "local"
+
+    def wait_ready(self, timeout: float | None = None) -> list[dict]:
+        return [self.worker.info()]
+
+    def predict(self, scans: Sequence[np.ndarray], knn: bool = True) -> list[np.ndarray]:
+        with self._lock:
+            return self.worker.predict(scans, knn)
+
+    async def predict_async(self, scans: Sequence[np.ndarray], knn: bool = True) -> list[np.ndarray]:
+        self._waiting += 1
+        try:
+            return await asyncio.to_thread(self.predict, scans, knn)
+        finally:
+            self._waiting -= 1
+
+    def queue_depth(self) -> int:
+        return self._waiting
+
+    def health(self) -> dict:
+        return {"backend": "local", "ok": True, "actors": [self.worker.info()]}
+
+    def shutdown(self) -> None:
+        """Nothing to stop: the network lives in this process."""
