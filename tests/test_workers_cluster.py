@@ -1,0 +1,74 @@
+"""A two-node cluster on one machine with logical GPUs: one model actor per GPU, and a GPU node
+that leaves mid-job without costing a scan."""
+
+from __future__ import annotations
+
+import pytest
+from workers_helpers import build_tree, small_weights, tree_bytes
+
+from rangeret.cli import main as rangeret_main
+from rangeret.inference import PredictorSpec, projection_for
+from rangeret.layout import discover
+from rangeret.models import load_checkpoint
+from workers.pipeline import PipelineOptions, run_pipeline
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture
+def cluster():
+    ray = pytest.importorskip("ray")
+    from ray.cluster_utils import Cluster
+
+    if ray.is_initialized():
+        ray.shutdown()
+    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+    nodes = [c.add_node(num_cpus=1, num_gpus=1) for _ in range(2)]
+    c.wait_for_nodes()
+    ray.init(address=c.address, log_to_driver=False)
+    yield c, nodes
+    ray.shutdown()
+    c.shutdown()
+
+
+def _job(weights, data, out):
+    spec = PredictorSpec(checkpoint=str(weights), height=32, width=256, device="auto")
+    info = load_checkpoint(weights, height=32, width=256).checkpoint_info
+    entries = discover(data, ["08", "11"]).scans
+    return run_pipeline(spec, projection_for(info), entries, out, PipelineOptions(read_cpus=0.25, write_cpus=0.1))
+
+
+def test_one_model_actor_per_gpu_and_a_node_leaving(cluster, tmp_path):
+    c, nodes = cluster
+    weights = small_weights(tmp_path)
+    data = build_tree(tmp_path / "data", labelled=3, unlabelled=5)
+    assert rangeret_main(["predict", "-q", "--dataset", str(data), "--out", str(tmp_path / "single"),
+                          "--sequences", "08", "11", "--checkpoint", str(weights), "--height", "32",
+                          "--width", "256", "--device", "cpu"]) == 0
+
+    result = _job(weights, data, tmp_path / "a")
+    assert result.actors == 2
+    assert len(result.devices) == 2, result.devices
+    assert not result.failed and result.written == 8
+    assert tree_bytes(tmp_path / "a") == tree_bytes(tmp_path / "single")
+
+    import threading
+    import time
+
+    out = tmp_path / "b"
+    done_at_removal: list[int] = []
+
+    def remove_when_started() -> None:
+        deadline = time.time() + 120
+        while time.time() < deadline and not list(out.rglob("*.label")):
+            time.sleep(0.05)
+        done_at_removal.append(len(list(out.rglob("*.label"))))
+        c.remove_node(nodes[1])
+
+    remover = threading.Thread(target=remove_when_started, daemon=True)
+    remover.start()
+    result = _job(weights, data, out)
+    remover.join(timeout=10)
+    assert done_at_removal and done_at_removal[0] < 8, "the node left after the job, not during it"
+    assert not result.failed and result.written == 8
+    assert tree_bytes(out) == tree_bytes(tmp_path / "single")
