@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import json
 import logging
+import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -91,8 +92,14 @@ def predict_tree(
     out: Path | str,
     batch_size: int = 1,
     progress: bool = True,
+    on_progress: Callable[[int, int, int], None] | None = None,
+    cancel: threading.Event | None = None,
 ) -> PredictSummary:
-    """Write `OUT/sequences/XX/predictions/NNNNNN.label` for every scan of `sequences`."""
+    """Write `OUT/sequences/XX/predictions/NNNNNN.label` for every scan of `sequences`.
+
+    `on_progress(done, failed, total)` is called after every batch; setting `cancel` stops the
+    run after the current batch (files already written stay complete).
+    """
     if batch_size < 1:
         raise ValueError(f"--batch-size must be at least 1, got {batch_size}")
     out = Path(out)
@@ -124,7 +131,7 @@ def predict_tree(
         future = pool.submit(load, next(batches, []))
         while True:
             loaded = future.result()
-            if not loaded:
+            if not loaded or (cancel is not None and cancel.is_set()):
                 break
             future = pool.submit(load, next(batches, []))
             for entry, _, error in loaded:
@@ -146,6 +153,8 @@ def predict_tree(
                     summary.points += proj.num_points
             bar.update(len(loaded))
             bar.set_postfix(failed=len(summary.failed))
+            if on_progress is not None:
+                on_progress(summary.written + len(summary.failed), len(summary.failed), len(pending))
     bar.close()
     summary.seconds = time.perf_counter() - start
     summary.times = _since(predictor.times, before)

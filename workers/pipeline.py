@@ -21,8 +21,9 @@ import json
 import logging
 import os
 import pickle
+import threading
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -183,10 +184,14 @@ def run_pipeline(
     out: Path | str,
     options: PipelineOptions = PipelineOptions(),
     label_config: LabelConfig | None = None,
+    progress: Callable[[int, int, int], None] | None = None,
+    cancel: threading.Event | None = None,
 ) -> PipelineResult:
     """Predict `entries` into the tree at `out` on the connected Ray cluster.
 
     `projection` must be the one `spec`'s predictor uses (`rangeret.inference.projection_for`).
+    `progress(done, failed, total)` is called after every batch; setting `cancel` stops the run
+    after the batch in flight (files already written stay complete).
     """
     import ray
     import ray.data
@@ -229,6 +234,9 @@ def run_pipeline(
     seen = 0
     devices: set[str] = set()
     for row in ds.iter_rows():
+        if cancel is not None and cancel.is_set():
+            log.info("cancelled after %d of %d scans", seen, total)
+            break
         for record, error in zip(json.loads(row["entries"]), json.loads(row["status"]), strict=True):
             seen += 1
             if error is None:
@@ -242,6 +250,8 @@ def run_pipeline(
             result.times.seconds[k] += v
             result.times.scans[k] += scans[k]
         devices.add(row["worker"])
+        if progress is not None:
+            progress(seen, len(result.failed), total)
         now = time.perf_counter()
         if now - last_log >= options.progress_interval or seen == total:
             rate = seen / (now - start)
