@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import pickle
 import threading
@@ -39,14 +40,18 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class PipelineOptions:
-    """How the pipeline runs: batch size, model actors and the CPU share of each stage."""
+    """How the pipeline runs: batch size, model actors and the CPU share of each stage.
+
+    `actor_cpus` of CPU actors defaults to what the readers and writers leave of the largest
+    node, split between the actors; the network runs on ceil(actor_cpus) threads.
+    """
 
     batch_size: int = 1
     actors: int | None = None
     use_gpu: bool | None = None
     read_cpus: float = 0.5
     write_cpus: float = 0.25
-    actor_cpus: float = 1.0
+    actor_cpus: float | None = None
     progress_interval: float = 10.0
 
 
@@ -101,7 +106,7 @@ class ModelWorker:
     def __init__(self, spec: PredictorSpec, cpus: float) -> None:
         import torch
 
-        torch.set_num_threads(max(1, int(cpus)))
+        torch.set_num_threads(max(1, math.ceil(cpus)))
         self.predictor = spec.build()
         self.device = str(self.predictor.device)
         log.info("model worker %d on %s", os.getpid(), self.device)
@@ -215,13 +220,14 @@ def run_pipeline(
     ctx.enable_progress_bars = False
     ctx.execution_options.preserve_order = False
 
-    actor_resources = {"num_gpus": 1} if use_gpu else {"num_cpus": options.actor_cpus}
+    actor_cpus = options.actor_cpus or _default_actor_cpus(actors, options)
+    actor_resources = {"num_gpus": 1} if use_gpu else {"num_cpus": actor_cpus}
     worker_spec = spec if use_gpu or spec.device != "auto" else _cpu_spec(spec)
     ds = ray.data.from_items(batches, override_num_blocks=len(batches))
     ds = ds.map(read_and_project, fn_kwargs={"projection": projection}, num_cpus=options.read_cpus)
     ds = ds.map_batches(
         ModelWorker,
-        fn_constructor_kwargs={"spec": worker_spec, "cpus": options.actor_cpus},
+        fn_constructor_kwargs={"spec": worker_spec, "cpus": actor_cpus},
         compute=ray.data.ActorPoolStrategy(size=actors),
         batch_size=1,
         **actor_resources,
@@ -262,6 +268,15 @@ def run_pipeline(
     result.seconds = time.perf_counter() - start
     result.devices = sorted(devices)
     return result
+
+
+def _default_actor_cpus(actors: int, options: PipelineOptions) -> float:
+    """CPUs per CPU actor: the largest node's CPUs less one reader and one writer, shared out."""
+    import ray
+
+    largest = max((n["Resources"].get("CPU", 0.0) for n in ray.nodes() if n["Alive"]), default=1.0)
+    spare = largest - options.read_cpus - options.write_cpus
+    return max(0.5, round(spare / max(1, actors) * 4) / 4)
 
 
 def _cpu_spec(spec: PredictorSpec) -> PredictorSpec:

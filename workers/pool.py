@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import os
 import threading
 from collections.abc import Sequence
@@ -27,7 +28,7 @@ class ScanWorker:
     def __init__(self, spec: PredictorSpec, cpus: float = 1.0) -> None:
         import torch
 
-        torch.set_num_threads(max(1, int(cpus)))
+        torch.set_num_threads(max(1, math.ceil(cpus)))
         self.with_knn = spec.build()
         knn = self.with_knn.knn
         self.without_knn = Predictor(

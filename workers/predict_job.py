@@ -49,7 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="evaluation report of the labelled scans (PNGs beside it)")
     p.add_argument("--actors", type=int, metavar="N", help="model actors (default: one per GPU, or 1)")
     p.add_argument("--read-cpus", type=float, default=0.5, help="CPU share of each read + project task")
-    p.add_argument("--actor-cpus", type=float, default=1.0, help="CPUs of each CPU model actor")
+    p.add_argument("--actor-cpus", type=float, metavar="N",
+                   help="CPUs of each CPU model actor (default: what readers and writers leave)")
     p.add_argument("-q", "--quiet", action="store_true", help="less logging")
     add_network_options(p)
     return p
