@@ -117,9 +117,13 @@ class ModelWorker:
             items = pickle.loads(payload)
             self.predictor.times = StageTimes()
             good = [proj for proj, err in items if err is None]
-            logits = self.predictor.network(good) if good else []
-            done = iter(self.predictor.finish(p, lg) for p, lg in zip(good, logits, strict=True))
-            results = [(None, err) if err is not None else (next(done).labels, None) for _, err in items]
+            try:
+                logits = self.predictor.network(good) if good else []
+                done = iter([self.predictor.finish(p, lg).labels for p, lg in zip(good, logits, strict=True)])
+                results = [(None, err) if err is not None else (next(done), None) for _, err in items]
+            except RuntimeError as exc:  # e.g. out of device memory: name the scans, keep the job going
+                reason = f"the network failed: {exc}"
+                results = [(None, err or reason) for _, err in items]
             out_payload.append(pickle.dumps(results, protocol=pickle.HIGHEST_PROTOCOL))
             t = self.predictor.times
             out_times.append(json.dumps([dict(t.seconds), dict(t.scans)]))
