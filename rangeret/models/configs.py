@@ -17,7 +17,7 @@ depthwise-convolution FFN and a BatchNorm head. It has 3,761,876 parameters with
 
 The parameter counts do not depend on the resolution; the decay does, through the patch grid.
 
-Override names (DESIGN section 7): `layers`, `heads`, `dim`, `patch_size`, `stride`, `mixer`
+Override names: `layers`, `heads`, `dim`, `patch_size`, `stride`, `mixer`
 ("retention" | "attention"), `decay` ("unidirectional" | "bidirectional" | "manhattan" |
 "exp-manhattan" | "circular"), `rem` ("conv" | "linear") and `residual`. `mixer="retention"` is
 each network's own decay-weighted mixer; `"attention"` is plain softmax attention with no decay,
@@ -125,7 +125,7 @@ class ModelConfig:
         return self.value_factor * self.dim // self.heads
 
     def overrides(self) -> dict[str, Any]:
-        """The switches of DESIGN section 7 as this configuration sets them."""
+        """The override switches as this configuration sets them."""
         return {name: getattr(self, name) for name in OVERRIDES}
 
     def to_dict(self) -> dict[str, Any]:
