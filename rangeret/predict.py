@@ -72,11 +72,15 @@ def is_complete(entry: ScanEntry, out: Path) -> bool:
         return False
 
 
-def list_scans(dataset: Path | str, sequences: Sequence[str]) -> list[ScanEntry]:
-    """The scans of `sequences`, in order; a missing or empty sequence is an error naming it."""
-    found = discover(dataset, sequences)
+def list_scans(dataset: Path | str, sequences: Sequence[str], missing_ok: bool = False) -> list[ScanEntry]:
+    """The scans of `sequences`, in order; a missing or empty sequence is an error naming it
+    unless `missing_ok` (a partial local copy, logged)."""
+    found = discover(dataset, sequences, missing_ok=missing_ok)
     if found.problems:
         raise DatasetLayoutError("; ".join(found.problems))
+    absent = sorted(set(sequences) - set(found.sequences))
+    if absent:
+        log.warning("sequences %s are not in %s: predicting the others", ", ".join(absent), dataset)
     return found.scans
 
 

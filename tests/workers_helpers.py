@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import shutil
 import signal
+import socket
+import subprocess
+import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 from conftest import shared_path
 
@@ -65,4 +70,86 @@ def kill_actor_when(predicate, class_part: str = "ModelWorker", timeout: float =
     return thread
 
 
-__all__ = ["build_tree", "kill_actor_when", "np", "small_weights", "tree_bytes"]
+def free_ports(n: int) -> list[int]:
+    """`n` TCP ports free on the loopback right now."""
+    socks, ports = [], []
+    for _ in range(n):
+        s = socket.socket()
+        s.bind(("127.0.0.1", 0))
+        socks.append(s)
+        ports.append(s.getsockname()[1])
+    for s in socks:
+        s.close()
+    return ports
+
+
+@dataclass
+class RayNode:
+    """A node started with `ray start`: its GCS address, dashboard URL and environment."""
+
+    gcs: str
+    dashboard: str
+    env: dict
+    bindir: Path
+    proc: subprocess.Popen
+
+
+@contextlib.contextmanager
+def ray_node(folder: Path, head: RayNode | None = None, num_cpus: int = 2, num_gpus: int = 0):
+    """`ray start --block` as a head (or, given `head`, a node joining it) with ports and a temp
+    folder of its own, stopped afterwards with its whole process group (never `ray stop`, which
+    would stop every Ray on the machine)."""
+    bindir = Path(sys.executable).parent
+    env = dict(os.environ, PATH=f"{bindir}{os.pathsep}{os.environ['PATH']}", RAY_AUTH_MODE="token")
+    gcs, dash, client, agent, grpc, metrics, nm, om, wmin, runtime_env = free_ports(10)
+    cmd = [
+        str(bindir / "ray"), "start", "--block", "--num-cpus", str(num_cpus), "--num-gpus", str(num_gpus),
+        "--dashboard-agent-listen-port", str(agent), "--dashboard-agent-grpc-port", str(grpc),
+        "--metrics-export-port", str(metrics), "--node-manager-port", str(nm),
+        "--object-manager-port", str(om), "--min-worker-port", str(wmin),
+        "--max-worker-port", str(wmin + 40), "--runtime-env-agent-port", str(runtime_env),
+        "--disable-usage-stats",
+    ]
+    temp = Path(f"/tmp/rr-{os.getpid()}-{gcs}")
+    if head is None:
+        cmd += ["--head", "--port", str(gcs), "--include-dashboard", "true", "--dashboard-host", "127.0.0.1",
+                "--dashboard-port", str(dash), "--ray-client-server-port", str(client), "--temp-dir", str(temp)]
+        node_gcs, dashboard = f"127.0.0.1:{gcs}", f"http://127.0.0.1:{dash}"
+    else:
+        cmd += ["--address", head.gcs]
+        node_gcs, dashboard = head.gcs, head.dashboard
+    log = open(folder / "ray-node.log", "w")  # noqa: SIM115
+    proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    node = RayNode(node_gcs, dashboard, env, bindir, proc)
+    try:
+        _wait_until_up(node, head is None, log.name)
+        yield node
+    finally:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=10)
+        log.close()
+        if head is None:
+            shutil.rmtree(temp, ignore_errors=True)
+
+
+def _wait_until_up(node: RayNode, is_head: bool, log_name: str, timeout: float = 120) -> None:
+    """Wait for a head's job server, or for a joining node to count in the cluster."""
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        if node.proc.poll() is not None:
+            raise RuntimeError(f"ray start exited with {node.proc.returncode}; see {log_name}")
+        if is_head:
+            cmd = [str(node.bindir / "ray"), "job", "list", "--address", node.dashboard]
+            if subprocess.run(cmd, env=node.env, capture_output=True, check=False).returncode == 0:
+                return
+        else:
+            cmd = [str(node.bindir / "ray"), "status", "--address", node.gcs]
+            status = subprocess.run(cmd, env=node.env, capture_output=True, text=True, check=False)
+            if status.stdout.count("node_") >= 2:
+                return
+        time.sleep(1)
+    raise RuntimeError(f"the Ray node did not come up in {timeout:.0f} s; see {log_name}")

@@ -44,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, metavar="PRED", help="predictions tree to write")
     p.add_argument("--submission", type=Path, metavar="FILE.zip", help="also write the validated archive")
     p.add_argument("--allow-partial", action="store_true",
-                   help="archive a dataset without the full test split (for tests only)")
+                   help="accept a dataset with missing sequences or scans, and archive it (for tests only)")
     p.add_argument("--report", type=Path, metavar="FILE.json",
                    help="evaluation report of the labelled scans (PNGs beside it)")
     p.add_argument("--actors", type=int, metavar="N", help="model actors (default: one per GPU, or 1)")
@@ -82,7 +82,7 @@ def run(args: argparse.Namespace, label_config: LabelConfig | None = None) -> in
     info = load_checkpoint(spec.checkpoint, model=spec.model, height=spec.height, width=spec.width).checkpoint_info
     projection = projection_for(info, spec.fov_up, spec.fov_down)
     sequences = selected_sequences(args, label_config)
-    entries = list_scans(args.dataset, sequences)
+    entries = list_scans(args.dataset, sequences, missing_ok=args.allow_partial)
     done = [e for e in entries if is_complete(e, args.out)]
     pending = [e for e in entries if not is_complete(e, args.out)]
     log.info("%d scans in %s: %d to predict, %d already done", len(entries), ", ".join(sequences),

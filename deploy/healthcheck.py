@@ -1,0 +1,40 @@
+"""Container health check: the gateway answers /healthz; on a Ray node the raylet is alive.
+
+The container's role is read from its first process's arguments (the entrypoint's mode).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import urllib.request
+from pathlib import Path
+
+
+def role() -> str:
+    """`gateway`, `ray-head` or `ray-worker`, from the container's command line."""
+    try:
+        args = Path("/proc/1/cmdline").read_bytes().decode().split("\0")
+    except OSError:
+        args = []
+    for mode in ("ray-head", "ray-worker"):
+        if mode in args:
+            return mode
+    return "gateway"
+
+
+def main() -> int:
+    """Exit 0 when the process this container runs is healthy."""
+    if role() == "gateway":
+        port = os.environ.get("RANGERET_PORT", "8000")
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=5) as reply:
+                return 0 if reply.status == 200 else 1
+        except OSError:
+            return 1
+    return subprocess.run(["ray", "health-check"], check=False, capture_output=True).returncode
+
+
+if __name__ == "__main__":
+    sys.exit(main())
