@@ -88,8 +88,11 @@ def test_cluster_launcher_config():
 
 @pytest.mark.slow
 def test_two_nodes_run_a_simulated_split_through_ray_job_submit(tmp_path):
+    """`ray job submit` to a head started with `ray start --head` (token authentication) that a
+    second node joined: predictions, the evaluation report and a valid (partial) archive."""
     data, out, archive = tmp_path / "data", tmp_path / "pred", tmp_path / "submission.zip"
-    simulate_dataset(data, {s: 1 for s in TEST_SEQUENCES[:3]}, labelled=False,
+    report = tmp_path / "report.json"
+    simulate_dataset(data, {"08": 2, **{s: 1 for s in TEST_SEQUENCES[:3]}}, labelled=["08"],
                      sensor=SensorConfig(beams=32, azimuth_steps=512), seed=3)
     weights = small_weights(tmp_path)
     with ray_node(tmp_path, num_cpus=1) as head, ray_node(tmp_path / "..", head=head, num_cpus=2):
@@ -99,11 +102,15 @@ def test_two_nodes_run_a_simulated_split_through_ray_job_submit(tmp_path):
         cmd = [
             str(head.bindir / "ray"), "job", "submit", "--address", head.dashboard, "--working-dir", str(REPO),
             "--runtime-env-json", json.dumps({"excludes": [".venv", ".git", "runs"]}),
-            "--", "python", "-m", "workers.predict_job", "--dataset", str(data), "--split", "test",
+            "--", "python", "-m", "workers.predict_job", "--dataset", str(data),
+            "--sequences", "08", *TEST_SEQUENCES, "--report", str(report),
             "--out", str(out), "--submission", str(archive), "--allow-partial", "--checkpoint", str(weights),
             "--height", "32", "--width", "256", "--read-cpus", "0.25", "--actors", "2", "--actor-cpus", "1",
         ]
         run = subprocess.run(cmd, env=head.env, capture_output=True, text=True, timeout=600, check=False)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    assert "5 written" in run.stdout
     check = validate_submission(archive, data, allow_partial=True)
     assert check.ok and check.scans == 3
+    assert json.loads(report.read_text())["num_scans"] == 2
+    assert len(list(out.rglob("*.label"))) == 5
