@@ -219,18 +219,19 @@ class Predictor:
                 classes[valid] = pixels[projection.proj_y[valid], projection.proj_x[valid]]
                 return classes
             device = argmax.device
-            classes = knn_refine(
-                torch.from_numpy(projection.proj_range).to(device),
-                torch.from_numpy(projection.unproj_range).to(device),
-                argmax,
-                torch.from_numpy(projection.proj_x).to(device),
-                torch.from_numpy(projection.proj_y).to(device),
-                k=self.knn.k,
-                search=self.knn.search,
-                sigma=self.knn.sigma,
-                cutoff=self.knn.cutoff,
-                num_classes=self.num_classes,
-            )
+            with _single_thread_on_cpu(device):
+                classes = knn_refine(
+                    torch.from_numpy(projection.proj_range).to(device),
+                    torch.from_numpy(projection.unproj_range).to(device),
+                    argmax,
+                    torch.from_numpy(projection.proj_x).to(device),
+                    torch.from_numpy(projection.proj_y).to(device),
+                    k=self.knn.k,
+                    search=self.knn.search,
+                    sigma=self.knn.sigma,
+                    cutoff=self.knn.cutoff,
+                    num_classes=self.num_classes,
+                )
             return classes.cpu().numpy()
 
     def to_raw(self, classes: np.ndarray) -> np.ndarray:
@@ -292,6 +293,25 @@ class Predictor:
                 logits = torch.flip(logits, dims=[-1])
             total = logits if total is None else total + logits
         return total / len(views)
+
+
+@contextlib.contextmanager
+def _single_thread_on_cpu(device: torch.device) -> Iterator[None]:
+    """Run the body on one torch thread when on the CPU.
+
+    kNN refinement is many small operations: with several threads, each waits for a time slice
+    whenever the cores are shared (readers beside the model actor), which can make it a hundred
+    times slower; on one thread it costs about 1.5x its best time and never more.
+    """
+    if device.type != "cpu":
+        yield
+        return
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 def _transform(batch: torch.Tensor, flipped: bool, shift: int, config: ProjectionConfig) -> torch.Tensor:
