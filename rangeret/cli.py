@@ -66,13 +66,14 @@ def selected_sequences(args: argparse.Namespace, config: LabelConfig) -> list[st
     return resolve_sequences(split=args.split, sequences=args.sequences, config=config)
 
 
-def add_network_options(parser: argparse.ArgumentParser, checkpoint_required: bool = True) -> None:
+def add_network_options(parser: argparse.ArgumentParser) -> None:
     """The options shared by every command that runs a network (predict, serve, the Ray job)."""
     g = parser.add_argument_group("network")
     g.add_argument("--model", choices=["rangeret-thesis", "rangeret-cir"],
                    help="network name; recognised from the checkpoint when omitted")
-    g.add_argument("--checkpoint", type=Path, required=checkpoint_required, metavar="FILE",
-                   help="weights: the project's own checkpoint or a published .pt file")
+    g.add_argument("--checkpoint", type=Path, metavar="FILE",
+                   help="weights: the project's own checkpoint or a published .pt file "
+                   "(default: the bundled demo weights, trained on simulated scenes only)")
     g.add_argument("--height", type=int, help="range image rows (published files: default 64)")
     g.add_argument("--width", type=int, help="range image columns (published files: default 1024)")
     g.add_argument("--fov-up", type=float, metavar="DEG", help="upper vertical field of view (default 3)")
@@ -88,7 +89,7 @@ def add_network_options(parser: argparse.ArgumentParser, checkpoint_required: bo
 
 def spec_from_args(args: argparse.Namespace):
     """A `PredictorSpec` from the shared network options (checked, not loaded yet)."""
-    from rangeret.inference import KnnSettings, PredictorSpec, TtaSettings
+    from rangeret.inference import KnnSettings, PredictorSpec, TtaSettings, resolve_checkpoint
 
     if args.batch_size < 1:
         raise CommandError(f"--batch-size must be at least 1, got {args.batch_size}")
@@ -96,7 +97,7 @@ def spec_from_args(args: argparse.Namespace):
         raise CommandError(f"--tta-shifts must not be negative, got {args.tta_shifts}")
     tta = TtaSettings(flip=args.tta_flip, shifts=args.tta_shifts) if (args.tta_flip or args.tta_shifts) else None
     return PredictorSpec(
-        checkpoint=str(args.checkpoint),
+        checkpoint=str(resolve_checkpoint(args.checkpoint)),
         model=args.model,
         height=args.height,
         width=args.width,

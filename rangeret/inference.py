@@ -9,6 +9,7 @@ weights, options and batch size give the same labels everywhere.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import logging
 import threading
 import time
@@ -26,6 +27,30 @@ from rangeret.models import load_checkpoint
 from rangeret.projection import Projection, ProjectionConfig, project_with
 
 log = logging.getLogger(__name__)
+
+#: The bundled demo weights: trained on simulated scenes only (see data/DEMO_WEIGHTS.md).
+DEMO_CHECKPOINT = Path(__file__).with_name("data") / "demo-weights.pt"
+DEMO_WARNING = (
+    "using the bundled demo weights, trained on simulated street scenes only: their labels on "
+    "real scans are not meaningful; pass --checkpoint with real weights such as rangeret-kitti-657.pt"
+)
+
+
+def resolve_checkpoint(path: str | Path | None) -> Path:
+    """The checkpoint to load: `path`, or the bundled demo weights (announced loudly) when None."""
+    if path is not None:
+        return Path(path)
+    if not DEMO_CHECKPOINT.exists():
+        raise FileNotFoundError(f"no --checkpoint given and the bundled demo weights {DEMO_CHECKPOINT} are missing")
+    log.warning(DEMO_WARNING)
+    return DEMO_CHECKPOINT
+
+
+def is_demo_checkpoint(sha256: str | None) -> bool:
+    """Whether a checkpoint hash is that of the bundled demo weights."""
+    if not sha256 or not DEMO_CHECKPOINT.exists():
+        return False
+    return hashlib.sha256(DEMO_CHECKPOINT.read_bytes()).hexdigest() == sha256
 
 
 @dataclass(frozen=True)
@@ -185,6 +210,7 @@ class Predictor:
             "model": getattr(info, "name", type(self.network_module).__name__),
             "checkpoint": getattr(info, "path", None),
             "checkpoint_sha256": self.checkpoint_sha256,
+            "demo_weights": is_demo_checkpoint(self.checkpoint_sha256),
             "projection": self.projection_config.to_dict(),
             "knn": asdict(self.knn) if self.knn else None,
             "tta": asdict(self.tta) if self.tta else None,

@@ -82,3 +82,40 @@ def _save(fig, path: Path | str) -> Path:
 
     plt.close(fig)
     return path
+
+
+def plot_range_image(
+    range_image: np.ndarray,
+    ground_truth: np.ndarray | None,
+    prediction: np.ndarray,
+    path: Path | str,
+    config: LabelConfig | None = None,
+    title: str = "",
+) -> Path:
+    """Stacked PNG of one scan's range image, its ground truth and the prediction (training classes,
+    SemanticKITTI colours; empty pixels black)."""
+    plt = _pyplot()
+    config = config or semantickitti()
+    palette = config.class_rgb()
+    panels: list[tuple[str, np.ndarray]] = []
+    rng = np.where(range_image > 0, range_image, np.nan)
+    panels.append(("input range (m)", rng))
+    if ground_truth is not None:
+        panels.append(("ground truth", palette[ground_truth]))
+    panels.append(("prediction", palette[prediction]))
+    h, w = range_image.shape
+    fig, axes = plt.subplots(len(panels), 1, figsize=(min(20, w / 60 + 2), 1.3 * len(panels) * max(1.0, h / 64) + 0.8))
+    for ax, (name, data) in zip(np.atleast_1d(axes), panels, strict=True):
+        if data.ndim == 2:
+            ax.set_facecolor("black")
+            im = ax.imshow(data, cmap="turbo", aspect="auto", interpolation="nearest")
+            fig.colorbar(im, ax=ax, fraction=0.02, pad=0.01)
+        else:
+            ax.imshow(data, aspect="auto", interpolation="nearest")
+        ax.set_title(name, fontsize=9, loc="left")
+        ax.set_xticks([])
+        ax.set_yticks([])
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path)

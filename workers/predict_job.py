@@ -28,7 +28,7 @@ from rangeret.cli import (
     selected_sequences,
     spec_from_args,
 )
-from rangeret.inference import projection_for
+from rangeret.inference import DEMO_WARNING, is_demo_checkpoint, projection_for
 from rangeret.labels import LabelConfig, load_label_config
 from rangeret.predict import RUN_INFO, PredictSummary, is_complete, list_scans
 from workers.pipeline import PipelineOptions, count_labels, run_pipeline
@@ -87,7 +87,8 @@ def run(args: argparse.Namespace, label_config: LabelConfig | None = None) -> in
     pending = [e for e in entries if not is_complete(e, args.out)]
     log.info("%d scans in %s: %d to predict, %d already done", len(entries), ", ".join(sequences),
              len(pending), len(done))
-    _write_run_info(args, info, projection, sequences)
+    demo = is_demo_checkpoint(info.sha256)
+    _write_run_info(args, spec.checkpoint, info, projection, sequences, demo)
 
     connect(None)
     options = PipelineOptions(batch_size=args.batch_size, actors=args.actors, read_cpus=args.read_cpus,
@@ -104,6 +105,8 @@ def run(args: argparse.Namespace, label_config: LabelConfig | None = None) -> in
     evaluator.merge(count_labels(done, args.out, label_config))
     if evaluator.num_scans and not result.failed:
         report = evaluator.report(sequences, info.sha256)
+        if demo:
+            report.notes.append(DEMO_WARNING)
         print(report.table())
         if args.report:
             from rangeret.plots import write_plots
@@ -124,25 +127,31 @@ def run(args: argparse.Namespace, label_config: LabelConfig | None = None) -> in
         from rangeret.submission import write_submission
 
         check = write_submission(args.out, args.dataset, args.submission, allow_partial=args.allow_partial,
-                                 description=_description(info), config=label_config, progress=not args.quiet)
+                                 description=_description(info, demo), config=label_config,
+                                 progress=not args.quiet)
         print(check.summary())
     return 0
 
 
-def _description(info) -> str:
-    return (
-        f"RangeRet ({info.name}) predictions\n"
-        f"checkpoint sha256: {info.sha256}\n"
-        f"written {time.strftime('%Y-%m-%d')} by the rangeret service"
-    )
+def _description(info, demo: bool) -> str:
+    lines = [
+        f"RangeRet ({info.name}) predictions",
+        f"checkpoint sha256: {info.sha256}",
+        f"written {time.strftime('%Y-%m-%d')} by the rangeret service",
+    ]
+    if demo:
+        lines.append(f"NOTE: {DEMO_WARNING}")
+    return "\n".join(lines)
 
 
-def _write_run_info(args: argparse.Namespace, info, projection, sequences: Sequence[str]) -> None:
+def _write_run_info(args: argparse.Namespace, checkpoint: str, info, projection,
+                    sequences: Sequence[str], demo: bool) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     record = {
         "model": info.name,
-        "checkpoint": str(args.checkpoint),
+        "checkpoint": checkpoint,
         "checkpoint_sha256": info.sha256,
+        "demo_weights": demo,
         "projection": projection.to_dict(),
         "knn": not args.no_knn,
         "batch_size": args.batch_size,
