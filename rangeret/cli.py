@@ -205,9 +205,9 @@ def cmd_validate_submission(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Run evaluation and submission end to end on a small simulated example."""
-    from rangeret.demo import run_demo
+    from workers.demo import run_demo
 
-    run_demo(args.out, progress=not args.quiet)
+    run_demo(args.out, checkpoint=args.checkpoint, progress=not args.quiet)
     return 0
 
 
@@ -265,6 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", parents=[common], help="the whole pipeline on a small simulated example")
     p.add_argument("--out", type=Path, metavar="DIR", help="results folder (default: a new one)")
+    p.add_argument("--checkpoint", type=Path, metavar="FILE", help="other weights (default: the bundled demo weights)")
     p.set_defaults(func=cmd_demo)
     return parser
 

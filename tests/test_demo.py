@@ -1,25 +1,36 @@
-"""The example run behind `make demo`: every result it announces exists and is valid."""
+"""`rangeret demo` end to end at a reduced size: every result it announces exists and is valid."""
 
 from __future__ import annotations
 
 import json
 import zipfile
 
-from rangeret.demo import run_demo
+import pytest
+from workers_helpers import small_weights
+
 from rangeret.submission import validate_submission
 
+pytestmark = pytest.mark.slow
 
-def test_demo_writes_report_plots_and_a_valid_partial_archive(tmp_path, capsys):
-    out = run_demo(tmp_path / "demo", progress=False)
+
+def test_demo_end_to_end(tmp_path, capsys):
+    ray = pytest.importorskip("ray")
+    from workers.demo import run_demo
+
+    out = run_demo(tmp_path / "demo", valid_scans=2, test_scans=1, checkpoint=small_weights(tmp_path),
+                   progress=False)
+    assert not ray.is_initialized()
     printed = capsys.readouterr().out
     report = json.loads((out / "report.json").read_text())
-    assert 0.2 < report["miou"] < 0.9 and report["num_scans"] == 8
-    assert report["sequences"] == ["08"]
-    assert (out / "plots" / "iou.png").stat().st_size > 10_000
+    assert report["num_scans"] == 2 and report["sequences"] == ["08"]
+    assert len(report["checkpoint_sha256"]) == 64
+    for name in ("confusion.png", "iou.png", "range-image.png"):
+        png = out / "plots" / name
+        assert png.read_bytes()[:4] == b"\x89PNG" and png.stat().st_size > 5_000
+        assert name in printed
     check = validate_submission(out / "submission.zip", out / "dataset", allow_partial=True)
     assert check.ok and check.scans == 11
     with zipfile.ZipFile(out / "submission.zip") as zf:
         assert "not a real submission" in zf.read("description.txt").decode()
     assert not (out / "dataset" / "sequences" / "11" / "labels").exists()
-    for name in ("report.json", "submission.zip", "confusion.png"):
-        assert name in printed
+    assert "rangeret-kitti-657.pt" in printed

@@ -1,0 +1,116 @@
+"""`rangeret demo`: the whole service on simulated scans, in a few minutes on a laptop.
+
+It simulates a small dataset in the SemanticKITTI layout (a labelled validation sequence 08 and
+short unlabelled test sequences 11 to 21), starts a local Ray, predicts every scan through the
+workers' pipeline with the bundled demo weights, evaluates the validation sequence (table, JSON,
+PNGs), writes and validates a partial submission archive, and renders one range image with its
+ground truth and prediction. The demo weights were trained on simulated scenes only.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from rangeret.evaluation import evaluate_predictions
+from rangeret.inference import (
+    DEMO_CHECKPOINT,
+    DEMO_WARNING,
+    PredictorSpec,
+    projection_for,
+    resolve_checkpoint,
+)
+from rangeret.io import read_labels, read_scan
+from rangeret.labels import semantickitti
+from rangeret.layout import discover, prediction_path
+from rangeret.models import load_checkpoint
+from rangeret.plots import plot_range_image, write_plots
+from rangeret.projection import project_with
+from rangeret.sim import SensorConfig, simulate_dataset
+from rangeret.submission import TEST_SEQUENCES, validate_submission, write_submission
+from workers.pipeline import PipelineOptions, run_pipeline
+
+log = logging.getLogger(__name__)
+
+
+def run_demo(
+    out: Path | str | None = None,
+    valid_scans: int = 8,
+    test_scans: int = 1,
+    checkpoint: Path | str | None = None,
+    progress: bool = True,
+) -> Path:
+    """Run the demo into `out` (default: a new timestamped folder) and return the folder."""
+    import ray
+
+    started = time.perf_counter()
+    out = Path(out) if out else Path(f"rangeret-demo-{time.strftime('%Y%m%d-%H%M%S')}")
+    out.mkdir(parents=True, exist_ok=True)
+    dataset, preds = out / "dataset", out / "predictions"
+    weights = resolve_checkpoint(checkpoint)
+    info = load_checkpoint(weights).checkpoint_info
+    projection = projection_for(info)
+
+    sequences = {"08": valid_scans, **{s: test_scans for s in TEST_SEQUENCES}}
+    n = simulate_dataset(dataset, sequences, labelled=["08"], sensor=SensorConfig(beams=64, azimuth_steps=2048),
+                         seed=2026, progress=progress)
+    log.info("simulated %d scans into %s", n, dataset)
+
+    own_ray = not ray.is_initialized()
+    if own_ray:
+        ray.init(num_cpus=os.cpu_count() or 2, include_dashboard=False, log_to_driver=False)
+    try:
+        spec = PredictorSpec(checkpoint=str(weights), device="auto")
+        entries = discover(dataset, list(sequences)).scans
+        result = run_pipeline(spec, projection, entries, preds, PipelineOptions(read_cpus=0.25, write_cpus=0.1))
+    finally:
+        if own_ray:
+            ray.shutdown()
+    if result.failed:
+        raise RuntimeError(f"the demo could not predict {sorted(result.failed)}")
+
+    report = evaluate_predictions(dataset, preds, ["08"], checkpoint_sha256=info.sha256)
+    if weights.resolve() == DEMO_CHECKPOINT.resolve():
+        report.notes.append(DEMO_WARNING)
+    report.write_json(out / "report.json")
+    plots = write_plots(report, out / "plots")
+    plots.append(_range_image_png(dataset, preds, projection, out / "plots" / "range-image.png"))
+
+    archive = out / "submission.zip"
+    write_submission(preds, dataset, archive, allow_partial=True, progress=progress,
+                     description=f"rangeret demo: simulated scans, demo weights (sha256 {info.sha256}); "
+                     "not a real submission")
+    validate_submission(archive, dataset, allow_partial=True).raise_for_problems()
+
+    print(report.table())
+    print(f"\nDone in {time.perf_counter() - started:.0f} s with {info.name} at "
+          f"{projection.height}x{projection.width} on {', '.join(result.devices)}. Results in {out}/:")
+    print(f"  dataset (simulated, SemanticKITTI layout): {dataset}")
+    print(f"  predictions tree:                         {preds}")
+    print(f"  evaluation report:                        {out / 'report.json'}")
+    for p in plots:
+        print(f"  plot:                                     {p}")
+    print(f"  submission archive (partial, for tests):  {archive}")
+    print(f"\nNote: {DEMO_WARNING}.")
+    print("\nOn real SemanticKITTI data with a published checkpoint:")
+    print("  rangeret predict --dataset ROOT --split valid --out PRED --checkpoint rangeret-kitti-657.pt")
+    print("  rangeret evaluate --dataset ROOT --predictions PRED --split valid --json report.json --plots plots")
+    print("  ray job submit --working-dir . -- python -m workers.predict_job --dataset ROOT --split test \\")
+    print("      --out PRED --submission submission.zip --checkpoint rangeret-kitti-657.pt")
+    print("  rangeret validate-submission submission.zip --dataset ROOT")
+    return out
+
+
+def _range_image_png(dataset: Path, preds: Path, projection, path: Path) -> Path:
+    """The first validation scan's range image, ground truth and prediction as one PNG."""
+    config = semantickitti()
+    entry = discover(dataset, ["08"], with_labels=True).scans[0]
+    proj = project_with(read_scan(entry.scan_path), projection)
+    gt = config.to_class(read_labels(entry.label_path)).astype(np.int64)
+    pred = config.to_class(read_labels(prediction_path(preds, entry.sequence, entry.name))).astype(np.int64)
+    return plot_range_image(proj.proj_range, proj.to_image(gt), proj.to_image(pred), path, config,
+                            title=f"simulated scan {entry.key}")
