@@ -203,6 +203,13 @@ def cmd_validate_submission(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_serve(args: argparse.Namespace) -> int:
+    """Serve the HTTP gateway until interrupted."""
+    from service.server import run_serve
+
+    return run_serve(args)
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """Run evaluation and submission end to end on a small simulated example."""
     from workers.demo import run_demo
@@ -262,6 +269,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_label_config(p)
     p.set_defaults(func=cmd_validate_submission)
+
+    from rangeret.training import add_train_arguments, run_train
+    from service.server import add_serve_arguments
+
+    p = sub.add_parser("serve", parents=[common], help="the HTTP gateway (FastAPI on uvicorn)")
+    add_serve_arguments(p)
+    p.set_defaults(func=cmd_serve)
+
+    p = sub.add_parser("train", parents=[common], help="train a network (in this process or with --ray)")
+    add_train_arguments(p)
+    p.set_defaults(func=run_train)
 
     p = sub.add_parser("demo", parents=[common], help="the whole pipeline on a small simulated example")
     p.add_argument("--out", type=Path, metavar="DIR", help="results folder (default: a new one)")

@@ -114,3 +114,18 @@ def test_two_nodes_run_a_simulated_split_through_ray_job_submit(tmp_path):
     assert check.ok and check.scans == 3
     assert json.loads(report.read_text())["num_scans"] == 2
     assert len(list(out.rglob("*.label"))) == 5
+
+
+def test_gateway_manifest_names_the_serve_command_and_settings():
+    from rangeret.cli import build_parser
+    from service.settings import Settings
+
+    deployment = _docs(DEPLOY / "kuberay" / "gateway.yaml")[0]
+    container = deployment["spec"]["template"]["spec"]["containers"][0]
+    assert container["args"][0] == "gateway"
+    args = build_parser().parse_args(["serve", *container["args"][1:]])
+    assert str(args.checkpoint).startswith("/models/")
+    fields = {f"RANGERET_{name.upper()}" for name in Settings.model_fields}
+    for env in container["env"]:
+        if env["name"].startswith("RANGERET_"):
+            assert env["name"] in fields, env["name"]

@@ -123,3 +123,20 @@ def test_scan_pool_serves_batches_and_survives_a_crash(ray_local, setup):
         assert pool.health()["ok"]
     finally:
         pool.shutdown()
+
+
+def test_a_job_runs_beside_the_gateways_pool_actors(ray_local, setup, tmp_path, capsys):
+    """Regression: CPU model actors were sized from a node's total CPUs, so a job never started
+    while other actors (the gateway's pool) held some of them."""
+    from workers.pool import ScanPool
+
+    data, weights = setup
+    pool = ScanPool(PredictorSpec(checkpoint=str(weights), height=32, width=256, device="cpu"), actors=1)
+    try:
+        pool.wait_ready(timeout=120)
+        code = job_main(["-q", "--dataset", str(data), "--out", str(tmp_path / "p"), "--sequences", "08", "11",
+                         *_net(weights)])
+        assert code == 0 and len(tree_bytes(tmp_path / "p")) == 5
+    finally:
+        pool.shutdown()
+    capsys.readouterr()

@@ -275,12 +275,14 @@ def run_pipeline(
 
 
 def _default_actor_cpus(actors: int, options: PipelineOptions) -> float:
-    """CPUs per CPU actor: the largest node's CPUs less one reader and one writer, shared out."""
+    """CPUs per CPU actor: what one reader and one writer leave of the CPUs free now (other
+    actors, such as the gateway's, may hold some) on the largest node, shared out."""
     import ray
 
     largest = max((n["Resources"].get("CPU", 0.0) for n in ray.nodes() if n["Alive"]), default=1.0)
-    spare = largest - options.read_cpus - options.write_cpus
-    return max(0.5, round(spare / max(1, actors) * 4) / 4)
+    free = min(largest, ray.available_resources().get("CPU", 0.0))
+    spare = free - options.read_cpus - options.write_cpus
+    return max(0.25, int(spare / max(1, actors) * 4) / 4)
 
 
 def _cpu_spec(spec: PredictorSpec) -> PredictorSpec:

@@ -1,0 +1,100 @@
+"""Prometheus metrics of the gateway: requests, latency, scans labelled, batches and queue depth.
+
+Each app has its own registry, so several gateways (tests) in one process do not collide. The
+request middleware labels by route template (`/v1/jobs/{job_id}`), never by raw path, so the
+number of series stays bounded.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client.exposition import CONTENT_TYPE_LATEST
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
+
+
+class GatewayMetrics:
+    """The gateway's counters, histograms and gauges in a registry of their own."""
+
+    content_type = CONTENT_TYPE_LATEST
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        self.requests = Counter(
+            "rangeret_http_requests", "HTTP requests answered, by method, route and status code",
+            ["method", "route", "status"], registry=self.registry,
+        )
+        self.latency = Histogram(
+            "rangeret_http_request_duration_seconds", "Time to answer an HTTP request, by method and route",
+            ["method", "route"], buckets=LATENCY_BUCKETS, registry=self.registry,
+        )
+        self.scans = Counter(
+            "rangeret_scans_labelled", "Scans labelled, by source (single-scan requests or jobs)",
+            ["source"], registry=self.registry,
+        )
+        self.points = Counter(
+            "rangeret_points_labelled", "Points labelled by single-scan requests", registry=self.registry
+        )
+        self.batch_size = Histogram(
+            "rangeret_batch_scans", "Scans per network batch of single-scan requests",
+            buckets=(1, 2, 4, 8, 16, 32, 64), registry=self.registry,
+        )
+        self.batch_latency = Histogram(
+            "rangeret_batch_duration_seconds", "Time the workers took for one batch",
+            buckets=LATENCY_BUCKETS, registry=self.registry,
+        )
+        self.queue_depth = Gauge(
+            "rangeret_queue_depth", "Single-scan requests waiting for or in the workers", registry=self.registry
+        )
+        self.jobs = Gauge("rangeret_jobs", "Jobs known to the gateway, by state", ["state"], registry=self.registry)
+
+    def observe_batch(self, size: int, seconds: float) -> None:
+        """Record one batch sent to the workers."""
+        self.batch_size.observe(size)
+        self.batch_latency.observe(seconds)
+
+    def job_scans(self, count: int) -> None:
+        """Record scans written by jobs."""
+        self.scans.labels(source="job").inc(count)
+
+    def render(self, queue_depth: int, job_counts: dict[str, int]) -> bytes:
+        """The Prometheus text exposition, with the gauges read now."""
+        self.queue_depth.set(queue_depth)
+        for state, count in job_counts.items():
+            self.jobs.labels(state=state).set(count)
+        return generate_latest(self.registry)
+
+
+class MetricsMiddleware:
+    """ASGI middleware counting every HTTP request and timing it, by route template."""
+
+    def __init__(self, app: ASGIApp, metrics: Callable[[], GatewayMetrics | None]) -> None:
+        self.app = app
+        self.metrics = metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        start = time.perf_counter()
+        status = [500]
+
+        async def send_wrapper(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                status[0] = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_wrapper)
+        finally:
+            metrics = self.metrics()
+            if metrics is not None:
+                route = scope.get("route")
+                path = getattr(route, "path", None) or "unmatched"
+                method = scope.get("method", "")
+                metrics.requests.labels(method=method, route=path, status=str(status[0])).inc()
+                metrics.latency.labels(method=method, route=path).observe(time.perf_counter() - start)

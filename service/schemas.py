@@ -1,0 +1,189 @@
+"""Request and response bodies of the HTTP API (DESIGN section 8), with OpenAPI examples."""
+
+from __future__ import annotations
+
+import re
+from datetime import datetime
+from enum import Enum
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+SEQUENCE_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+
+
+class ErrorResponse(BaseModel):
+    """Every error answer: one readable sentence."""
+
+    detail: str = Field(examples=["The scan's size, 17 bytes, is not a multiple of 16 bytes."])
+
+
+class ScanLabels(BaseModel):
+    """The JSON form of a labelled scan (asked for with `Accept: application/json`)."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {"num_points": 4, "labels": [40, 40, 10, 70], "class_counts": {"car": 1, "road": 2, "vegetation": 1}}
+            ]
+        }
+    )
+
+    num_points: int = Field(ge=0, description="points in the scan, and labels in `labels`")
+    labels: list[int] = Field(description="raw SemanticKITTI id of every point, in the scan's point order")
+    class_counts: dict[str, int] = Field(description="points per class name, for the classes present")
+
+
+class DatasetJobRequest(BaseModel):
+    """A job over a dataset already on the server, under one of the configured data roots."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {"dataset": "/data/semantickitti", "split": "valid"},
+                {"dataset": "/data/semantickitti", "sequences": ["08"]},
+            ]
+        },
+    )
+
+    dataset: str = Field(
+        min_length=1,
+        max_length=4096,
+        description="dataset root holding sequences/XX/velodyne; a relative path is taken under the data roots",
+    )
+    split: Literal["train", "valid", "test"] | None = Field(
+        default=None, description="an official split of the label configuration"
+    )
+    sequences: list[str] | None = Field(
+        default=None,
+        min_length=1,
+        max_length=1000,
+        description="sequence folder names, instead of a split",
+        json_schema_extra={"items": {"type": "string", "pattern": SEQUENCE_PATTERN}},
+    )
+
+    @model_validator(mode="after")
+    def _one_selection(self) -> DatasetJobRequest:
+        """Exactly one of `split` and `sequences`, and sequence names that are plain folder names."""
+        if (self.split is None) == (self.sequences is None):
+            raise ValueError("give either 'split' or 'sequences', not both and not neither")
+        for name in self.sequences or ():
+            if not re.fullmatch(SEQUENCE_PATTERN, name):
+                raise ValueError(f"sequence name {name[:64]!r} is not a plain folder name")
+        return self
+
+
+class JobState(str, Enum):
+    """Where a job is in its life."""
+
+    queued = "queued"
+    running = "running"
+    succeeded = "succeeded"
+    failed = "failed"
+    cancelled = "cancelled"
+
+    @property
+    def finished(self) -> bool:
+        """Whether the job will not change any more."""
+        return self in (JobState.succeeded, JobState.failed, JobState.cancelled)
+
+
+class JobCreated(BaseModel):
+    """The answer to a new job: where to follow it."""
+
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"id": "3f2c9a0e5b7d4c1e8f6a2b9d0c4e7f1a", "status_url": "/v1/jobs/3f2c9a0e5b7d4c1e8f6a2b9d0c4e7f1a"}]}
+    )
+
+    id: str
+    status_url: str
+
+
+class JobMetrics(BaseModel):
+    """The headline numbers of a labelled job's evaluation (the full report is at `report_url`)."""
+
+    miou: float = Field(ge=0, le=1)
+    accuracy: float = Field(ge=0, le=1)
+    iou: dict[str, float] = Field(description="IoU (0..1) of each of the 19 evaluated classes, by name")
+
+
+class JobStatus(BaseModel):
+    """A job: its state, progress counts, errors, metrics and where its results are."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "id": "3f2c9a0e5b7d4c1e8f6a2b9d0c4e7f1a",
+                    "state": "succeeded",
+                    "kind": "archive",
+                    "sequences": ["08"],
+                    "total": 3,
+                    "done": 3,
+                    "failed": 0,
+                    "metrics": {"miou": 0.41, "accuracy": 0.87, "iou": {"car": 0.9, "road": 0.95}},
+                    "errors": [],
+                    "reason": None,
+                    "created": "2025-01-01T12:00:00Z",
+                    "started": "2025-01-01T12:00:01Z",
+                    "finished": "2025-01-01T12:00:09Z",
+                    "status_url": "/v1/jobs/3f2c9a0e5b7d4c1e8f6a2b9d0c4e7f1a",
+                    "predictions_url": "/v1/jobs/3f2c9a0e5b7d4c1e8f6a2b9d0c4e7f1a/predictions",
+                    "report_url": "/v1/jobs/3f2c9a0e5b7d4c1e8f6a2b9d0c4e7f1a/report",
+                }
+            ]
+        }
+    )
+
+    id: str
+    state: JobState
+    kind: Literal["archive", "dataset"]
+    sequences: list[str]
+    total: int = Field(ge=0, description="scans in the job")
+    done: int = Field(ge=0, description="scans whose prediction is written")
+    failed: int = Field(ge=0, description="scans that could not be predicted (named in `errors`)")
+    metrics: JobMetrics | None = Field(default=None, description="set when the job's scans had labels")
+    errors: list[str] = Field(default_factory=list, description="failed scans, each with its reason")
+    reason: str | None = Field(default=None, description="why the job failed or was cancelled")
+    created: datetime
+    started: datetime | None = None
+    finished: datetime | None = None
+    status_url: str
+    predictions_url: str
+    report_url: str
+
+
+class JobList(BaseModel):
+    """Every job the gateway knows, newest first."""
+
+    jobs: list[JobStatus]
+
+
+class Health(BaseModel):
+    """The gateway's and its worker backend's state."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "status": "ok",
+                    "backend": "local",
+                    "workers": [{"pid": 4242, "model": "rangeret-cir", "device": "cpu"}],
+                    "queue_depth": 0,
+                    "batch_size": 4,
+                    "batch_wait_ms": 10.0,
+                    "checkpoint_sha256": "9b1d...",
+                }
+            ]
+        }
+    )
+
+    status: Literal["ok", "unavailable"]
+    backend: Literal["local", "ray"]
+    workers: list[dict[str, Any]] = Field(description="one description per model worker")
+    queue_depth: int = Field(ge=0, description="single-scan requests waiting or in the network")
+    batch_size: int
+    batch_wait_ms: float
+    checkpoint_sha256: str | None = None
+    error: str | None = None

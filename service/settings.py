@@ -1,0 +1,125 @@
+"""Gateway settings from the environment (`RANGERET_*`), overridable by `rangeret serve` options.
+
+    RANGERET_API_TOKEN         bearer token every /v1 request must carry (unset: loopback only)
+    RANGERET_DATA_ROOTS        folders, separated by ':' (or a JSON list), that dataset jobs may read
+    RANGERET_STATE_DIR         where job folders and the job database live (default runs/gateway)
+    RANGERET_JOBS_DIR          job folders (default STATE_DIR/jobs)
+    RANGERET_DATABASE          the SQLite job database (default STATE_DIR/jobs.sqlite)
+    RANGERET_RETENTION         seconds (or ISO 8601) a finished job's files are kept (default 1 day)
+    RANGERET_MAX_BODY_BYTES    largest single-scan or JSON request body (default 64 MiB)
+    RANGERET_MAX_POINTS        most points per scan (default 2,000,000)
+    RANGERET_MAX_ARCHIVE_BYTES largest archive upload, and largest extracted total (default 4 GiB)
+    RANGERET_MAX_ARCHIVE_MEMBERS most members per archive (default 100,000)
+    RANGERET_BATCH_SIZE        most single-scan requests per network pass (default 1)
+    RANGERET_BATCH_WAIT_MS     longest a request waits for others to fill its batch (default 10)
+    RANGERET_RAY_ADDRESS       Ray cluster to use ("auto" or host:port); unset: in-process worker
+    RANGERET_ACTORS            model actors on the Ray cluster (default: one per GPU, or 1)
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import os
+from datetime import timedelta
+from pathlib import Path
+from typing import Annotated
+
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+MIB = 1 << 20
+GIB = 1 << 30
+
+
+class Settings(BaseSettings):
+    """Everything the gateway needs besides the network options: address, token, storage, limits."""
+
+    model_config = SettingsConfigDict(env_prefix="RANGERET_", extra="ignore", frozen=True)
+
+    host: str = "127.0.0.1"
+    port: int = Field(default=8000, ge=0, le=65535)
+    api_token: SecretStr | None = None
+    data_roots: Annotated[list[Path], NoDecode] = Field(default_factory=list)
+    state_dir: Path = Path("runs/gateway")
+    jobs_dir: Path | None = None
+    database: Path | None = None
+    retention: timedelta = Field(default=timedelta(days=1), gt=timedelta(0))
+    max_body_bytes: int = Field(default=64 * MIB, gt=0)
+    max_points: int = Field(default=2_000_000, gt=0)
+    max_archive_bytes: int = Field(default=4 * GIB, gt=0)
+    max_archive_members: int = Field(default=100_000, gt=0)
+    batch_size: int = Field(default=1, ge=1)
+    batch_wait_ms: float = Field(default=10.0, ge=0)
+    ray_address: str | None = None
+    actors: int | None = Field(default=None, ge=1)
+
+    @field_validator("data_roots", mode="before")
+    @classmethod
+    def _split_roots(cls, value: object) -> object:
+        """Accept `a:b` (os.pathsep-separated) or a JSON list, as well as a list."""
+        if isinstance(value, str):
+            text = value.strip()
+            if text.startswith("["):
+                return json.loads(text)
+            return [part for part in text.split(os.pathsep) if part.strip()]
+        return value
+
+    @field_validator("retention", mode="before")
+    @classmethod
+    def _seconds(cls, value: object) -> object:
+        """A plain number of seconds, as well as an ISO 8601 duration."""
+        if isinstance(value, str):
+            try:
+                return timedelta(seconds=float(value))
+            except ValueError:
+                return value
+        return value
+
+    @field_validator("api_token", "ray_address", mode="before")
+    @classmethod
+    def _empty_is_unset(cls, value: object) -> object:
+        """An empty variable counts as unset, so `RANGERET_API_TOKEN=` never means an empty token."""
+        if isinstance(value, str) and not value.strip():
+            return None
+        return value
+
+    @field_validator("data_roots", mode="after")
+    @classmethod
+    def _resolved_roots(cls, value: list[Path]) -> list[Path]:
+        """Data roots are compared after resolving links, so keep them resolved."""
+        return [p.expanduser().resolve() for p in value]
+
+    @property
+    def jobs_folder(self) -> Path:
+        """Folder holding one sub-folder per job."""
+        return self.jobs_dir or self.state_dir / "jobs"
+
+    @property
+    def database_path(self) -> Path:
+        """The SQLite file holding the job records."""
+        return self.database or self.state_dir / "jobs.sqlite"
+
+    @property
+    def token(self) -> str | None:
+        """The bearer token in clear, or None when the gateway runs without one."""
+        return self.api_token.get_secret_value() if self.api_token else None
+
+    def address_problem(self) -> str | None:
+        """Why the token rule forbids serving on `host`, or None when it may serve there."""
+        if self.token or is_loopback(self.host):
+            return None
+        return (
+            f"refusing to serve on {self.host} without RANGERET_API_TOKEN: without a token the "
+            "gateway serves only on a loopback address such as 127.0.0.1"
+        )
+
+
+def is_loopback(host: str) -> bool:
+    """Whether `host` is a loopback address (127.0.0.0/8, ::1) or the name localhost."""
+    if host.strip().lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False

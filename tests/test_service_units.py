@@ -1,0 +1,368 @@
+"""Parts of the gateway on their own: archive checks, the request batcher, the job store and
+runner (recovery, cancellation, retention), settings and content negotiation."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import os
+import tarfile
+import threading
+import time
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import make_tree
+
+from rangeret.io import write_labels
+from rangeret.layout import prediction_path
+from rangeret.predict import list_scans
+from rangeret.submission import required_directories
+from service.app import wants_json
+from service.archives import ArchiveError, ArchiveLimits, ArchiveTooLarge, extract_archive
+from service.batching import BackendError, ScanBatcher
+from service.errors import validation_sentence
+from service.jobs import JobManager, JobStore, write_predictions_zip
+from service.schemas import JobState
+from service.settings import Settings, is_loopback
+
+LIMITS = ArchiveLimits(max_bytes=1 << 20, max_members=20, max_points=1000)
+SCAN = np.arange(40, dtype=np.float32).reshape(10, 4).tobytes()
+
+
+# Archives --------------------------------------------------------------------------------------
+
+
+def _zip(tmp_path: Path, members: dict[str, bytes]) -> Path:
+    path = tmp_path / "upload"
+    with zipfile.ZipFile(path, "w") as zf:
+        for name, data in members.items():
+            zf.writestr(name, data)
+    return path
+
+
+def test_archive_with_labels_is_extracted(tmp_path):
+    labels = np.full(10, 40, dtype=np.uint32).tobytes()
+    archive = _zip(tmp_path, {
+        "sequences/": b"", "sequences/08/velodyne/000000.bin": SCAN, "./sequences/08/labels/000000.label": labels,
+        "sequences/11/velodyne/000000.bin": SCAN, "sequences/11/velodyne/000001.bin": SCAN,
+    })
+    found = extract_archive(archive, tmp_path / "data", LIMITS)
+    assert found.sequences == ["08", "11"] and found.labelled == ["08"] and found.scans == 3
+    assert (tmp_path / "data" / "sequences" / "08" / "labels" / "000000.label").read_bytes() == labels
+    assert len(list_scans(found.root, found.sequences)) == 3
+
+
+@pytest.mark.parametrize(
+    ("members", "words"),
+    [
+        ({"sequences/08/velodyne/000000.bin": SCAN, "sequences/08/labels/000001.label": b"\0" * 40}, "no matching scan"),
+        ({"sequences/08/velodyne/000000.bin": SCAN, "sequences/08/labels/000000.label": b"\0" * 36}, "holds 9 labels"),
+        ({"sequences/08/velodyne/000000.bin": SCAN, "sequences/08/velodyne/000001.bin": SCAN,
+          "sequences/08/labels/000000.label": b"\0" * 40}, "not for 1"),
+        ({"sequences\\08\\velodyne\\000000.bin": SCAN}, "escape"),
+        ({"C:/sequences/08/velodyne/000000.bin": SCAN}, "escape"),
+        ({"data/sequences/08/velodyne/000000.bin": SCAN}, "not a sequences"),
+        ({"sequences/08/velodyne/000000.label": SCAN}, "not a sequences"),
+        ({"sequences/08/other/": b""}, "folder outside"),
+        ({"sequences/08/velodyne/000000.bin": SCAN[:-1]}, "multiple of 16"),
+        ({}, "no scan"),
+    ],
+)
+def test_bad_archive_members(tmp_path, members, words):
+    with pytest.raises(ArchiveError, match=words):
+        extract_archive(_zip(tmp_path, members), tmp_path / "data", LIMITS)
+
+
+def test_archive_limits_are_checked_before_writing(tmp_path):
+    many = {f"sequences/08/velodyne/{i:06d}.bin": SCAN for i in range(21)}
+    with pytest.raises(ArchiveTooLarge, match="members"):
+        extract_archive(_zip(tmp_path, many), tmp_path / "a", LIMITS)
+    assert not (tmp_path / "a").exists()
+    big = {"sequences/08/velodyne/000000.bin": b"\0" * 16 * 1001}
+    with pytest.raises(ArchiveTooLarge, match="1,000 points"):
+        extract_archive(_zip(tmp_path, big), tmp_path / "b", LIMITS)
+    total = {f"sequences/08/velodyne/{i:06d}.bin": b"\0" * 16000 for i in range(10)}
+    with pytest.raises(ArchiveTooLarge, match="add up"):
+        extract_archive(_zip(tmp_path, total), tmp_path / "c", ArchiveLimits(100_000, 20, 1000))
+
+
+def test_tar_duplicates_and_special_members_are_refused(tmp_path):
+    def tar(*members: tuple[str, bytes, bytes]) -> Path:
+        path = tmp_path / "upload.tar"
+        with tarfile.open(path, "w") as tf:
+            for name, data, kind in members:
+                info = tarfile.TarInfo(name)
+                info.type, info.size = kind, len(data)
+                tf.addfile(info, io.BytesIO(data))
+        return path
+
+    name = "sequences/08/velodyne/000000.bin"
+    with pytest.raises(ArchiveError, match="more than once"):
+        extract_archive(tar((name, SCAN, tarfile.REGTYPE), (name, SCAN, tarfile.REGTYPE)), tmp_path / "d", LIMITS)
+    with pytest.raises(ArchiveError, match="pipe"):
+        extract_archive(tar((name, b"", tarfile.FIFOTYPE)), tmp_path / "d", LIMITS)
+    with pytest.raises(ArchiveError, match=r"not a \.zip"):
+        extract_archive(_write(tmp_path, b"junk" * 200), tmp_path / "d", LIMITS)
+
+
+def _write(tmp_path: Path, data: bytes) -> Path:
+    path = tmp_path / "junk"
+    path.write_bytes(data)
+    return path
+
+
+# Batching --------------------------------------------------------------------------------------
+
+
+class FakePool:
+    """Labels = the number of points, repeated; records every batch; can be told to fail."""
+
+    def __init__(self, delay: float = 0.05) -> None:
+        self.delay = delay
+        self.batches: list[tuple[int, bool]] = []
+        self.fail = False
+        self.in_flight = 0
+
+    async def predict_async(self, scans, knn=True):
+        self.batches.append((len(scans), knn))
+        self.in_flight += 1
+        try:
+            await asyncio.sleep(self.delay)
+            if self.fail:
+                raise RuntimeError("actor died")
+            return [np.full(len(s), len(s) + (0 if knn else 1000), dtype=np.uint32) for s in scans]
+        finally:
+            self.in_flight -= 1
+
+    def queue_depth(self):
+        return self.in_flight
+
+
+def _scan(n: int) -> np.ndarray:
+    return np.zeros((n, 4), dtype=np.float32)
+
+
+def test_batcher_gathers_concurrent_requests_up_to_the_batch_size():
+    async def run():
+        pool = FakePool()
+        batcher = ScanBatcher(pool, batch_size=4, max_wait=0.05)
+        await batcher.start()
+        try:
+            results = await asyncio.gather(*(batcher.label(_scan(n), knn=n % 2 == 0) for n in range(1, 12)))
+        finally:
+            await batcher.stop()
+        return pool, results
+
+    pool, results = asyncio.run(run())
+    for n, labels in enumerate(results, start=1):
+        assert labels.tolist() == [n + (0 if n % 2 == 0 else 1000)] * n
+    assert all(size <= 4 for size, _ in pool.batches) and sum(s for s, _ in pool.batches) == 11
+    assert max(size for size, _ in pool.batches) > 1 and len(pool.batches) < 11
+
+
+def test_batcher_waits_at_most_max_wait_and_not_at_all_for_batch_size_one():
+    async def one(batch_size: int) -> float:
+        batcher = ScanBatcher(FakePool(delay=0), batch_size=batch_size, max_wait=0.2)
+        await batcher.start()
+        start = time.perf_counter()
+        await batcher.label(_scan(3))
+        elapsed = time.perf_counter() - start
+        await batcher.stop()
+        return elapsed
+
+    assert 0.18 <= asyncio.run(one(4)) < 1.0
+    assert asyncio.run(one(1)) < 0.1
+
+
+def test_batcher_reports_backend_failures_and_keeps_serving():
+    async def run():
+        pool = FakePool(delay=0.01)
+        batcher = ScanBatcher(pool, batch_size=2, max_wait=0.01)
+        await batcher.start()
+        pool.fail = True
+        with pytest.raises(BackendError, match="actor died"):
+            await batcher.label(_scan(2))
+        pool.fail = False
+        labels = await batcher.label(_scan(2))
+        await batcher.stop()
+        return labels
+
+    assert asyncio.run(run()).tolist() == [2, 2]
+
+
+# Jobs ------------------------------------------------------------------------------------------
+
+
+class FakeExecutor:
+    """Writes all-zero predictions of the right length; can block until released."""
+
+    backend = "fake"
+
+    def __init__(self) -> None:
+        self.release = threading.Event()
+        self.release.set()
+        self.started = threading.Event()
+
+    def predict(self, entries, dataset, sequences, out, progress, cancel):
+        self.started.set()
+        self.release.wait(30)
+        for i, entry in enumerate(entries):
+            if cancel.is_set():
+                break
+            n = os.path.getsize(entry.scan_path) // 16
+            write_labels(prediction_path(out, entry.sequence, entry.name), np.zeros(n, dtype=np.uint32))
+            progress(i + 1, 0, len(entries))
+        return {}
+
+
+def _manager(tmp_path: Path, executor=None, retention: float = 3600) -> JobManager:
+    return JobManager(JobStore(tmp_path / "jobs.sqlite"), executor or FakeExecutor(), tmp_path / "jobs", retention)
+
+
+def _wait_state(manager: JobManager, job_id: str, *states: JobState, timeout: float = 30) -> JobState:
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        state = manager.store.get(job_id).state
+        if state in states:
+            return state
+        time.sleep(0.02)
+    raise AssertionError(f"job {job_id} stayed {manager.store.get(job_id).state}")
+
+
+def test_job_runs_to_success_with_predictions_and_report(tmp_path):
+    data = tmp_path / "data"
+    make_tree(data, {"08": [30, 40]})
+    manager = _manager(tmp_path)
+    manager.start()
+    try:
+        job_id, _ = manager.new_job()
+        manager.submit(job_id, "dataset", data, ["08"])
+        assert _wait_state(manager, job_id, JobState.succeeded, JobState.failed) is JobState.succeeded
+    finally:
+        manager.stop()
+    record = manager.store.get(job_id)
+    assert (record.total, record.done, record.failed) == (2, 2, 0)
+    assert Path(record.predictions).is_file() and Path(record.report).is_file()
+    assert set(record.metrics) == {"miou", "accuracy", "iou"}
+
+
+def test_cancel_a_running_job_removes_its_files(tmp_path):
+    data = tmp_path / "data"
+    make_tree(data, {"08": [30, 40]}, labelled=False)
+    executor = FakeExecutor()
+    executor.release.clear()
+    manager = _manager(tmp_path, executor)
+    manager.start()
+    try:
+        job_id, folder = manager.new_job()
+        manager.submit(job_id, "dataset", data, ["08"])
+        assert executor.started.wait(30)
+        assert manager.cancel(job_id).state is JobState.cancelled
+        executor.release.set()
+        deadline = time.time() + 30
+        while folder.exists() and time.time() < deadline:
+            time.sleep(0.02)
+        assert not folder.exists() and manager.store.get(job_id).state is JobState.cancelled
+        assert manager.cancel(job_id).state is JobState.cancelled  # finished: now forgotten
+        assert manager.store.get(job_id) is None and manager.cancel(job_id) is None
+    finally:
+        manager.stop()
+
+
+def test_recovery_after_a_crash(tmp_path):
+    data = tmp_path / "data"
+    make_tree(data, {"08": [30]}, labelled=False)
+    manager = _manager(tmp_path)
+    store = manager.store
+    resumable, gone, tired = manager.new_job()[0], manager.new_job()[0], manager.new_job()[0]
+    for job_id, dataset in ((resumable, data), (gone, tmp_path / "deleted"), (tired, data)):
+        store.create(job_id, "dataset", dataset, ["08"])
+        store.start(job_id)
+    for _ in range(2):
+        store.requeue(tired)
+        store.start(tired)
+    orphan = manager.jobs_dir / ("0" * 32)
+    orphan.mkdir()
+    manager.recover()
+    assert store.get(resumable).state is JobState.queued
+    assert store.get(gone).state is JobState.failed and "no longer exists" in store.get(gone).reason
+    assert store.get(tired).state is JobState.failed and "3 times" in store.get(tired).reason
+    assert not orphan.exists() and manager.job_dir(resumable).exists()
+
+
+def test_retention_removes_old_finished_jobs_only(tmp_path):
+    manager = _manager(tmp_path, retention=60)
+    store = manager.store
+    old, recent, running = manager.new_job()[0], manager.new_job()[0], manager.new_job()[0]
+    for job_id in (old, recent, running):
+        store.create(job_id, "dataset", tmp_path, ["08"])
+        store.start(job_id)
+    store.finish(old, JobState.succeeded)
+    store.finish(recent, JobState.failed, reason="x")
+    assert manager.sweep(now=time.time() + 30) == 0
+    store._execute("UPDATE jobs SET finished = finished - 100 WHERE id = ?", (old,))
+    assert manager.sweep() == 1
+    assert store.get(old) is None and not manager.job_dir(old).exists()
+    assert store.get(recent) is not None and store.get(running).state is JobState.running
+    assert store.counts() == {"queued": 0, "running": 1, "succeeded": 0, "failed": 1, "cancelled": 0}
+
+
+def test_predictions_zip_directory_entries(tmp_path):
+    make_tree(tmp_path / "data", {"08": [5], "11": [6]})
+    pred = tmp_path / "pred"
+    entries = list_scans(tmp_path / "data", ["08", "11"])
+    for entry in entries:
+        write_labels(prediction_path(pred, entry.sequence, entry.name), np.zeros(5, dtype=np.uint32))
+    test_only = [e for e in entries if e.sequence == "11"]
+    write_predictions_zip(pred, test_only, ["11"], tmp_path / "a.zip", "d")
+    write_predictions_zip(pred, entries, ["08", "11"], tmp_path / "b.zip", "d")
+    names_a = zipfile.ZipFile(tmp_path / "a.zip").namelist()
+    names_b = zipfile.ZipFile(tmp_path / "b.zip").namelist()
+    assert [n for n in names_a if n.endswith("/")] == list(required_directories())
+    assert [n for n in names_b if n.endswith("/")] == [
+        "sequences/", "sequences/08/", "sequences/08/predictions/", "sequences/11/", "sequences/11/predictions/"]
+    assert "sequences/08/predictions/000000.label" in names_b and "description.txt" in names_a
+
+
+# Settings, negotiation, messages -------------------------------------------------------------
+
+
+def test_settings_from_the_environment(monkeypatch, tmp_path):
+    monkeypatch.setenv("RANGERET_DATA_ROOTS", f"{tmp_path}{os.pathsep}{tmp_path / 'b'}")
+    monkeypatch.setenv("RANGERET_API_TOKEN", "")
+    monkeypatch.setenv("RANGERET_RETENTION", "90")
+    settings = Settings()
+    assert settings.data_roots == [tmp_path.resolve(), (tmp_path / "b").resolve()]
+    assert settings.token is None and settings.retention.total_seconds() == 90
+    assert settings.address_problem() is None
+    assert "RANGERET_API_TOKEN" in Settings(host="0.0.0.0").address_problem()
+    assert Settings(host="0.0.0.0", api_token="t").address_problem() is None
+    monkeypatch.setenv("RANGERET_DATA_ROOTS", f'["{tmp_path}"]')
+    assert Settings().data_roots == [tmp_path.resolve()]
+    assert is_loopback("127.0.0.2") and is_loopback("::1") and is_loopback("localhost")
+    assert not is_loopback("10.0.0.1") and not is_loopback("example.org")
+
+
+@pytest.mark.parametrize(
+    ("accept", "json"),
+    [
+        (None, False), ("*/*", False), ("application/json", True), ("application/json, */*", True),
+        ("application/octet-stream, application/json", False), ("application/octet-stream;q=0.5, application/json", True),
+        ("application/json;q=0", False), ("text/html", False),
+    ],
+)
+def test_accept_negotiation(accept, json):
+    assert wants_json(accept) is json
+
+
+def test_validation_sentences():
+    errors = [{"loc": ("query", "knn"), "msg": "Input should be a valid boolean"}, {"loc": ("body",), "msg": "x"}]
+    assert validation_sentence(errors) == (
+        "The query parameter 'knn' is invalid: Input should be a valid boolean (and 1 more problem(s))."
+    )
+    assert validation_sentence([{"loc": (), "msg": "Value error, give either 'split' or 'sequences'"}], "body") == (
+        "The request body is invalid: give either 'split' or 'sequences'."
+    )
