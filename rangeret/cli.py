@@ -203,6 +203,23 @@ def cmd_validate_submission(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """Write a simulated dataset in the SemanticKITTI layout."""
+    from rangeret.sim import SensorConfig, simulate_dataset
+
+    counts: dict[str, int] = {}
+    for item in args.sequences:
+        name, _, number = item.partition(":")
+        if not number.isdigit():
+            raise CommandError(f"--sequences takes NAME:SCANS items such as 08:10, got {item!r}")
+        counts[name] = int(number)
+    labelled = [s for s in counts if s not in set(args.unlabelled)]
+    sensor = SensorConfig(beams=args.beams, azimuth_steps=args.azimuth_steps)
+    n = simulate_dataset(args.out, counts, labelled=labelled, sensor=sensor, seed=args.seed, progress=not args.quiet)
+    print(f"{n} simulated scans in {args.out} ({', '.join(labelled) or 'none'} labelled)")
+    return 0
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     """Serve the HTTP gateway until interrupted."""
     from service.server import run_serve
@@ -280,6 +297,15 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("train", parents=[common], help="train a network (in this process or with --ray)")
     add_train_arguments(p)
     p.set_defaults(func=run_train)
+
+    p = sub.add_parser("simulate", parents=[common], help="write a simulated dataset (street scenes)")
+    p.add_argument("--out", type=Path, required=True, metavar="ROOT")
+    p.add_argument("--sequences", nargs="+", required=True, metavar="XX:N", help="sequences and scan counts")
+    p.add_argument("--unlabelled", nargs="*", default=[], metavar="XX", help="sequences written without labels")
+    p.add_argument("--beams", type=int, default=64)
+    p.add_argument("--azimuth-steps", type=int, default=2048)
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser("demo", parents=[common], help="the whole pipeline on a small simulated example")
     p.add_argument("--out", type=Path, metavar="DIR", help="results folder (default: a new one)")
