@@ -1,4 +1,5 @@
-"""`rangeret demo` end to end at a reduced size: every result it announces exists and is valid."""
+"""`rangeret demo` end to end at a reduced size with the bundled demo weights: every result it
+announces exists and is valid."""
 
 from __future__ import annotations
 
@@ -6,7 +7,6 @@ import json
 import zipfile
 
 import pytest
-from workers_helpers import small_weights
 
 from rangeret.submission import validate_submission
 
@@ -17,13 +17,13 @@ def test_demo_end_to_end(tmp_path, capsys):
     ray = pytest.importorskip("ray")
     from workers.demo import run_demo
 
-    out = run_demo(tmp_path / "demo", valid_scans=2, test_scans=1, checkpoint=small_weights(tmp_path),
-                   progress=False)
+    out = run_demo(tmp_path / "demo", valid_scans=2, test_scans=1, progress=False)
     assert not ray.is_initialized()
     printed = capsys.readouterr().out
     report = json.loads((out / "report.json").read_text())
     assert report["num_scans"] == 2 and report["sequences"] == ["08"]
     assert len(report["checkpoint_sha256"]) == 64
+    assert any("simulated street scenes only" in note for note in report["notes"])
     for name in ("confusion.png", "iou.png", "range-image.png"):
         png = out / "plots" / name
         assert png.read_bytes()[:4] == b"\x89PNG" and png.stat().st_size > 5_000
