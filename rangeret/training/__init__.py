@@ -1,0 +1,27 @@
+"""Training RangeRet networks with the thesis's recipe (chapters 3.4 and 4).
+
+- `dataset`: SemanticKITTI scans as range images with per-pixel training classes, seeded per
+  (epoch, scan) so runs and resumes are reproducible.
+- `augment`: the thesis's point augmentations (scale, rotation, shift, flip of x and y).
+- `mixing`: RangeFormer's range-image mixes (RangeMix, RangeUnion, RangePaste, RangeShift).
+- `losses`: class-weighted cross-entropy, Lovász-Softmax, alpha-balanced focal loss, and their sum.
+- `schedule`: AdamW with OneCycle or warm-up + cosine.
+- `trainer`: the loop, validation (range image, points, points + kNN), checkpoints, exact resume,
+  and data-parallel ranks under torch.distributed.
+- `command`: `add_train_arguments` and `run_train`, the `rangeret train` subcommand.
+
+The library never imports Ray: `workers.train_job` runs `Trainer` on Ray Train workers.
+"""
+
+from rangeret.training.command import add_train_arguments, config_from_args, run_train
+from rangeret.training.config import TrainConfig
+from rangeret.training.trainer import Trainer, TrainResult
+
+__all__ = [
+    "TrainConfig",
+    "TrainResult",
+    "Trainer",
+    "add_train_arguments",
+    "config_from_args",
+    "run_train",
+]

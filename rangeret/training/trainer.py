@@ -1,0 +1,637 @@
+"""The training loop: one process, or one rank of a data-parallel group (torch.distributed).
+
+`Trainer(config).fit()` trains a RangeRet network on a SemanticKITTI tree and writes, in
+`config.out`:
+
+- `last.pt` and `best.pt`: the project's self-describing checkpoints (`rangeret.models.
+  save_checkpoint`), loadable with `load_checkpoint(path)` alone. Their metadata records the epoch,
+  the step, the epoch's metrics, the optimiser, schedule and losses, and the whole `TrainConfig`.
+  best.pt is the epoch with the highest point mIoU after kNN on the validation scans (the
+  benchmark's number), or the lowest training loss when there is no validation set.
+- `last.state.pt`: what an exact resume needs beyond the weights: the model, optimiser, scheduler
+  and gradient-scaler states, epoch, step, the running sums of the current epoch and the random
+  states of python, numpy and torch. It is plain data and tensors (loads with weights_only=True).
+- `steps.csv`, `metrics.csv` and `curves.png` (see `logs.py`).
+
+Every epoch ends with validation: the loss, and mIoU / accuracy on the range image (labelled
+pixels), on the points (each point takes its pixel's class) and on the points after kNN refinement
+(`rangeret.knn.refine`), with the official semantics of `rangeret.metrics`.
+
+When torch.distributed is initialised (by Ray Train's TorchTrainer or torchrun) the network is
+wrapped in DistributedDataParallel, each rank trains on its share of every epoch, validation
+confusion matrices are summed across ranks, and rank 0 writes the files. Parameters that take no
+part in the loss (the released network's `g_proj`) are found by one small dry run and DDP is then
+told to expect them (`find_unused_parameters`).
+"""
+
+from __future__ import annotations
+
+import copy
+import io
+import logging
+import os
+import random
+import tempfile
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data import DataLoader
+from tqdm import tqdm
+
+from rangeret.inference import KnnSettings, select_device
+from rangeret.knn import refine
+from rangeret.labels import LabelConfig, load_label_config
+from rangeret.layout import DatasetLayoutError, ScanEntry, discover, resolve_sequences
+from rangeret.metrics import ConfusionMatrix
+from rangeret.models import RangeRet, build_model, save_checkpoint
+from rangeret.projection import ProjectionConfig
+from rangeret.training.config import TrainConfig
+from rangeret.training.dataset import EpochSampler, RangeDataset, collate, steps_per_epoch
+from rangeret.training.logs import CsvLog, plot_curves
+from rangeret.training.losses import SegmentationLoss, class_weights
+from rangeret.training.mixing import MixSettings, rare_classes
+from rangeret.training.schedule import build_optimizer, build_scheduler
+
+log = logging.getLogger("rangeret.training")
+
+LAST = "last.pt"
+BEST = "best.pt"
+STATE = "last.state.pt"
+STEPS_CSV = "steps.csv"
+METRICS_CSV = "metrics.csv"
+CURVES_PNG = "curves.png"
+STATE_FORMAT = "rangeret-train-state"
+STATE_VERSION = 1
+VAL_METRICS = (
+    "val_loss",
+    "val_miou_image",
+    "val_acc_image",
+    "val_miou_points",
+    "val_acc_points",
+    "val_miou_knn",
+    "val_acc_knn",
+)
+
+
+@dataclass(frozen=True)
+class Ranks:
+    """This process's place in a data-parallel group (rank 0 of 1 when running alone), and the
+    device its collectives run on (the GPU under NCCL, the CPU under gloo)."""
+
+    rank: int = 0
+    world_size: int = 1
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+
+    @classmethod
+    def detect(cls, device: torch.device) -> Ranks:
+        """The torch.distributed group's rank and size, when one is initialised."""
+        if dist.is_available() and dist.is_initialized():
+            nccl = dist.get_backend() == "nccl"
+            return cls(dist.get_rank(), dist.get_world_size(), device if nccl else torch.device("cpu"))
+        return cls()
+
+    @property
+    def main(self) -> bool:
+        """True on the rank that writes files and shows progress."""
+        return self.rank == 0
+
+    def sum(self, tensor: torch.Tensor) -> torch.Tensor:
+        """`tensor` summed over all ranks (a new tensor on the input's device)."""
+        if self.world_size == 1:
+            return tensor
+        work = tensor.to(self.device, copy=True)
+        dist.all_reduce(work, op=dist.ReduceOp.SUM)
+        return work.to(tensor.device)
+
+    def barrier(self) -> None:
+        """Wait for every rank."""
+        if self.world_size > 1:
+            ids = [self.device.index] if self.device.type == "cuda" else None
+            dist.barrier(device_ids=ids)
+
+
+@dataclass
+class TrainResult:
+    """What a run did: per-step losses, per-epoch rows, the best epoch and where the files are."""
+
+    out: Path
+    steps: list[dict[str, float]] = field(default_factory=list)
+    epochs: list[dict[str, Any]] = field(default_factory=list)
+    best: dict[str, Any] | None = None
+
+    @property
+    def last_path(self) -> Path:
+        return self.out / LAST
+
+    @property
+    def best_path(self) -> Path:
+        return self.out / BEST
+
+
+def seed_everything(seed: int) -> None:
+    """Seed python's, numpy's and torch's global generators."""
+    random.seed(seed)
+    np.random.seed(seed % (1 << 32))
+    torch.manual_seed(seed)
+
+
+def rng_state() -> dict[str, Any]:
+    """The global random states of python, numpy and torch (and CUDA), as plain data and tensors."""
+    version, internal, gauss = random.getstate()
+    name, keys, pos, has_gauss, cached = np.random.get_state()
+    state: dict[str, Any] = {
+        "python": [version, list(internal), gauss],
+        "numpy": [name, keys.tolist(), int(pos), int(has_gauss), float(cached)],
+        "torch": torch.get_rng_state(),
+    }
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_rng_state(state: Mapping[str, Any]) -> None:
+    """Restore what `rng_state` returned."""
+    version, internal, gauss = state["python"]
+    random.setstate((version, tuple(internal), gauss))
+    name, keys, pos, has_gauss, cached = state["numpy"]
+    np.random.set_state((name, np.asarray(keys, dtype=np.uint32), pos, has_gauss, cached))
+    torch.set_rng_state(state["torch"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def unused_parameters(model: torch.nn.Module) -> list[str]:
+    """Names of parameters that get no gradient from the output (found on a copy, smallest input).
+
+    The input is one patch, so the patch grid is 1 x 1; the copy runs in eval mode so nothing of
+    the original changes, and the generator is a local one so the global random state is kept.
+    """
+    probe = copy.deepcopy(model).eval()
+    config = probe.config
+    size = (1, config.in_channels, config.patch_size[0], config.patch_size[1])
+    device = next(probe.parameters()).device
+    x = torch.randn(size, generator=torch.Generator().manual_seed(0)).to(device)
+    probe(x).float().square().mean().backward()
+    return [name for name, p in probe.named_parameters() if p.requires_grad and p.grad is None]
+
+
+def save_atomic(payload: Any, path: Path) -> None:
+    """torch.save `payload` to `path` through a temporary file and a rename."""
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(buffer.getvalue())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def find_scans(
+    root: Path | str, sequences: Sequence[str] | None, split: str, label_config: LabelConfig
+) -> list[ScanEntry]:
+    """The labelled scans of `sequences` (or of the label configuration's `split`) under `root`.
+
+    Every missing folder, scan or label is reported in one DatasetLayoutError: training never runs
+    on a silent subset.
+    """
+    if sequences is not None and len(sequences) == 0:
+        return []
+    names = (
+        resolve_sequences(sequences=sequences, config=label_config)
+        if sequences is not None
+        else resolve_sequences(split=split, config=label_config)
+    )
+    found = discover(root, names, with_labels=True)
+    if found.problems:
+        hint = "" if sequences is not None else f" (the {split!r} split; choose sequences with --{split.replace('valid', 'val')}-sequences)"
+        raise DatasetLayoutError(
+            f"{len(found.problems)} problem(s) with the {split} data under {root}{hint}: "
+            + "; ".join(found.problems[:5])
+            + (" ..." if len(found.problems) > 5 else "")
+        )
+    return found.scans
+
+
+class Trainer:
+    """Trains one network as `config` says; see the module docstring for what it writes.
+
+    `device` overrides `config.device` (a data-parallel worker passes its own); `on_epoch_end` is
+    called on every rank with each epoch's metrics (Ray Train reports them through it).
+    """
+
+    def __init__(
+        self,
+        config: TrainConfig,
+        *,
+        label_config: LabelConfig | None = None,
+        device: str | torch.device | None = None,
+        on_epoch_end: Callable[[dict[str, Any]], None] | None = None,
+    ) -> None:
+        self.config = config
+        self.out = Path(config.out)
+        self.device = select_device(device if device is not None else config.device)
+        if self.device.type == "cuda" and self.device.index is None:
+            self.device = torch.device("cuda", torch.cuda.current_device())
+        self.ranks = Ranks.detect(self.device)
+        self.on_epoch_end = on_epoch_end
+        self.label_config = label_config or load_label_config(config.label_config)
+        self.projection = ProjectionConfig(config.height, config.width, config.fov_up, config.fov_down)
+        self.num_classes = self.label_config.num_classes
+        self.ignored = [c for c in range(self.num_classes) if self.label_config.ignored[c]]
+        self.knn = KnnSettings()
+
+        state_path = self.out / STATE
+        if config.resume and not state_path.exists():
+            raise FileNotFoundError(f"cannot resume: {state_path} does not exist")
+        if not config.resume and state_path.exists():
+            raise ValueError(
+                f"{self.out} already holds a training run ({STATE}): resume it or choose another folder"
+            )
+
+        seed_everything(config.seed)
+        train_scans = find_scans(config.dataset, config.train_sequences, "train", self.label_config)
+        val_scans = find_scans(config.dataset, config.val_sequences, "valid", self.label_config)
+        if not train_scans:
+            raise DatasetLayoutError(f"no labelled training scan under {config.dataset}")
+        self.frequencies = self._frequencies(train_scans)
+        mixing = None
+        if config.mixes:
+            paste = rare_classes(self.frequencies, self.label_config.ignored)
+            mixing = MixSettings(tuple(config.mixes), config.mix_probability, paste)
+        common = {"projection": self.projection, "label_config": self.label_config, "seed": config.seed}
+        self.train_set = RangeDataset(train_scans, augment=config.augment, mixing=mixing, **common)
+        self.val_set = RangeDataset(val_scans, with_points=True, **common)
+
+        self.model: RangeRet = build_model(
+            config.model, config.height, config.width, self.num_classes, **config.overrides
+        ).to(self.device)
+        weights = class_weights(self.frequencies, self.label_config.ignored, config.class_weighting)
+        self.criterion = SegmentationLoss(config.losses, weights, config.focal_gamma).to(self.device)
+        self.optimizer = build_optimizer(self.model.parameters(), config.lr, config.weight_decay)
+        self.steps_per_epoch = steps_per_epoch(len(self.train_set), config.batch_size, self.ranks.world_size)
+        planned = config.epochs * self.steps_per_epoch
+        self.total_steps = min(planned, config.max_steps) if config.max_steps else planned
+        self.num_epochs = -(-self.total_steps // self.steps_per_epoch)
+        self.scheduler = build_scheduler(
+            self.optimizer, config.schedule, self.total_steps, config.max_lr, config.warmup
+        )
+        self.amp = config.amp and self.device.type == "cuda"
+        self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp)
+
+        self.step = 0
+        self.best: dict[str, Any] | None = None
+        self._reset_epoch_totals()
+        if config.resume:
+            self._load_state(state_path)
+
+        self.network: torch.nn.Module = self.model
+        if self.ranks.world_size > 1:
+            unused = unused_parameters(self.model)
+            if unused:
+                log.info("%d parameters take no part in the loss (%s, ...): DDP will expect them",
+                         len(unused), unused[0])
+            self.network = DistributedDataParallel(
+                self.model,
+                device_ids=[self.device.index] if self.device.type == "cuda" else None,
+                find_unused_parameters=bool(unused),
+            )
+        self.loss_names = ("loss", *self.criterion.losses)
+        self.steps_log = CsvLog(self.out / STEPS_CSV, ["step", "epoch", *self.loss_names, "lr"])
+        self.metrics_log = CsvLog(
+            self.out / METRICS_CSV,
+            ["epoch", "step", "lr", "seconds", "train_loss",
+             *(f"train_{n}" for n in self.criterion.losses), "train_miou_image", *VAL_METRICS],
+        )
+        self._pending_steps: list[dict[str, float]] = []
+        self._pending_epochs: list[dict[str, Any]] = []
+        self.result = TrainResult(self.out)
+
+    # Setup ---------------------------------------------------------------------------------
+
+    def _frequencies(self, scans: Sequence[ScanEntry]) -> np.ndarray:
+        """Shares of points per class: the label configuration's, or counted over the training
+        labels when the configuration has none (data from another sensor)."""
+        freq = self.label_config.class_frequencies()
+        evaluated = [c for c in range(self.num_classes) if c not in self.ignored]
+        if freq[evaluated].sum() > 0:
+            return freq
+        log.info("the label configuration has no class frequencies: counting the training labels")
+        counts = RangeDataset(scans, self.projection, self.label_config).class_counts()
+        return counts / max(counts.sum(), 1)
+
+    def _reset_epoch_totals(self) -> None:
+        self.epoch_loss = torch.zeros(1 + len(self.criterion.losses), dtype=torch.float64)
+        self.epoch_batches = 0
+        self.epoch_confusion = torch.zeros(self.num_classes * self.num_classes, dtype=torch.int64)
+        self.epoch_started = time.perf_counter()
+        self.epoch_seconds = 0.0
+
+    # Training ------------------------------------------------------------------------------
+
+    def fit(self, until_step: int | None = None) -> TrainResult:
+        """Train until the planned number of steps (or `until_step`, saving the state there)."""
+        if self.ranks.main:
+            self.out.mkdir(parents=True, exist_ok=True)
+            keep = self.step if self.config.resume else None
+            self.steps_log.start(keep)
+            self.metrics_log.start(keep)
+        self.ranks.barrier()
+        stop = self.total_steps if until_step is None else min(until_step, self.total_steps)
+        log.info(
+            "%s at %dx%d: %d training and %d validation scans, %d steps per epoch, %d steps "
+            "(%d epochs) on %s x %d%s",
+            self.config.model, self.config.height, self.config.width, len(self.train_set),
+            len(self.val_set), self.steps_per_epoch, self.total_steps, self.num_epochs,
+            self.device, self.ranks.world_size, f", resumed at step {self.step}" if self.step else "",
+        )
+        while self.step < stop:
+            epoch = self.step // self.steps_per_epoch
+            epoch_end = min((epoch + 1) * self.steps_per_epoch, self.total_steps)
+            self._train_epoch(epoch, min(epoch_end, stop))
+            if self.step == epoch_end:
+                self._end_epoch(epoch)
+            else:
+                self._save(epoch, complete=False, metrics=None)
+        return self.result
+
+    def _train_epoch(self, epoch: int, stop: int) -> None:
+        """Steps of `epoch` from the current step up to step `stop`."""
+        offset = self.step - epoch * self.steps_per_epoch
+        sampler = EpochSampler(
+            len(self.train_set), epoch, self.config.seed, batch_size=self.config.batch_size,
+            rank=self.ranks.rank, world_size=self.ranks.world_size, start=offset,
+        )
+        loader = self._loader(self.train_set, sampler)
+        span = min(self.total_steps, (epoch + 1) * self.steps_per_epoch) - epoch * self.steps_per_epoch
+        bar = tqdm(total=span, initial=offset, desc=f"epoch {epoch + 1}/{self.num_epochs}",
+                   unit="step", disable=not (self.config.progress and self.ranks.main), leave=False)
+        self.epoch_started = time.perf_counter()
+        try:
+            for batch in loader:
+                if self.step >= stop:
+                    break
+                lr = self.optimizer.param_groups[0]["lr"]
+                values = self.train_step(batch)
+                row = {"step": self.step, "epoch": epoch + 1, "lr": lr,
+                       **dict(zip(self.loss_names, values, strict=True))}
+                self._pending_steps.append(row)
+                self.result.steps.append(row)
+                bar.update(1)
+                bar.set_postfix(loss=f"{values[0]:.4f}", lr=f"{lr:.2e}")
+                if self.config.checkpoint_every and self.step % self.config.checkpoint_every == 0 and self.step < stop:
+                    self._save(epoch, complete=False, metrics=None)
+        finally:
+            bar.close()
+        self.epoch_seconds += time.perf_counter() - self.epoch_started
+
+    def train_step(self, batch: Mapping[str, Any]) -> list[float]:
+        """One optimiser step on a batch; returns [total loss, *terms] averaged over ranks."""
+        self.network.train()
+        images = batch["image"].to(self.device, non_blocking=True)
+        labels = batch["label"].to(self.device, non_blocking=True)
+        with torch.autocast(self.device.type, dtype=torch.float16, enabled=self.amp):
+            logits = self.network(images)
+        loss, terms = self.criterion(logits, labels)
+        self.optimizer.zero_grad(set_to_none=True)
+        self.scaler.scale(loss).backward()
+        if self.config.clip_grad > 0:
+            self.scaler.unscale_(self.optimizer)
+            torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.clip_grad)
+        self.scaler.step(self.optimizer)
+        self.scaler.update()
+        self.scheduler.step()
+        self.step += 1
+        with torch.no_grad():
+            pred = logits.detach().argmax(dim=1)
+            cells = (pred * self.num_classes + labels).reshape(-1)
+            self.epoch_confusion += torch.bincount(cells, minlength=self.num_classes**2).cpu()
+            values = torch.stack([loss.detach(), *(t.detach() for t in terms.values())]).double()
+            values = self.ranks.sum(values) / self.ranks.world_size
+        self.epoch_loss += values.cpu()
+        self.epoch_batches += 1
+        return values.tolist()
+
+    def _loader(self, dataset: RangeDataset, sampler: EpochSampler) -> DataLoader:
+        """Batches of `sampler`'s keys. The loader's own generator (it seeds its worker processes)
+        is a local one, so creating a loader leaves the global random state alone."""
+        return DataLoader(
+            dataset,
+            batch_size=self.config.batch_size,
+            sampler=sampler,
+            collate_fn=collate,
+            num_workers=self.config.loader_workers,
+            pin_memory=self.device.type == "cuda",
+            generator=torch.Generator().manual_seed(self.config.seed),
+        )
+
+    # Epoch ends, validation ------------------------------------------------------------------
+
+    def _end_epoch(self, epoch: int) -> None:
+        """Validate, log the epoch, save last.pt (and best.pt when it improved) and the state."""
+        train = self.epoch_loss / max(self.epoch_batches, 1)
+        confusion = self.ranks.sum(self.epoch_confusion)
+        cm = self._matrix(confusion)
+        metrics: dict[str, Any] = {
+            "epoch": epoch + 1,
+            "step": self.step,
+            "lr": self.optimizer.param_groups[0]["lr"],
+            "train_loss": float(train[0]),
+            **{f"train_{n}": float(v) for n, v in zip(self.criterion.losses, train[1:], strict=True)},
+            "train_miou_image": cm.miou(),
+        }
+        if len(self.val_set):
+            metrics.update(self.validate())
+        metrics["seconds"] = self.epoch_seconds
+        self._pending_epochs.append(metrics)
+        self.result.epochs.append(metrics)
+        if self.ranks.main:
+            text = ", ".join(f"{k} {v:.4f}" for k, v in metrics.items() if k.startswith(("train_loss", "val_")))
+            log.info("epoch %d/%d (step %d): %s", epoch + 1, self.num_epochs, self.step, text)
+        self._save(epoch, complete=True, metrics=metrics)
+        if self.on_epoch_end is not None:
+            self.on_epoch_end(dict(metrics))
+
+    def _matrix(self, flat: torch.Tensor) -> ConfusionMatrix:
+        """A ConfusionMatrix of the label configuration from flat C[pred, gt] counts."""
+        cm = ConfusionMatrix.for_config(self.label_config)
+        cm.merge(flat.reshape(self.num_classes, self.num_classes).cpu().numpy())
+        return cm
+
+    @torch.inference_mode()
+    def validate(self) -> dict[str, float]:
+        """Loss and mIoU / accuracy on the validation scans: range image, points, points + kNN."""
+        self.model.eval()
+        c = self.num_classes
+        sampler = EpochSampler(len(self.val_set), 0, self.config.seed, batch_size=self.config.batch_size,
+                               rank=self.ranks.rank, world_size=self.ranks.world_size,
+                               shuffle=False, pad=False)
+        counts = torch.zeros(3, c * c, dtype=torch.int64)
+        loss_sum = torch.zeros(2, dtype=torch.float64)
+        bar = tqdm(total=len(sampler), desc="validation", unit="scan", leave=False,
+                   disable=not (self.config.progress and self.ranks.main))
+        for batch in self._loader(self.val_set, sampler):
+            images = batch["image"].to(self.device)
+            labels = batch["label"].to(self.device)
+            with torch.autocast(self.device.type, dtype=torch.float16, enabled=self.amp):
+                logits = self.model(images)
+            loss, _ = self.criterion(logits, labels)
+            loss_sum += torch.tensor([float(loss) * len(images), len(images)], dtype=torch.float64)
+            argmax = logits.argmax(dim=1)
+            counts[0] += torch.bincount((argmax * c + labels).reshape(-1), minlength=c * c).cpu()
+            for i in range(len(images)):
+                px = batch["proj_x"][i].to(self.device)
+                py = batch["proj_y"][i].to(self.device)
+                truth = batch["point_labels"][i].to(self.device)
+                valid = px >= 0
+                points = torch.zeros_like(truth)
+                points[valid] = argmax[i][py[valid], px[valid]]
+                refined = refine(
+                    batch["proj_range"][i].to(self.device),
+                    batch["unproj_range"][i].to(self.device),
+                    argmax[i], px, py,
+                    k=self.knn.k, search=self.knn.search, sigma=self.knn.sigma,
+                    cutoff=self.knn.cutoff, num_classes=c,
+                )
+                counts[1] += torch.bincount(points * c + truth, minlength=c * c).cpu()
+                counts[2] += torch.bincount(refined.to(truth.dtype) * c + truth, minlength=c * c).cpu()
+            bar.update(len(images))
+        bar.close()
+        counts = self.ranks.sum(counts)
+        loss_sum = self.ranks.sum(loss_sum)
+        image, points, knn = (self._matrix(counts[i]) for i in range(3))
+        return {
+            "val_loss": float(loss_sum[0] / max(loss_sum[1], 1)),
+            "val_miou_image": image.miou(),
+            "val_acc_image": image.accuracy(),
+            "val_miou_points": points.miou(),
+            "val_acc_points": points.accuracy(),
+            "val_miou_knn": knn.miou(),
+            "val_acc_knn": knn.accuracy(),
+        }
+
+    # Saving and resuming ---------------------------------------------------------------------
+
+    def _improved(self, metrics: Mapping[str, Any]) -> bool:
+        """Whether `metrics` beat the best epoch so far (and record them as the best if so)."""
+        if "val_miou_knn" in metrics:
+            name, value, better = "val_miou_knn", metrics["val_miou_knn"], max
+        else:
+            name, value, better = "train_loss", metrics["train_loss"], min
+        if self.best is not None and better(value, self.best["value"]) == self.best["value"]:
+            return False
+        self.best = {"metric": name, "value": value, "epoch": metrics["epoch"], "step": metrics["step"]}
+        return True
+
+    def _metadata(self, epoch: int, complete: bool, metrics: Mapping[str, Any] | None) -> dict[str, Any]:
+        config = self.config
+        return {
+            "epoch": epoch + 1,
+            "epoch_complete": complete,
+            "step": self.step,
+            "total_steps": self.total_steps,
+            "metrics": dict(metrics) if metrics else None,
+            "best": dict(self.best) if self.best else None,
+            "optimizer": {"name": "AdamW", "lr": config.lr, "weight_decay": config.weight_decay},
+            "scheduler": {
+                "name": "OneCycleLR" if config.schedule == "onecycle" else "warmup-cosine",
+                "max_lr": config.max_lr,
+                "warmup": config.warmup,
+            },
+            "losses": list(self.criterion.losses),
+            "class_weighting": config.class_weighting,
+            "world_size": self.ranks.world_size,
+            "train_scans": len(self.train_set),
+            "val_scans": len(self.val_set),
+            "train_config": config.to_dict(),
+        }
+
+    def _save(self, epoch: int, complete: bool, metrics: Mapping[str, Any] | None) -> None:
+        """Append the logs, write the resume state and last.pt, best.pt when it improved (rank 0)."""
+        improved = complete and metrics is not None and self._improved(metrics)
+        if self.ranks.main:
+            self.steps_log.append(self._pending_steps)
+            self.metrics_log.append(self._pending_epochs)
+            state = {
+                "format": STATE_FORMAT,
+                "format_version": STATE_VERSION,
+                "config": self.config.to_dict(),
+                "model": {k: v.detach().cpu() for k, v in self.model.state_dict().items()},
+                "optimizer": self.optimizer.state_dict(),
+                "scheduler": self.scheduler.state_dict(),
+                "scaler": self.scaler.state_dict(),
+                "step": self.step,
+                "best": self.best,
+                "epoch_totals": self._epoch_totals(complete),
+                "rng": rng_state(),
+            }
+            save_atomic(state, self.out / STATE)
+            records = {
+                "label_config": self.label_config.to_dict(),
+                "projection": self.projection.to_dict(),
+                "metadata": self._metadata(epoch, complete, metrics),
+            }
+            save_checkpoint(self.out / LAST, self.model, **records)
+            if improved:
+                save_checkpoint(self.out / BEST, self.model, **records)
+            if complete:
+                plot_curves(self.out / STEPS_CSV, self.out / METRICS_CSV, self.out / CURVES_PNG)
+        self._pending_steps = []
+        self._pending_epochs = []
+        if complete:
+            self._reset_epoch_totals()
+        self.result.best = dict(self.best) if self.best else None
+        self.ranks.barrier()
+
+    def _epoch_totals(self, complete: bool) -> dict[str, Any]:
+        """Running sums of the current epoch (empty at an epoch's end)."""
+        if complete:
+            return {}
+        return {
+            "loss": self.epoch_loss.clone(),
+            "batches": self.epoch_batches,
+            "confusion": self.epoch_confusion.clone(),
+            "seconds": self.epoch_seconds,
+        }
+
+    def _load_state(self, path: Path) -> None:
+        """Restore everything `_save` wrote; the stored configuration must match this run's."""
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:
+            raise ValueError(f"{path} cannot be read as a training state: {exc}") from exc
+        if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
+            raise ValueError(f"{path} is not a training state written by rangeret.training")
+        if state.get("format_version") != STATE_VERSION:
+            raise ValueError(f"{path} has state version {state.get('format_version')!r}; this code reads {STATE_VERSION}")
+        stored = TrainConfig.from_dict(state["config"])
+        changed = stored.differences(self.config)
+        if changed:
+            raise ValueError(
+                f"cannot resume {path}: the run was started with other settings ({'; '.join(changed)})"
+            )
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        if state["scaler"]:
+            self.scaler.load_state_dict(state["scaler"])
+        self.step = int(state["step"])
+        self.best = state["best"]
+        totals = state["epoch_totals"]
+        if totals:
+            self.epoch_loss = totals["loss"].clone()
+            self.epoch_batches = int(totals["batches"])
+            self.epoch_confusion = totals["confusion"].clone()
+            self.epoch_seconds = float(totals["seconds"])
+        set_rng_state(state["rng"])
+        log.info("resumed from %s at step %d", path, self.step)
