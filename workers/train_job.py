@@ -79,7 +79,7 @@ def run_ray(config: TrainConfig, workers: int = 2, max_failures: int = 0) -> Pat
     if config.resume and not state.exists():
         raise FileNotFoundError(f"cannot resume: {state} does not exist")
     if not config.resume and state.exists():
-        raise ValueError(f"{out} already holds a training run ({STATE}): resume it or choose another folder")
+        raise ValueError(f"{out} already holds a training run ({STATE}): pass --resume to continue it, or choose another folder")
     labels = load_label_config(config.label_config)
     if not find_scans(config.dataset, config.train_sequences, "train", labels):
         raise ValueError(f"no labelled training scan under {config.dataset}")

@@ -104,14 +104,13 @@ class RangeDataset(Dataset):
     def __getitem__(self, key: int | tuple[int, int]) -> dict[str, Any]:
         """The sample of `key`, an index or an (epoch, index) pair: arrays by name."""
         epoch, index = (0, key) if isinstance(key, (int, np.integer)) else key
-        rng = self.rng(epoch, index) if (self.augment or self.mixing) else None
+        rng = self.rng(epoch, index)
         sample, extra = self._sample(index, rng if self.augment else None)
-        if self.mixing is not None and self.mixing.mixes:
-            draws = rng
+        if self.mixing is not None:
 
             def partner() -> RangeImage:
-                other = int(draws.integers(len(self)))
-                child = np.random.default_rng(draws.integers(1 << 62))
+                other = int(rng.integers(len(self)))
+                child = np.random.default_rng(rng.integers(1 << 62))
                 return self._sample(other, child if self.augment else None)[0]
 
             sample = self.mixing.apply(sample, partner, rng)

@@ -256,7 +256,7 @@ class Trainer:
             raise FileNotFoundError(f"cannot resume: {state_path} does not exist")
         if not config.resume and state_path.exists():
             raise ValueError(
-                f"{self.out} already holds a training run ({STATE}): resume it or choose another folder"
+                f"{self.out} already holds a training run ({STATE}): pass --resume to continue it, or choose another folder"
             )
 
         seed_everything(config.seed)
