@@ -97,8 +97,9 @@ def main() -> None:
                 f"{gflop / seconds:>8.1f} {gflop / seconds / CPU_PEAK_GFLOPS:>8.0%}"
             )
             if torch.cuda.is_available():
-                model.cuda()
-                xc = x.cuda()
+                cuda = torch.device("cuda")
+                model.to(cuda)
+                xc = x.to(cuda)
                 line += f" {time_forward(model, xc, 10):>7.4f} {time_forward(model, xc, 10, autocast=True):>7.4f}"
             print(line, flush=True)
     time_mixing(args.repeat)
