@@ -58,11 +58,13 @@ def kill_actor_when(predicate, class_part: str = "ModelWorker", timeout: float =
         deadline = time.time() + timeout
         while time.time() < deadline and not predicate():
             time.sleep(0.05)
-        for actor in actors().values():
-            if actor["State"] == "ALIVE" and class_part in actor["ActorClassName"] and actor["Pid"]:
-                os.kill(actor["Pid"], signal.SIGKILL)
-                killed.append(actor["Pid"])
-                return
+        while time.time() < deadline:
+            for actor in actors().values():
+                if actor["State"] == "ALIVE" and class_part in actor["ActorClassName"] and actor["Pid"]:
+                    os.kill(actor["Pid"], signal.SIGKILL)
+                    killed.append(actor["Pid"])
+                    return
+            time.sleep(0.02)
 
     thread = threading.Thread(target=run, daemon=True)
     thread.killed = killed  # type: ignore[attr-defined]
