@@ -227,6 +227,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return run_serve(args)
 
 
+def cmd_train(args: argparse.Namespace) -> int:
+    """Train a network from a config and the command line (see `rangeret.training.command`)."""
+    from rangeret.training import run_train
+
+    return run_train(args)
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """Run evaluation and submission end to end on a small simulated example."""
     from workers.demo import run_demo
@@ -235,8 +242,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of the `rangeret` command and its subcommands."""
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The argument parser of the `rangeret` command and its subcommands.
+
+    The options of `serve` and `train` need torch and the web stack; they are added only when
+    `command` is one of them, or when it is None (every option), so other commands start quickly.
+    """
     parser = argparse.ArgumentParser(
         prog="rangeret",
         description="RangeRet LiDAR semantic segmentation: evaluation, submissions and more.",
@@ -287,16 +298,19 @@ def build_parser() -> argparse.ArgumentParser:
     _add_label_config(p)
     p.set_defaults(func=cmd_validate_submission)
 
-    from rangeret.training import add_train_arguments, run_train
-    from service.server import add_serve_arguments
-
     p = sub.add_parser("serve", parents=[common], help="the HTTP gateway (FastAPI on uvicorn)")
-    add_serve_arguments(p)
+    if command in (None, "serve"):
+        from service.server import add_serve_arguments
+
+        add_serve_arguments(p)
     p.set_defaults(func=cmd_serve)
 
     p = sub.add_parser("train", parents=[common], help="train a network (in this process or with --ray)")
-    add_train_arguments(p)
-    p.set_defaults(func=run_train)
+    if command in (None, "train"):
+        from rangeret.training import add_train_arguments
+
+        add_train_arguments(p)
+    p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("simulate", parents=[common], help="write a simulated dataset (street scenes)")
     p.add_argument("--out", type=Path, required=True, metavar="ROOT")
@@ -326,23 +340,32 @@ _USER_ERRORS: tuple[type[BaseException], ...] = (
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `rangeret` command."""
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(next((a for a in argv if not a.startswith("-")), ""))
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",
     )
-    func: Callable[[argparse.Namespace], int] = args.func
+    return run_command(f"rangeret {args.command}", args.func, args)
+
+
+def run_command(program: str, func: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
+    """Run a command's body; input errors become one line on stderr (details below it) and exit code 1.
+
+    Every entry point (`rangeret`, `python -m service`, `python -m workers.predict_job`) goes through
+    here, so users see the same message shape, and never a traceback, whatever they launched.
+    """
     try:
         return func(args)
     except CommandError as exc:
-        return _fail(args.command, exc.reason, exc.details)
+        return fail(program, exc.reason, exc.details)
     except (EvaluationError, SubmissionError) as exc:
-        return _fail(args.command, _first_line(exc), exc.problems)
+        return fail(program, _first_line(exc), exc.problems)
     except _USER_ERRORS as exc:
-        return _fail(args.command, str(exc))
+        return fail(program, str(exc))
     except KeyboardInterrupt:
-        return _fail(args.command, "interrupted", code=130)
+        return fail(program, "interrupted", code=130)
 
 
 def _first_line(exc: EvaluationError | SubmissionError) -> str:
@@ -350,8 +373,9 @@ def _first_line(exc: EvaluationError | SubmissionError) -> str:
     return f"{n} problem(s), the first: {exc.problems[0]}" if n else str(exc)
 
 
-def _fail(command: str, reason: str, details: Sequence[str] = (), code: int = 1) -> int:
-    print(f"rangeret {command}: error: {reason}", file=sys.stderr)
+def fail(program: str, reason: str, details: Sequence[str] = (), code: int = 1) -> int:
+    """Print `program: error: reason` and up to a screenful of details to stderr; return `code`."""
+    print(f"{program}: error: {reason}", file=sys.stderr)
     if len(details) > 1:
         for line in details[:_MAX_DETAILS]:
             print(f"  - {line}", file=sys.stderr)

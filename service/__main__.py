@@ -7,24 +7,17 @@ import logging
 import sys
 from collections.abc import Sequence
 
-from rangeret.cli import CommandError
+from rangeret.cli import run_command
 from service.server import add_serve_arguments, run_serve
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Parse the options, serve, and turn bad input into a one-line message and exit code 1."""
+    """Parse the options and serve; bad input becomes a one-line message and exit code 1."""
     parser = argparse.ArgumentParser(prog="python -m service", description="The RangeRet HTTP gateway.")
     add_serve_arguments(parser)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    try:
-        return run_serve(args)
-    except CommandError as exc:
-        print(f"serve: error: {exc.reason}", file=sys.stderr)
-        return 1
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"serve: error: {exc}", file=sys.stderr)
-        return 1
+    return run_command("serve", run_serve, args)
 
 
 if __name__ == "__main__":

@@ -97,3 +97,26 @@ def test_submission_and_validation_commands(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 1 and "directory entry 'sequences/' is missing" in err
     assert err.count("\n  - ") == 2 * len(TEST_SEQUENCES) + 1
+
+
+def test_light_commands_start_without_torch():
+    code = (
+        "import sys; from rangeret.cli import build_parser; "
+        "build_parser('evaluate').parse_args(['evaluate', '--dataset', 'd', '--predictions', 'p', '--split', 'valid']); "
+        "print('torch' in sys.modules)"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert run.stdout.strip() == "False"
+
+
+def test_every_entry_point_reports_errors_the_same_way(tmp_path, capsys):
+    from workers.predict_job import main as job_main
+
+    args = ["--dataset", str(tmp_path / "nope"), "--split", "valid", "--out", str(tmp_path / "out"), "-q"]
+    assert job_main(args) == 1
+    job = capsys.readouterr().err.splitlines()
+    assert main(["predict", *args]) == 1
+    cli = capsys.readouterr().err.splitlines()
+    assert job[0].startswith("predict_job: error: ") and cli[0].startswith("rangeret predict: error: ")
+    assert job[0].split(": error: ")[1] == cli[0].split(": error: ")[1]
+    assert "sequence 08 is missing" in job[0]

@@ -25,6 +25,7 @@ from rangeret.cli import (
     CommandError,
     add_network_options,
     add_selection,
+    run_command,
     selected_sequences,
     spec_from_args,
 )
@@ -168,17 +169,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    try:
-        return run(args)
-    except CommandError as exc:
-        print(f"predict_job: error: {exc.reason}", file=sys.stderr)
-        for line in exc.details[:30]:
-            print(f"  - {line}", file=sys.stderr)
-        return 1
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"predict_job: error: {exc}", file=sys.stderr)
-        return 1
-
+    return run_command("predict_job", run, args)
 
 if __name__ == "__main__":
     sys.exit(main())
