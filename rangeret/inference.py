@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import json
 import logging
 import threading
 import time
@@ -141,6 +142,19 @@ class StageTimes:
             self.seconds[k] += v
         for k, v in other.scans.items():
             self.scans[k] += v
+
+    def to_json(self) -> str:
+        """The record as JSON text, to travel between processes (the lock does not pickle)."""
+        return json.dumps([self.seconds, self.scans])
+
+    @classmethod
+    def from_json(cls, text: str) -> StageTimes:
+        """A record from `to_json` text."""
+        seconds, scans = json.loads(text)
+        times = cls()
+        times.seconds.update(seconds)
+        times.scans.update(scans)
+        return times
 
     def per_scan_ms(self) -> dict[str, float]:
         """Mean milliseconds per scan of each stage."""

@@ -128,7 +128,7 @@ def predict_tree(
         return loaded
 
     start = time.perf_counter()
-    before = _snapshot(predictor.times)
+    predictor.times = summary.times  # this run's stage times, fresh
     bar = tqdm(total=len(pending), desc="predict", unit="scan", disable=not progress)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="rangeret-read") as pool:
         batches = _batches(pending, batch_size)
@@ -161,7 +161,6 @@ def predict_tree(
                 on_progress(summary.written + len(summary.failed), len(summary.failed), len(pending))
     bar.close()
     summary.seconds = time.perf_counter() - start
-    summary.times = _since(predictor.times, before)
     return summary
 
 
@@ -176,16 +175,3 @@ def _write_run_info(out: Path, predictor: Predictor, dataset, sequences, batch_s
     }
     (out / RUN_INFO).write_text(json.dumps(info, indent=2) + "\n")
 
-
-def _snapshot(times: StageTimes) -> StageTimes:
-    copy = StageTimes()
-    copy.merge(times)
-    return copy
-
-
-def _since(now: StageTimes, before: StageTimes) -> StageTimes:
-    delta = StageTimes()
-    for k, v in now.seconds.items():
-        delta.seconds[k] = v - before.seconds.get(k, 0.0)
-        delta.scans[k] = now.scans[k] - before.scans.get(k, 0)
-    return delta

@@ -164,3 +164,16 @@ def test_predict_command_errors(tree, tmp_path, small_weights, capsys):
 
 def test_knn_settings_defaults_are_the_release_ones():
     assert KnnSettings() == KnnSettings(k=7, search=7, sigma=1.0, cutoff=1.0)
+
+
+def test_each_run_reports_only_its_own_stage_times(tree, tmp_path, small_weights):
+    from rangeret.inference import StageTimes
+    from rangeret.predict import predict_tree
+
+    predictor = Predictor.from_checkpoint(small_weights, height=32, width=256, device="cpu")
+    first = predict_tree(predictor, tree, ["08"], tmp_path / "a", progress=False)
+    second = predict_tree(predictor, tree, ["08", "42"], tmp_path / "b", progress=False)
+    assert first.times.scans["network"] == 3 and second.times.scans["network"] == 4
+    assert second.times.scans["read"] == second.times.scans["write"] == 4
+    again = StageTimes.from_json(second.times.to_json())
+    assert again.seconds == second.times.seconds and again.scans == second.times.scans

@@ -96,7 +96,7 @@ def read_and_project(row: dict, projection: ProjectionConfig) -> dict:
         "batch": row["batch"],
         "entries": row["entries"],
         "payload": pickle.dumps(items, protocol=pickle.HIGHEST_PROTOCOL),
-        "times": json.dumps([dict(times.seconds), dict(times.scans)]),
+        "times": times.to_json(),
     }
 
 
@@ -113,9 +113,9 @@ class ModelWorker:
 
     def __call__(self, batch: dict) -> dict:
         out_payload, out_times, devices = [], [], []
-        for payload in batch["payload"]:
+        for payload, times in zip(batch["payload"], batch["times"], strict=True):
             items = pickle.loads(payload)
-            self.predictor.times = StageTimes()
+            self.predictor.times = StageTimes.from_json(times)
             good = [proj for proj, err in items if err is None]
             try:
                 logits = self.predictor.network(good) if good else []
@@ -125,14 +125,13 @@ class ModelWorker:
                 reason = f"the network failed: {exc}"
                 results = [(None, err or reason) for _, err in items]
             out_payload.append(pickle.dumps(results, protocol=pickle.HIGHEST_PROTOCOL))
-            t = self.predictor.times
-            out_times.append(json.dumps([dict(t.seconds), dict(t.scans)]))
+            out_times.append(self.predictor.times.to_json())
             devices.append(f"{self.device}@{os.getpid()}")
         return {
             "batch": batch["batch"],
             "entries": batch["entries"],
             "payload": out_payload,
-            "times": [_merge_times(a, b) for a, b in zip(batch["times"], out_times, strict=True)],
+            "times": out_times,
             "worker": devices,
         }
 
@@ -140,7 +139,7 @@ class ModelWorker:
 def write_results(row: dict, out: str, label_config: LabelConfig) -> dict:
     """Stage 3: atomic label writes, and the confusion counts of the batch's labelled scans."""
     evaluator = RawLabelEvaluator(label_config)
-    times = StageTimes()
+    times = StageTimes.from_json(row["times"])
     status = []
     points = 0
     for record, (labels, error) in zip(json.loads(row["entries"]), pickle.loads(row["payload"]), strict=True):
@@ -164,19 +163,10 @@ def write_results(row: dict, out: str, label_config: LabelConfig) -> dict:
         "status": json.dumps(status),
         "points": points,
         "counts": pickle.dumps(evaluator, protocol=pickle.HIGHEST_PROTOCOL),
-        "times": _merge_times(row["times"], json.dumps([dict(times.seconds), dict(times.scans)])),
+        "times": times.to_json(),
         "worker": row["worker"],
     }
 
-
-def _merge_times(a: str, b: str) -> str:
-    sa, ca = json.loads(a)
-    sb, cb = json.loads(b)
-    for k, v in sb.items():
-        sa[k] = sa.get(k, 0.0) + v
-    for k, v in cb.items():
-        ca[k] = ca.get(k, 0) + v
-    return json.dumps([sa, ca])
 
 
 def cluster_gpus() -> int:
@@ -255,10 +245,7 @@ def run_pipeline(
                 result.failed[f"{record[0]}/{record[1]}"] = error
         result.points += int(row["points"])
         result.evaluator.merge(pickle.loads(row["counts"]))
-        seconds, scans = json.loads(row["times"])
-        for k, v in seconds.items():
-            result.times.seconds[k] += v
-            result.times.scans[k] += scans[k]
+        result.times.merge(StageTimes.from_json(row["times"]))
         devices.add(row["worker"])
         if progress is not None:
             progress(seen, len(result.failed), total)
