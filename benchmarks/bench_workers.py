@@ -1,7 +1,7 @@
 """Scans/s of the Ray pipeline with 1 and 2 model actors against single-process `rangeret predict`,
 on the same cores, over a tree of subsampled copies of the real scan.
 
-Run by hand: `python benchmarks/bench_workers.py [--scans 40] [--weights kitti|small]`. `kitti`
+Run by hand: `python benchmarks/bench_workers.py [--scans 40] [--rounds 3] [--weights kitti|small]`. `kitti`
 uses the release-shaped 8-block network at 64 x 1024 (about 2-3 s per scan on 2 cores), `small`
 the 2-block fixture at 32 x 256. Prints scans/s and the pipeline's overhead; not a test.
 """
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import statistics
 import tempfile
 import time
 from pathlib import Path
@@ -22,6 +23,7 @@ from rangeret.io import read_scan, write_scan
 from rangeret.layout import velodyne_dir
 from rangeret.models import load_checkpoint
 from rangeret.predict import list_scans, predict_tree
+from rangeret.timing import StageTimes
 from workers.pipeline import PipelineOptions, run_pipeline
 
 SIZES = {"kitti": (64, 1024), "small": (32, 256)}
@@ -31,6 +33,7 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--scans", type=int, default=40)
     parser.add_argument("--weights", choices=sorted(SIZES), default="kitti")
+    parser.add_argument("--rounds", type=int, default=3, help="interleaved repetitions; medians are printed")
     args = parser.parse_args()
     require_real_scan()
     logging.basicConfig(level=logging.WARNING)
@@ -47,27 +50,40 @@ def main() -> None:
         spec = PredictorSpec(checkpoint=str(tmp / "w.pt"), height=h, width=w, device="cpu")
         entries = list_scans(tmp / "data", ["08"])
 
-        predictor = spec.build()
-        summary = predict_tree(predictor, tmp / "data", ["08"], tmp / "single", progress=False)
-        single = summary.written / summary.seconds
-        print(f"{args.scans} scans at {h} x {w}, {torch.get_num_threads()} torch threads")
-        print(f"  rangeret predict (one process)        {single:7.3f} scans/s")
-
         ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
         info = load_checkpoint(spec.checkpoint, height=h, width=w).checkpoint_info
         projection = projection_for(info)
-        for actors, actor_cpus in ((1, 1.5), (2, 0.75)):
-            out = tmp / f"ray{actors}"
-            options = PipelineOptions(actors=actors, actor_cpus=actor_cpus, read_cpus=0.25, write_cpus=0.1)
-            start = time.perf_counter()
-            result = run_pipeline(spec, projection, entries, out, options)
-            rate = result.written / (time.perf_counter() - start)
-            overhead = 100 * (single / rate - 1)
+        print(f"{args.scans} scans at {h} x {w}, {torch.get_num_threads()} torch threads, {args.rounds} rounds")
+        rates: dict[str, list[float]] = {}
+        ratios: dict[str, list[float]] = {}
+        for r in range(args.rounds):  # interleaved, so that a noisy spell hits every runner alike
+            start = time.perf_counter()  # both sides include loading the network, as a command does
+            summary = predict_tree(spec.build(), tmp / "data", ["08"], tmp / f"single{r}", progress=False)
+            single = summary.written / (time.perf_counter() - start)
+            rates.setdefault("predict", []).append(single)
+            print(f"  round {r + 1}: rangeret predict           {single:6.3f} scans/s   {_stages(summary.times)}")
+            for actors, actor_cpus in ((1, 1.5), (2, 0.75)):
+                options = PipelineOptions(actors=actors, actor_cpus=actor_cpus, read_cpus=0.25, write_cpus=0.1)
+                start = time.perf_counter()
+                result = run_pipeline(spec, projection, entries, tmp / f"ray{actors}-{r}", options)
+                rate = result.written / (time.perf_counter() - start)
+                name = f"{actors} actor(s) x {actor_cpus:g} CPU"
+                rates.setdefault(name, []).append(rate)
+                ratios.setdefault(name, []).append(single / rate)
+                print(f"  round {r + 1}: Ray, {name:17s} {rate:6.3f} scans/s   {_stages(result.times)}")
+        print("medians:")
+        print(f"  rangeret predict (one process)     {statistics.median(rates['predict']):6.3f} scans/s")
+        for name, ratio in ratios.items():
             print(
-                f"  Ray pipeline, {actors} actor(s) x {actor_cpus:g} CPU   {rate:7.3f} scans/s   "
-                f"overhead against one process: {overhead:+.1f} %"
+                f"  Ray pipeline, {name:17s}    {statistics.median(rates[name]):6.3f} scans/s   "
+                f"overhead against one process (median of paired rounds): {100 * (statistics.median(ratio) - 1):+.1f} %"
             )
         ray.shutdown()
+
+
+def _stages(times: StageTimes) -> str:
+    """Mean ms per scan of each stage, as each process saw it (contention shows in `network`)."""
+    return " ".join(f"{k} {v:.0f}" for k, v in times.per_scan_ms().items()) + " ms/scan"
 
 
 if __name__ == "__main__":

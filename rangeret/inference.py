@@ -10,13 +10,9 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import json
 import logging
-import threading
-import time
-from collections import defaultdict
 from collections.abc import Iterator, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +22,7 @@ from rangeret.knn import refine as knn_refine
 from rangeret.labels import LabelConfig, semantickitti
 from rangeret.models import load_checkpoint
 from rangeret.projection import Projection, ProjectionConfig, project_with
+from rangeret.timing import StageTimes
 
 log = logging.getLogger(__name__)
 
@@ -114,51 +111,6 @@ def select_device(device: str | torch.device = "auto") -> torch.device:
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ValueError("--device cuda was asked for but torch sees no CUDA device")
     return dev
-
-
-@dataclass
-class StageTimes:
-    """Seconds spent in each stage, and how many scans went through it."""
-
-    seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
-    scans: dict[str, int] = field(default_factory=lambda: defaultdict(int))
-    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
-
-    @contextlib.contextmanager
-    def stage(self, name: str, scans: int = 1) -> Iterator[None]:
-        """Time the body as `scans` scans of stage `name` (safe to use from several threads)."""
-        start = time.perf_counter()
-        try:
-            yield
-        finally:
-            elapsed = time.perf_counter() - start
-            with self._lock:
-                self.seconds[name] += elapsed
-                self.scans[name] += scans
-
-    def merge(self, other: StageTimes) -> None:
-        """Add another record's times and counts."""
-        for k, v in other.seconds.items():
-            self.seconds[k] += v
-        for k, v in other.scans.items():
-            self.scans[k] += v
-
-    def to_json(self) -> str:
-        """The record as JSON text, to travel between processes (the lock does not pickle)."""
-        return json.dumps([self.seconds, self.scans])
-
-    @classmethod
-    def from_json(cls, text: str) -> StageTimes:
-        """A record from `to_json` text."""
-        seconds, scans = json.loads(text)
-        times = cls()
-        times.seconds.update(seconds)
-        times.scans.update(scans)
-        return times
-
-    def per_scan_ms(self) -> dict[str, float]:
-        """Mean milliseconds per scan of each stage."""
-        return {k: 1e3 * v / max(self.scans[k], 1) for k, v in self.seconds.items()}
 
 
 @dataclass

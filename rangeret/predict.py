@@ -19,10 +19,11 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from rangeret.inference import Predictor, StageTimes
+from rangeret.inference import Predictor
 from rangeret.io import LABEL_BYTES, ScanFormatError, read_scan, scan_num_points, write_labels
 from rangeret.layout import DatasetLayoutError, ScanEntry, discover, prediction_path
 from rangeret.projection import Projection
+from rangeret.timing import StageTimes
 
 log = logging.getLogger(__name__)
 

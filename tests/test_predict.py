@@ -167,8 +167,8 @@ def test_knn_settings_defaults_are_the_release_ones():
 
 
 def test_each_run_reports_only_its_own_stage_times(tree, tmp_path, small_weights):
-    from rangeret.inference import StageTimes
     from rangeret.predict import predict_tree
+    from rangeret.timing import StageTimes
 
     predictor = Predictor.from_checkpoint(small_weights, height=32, width=256, device="cpu")
     first = predict_tree(predictor, tree, ["08"], tmp_path / "a", progress=False)

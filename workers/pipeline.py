@@ -3,11 +3,11 @@
 Scans are grouped into batches on the driver, in the same order and with the same composition as
 `rangeret predict` uses, so both give bit-identical labels. Each batch flows through three stages:
 
-- `read_and_project` (CPU tasks, a fraction of a core each): reads the scans and projects them;
+- `stages.read_and_project` (CPU tasks, a fraction of a core each): reads the scans and projects them;
   a scan that cannot be read travels on as a named failure.
 - `ModelWorker` (an actor pool: one GPU each when the cluster has GPUs, CPU actors otherwise): the
   network on the batch, then kNN refinement and raw ids on the actor's device.
-- `write_results` (CPU tasks): atomic writes of the label files and, for labelled scans, per-scan
+- `stages.write_results` (CPU tasks): atomic writes of the label files and, for labelled scans, per-scan
   confusion matrices, summed per batch.
 
 The driver sums the matrices (reduction by addition) and logs progress. Ray Data restarts dead
@@ -28,12 +28,14 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from rangeret.inference import PredictorSpec, StageTimes
-from rangeret.io import ScanFormatError, read_labels, read_scan, write_labels
+from rangeret.inference import PredictorSpec
+from rangeret.io import read_labels
 from rangeret.labels import LabelConfig, semantickitti
 from rangeret.layout import ScanEntry, prediction_path
 from rangeret.metrics import RawLabelEvaluator
-from rangeret.projection import ProjectionConfig, project_with
+from rangeret.projection import ProjectionConfig
+from rangeret.timing import StageTimes
+from workers.stages import Reader, Writer, entry_record
 
 log = logging.getLogger(__name__)
 
@@ -67,37 +69,6 @@ class PipelineResult:
     seconds: float = 0.0
     actors: int = 0
     devices: list[str] = field(default_factory=list)
-
-
-def _entry_record(entry: ScanEntry) -> list:
-    return [entry.sequence, entry.name, str(entry.scan_path), str(entry.label_path) if entry.label_path else None]
-
-
-def _entry_from(record: Sequence) -> ScanEntry:
-    seq, name, scan, label = record
-    return ScanEntry(seq, name, Path(scan), Path(label) if label else None)
-
-
-def read_and_project(row: dict, projection: ProjectionConfig) -> dict:
-    """Stage 1: read and project every scan of a batch; unreadable scans become named failures."""
-    times = StageTimes()
-    items = []
-    for record in json.loads(row["entries"]):
-        entry = _entry_from(record)
-        try:
-            with times.stage("read"):
-                points = read_scan(entry.scan_path)
-        except (ScanFormatError, OSError) as exc:
-            items.append((None, str(exc)))
-            continue
-        with times.stage("project"):
-            items.append((project_with(points, projection), None))
-    return {
-        "batch": row["batch"],
-        "entries": row["entries"],
-        "payload": pickle.dumps(items, protocol=pickle.HIGHEST_PROTOCOL),
-        "times": times.to_json(),
-    }
 
 
 class ModelWorker:
@@ -134,39 +105,6 @@ class ModelWorker:
             "times": out_times,
             "worker": devices,
         }
-
-
-def write_results(row: dict, out: str, label_config: LabelConfig) -> dict:
-    """Stage 3: atomic label writes, and the confusion counts of the batch's labelled scans."""
-    evaluator = RawLabelEvaluator(label_config)
-    times = StageTimes.from_json(row["times"])
-    status = []
-    points = 0
-    for record, (labels, error) in zip(json.loads(row["entries"]), pickle.loads(row["payload"]), strict=True):
-        entry = _entry_from(record)
-        if error is not None:
-            status.append(error)
-            continue
-        try:
-            with times.stage("write"):
-                write_labels(prediction_path(out, entry.sequence, entry.name), labels)
-            if entry.label_path is not None:
-                evaluator.add(labels, read_labels(entry.label_path, num_points=labels.size))
-        except (OSError, ScanFormatError) as exc:
-            status.append(str(exc))
-            continue
-        points += int(labels.size)
-        status.append(None)
-    return {
-        "batch": row["batch"],
-        "entries": row["entries"],
-        "status": json.dumps(status),
-        "points": points,
-        "counts": pickle.dumps(evaluator, protocol=pickle.HIGHEST_PROTOCOL),
-        "times": times.to_json(),
-        "worker": row["worker"],
-    }
-
 
 
 def cluster_gpus() -> int:
@@ -207,7 +145,7 @@ def run_pipeline(
         return result
 
     batches = [
-        {"batch": i, "entries": json.dumps([_entry_record(e) for e in entries[s : s + options.batch_size]])}
+        {"batch": i, "entries": json.dumps([entry_record(e) for e in entries[s : s + options.batch_size]])}
         for i, s in enumerate(range(0, len(entries), options.batch_size))
     ]
     ctx = ray.data.DataContext.get_current()
@@ -218,7 +156,8 @@ def run_pipeline(
     actor_resources = {"num_gpus": 1} if use_gpu else {"num_cpus": actor_cpus}
     worker_spec = spec if use_gpu or spec.device != "auto" else _cpu_spec(spec)
     ds = ray.data.from_items(batches, override_num_blocks=len(batches))
-    ds = ds.map(read_and_project, fn_kwargs={"projection": projection}, num_cpus=options.read_cpus)
+    readers = ray.data.ActorPoolStrategy(min_size=1, max_size=max(2, actors))
+    ds = ds.map(Reader, fn_constructor_kwargs={"projection": projection}, compute=readers, num_cpus=options.read_cpus)
     ds = ds.map_batches(
         ModelWorker,
         fn_constructor_kwargs={"spec": worker_spec, "cpus": actor_cpus},
@@ -226,7 +165,9 @@ def run_pipeline(
         batch_size=1,
         **actor_resources,
     )
-    ds = ds.map(write_results, fn_kwargs={"out": out, "label_config": label_config}, num_cpus=options.write_cpus)
+    writers = ray.data.ActorPoolStrategy(min_size=1, max_size=max(2, actors))
+    ds = ds.map(Writer, fn_constructor_kwargs={"out": out, "label_config": label_config}, compute=writers,
+                num_cpus=options.write_cpus)
 
     start = time.perf_counter()
     last_log = start
