@@ -3,15 +3,21 @@
 Scans are grouped into batches on the driver, in the same order and with the same composition as
 `rangeret predict` uses, so both give bit-identical labels. Each batch flows through three stages:
 
-- `stages.read_and_project` (CPU tasks, a fraction of a core each): reads the scans and projects them;
-  a scan that cannot be read travels on as a named failure.
+- `stages.Reader` (`read_and_project`; small CPU actors, a fraction of a core each, one to
+  max(2, model actors) of them): reads the scans and projects them; a scan that cannot be read
+  travels on as a named failure.
 - `ModelWorker` (an actor pool: one GPU each when the cluster has GPUs, CPU actors otherwise): the
   network on the batch, then kNN refinement and raw ids on the actor's device.
-- `stages.write_results` (CPU tasks): atomic writes of the label files and, for labelled scans, per-scan
-  confusion matrices, summed per batch.
+- `stages.Writer` (`write_results`; small CPU actors like the readers): atomic writes of the label
+  files and, for labelled scans, per-scan confusion matrices, summed per batch.
+
+The CPU stages are long-lived actors rather than tasks because Ray stops idle task workers once a
+node holds more worker processes than CPUs, which model actors cause on small nodes; every batch
+then paid a worker start-up (1-2 s of CPU). Measured on 2 cores, that churn cost more than the
+network's own time per scan (`benchmarks/bench_workers.py`).
 
 The driver sums the matrices (reduction by addition) and logs progress. Ray Data restarts dead
-actors and retries their tasks, and re-runs lost tasks on other nodes, so a crash costs no scan;
+actors, on other nodes when theirs is gone, and retries their batches, so a crash costs no scan;
 every write is atomic, so a retried batch leaves the same files.
 """
 

@@ -49,7 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report", type=Path, metavar="FILE.json",
                    help="evaluation report of the labelled scans (PNGs beside it)")
     p.add_argument("--actors", type=int, metavar="N", help="model actors (default: one per GPU, or 1)")
-    p.add_argument("--read-cpus", type=float, default=0.5, help="CPU share of each read + project task")
+    p.add_argument("--read-cpus", type=float, default=0.5, help="CPU share of each read + project actor")
     p.add_argument("--actor-cpus", type=float, metavar="N",
                    help="CPUs of each CPU model actor (default: what readers and writers leave)")
     p.add_argument("-q", "--quiet", action="store_true", help="less logging")
