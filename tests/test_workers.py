@@ -4,6 +4,7 @@ resume, and a model actor killed mid-run."""
 from __future__ import annotations
 
 import json
+import time
 
 import numpy as np
 import pytest
@@ -140,3 +141,15 @@ def test_a_job_runs_beside_the_gateways_pool_actors(ray_local, setup, tmp_path, 
     finally:
         pool.shutdown()
     capsys.readouterr()
+
+
+def test_cpu_layout_defaults_to_one_single_threaded_actor_per_free_cpu(ray_local):
+    from workers.pipeline import PipelineOptions, _cpu_layout
+
+    deadline = time.monotonic() + 60  # actors of earlier tests give their CPUs back asynchronously
+    while ray_local.available_resources().get("CPU", 0) < 2 and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert _cpu_layout(PipelineOptions()) == (2, 0.75)
+    assert _cpu_layout(PipelineOptions(actors=1)) == (1, 1.5)
+    assert _cpu_layout(PipelineOptions(actors=3, actor_cpus=0.5)) == (3, 0.5)
+    assert _cpu_layout(PipelineOptions(read_cpus=0.5, write_cpus=0.5)) == (1, 1.0)

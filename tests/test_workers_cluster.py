@@ -72,3 +72,16 @@ def test_one_model_actor_per_gpu_and_a_node_leaving(cluster, tmp_path):
     assert done_at_removal and done_at_removal[0] < 8, "the node left after the job, not during it"
     assert not result.failed and result.written == 8
     assert tree_bytes(out) == tree_bytes(tmp_path / "single")
+
+
+def test_more_gpu_actors_than_gpus_is_a_named_error_not_a_hang(cluster, tmp_path):
+    from workers.pipeline import ClusterCapacityError
+
+    weights = small_weights(tmp_path)
+    data = build_tree(tmp_path / "data", labelled=1, unlabelled=1)
+    spec = PredictorSpec(checkpoint=str(weights), height=32, width=256, device="auto")
+    info = load_checkpoint(weights, height=32, width=256).checkpoint_info
+    options = PipelineOptions(actors=3, read_cpus=0.25, write_cpus=0.1, actor_start_timeout=10)
+    with pytest.raises(ClusterCapacityError, match="3 model actor.*did not start within 10 s.*1 GPU"):
+        run_pipeline(spec, projection_for(info), discover(data, ["08", "11"]).scans, tmp_path / "out", options)
+    assert not list((tmp_path / "out").rglob("*.label"))

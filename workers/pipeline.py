@@ -23,6 +23,7 @@ every write is atomic, so a retried batch leaves the same files.
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import math
@@ -46,19 +47,36 @@ from workers.stages import Reader, Writer, entry_record
 log = logging.getLogger(__name__)
 
 
+GPU_ACTOR_CPUS = 0.5
+"""CPUs a GPU model actor reserves (unpickling, host-device copies). Left unset, Ray would ask for
+a whole CPU while the actor starts, which a GPU node whose CPUs readers hold cannot give: the
+actor then never starts."""
+
+
+class ClusterCapacityError(ValueError):
+    """The cluster cannot start the model actors the run asked for."""
+
+
 @dataclass(frozen=True)
 class PipelineOptions:
     """How the pipeline runs: batch size, model actors and the CPU share of each stage.
 
-    `actor_cpus` of CPU actors defaults to what the readers and writers leave of the largest
-    node, split between the actors; the network runs on ceil(actor_cpus) threads.
+    Model actors default to one per GPU. On CPU clusters they default to one per CPU that a reader
+    and a writer leave free on the largest node, each with one torch thread: on 2 cores, two
+    one-thread actors ran 1.3x faster than one two-thread actor (`benchmarks/bench_workers.py`),
+    as intra-op threads scale below linearly and stall whenever another process takes their core.
+    Given `actors`, `actor_cpus` defaults to that free share split between them; the network runs
+    on ceil(actor_cpus) threads. GPU actors reserve `actor_cpus` or `GPU_ACTOR_CPUS`. Batches flow once every actor has started, so that each GPU works
+    from the first batch on; `actor_start_timeout` seconds (long enough for an autoscaler to bring
+    GPU nodes up) without them is an error.
     """
 
     batch_size: int = 1
     actors: int | None = None
     use_gpu: bool | None = None
-    read_cpus: float = 0.5
-    write_cpus: float = 0.25
+    read_cpus: float = 0.25
+    write_cpus: float = 0.1
+    actor_start_timeout: float = 1800.0
     actor_cpus: float | None = None
     progress_interval: float = 10.0
 
@@ -145,7 +163,10 @@ def run_pipeline(
     use_gpu = gpus > 0 if options.use_gpu is None else options.use_gpu
     if use_gpu and not gpus:
         raise ValueError("GPU actors were asked for but the Ray cluster has no GPU")
-    actors = options.actors or (gpus if use_gpu else 1)
+    if use_gpu:
+        actors, actor_cpus = options.actors or gpus, options.actor_cpus or GPU_ACTOR_CPUS
+    else:
+        actors, actor_cpus = _cpu_layout(options)
     result = PipelineResult(actors=actors)
     if not entries:
         return result
@@ -157,9 +178,12 @@ def run_pipeline(
     ctx = ray.data.DataContext.get_current()
     ctx.enable_progress_bars = False
     ctx.execution_options.preserve_order = False
+    ctx.wait_for_min_actors_s = int(options.actor_start_timeout)
+    # Spread batches over every model actor instead of favouring the one beside the reader that
+    # made them: a projected scan is a few MB, cheap to move, and idle GPUs are not.
+    ctx.execution_options.actor_locality_enabled = False
 
-    actor_cpus = options.actor_cpus or _default_actor_cpus(actors, options)
-    actor_resources = {"num_gpus": 1} if use_gpu else {"num_cpus": actor_cpus}
+    actor_resources = {"num_gpus": 1, "num_cpus": actor_cpus} if use_gpu else {"num_cpus": actor_cpus}
     worker_spec = spec if use_gpu or spec.device != "auto" else _cpu_spec(spec)
     ds = ray.data.from_items(batches, override_num_blocks=len(batches))
     readers = ray.data.ActorPoolStrategy(min_size=1, max_size=max(2, actors))
@@ -167,7 +191,7 @@ def run_pipeline(
     ds = ds.map_batches(
         ModelWorker,
         fn_constructor_kwargs={"spec": worker_spec, "cpus": actor_cpus},
-        compute=ray.data.ActorPoolStrategy(size=actors),
+        compute=ray.data.ActorPoolStrategy(size=actors, max_tasks_in_flight_per_actor=2),
         batch_size=1,
         **actor_resources,
     )
@@ -180,7 +204,16 @@ def run_pipeline(
     total = len(entries)
     seen = 0
     devices: set[str] = set()
-    for row in ds.iter_rows():
+    try:
+        rows = iter(ds.iter_rows())
+        first = next(rows, None)
+    except ray.exceptions.GetTimeoutError as exc:
+        need = "1 GPU" if use_gpu else f"{actor_cpus:g} CPU"
+        raise ClusterCapacityError(
+            f"the {actors} model actor(s) did not start within {options.actor_start_timeout:g} s: "
+            f"the Ray cluster does not offer {need} to each of them (see --actors)"
+        ) from exc
+    for row in itertools.chain([first] if first is not None else [], rows):
         if cancel is not None and cancel.is_set():
             log.info("cancelled after %d of %d scans", seen, total)
             break
@@ -208,15 +241,17 @@ def run_pipeline(
     return result
 
 
-def _default_actor_cpus(actors: int, options: PipelineOptions) -> float:
-    """CPUs per CPU actor: what one reader and one writer leave of the CPUs free now (other
-    actors, such as the gateway's, may hold some) on the largest node, shared out."""
+def _cpu_layout(options: PipelineOptions) -> tuple[int, float]:
+    """CPU model actors and the CPUs of each: see `PipelineOptions`. The free CPUs are those of the
+    largest node not held now (other actors, such as the gateway's, may hold some)."""
     import ray
 
     largest = max((n["Resources"].get("CPU", 0.0) for n in ray.nodes() if n["Alive"]), default=1.0)
     free = min(largest, ray.available_resources().get("CPU", 0.0))
     spare = free - options.read_cpus - options.write_cpus
-    return max(0.25, int(spare / max(1, actors) * 4) / 4)
+    actors = options.actors or max(1, round(spare))
+    cpus = options.actor_cpus or max(0.25, int(spare / actors * 4) / 4)
+    return actors, cpus
 
 
 def _cpu_spec(spec: PredictorSpec) -> PredictorSpec:

@@ -18,6 +18,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from rangeret.inference import Predictor, PredictorSpec
+from workers.pipeline import GPU_ACTOR_CPUS
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +71,9 @@ class ScanPool:
         if use_gpu and not gpus:
             raise ValueError("GPU actors were asked for but the Ray cluster has no GPU")
         count = actors or (gpus if use_gpu else 1)
-        resources = {"num_gpus": 1} if use_gpu else {"num_cpus": actor_cpus}
+        if use_gpu:
+            actor_cpus = GPU_ACTOR_CPUS
+        resources = {"num_gpus": 1, "num_cpus": actor_cpus} if use_gpu else {"num_cpus": actor_cpus}
         remote = ray.remote(max_restarts=-1, max_task_retries=-1, **resources)(ScanWorker)
         self.actors = [remote.remote(spec, actor_cpus) for _ in range(count)]
         self._busy = [0] * count

@@ -48,8 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="accept a dataset with missing sequences or scans, and archive it (for tests only)")
     p.add_argument("--report", type=Path, metavar="FILE.json",
                    help="evaluation report of the labelled scans (PNGs beside it)")
-    p.add_argument("--actors", type=int, metavar="N", help="model actors (default: one per GPU, or 1)")
-    p.add_argument("--read-cpus", type=float, default=0.5, help="CPU share of each read + project actor")
+    p.add_argument("--actors", type=int, metavar="N", help="model actors (default: one per GPU; on CPU clusters one per free CPU of a node)")
+    p.add_argument("--read-cpus", type=float, default=0.25, help="CPU share of each read + project actor")
     p.add_argument("--actor-cpus", type=float, metavar="N",
                    help="CPUs of each CPU model actor (default: what readers and writers leave)")
     p.add_argument("-q", "--quiet", action="store_true", help="less logging")
