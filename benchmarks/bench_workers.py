@@ -63,7 +63,7 @@ def main() -> None:
             rates.setdefault("predict", []).append(single)
             print(f"  round {r + 1}: rangeret predict           {single:6.3f} scans/s   {_stages(summary.times)}")
             for actors, actor_cpus in ((1, 1.5), (2, 0.75)):
-                options = PipelineOptions(actors=actors, actor_cpus=actor_cpus, read_cpus=0.25, write_cpus=0.1)
+                options = PipelineOptions(actors=actors, actor_cpus=actor_cpus)  # 2 x 0.75 is the default here
                 start = time.perf_counter()
                 result = run_pipeline(spec, projection, entries, tmp / f"ray{actors}-{r}", options)
                 rate = result.written / (time.perf_counter() - start)

@@ -82,6 +82,6 @@ def test_more_gpu_actors_than_gpus_is_a_named_error_not_a_hang(cluster, tmp_path
     spec = PredictorSpec(checkpoint=str(weights), height=32, width=256, device="auto")
     info = load_checkpoint(weights, height=32, width=256).checkpoint_info
     options = PipelineOptions(actors=3, read_cpus=0.25, write_cpus=0.1, actor_start_timeout=10)
-    with pytest.raises(ClusterCapacityError, match="3 model actor.*did not start within 10 s.*1 GPU"):
+    with pytest.raises(ClusterCapacityError, match=r"3 model actor.*did not start within 10 s.*1 GPU"):
         run_pipeline(spec, projection_for(info), discover(data, ["08", "11"]).scans, tmp_path / "out", options)
     assert not list((tmp_path / "out").rglob("*.label"))

@@ -31,6 +31,7 @@ import os
 import pickle
 import threading
 import time
+import warnings
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -180,8 +181,11 @@ def run_pipeline(
     ctx.execution_options.preserve_order = False
     ctx.wait_for_min_actors_s = int(options.actor_start_timeout)
     # Spread batches over every model actor instead of favouring the one beside the reader that
-    # made them: a projected scan is a few MB, cheap to move, and idle GPUs are not.
-    ctx.execution_options.actor_locality_enabled = False
+    # made them: a projected scan is a few MB, cheap to move, and idle GPUs are not. Ray 2.60 marks
+    # the switch deprecated but honours it; the two-GPU cluster test fails without it.
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*actor_locality_enabled")
+        ctx.execution_options.actor_locality_enabled = False
 
     actor_resources = {"num_gpus": 1, "num_cpus": actor_cpus} if use_gpu else {"num_cpus": actor_cpus}
     worker_spec = spec if use_gpu or spec.device != "auto" else _cpu_spec(spec)
