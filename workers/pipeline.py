@@ -64,12 +64,14 @@ class PipelineOptions:
 
     Model actors default to one per GPU. On CPU clusters they default to one per CPU that a reader
     and a writer leave free on the largest node, each with one torch thread: on 2 cores, two
-    one-thread actors ran 1.3x faster than one two-thread actor (`benchmarks/bench_workers.py`),
+    one-thread actors ran about 1.25x faster than one two-thread actor (`benchmarks/bench_workers.py`),
     as intra-op threads scale below linearly and stall whenever another process takes their core.
     Given `actors`, `actor_cpus` defaults to that free share split between them; the network runs
-    on ceil(actor_cpus) threads. GPU actors reserve `actor_cpus` or `GPU_ACTOR_CPUS`. Batches flow once every actor has started, so that each GPU works
-    from the first batch on; `actor_start_timeout` seconds (long enough for an autoscaler to bring
-    GPU nodes up) without them is an error.
+    on ceil(actor_cpus) threads. GPU actors reserve `actor_cpus` or `GPU_ACTOR_CPUS`.
+
+    Batches flow once every model actor has started, so that each GPU works from the first batch
+    on; `actor_start_timeout` seconds without them (long enough for an autoscaler to bring GPU
+    nodes up) is a `ClusterCapacityError`.
     """
 
     batch_size: int = 1

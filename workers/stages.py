@@ -1,7 +1,8 @@
 """The pipeline's CPU stages: read + project before the network, write + count after it.
 
-They run as short Ray tasks, often in freshly started worker processes, so this module imports
-only numpy and the torch-free parts of the library: a task's start-up stays a fraction of a second.
+They run in small Ray Data actor pools beside the model actors. This module imports only numpy and
+the torch-free parts of the library, so a reader or writer process starts in about a second and
+holds no copy of torch.
 Rows carry scans as JSON records, projections and labels as pickles, stage times as JSON.
 """
 
