@@ -13,10 +13,14 @@ SHARED = REPO.parent / "shared"
 REAL_SCAN = SHARED / "data" / "semantickitti-scan" / "000000.bin"
 REAL_LABELS = SHARED / "data" / "semantickitti-scan" / "000000.label"
 
-sys.path.insert(0, str(REPO / "tests"))  # the slow, direct reference formulations live with the tests
+sys.path.insert(
+    0, str(REPO / "tests")
+)  # the slow, direct reference formulations live with the tests
 
 
-def median_time(fn: Callable[[], object], repeat: int = 7, number: int = 1, warmup: int = 1) -> float:
+def median_time(
+    fn: Callable[[], object], repeat: int = 7, number: int = 1, warmup: int = 1
+) -> float:
     """Median over `repeat` samples of the mean wall time of `number` calls of `fn()`, in seconds."""
     for _ in range(warmup):
         fn()

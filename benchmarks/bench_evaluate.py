@@ -61,8 +61,12 @@ def main() -> None:
     t_generic = median_time(lambda: confusion_counts(pred64, gt64, 20), repeat=15, number=20)
     print(f"accumulation of one scan ({gt8.size:,} points), median of 15 x 20 calls:")
     print(f"  np.add.at, int32 classes (official)  {1e3 * t_add_at:8.3f} ms")
-    print(f"  bincount, uint8 classes (ours)       {1e3 * t_ours:8.3f} ms   {t_add_at / t_ours:5.1f} x")
-    print(f"  bincount, int64 classes (generic)    {1e3 * t_generic:8.3f} ms   {t_add_at / t_generic:5.1f} x")
+    print(
+        f"  bincount, uint8 classes (ours)       {1e3 * t_ours:8.3f} ms   {t_add_at / t_ours:5.1f} x"
+    )
+    print(
+        f"  bincount, int64 classes (generic)    {1e3 * t_generic:8.3f} ms   {t_add_at / t_generic:5.1f} x"
+    )
 
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
@@ -73,8 +77,12 @@ def main() -> None:
         t_official = median_time(lambda: official_end_to_end(root, table), repeat=9)
         t_ours = median_time(lambda: evaluate_predictions(root, root / "pred", ["08"]), repeat=9)
     print(f"end to end, {SCANS} scans read from disk, mapped and accumulated, median of 9:")
-    print(f"  official formulation    {1e3 * t_official / SCANS:8.2f} ms/scan ({SCANS / t_official:6.1f} scans/s)")
-    print(f"  rangeret evaluate       {1e3 * t_ours / SCANS:8.2f} ms/scan ({SCANS / t_ours:6.1f} scans/s)")
+    print(
+        f"  official formulation    {1e3 * t_official / SCANS:8.2f} ms/scan ({SCANS / t_official:6.1f} scans/s)"
+    )
+    print(
+        f"  rangeret evaluate       {1e3 * t_ours / SCANS:8.2f} ms/scan ({SCANS / t_ours:6.1f} scans/s)"
+    )
     print(f"  speed-up                {t_official / t_ours:8.1f} x")
 
 

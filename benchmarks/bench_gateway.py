@@ -38,14 +38,37 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_gateway(weights: Path, state: Path, batch: int, wait_ms: float, device: str) -> tuple[subprocess.Popen, str]:
+def start_gateway(
+    weights: Path, state: Path, batch: int, wait_ms: float, device: str
+) -> tuple[subprocess.Popen, str]:
     """A gateway process with these batching settings, once it answers /healthz."""
     port = free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("RANGERET_")}
-    env.update(RANGERET_STATE_DIR=str(state), RANGERET_BATCH_SIZE=str(batch), RANGERET_BATCH_WAIT_MS=str(wait_ms))
-    cmd = [sys.executable, "-m", "service", "--checkpoint", str(weights), "--height", "32", "--width", "256",
-           "--device", device, "--port", str(port), "--log-level", "warning"]
-    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    env.update(
+        RANGERET_STATE_DIR=str(state),
+        RANGERET_BATCH_SIZE=str(batch),
+        RANGERET_BATCH_WAIT_MS=str(wait_ms),
+    )
+    cmd = [
+        sys.executable,
+        "-m",
+        "service",
+        "--checkpoint",
+        str(weights),
+        "--height",
+        "32",
+        "--width",
+        "256",
+        "--device",
+        device,
+        "--port",
+        str(port),
+        "--log-level",
+        "warning",
+    ]
+    proc = subprocess.Popen(
+        cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    )
     url = f"http://127.0.0.1:{port}"
     deadline = time.time() + 180
     while time.time() < deadline:
@@ -61,7 +84,9 @@ def start_gateway(weights: Path, state: Path, batch: int, wait_ms: float, device
     sys.exit("the gateway did not start in time")
 
 
-async def load(url: str, body: bytes, clients: int, scans: int, timeout: float) -> tuple[float, list[float]]:
+async def load(
+    url: str, body: bytes, clients: int, scans: int, timeout: float
+) -> tuple[float, list[float]]:
     """Wall time and per-request latencies of `clients` x `scans` sequential requests."""
     latencies: list[float] = []
     limits = httpx.Limits(max_connections=clients)
@@ -86,7 +111,9 @@ def percentile(values: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(values), q))
 
 
-def run_config(weights: Path, body: bytes, args: argparse.Namespace, batch: int, wait_ms: float) -> dict[str, float]:
+def run_config(
+    weights: Path, body: bytes, args: argparse.Namespace, batch: int, wait_ms: float
+) -> dict[str, float]:
     """Start a gateway, load it, stop it; its figures."""
     with tempfile.TemporaryDirectory() as state:
         proc, url = start_gateway(weights, Path(state), batch, wait_ms, args.device)
@@ -99,7 +126,11 @@ def run_config(weights: Path, body: bytes, args: argparse.Namespace, batch: int,
                 proc.wait(30)
             except subprocess.TimeoutExpired:
                 proc.kill()
-    batches = sum(float(line.split()[-1]) for line in metrics.splitlines() if line.startswith("rangeret_batch_scans_count"))
+    batches = sum(
+        float(line.split()[-1])
+        for line in metrics.splitlines()
+        if line.startswith("rangeret_batch_scans_count")
+    )
     return {
         "throughput": len(latencies) / wall,
         "p50": 1e3 * statistics.median(latencies),
@@ -112,9 +143,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--clients", type=int, default=8)
     parser.add_argument("--scans", type=int, default=25, help="requests per client")
-    parser.add_argument("--stride", type=int, default=8, help="keep every N-th point of the real scan")
+    parser.add_argument(
+        "--stride", type=int, default=8, help="keep every N-th point of the real scan"
+    )
     parser.add_argument("--batch", type=int, default=4, help="batch size of the batching run")
-    parser.add_argument("--wait-ms", type=float, default=20.0, help="batch wait of the batching run")
+    parser.add_argument(
+        "--wait-ms", type=float, default=20.0, help="batch wait of the batching run"
+    )
     parser.add_argument("--device", default="auto")
     parser.add_argument("--timeout", type=float, default=300.0, help="seconds one request may take")
     args = parser.parse_args()
@@ -125,15 +160,24 @@ def main() -> None:
         fixture = torch.load(SHARED / "fixtures" / "rangeret-cir-small.pt", weights_only=False)
         weights = Path(tmp) / "cir-small.pt"
         torch.save(fixture["state_dict"], weights)
-        print(f"{args.clients} clients x {args.scans} scans of {len(points):,} points, small rangeret-cir at 32x256, "
-              f"device {args.device}, {os.cpu_count()} CPUs")
+        print(
+            f"{args.clients} clients x {args.scans} scans of {len(points):,} points, small rangeret-cir at 32x256, "
+            f"device {args.device}, {os.cpu_count()} CPUs"
+        )
         single = run_config(weights, body, args, 1, 0.0)
         batched = run_config(weights, body, args, args.batch, args.wait_ms)
-    for name, r in (("batch 1", single), (f"batch {args.batch}, wait {args.wait_ms:g} ms", batched)):
-        print(f"{name:<24} {r['throughput']:7.2f} scans/s   p50 {r['p50']:8.1f} ms   p99 {r['p99']:8.1f} ms   "
-              f"mean batch {r['mean_batch']:.2f}")
-    print(f"batching gain: throughput x{batched['throughput'] / single['throughput']:.2f}, "
-          f"p50 x{single['p50'] / batched['p50']:.2f}, p99 x{single['p99'] / batched['p99']:.2f} (higher is better)")
+    for name, r in (
+        ("batch 1", single),
+        (f"batch {args.batch}, wait {args.wait_ms:g} ms", batched),
+    ):
+        print(
+            f"{name:<24} {r['throughput']:7.2f} scans/s   p50 {r['p50']:8.1f} ms   p99 {r['p99']:8.1f} ms   "
+            f"mean batch {r['mean_batch']:.2f}"
+        )
+    print(
+        f"batching gain: throughput x{batched['throughput'] / single['throughput']:.2f}, "
+        f"p50 x{single['p50'] / batched['p50']:.2f}, p99 x{single['p99'] / batched['p99']:.2f} (higher is better)"
+    )
 
 
 if __name__ == "__main__":

@@ -25,9 +25,13 @@ from rangeret.predict import predict_tree
 from rangeret.projection import ProjectionConfig
 
 
-def stage_medians(predictor: Predictor, points: np.ndarray, repeat: int, out: Path) -> dict[str, float]:
+def stage_medians(
+    predictor: Predictor, points: np.ndarray, repeat: int, out: Path
+) -> dict[str, float]:
     """Median milliseconds of each stage over `repeat` scans."""
-    samples: dict[str, list[float]] = {k: [] for k in ("read", "project", "network", "knn", "write")}
+    samples: dict[str, list[float]] = {
+        k: [] for k in ("read", "project", "network", "knn", "write")
+    }
     for i in range(repeat + 1):
         t0 = time.perf_counter()
         pts = read_scan(REAL_SCAN)
@@ -63,7 +67,9 @@ def main() -> None:
         thesis = Predictor(build_model("rangeret-thesis"), ProjectionConfig(), device=args.device)
         print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, device {cir.device}")
         print(f"one scan of {len(points):,} points at 64 x 1024, median of {args.repeat} (ms):")
-        print(f"  {'network':<16} {'read':>7} {'project':>8} {'network':>9} {'kNN 7x7':>8} {'write':>7} {'total':>8}")
+        print(
+            f"  {'network':<16} {'read':>7} {'project':>8} {'network':>9} {'kNN 7x7':>8} {'write':>7} {'total':>8}"
+        )
         for name, predictor in (("rangeret-cir", cir), ("rangeret-thesis", thesis)):
             m = stage_medians(predictor, points, args.repeat, tmp)
             print(
@@ -76,7 +82,9 @@ def main() -> None:
         for name, predictor in (("rangeret-cir", cir), ("rangeret-thesis", thesis)):
             out = tmp / f"pred-{name}"
             summary = predict_tree(predictor, root, ["08"], out, progress=False)
-            print(f"end to end, rangeret predict over {args.scans} scans, {name}: {summary.written / summary.seconds:.3f} scans/s")
+            print(
+                f"end to end, rangeret predict over {args.scans} scans, {name}: {summary.written / summary.seconds:.3f} scans/s"
+            )
 
 
 if __name__ == "__main__":

@@ -50,9 +50,17 @@ def measure(model: str, steps: int) -> dict:
         (velodyne_dir(root, "00") / "000000.bin").symlink_to(REAL_SCAN)
         (labels_dir(root, "00") / "000000.label").symlink_to(REAL_LABELS)
         config = TrainConfig(
-            dataset=str(root), out=str(Path(tmp) / "out"), model=model, height=SIZE[0], width=SIZE[1],
-            train_sequences=("00",), val_sequences=(), epochs=steps + 1, loader_workers=0,
-            progress=False, device="cpu",
+            dataset=str(root),
+            out=str(Path(tmp) / "out"),
+            model=model,
+            height=SIZE[0],
+            width=SIZE[1],
+            train_sequences=("00",),
+            val_sequences=(),
+            epochs=steps + 1,
+            loader_workers=0,
+            progress=False,
+            device="cpu",
         )
         trainer = Trainer(config)
         baseline = peak_rss_mb()
@@ -81,8 +89,12 @@ def measure(model: str, steps: int) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--steps", type=int, default=3, help="timed steps per network (median reported)")
-    parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's own choice)")
+    parser.add_argument(
+        "--steps", type=int, default=3, help="timed steps per network (median reported)"
+    )
+    parser.add_argument(
+        "--threads", type=int, help="torch CPU threads (default: torch's own choice)"
+    )
     parser.add_argument("--one", choices=MODELS, help=argparse.SUPPRESS)
     args = parser.parse_args()
     require_real_scan()
@@ -93,20 +105,33 @@ def main() -> None:
             torch.set_num_threads(args.threads)
         print(json.dumps(measure(args.one, args.steps)), flush=True)
         return
-    print(f"training at {SIZE[0]}x{SIZE[1]}, batch 1, CPU fp32, {args.steps} timed steps after 1 warm-up step")
-    print(f"{'model':16} {'params':>10} {'threads':>7} {'data s':>7} {'step s':>7} {'steps/s':>8} "
-          f"{'peak MiB':>9} {'+train MiB':>10}   thesis GPU (RTX 2080)")
+    print(
+        f"training at {SIZE[0]}x{SIZE[1]}, batch 1, CPU fp32, {args.steps} timed steps after 1 warm-up step"
+    )
+    print(
+        f"{'model':16} {'params':>10} {'threads':>7} {'data s':>7} {'step s':>7} {'steps/s':>8} "
+        f"{'peak MiB':>9} {'+train MiB':>10}   thesis GPU (RTX 2080)"
+    )
     for model in MODELS:
         child = subprocess.run(
             [sys.executable, __file__, "--one", model, "--steps", str(args.steps)]
             + (["--threads", str(args.threads)] if args.threads else []),
-            check=True, capture_output=True, text=True,
+            check=True,
+            capture_output=True,
+            text=True,
         )
         r = json.loads(child.stdout.strip().splitlines()[-1])
         gpu = THESIS_GPU.get(model)
-        reference = f"{gpu[0]} it/s, {gpu[1]} GB ({gpu[0] * (r['data_s'] + r['step_s']):.0f}x faster)" if gpu else "-"
-        print(f"{model:16} {r['params']:>10,} {r['threads']:>7} {r['data_s']:>7.3f} {r['step_s']:>7.2f} "
-              f"{r['steps_per_s']:>8.3f} {r['peak_mb']:>9.0f} {r['training_mb']:>10.0f}   {reference}", flush=True)
+        reference = (
+            f"{gpu[0]} it/s, {gpu[1]} GB ({gpu[0] * (r['data_s'] + r['step_s']):.0f}x faster)"
+            if gpu
+            else "-"
+        )
+        print(
+            f"{model:16} {r['params']:>10,} {r['threads']:>7} {r['data_s']:>7.3f} {r['step_s']:>7.2f} "
+            f"{r['steps_per_s']:>8.3f} {r['peak_mb']:>9.0f} {r['training_mb']:>10.0f}   {reference}",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

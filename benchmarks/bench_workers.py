@@ -33,46 +33,64 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--scans", type=int, default=40)
     parser.add_argument("--weights", choices=sorted(SIZES), default="kitti")
-    parser.add_argument("--rounds", type=int, default=3, help="interleaved repetitions; medians are printed")
+    parser.add_argument(
+        "--rounds", type=int, default=3, help="interleaved repetitions; medians are printed"
+    )
     args = parser.parse_args()
     require_real_scan()
     logging.basicConfig(level=logging.WARNING)
     import ray
 
     points = read_scan(REAL_SCAN)
-    fixture = torch.load(SHARED / "fixtures" / f"rangeret-cir-{args.weights}.pt", weights_only=False)
+    fixture = torch.load(
+        SHARED / "fixtures" / f"rangeret-cir-{args.weights}.pt", weights_only=False
+    )
     h, w = SIZES[args.weights]
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         torch.save(fixture["state_dict"], tmp / "w.pt")
         for i in range(args.scans):
-            write_scan(velodyne_dir(tmp / "data", "08") / f"{i:06d}.bin", points[i % 7 :: 1 + i % 2])
+            write_scan(
+                velodyne_dir(tmp / "data", "08") / f"{i:06d}.bin", points[i % 7 :: 1 + i % 2]
+            )
         spec = PredictorSpec(checkpoint=str(tmp / "w.pt"), height=h, width=w, device="cpu")
         entries = list_scans(tmp / "data", ["08"])
 
         ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
         info = load_checkpoint(spec.checkpoint, height=h, width=w).checkpoint_info
         projection = projection_for(info)
-        print(f"{args.scans} scans at {h} x {w}, {torch.get_num_threads()} torch threads, {args.rounds} rounds")
+        print(
+            f"{args.scans} scans at {h} x {w}, {torch.get_num_threads()} torch threads, {args.rounds} rounds"
+        )
         rates: dict[str, list[float]] = {}
         ratios: dict[str, list[float]] = {}
         for r in range(args.rounds):  # interleaved, so that a noisy spell hits every runner alike
             start = time.perf_counter()  # both sides include loading the network, as a command does
-            summary = predict_tree(spec.build(), tmp / "data", ["08"], tmp / f"single{r}", progress=False)
+            summary = predict_tree(
+                spec.build(), tmp / "data", ["08"], tmp / f"single{r}", progress=False
+            )
             single = summary.written / (time.perf_counter() - start)
             rates.setdefault("predict", []).append(single)
-            print(f"  round {r + 1}: rangeret predict           {single:6.3f} scans/s   {_stages(summary.times)}")
+            print(
+                f"  round {r + 1}: rangeret predict           {single:6.3f} scans/s   {_stages(summary.times)}"
+            )
             for actors, actor_cpus in ((1, 1.5), (2, 0.75)):
-                options = PipelineOptions(actors=actors, actor_cpus=actor_cpus)  # 2 x 0.75 is the default here
+                options = PipelineOptions(
+                    actors=actors, actor_cpus=actor_cpus
+                )  # 2 x 0.75 is the default here
                 start = time.perf_counter()
                 result = run_pipeline(spec, projection, entries, tmp / f"ray{actors}-{r}", options)
                 rate = result.written / (time.perf_counter() - start)
                 name = f"{actors} actor(s) x {actor_cpus:g} CPU"
                 rates.setdefault(name, []).append(rate)
                 ratios.setdefault(name, []).append(single / rate)
-                print(f"  round {r + 1}: Ray, {name:17s} {rate:6.3f} scans/s   {_stages(result.times)}")
+                print(
+                    f"  round {r + 1}: Ray, {name:17s} {rate:6.3f} scans/s   {_stages(result.times)}"
+                )
         print("medians:")
-        print(f"  rangeret predict (one process)     {statistics.median(rates['predict']):6.3f} scans/s")
+        print(
+            f"  rangeret predict (one process)     {statistics.median(rates['predict']):6.3f} scans/s"
+        )
         for name, ratio in ratios.items():
             print(
                 f"  Ray pipeline, {name:17s}    {statistics.median(rates[name]):6.3f} scans/s   "

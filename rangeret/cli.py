@@ -35,7 +35,9 @@ class CommandError(Exception):
 def add_selection(parser: argparse.ArgumentParser, splits: Sequence[str]) -> None:
     """--split or --sequences, exactly one of them."""
     group = parser.add_mutually_exclusive_group(required=True)
-    group.add_argument("--split", choices=list(splits), help="an official split of the label configuration")
+    group.add_argument(
+        "--split", choices=list(splits), help="an official split of the label configuration"
+    )
     group.add_argument(
         "--sequences",
         nargs="+",
@@ -58,7 +60,9 @@ def _label_config(args: argparse.Namespace) -> LabelConfig:
     try:
         return load_label_config(args.label_config)
     except (OSError, ValueError, KeyError) as exc:
-        raise CommandError(f"cannot read the label configuration {args.label_config}: {exc}") from exc
+        raise CommandError(
+            f"cannot read the label configuration {args.label_config}: {exc}"
+        ) from exc
 
 
 def selected_sequences(args: argparse.Namespace, config: LabelConfig) -> list[str]:
@@ -69,22 +73,50 @@ def selected_sequences(args: argparse.Namespace, config: LabelConfig) -> list[st
 def add_network_options(parser: argparse.ArgumentParser) -> None:
     """The options shared by every command that runs a network (predict, serve, the Ray job)."""
     g = parser.add_argument_group("network")
-    g.add_argument("--model", choices=["rangeret-thesis", "rangeret-cir"],
-                   help="network name; recognised from the checkpoint when omitted")
-    g.add_argument("--checkpoint", type=Path, metavar="FILE",
-                   help="weights: the project's own checkpoint or a published .pt file "
-                   "(default: the bundled demo weights, trained on simulated scenes only)")
+    g.add_argument(
+        "--model",
+        choices=["rangeret-thesis", "rangeret-cir"],
+        help="network name; recognised from the checkpoint when omitted",
+    )
+    g.add_argument(
+        "--checkpoint",
+        type=Path,
+        metavar="FILE",
+        help="weights: the project's own checkpoint or a published .pt file "
+        "(default: the bundled demo weights, trained on simulated scenes only)",
+    )
     g.add_argument("--height", type=int, help="range image rows (published files: default 64)")
     g.add_argument("--width", type=int, help="range image columns (published files: default 1024)")
-    g.add_argument("--fov-up", type=float, metavar="DEG", help="upper vertical field of view (default 3)")
-    g.add_argument("--fov-down", type=float, metavar="DEG", help="lower vertical field of view (default -25)")
-    g.add_argument("--batch-size", type=int, default=1, metavar="N", help="scans per network pass (default 1)")
-    g.add_argument("--no-knn", action="store_true", help="take each point's pixel class, without kNN refinement")
-    g.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],
-                   help="auto picks CUDA when present (default)")
-    g.add_argument("--tta-flip", action="store_true", help="test-time augmentation: add the mirrored view")
-    g.add_argument("--tta-shifts", type=int, default=0, metavar="N",
-                   help="test-time augmentation: add N azimuth-rotated views")
+    g.add_argument(
+        "--fov-up", type=float, metavar="DEG", help="upper vertical field of view (default 3)"
+    )
+    g.add_argument(
+        "--fov-down", type=float, metavar="DEG", help="lower vertical field of view (default -25)"
+    )
+    g.add_argument(
+        "--batch-size", type=int, default=1, metavar="N", help="scans per network pass (default 1)"
+    )
+    g.add_argument(
+        "--no-knn",
+        action="store_true",
+        help="take each point's pixel class, without kNN refinement",
+    )
+    g.add_argument(
+        "--device",
+        default="auto",
+        choices=["auto", "cpu", "cuda"],
+        help="auto picks CUDA when present (default)",
+    )
+    g.add_argument(
+        "--tta-flip", action="store_true", help="test-time augmentation: add the mirrored view"
+    )
+    g.add_argument(
+        "--tta-shifts",
+        type=int,
+        default=0,
+        metavar="N",
+        help="test-time augmentation: add N azimuth-rotated views",
+    )
 
 
 def spec_from_args(args: argparse.Namespace):
@@ -95,7 +127,11 @@ def spec_from_args(args: argparse.Namespace):
         raise CommandError(f"--batch-size must be at least 1, got {args.batch_size}")
     if args.tta_shifts < 0:
         raise CommandError(f"--tta-shifts must not be negative, got {args.tta_shifts}")
-    tta = TtaSettings(flip=args.tta_flip, shifts=args.tta_shifts) if (args.tta_flip or args.tta_shifts) else None
+    tta = (
+        TtaSettings(flip=args.tta_flip, shifts=args.tta_shifts)
+        if (args.tta_flip or args.tta_shifts)
+        else None
+    )
     return PredictorSpec(
         checkpoint=str(resolve_checkpoint(args.checkpoint)),
         model=args.model,
@@ -115,8 +151,12 @@ def predictor_from_args(args: argparse.Namespace):
     info = predictor.describe()
     log.info(
         "%s from %s (sha256 %s) at %dx%d on %s",
-        info["model"], info["checkpoint"], (info["checkpoint_sha256"] or "")[:12],
-        predictor.projection_config.height, predictor.projection_config.width, predictor.device,
+        info["model"],
+        info["checkpoint"],
+        (info["checkpoint_sha256"] or "")[:12],
+        predictor.projection_config.height,
+        predictor.projection_config.width,
+        predictor.device,
     )
     return predictor
 
@@ -128,7 +168,12 @@ def cmd_predict(args: argparse.Namespace) -> int:
     sequences = selected_sequences(args, load_label_config(None))
     predictor = predictor_from_args(args)
     summary = predict_tree(
-        predictor, args.dataset, sequences, args.out, batch_size=args.batch_size, progress=not args.quiet
+        predictor,
+        args.dataset,
+        sequences,
+        args.out,
+        batch_size=args.batch_size,
+        progress=not args.quiet,
     )
     print(summary.text())
     if not summary.ok:
@@ -178,7 +223,9 @@ def cmd_submission(args: argparse.Namespace) -> int:
     )
     print(check.summary())
     if check.partial:
-        log.warning("this is a partial archive: the benchmark server refuses it; use it for tests only")
+        log.warning(
+            "this is a partial archive: the benchmark server refuses it; use it for tests only"
+        )
     return 0
 
 
@@ -215,7 +262,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         counts[name] = int(number)
     labelled = [s for s in counts if s not in set(args.unlabelled)]
     sensor = SensorConfig(beams=args.beams, azimuth_steps=args.azimuth_steps)
-    n = simulate_dataset(args.out, counts, labelled=labelled, sensor=sensor, seed=args.seed, progress=not args.quiet)
+    n = simulate_dataset(
+        args.out, counts, labelled=labelled, sensor=sensor, seed=args.seed, progress=not args.quiet
+    )
     print(f"{n} simulated scans in {args.out} ({', '.join(labelled) or 'none'} labelled)")
     return 0
 
@@ -258,14 +307,20 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     splits = ("train", "valid", "test")
 
-    p = sub.add_parser("predict", parents=[common], help="label every scan of a split or of sequences")
+    p = sub.add_parser(
+        "predict", parents=[common], help="label every scan of a split or of sequences"
+    )
     p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
     add_selection(p, splits)
-    p.add_argument("--out", type=Path, required=True, metavar="PRED", help="predictions tree to write")
+    p.add_argument(
+        "--out", type=Path, required=True, metavar="PRED", help="predictions tree to write"
+    )
     add_network_options(p)
     p.set_defaults(func=cmd_predict)
 
-    p = sub.add_parser("evaluate", parents=[common], help="per-class IoU of predictions against ground truth")
+    p = sub.add_parser(
+        "evaluate", parents=[common], help="per-class IoU of predictions against ground truth"
+    )
     p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
     p.add_argument("--predictions", type=Path, required=True, metavar="PRED")
     add_selection(p, splits)
@@ -274,7 +329,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     _add_label_config(p)
     p.set_defaults(func=cmd_evaluate)
 
-    p = sub.add_parser("submission", parents=[common], help="write and validate a CodaLab/Codabench zip")
+    p = sub.add_parser(
+        "submission", parents=[common], help="write and validate a CodaLab/Codabench zip"
+    )
     p.add_argument("--predictions", type=Path, required=True, metavar="PRED")
     p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
     p.add_argument("--out", type=Path, required=True, metavar="FILE.zip")
@@ -287,7 +344,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     _add_label_config(p)
     p.set_defaults(func=cmd_submission)
 
-    p = sub.add_parser("validate-submission", parents=[common], help="check a submission zip before uploading it")
+    p = sub.add_parser(
+        "validate-submission", parents=[common], help="check a submission zip before uploading it"
+    )
     p.add_argument("archive", type=Path, metavar="FILE.zip")
     p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
     p.add_argument(
@@ -305,25 +364,40 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         add_serve_arguments(p)
     p.set_defaults(func=cmd_serve)
 
-    p = sub.add_parser("train", parents=[common], help="train a network (in this process or with --ray)")
+    p = sub.add_parser(
+        "train", parents=[common], help="train a network (in this process or with --ray)"
+    )
     if command in (None, "train"):
         from rangeret.training import add_train_arguments
 
         add_train_arguments(p)
     p.set_defaults(func=cmd_train)
 
-    p = sub.add_parser("simulate", parents=[common], help="write a simulated dataset (street scenes)")
+    p = sub.add_parser(
+        "simulate", parents=[common], help="write a simulated dataset (street scenes)"
+    )
     p.add_argument("--out", type=Path, required=True, metavar="ROOT")
-    p.add_argument("--sequences", nargs="+", required=True, metavar="XX:N", help="sequences and scan counts")
-    p.add_argument("--unlabelled", nargs="*", default=[], metavar="XX", help="sequences written without labels")
+    p.add_argument(
+        "--sequences", nargs="+", required=True, metavar="XX:N", help="sequences and scan counts"
+    )
+    p.add_argument(
+        "--unlabelled", nargs="*", default=[], metavar="XX", help="sequences written without labels"
+    )
     p.add_argument("--beams", type=int, default=64)
     p.add_argument("--azimuth-steps", type=int, default=2048)
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_simulate)
 
-    p = sub.add_parser("demo", parents=[common], help="the whole pipeline on a small simulated example")
+    p = sub.add_parser(
+        "demo", parents=[common], help="the whole pipeline on a small simulated example"
+    )
     p.add_argument("--out", type=Path, metavar="DIR", help="results folder (default: a new one)")
-    p.add_argument("--checkpoint", type=Path, metavar="FILE", help="other weights (default: the bundled demo weights)")
+    p.add_argument(
+        "--checkpoint",
+        type=Path,
+        metavar="FILE",
+        help="other weights (default: the bundled demo weights)",
+    )
     p.set_defaults(func=cmd_demo)
     return parser
 
@@ -350,7 +424,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     return run_command(f"rangeret {args.command}", args.func, args)
 
 
-def run_command(program: str, func: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
+def run_command(
+    program: str, func: Callable[[argparse.Namespace], int], args: argparse.Namespace
+) -> int:
     """Run a command's body; input errors become one line on stderr (details below it) and exit code 1.
 
     Every entry point (`rangeret`, `python -m service`, `python -m workers.predict_job`) goes through

@@ -72,5 +72,10 @@ def evaluate_predictions(
     if problems:
         raise EvaluationError(problems)
     report = evaluator.report(found.sequences, checkpoint_sha256)
-    log.info("evaluated %d scans (%d points): mIoU %.4f", report.num_scans, report.num_points, report.miou)
+    log.info(
+        "evaluated %d scans (%d points): mIoU %.4f",
+        report.num_scans,
+        report.num_points,
+        report.miou,
+    )
     return report

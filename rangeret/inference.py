@@ -39,7 +39,9 @@ def resolve_checkpoint(path: str | Path | None) -> Path:
     if path is not None:
         return Path(path)
     if not DEMO_CHECKPOINT.exists():
-        raise FileNotFoundError(f"no --checkpoint given and the bundled demo weights {DEMO_CHECKPOINT} are missing")
+        raise FileNotFoundError(
+            f"no --checkpoint given and the bundled demo weights {DEMO_CHECKPOINT} are missing"
+        )
     log.warning(DEMO_WARNING)
     return DEMO_CHECKPOINT
 
@@ -306,7 +308,9 @@ def _single_thread_on_cpu(device: torch.device) -> Iterator[None]:
         torch.set_num_threads(threads)
 
 
-def _transform(batch: torch.Tensor, flipped: bool, shift: int, config: ProjectionConfig) -> torch.Tensor:
+def _transform(
+    batch: torch.Tensor, flipped: bool, shift: int, config: ProjectionConfig
+) -> torch.Tensor:
     """A view of normalised range images as if the scene were mirrored (y -> -y) and/or rotated.
 
     Mirroring flips the columns; rotating by `shift` columns rolls them. The x and y channels are
@@ -337,7 +341,9 @@ def _transform(batch: torch.Tensor, flipped: bool, shift: int, config: Projectio
     return out
 
 
-def projection_for(info, fov_up: float | None = None, fov_down: float | None = None) -> ProjectionConfig:
+def projection_for(
+    info, fov_up: float | None = None, fov_down: float | None = None
+) -> ProjectionConfig:
     """The projection a checkpoint's network expects: its stored parameters (the project's own
     files) or the HDL-64E defaults (published files), at the network's resolution."""
     stored = dict(info.projection or {})

@@ -36,7 +36,9 @@ class LabelConfig:
         if len(self.class_names) != len(self.class_raw_ids) or len(self.ignored) != len(
             self.class_names
         ):
-            raise ValueError("label configuration: classes, raw ids and ignore flags differ in length")
+            raise ValueError(
+                "label configuration: classes, raw ids and ignore flags differ in length"
+            )
         lut = np.zeros(SEMANTIC_MASK + 1, dtype=np.uint8)
         for raw, cls in self.raw_to_class.items():
             if not 0 <= raw <= SEMANTIC_MASK:
@@ -170,9 +172,7 @@ class LabelConfig:
             raw_to_class={int(k): int(v) for k, v in data["learning_map"].items()},
             raw_bgr={int(k): tuple(v) for k, v in data.get("color_map", {}).items()},
             raw_frequency={int(k): float(v) for k, v in data.get("content", {}).items()},
-            splits={
-                k: tuple(f"{int(s):02d}" for s in v) for k, v in data.get("split", {}).items()
-            },
+            splits={k: tuple(f"{int(s):02d}" for s in v) for k, v in data.get("split", {}).items()},
         )
 
 

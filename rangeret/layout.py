@@ -78,7 +78,9 @@ def list_sequences(root: Path | str) -> list[str]:
     """Sorted names of the sequence folders under `ROOT/sequences`."""
     base = Path(root) / "sequences"
     if not base.is_dir():
-        raise DatasetLayoutError(f"{base} does not exist: expected ROOT/sequences/XX/velodyne/*.bin")
+        raise DatasetLayoutError(
+            f"{base} does not exist: expected ROOT/sequences/XX/velodyne/*.bin"
+        )
     return sorted(p.name for p in base.iterdir() if p.is_dir())
 
 

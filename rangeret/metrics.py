@@ -67,7 +67,9 @@ class ConfusionMatrix:
     def for_config(cls, config: LabelConfig | None = None) -> ConfusionMatrix:
         """An empty matrix shaped for a label configuration."""
         config = config or semantickitti()
-        return cls(config.num_classes, tuple(c for c in range(config.num_classes) if config.ignored[c]))
+        return cls(
+            config.num_classes, tuple(c for c in range(config.num_classes) if config.ignored[c])
+        )
 
     @property
     def include(self) -> list[int]:
@@ -254,7 +256,9 @@ class RawLabelEvaluator:
         cm.merge(full[:n, :n])
         return cm
 
-    def report(self, sequences: Sequence[str] = (), checkpoint_sha256: str | None = None) -> EvaluationReport:
+    def report(
+        self, sequences: Sequence[str] = (), checkpoint_sha256: str | None = None
+    ) -> EvaluationReport:
         """The evaluation report of everything added so far."""
         notes = []
         if self.unknown_prediction_ids:
@@ -277,6 +281,11 @@ class RawLabelEvaluator:
 def _low16(raw: np.ndarray) -> np.ndarray:
     """The low 16 bits of uint32 labels as a uint16 view (little-endian) or a masked copy."""
     raw = np.asarray(raw)
-    if np.little_endian and raw.dtype == np.uint32 and raw.dtype.isnative and raw.flags.c_contiguous:
+    if (
+        np.little_endian
+        and raw.dtype == np.uint32
+        and raw.dtype.isnative
+        and raw.flags.c_contiguous
+    ):
         return raw.view(np.uint16)[::2]
     return (raw.astype(np.int64) & 0xFFFF).astype(np.uint16)

@@ -38,8 +38,15 @@ def plot_confusion(report: EvaluationReport, path: Path | str) -> Path:
     for i in range(len(names)):
         for j in range(len(names)):
             if norm[i, j] >= 0.005:
-                ax.text(j, i, f"{100 * norm[i, j]:.0f}", ha="center", va="center", fontsize=6,
-                        color="white" if norm[i, j] > 0.5 else "black")
+                ax.text(
+                    j,
+                    i,
+                    f"{100 * norm[i, j]:.0f}",
+                    ha="center",
+                    va="center",
+                    fontsize=6,
+                    color="white" if norm[i, j] > 0.5 else "black",
+                )
     fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="share of the ground-truth class")
     fig.tight_layout()
     return _save(fig, path)
@@ -51,13 +58,21 @@ def plot_iou(report: EvaluationReport, path: Path | str, config: LabelConfig | N
     config = config or semantickitti()
     include = report.confusion.include
     iou = report.confusion.iou()[include] * 100
-    colours = config.class_rgb()[include] / 255.0 if config.num_classes == len(report.class_names) else None
+    colours = (
+        config.class_rgb()[include] / 255.0
+        if config.num_classes == len(report.class_names)
+        else None
+    )
 
     fig, ax = plt.subplots(figsize=(11, 4.5))
     bars = ax.bar(range(len(include)), iou, color=colours, edgecolor="black", linewidth=0.5)
     ax.bar_label(bars, labels=[f"{v:.1f}" for v in iou], fontsize=7, padding=2)
-    ax.axhline(100 * report.miou, color="crimson", linestyle="--", label=f"mIoU {100 * report.miou:.1f} %")
-    ax.set_xticks(range(len(include)), [report.class_names[c] for c in include], rotation=60, ha="right")
+    ax.axhline(
+        100 * report.miou, color="crimson", linestyle="--", label=f"mIoU {100 * report.miou:.1f} %"
+    )
+    ax.set_xticks(
+        range(len(include)), [report.class_names[c] for c in include], rotation=60, ha="right"
+    )
     ax.set_ylim(0, 100)
     ax.set_ylabel("IoU (%)")
     scans = f"{report.num_scans:,} scan{'' if report.num_scans == 1 else 's'}"
@@ -104,7 +119,9 @@ def plot_range_image(
         panels.append(("ground truth", palette[ground_truth]))
     panels.append(("prediction", palette[prediction]))
     h, w = range_image.shape
-    fig, axes = plt.subplots(len(panels), 1, figsize=(min(20, w / 60 + 2), 1.3 * len(panels) * max(1.0, h / 64) + 0.8))
+    fig, axes = plt.subplots(
+        len(panels), 1, figsize=(min(20, w / 60 + 2), 1.3 * len(panels) * max(1.0, h / 64) + 0.8)
+    )
     for ax, (name, data) in zip(np.atleast_1d(axes), panels, strict=True):
         if data.ndim == 2:
             ax.set_facecolor("black")

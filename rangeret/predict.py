@@ -56,9 +56,7 @@ class PredictSummary:
         ]
         stages = self.times.per_scan_ms()
         if stages:
-            lines.append(
-                "per scan: " + ", ".join(f"{k} {v:.1f} ms" for k, v in stages.items())
-            )
+            lines.append("per scan: " + ", ".join(f"{k} {v:.1f} ms" for k, v in stages.items()))
         for key, reason in self.failed.items():
             lines.append(f"FAILED {key}: {reason}")
         return "\n".join(lines)
@@ -73,7 +71,9 @@ def is_complete(entry: ScanEntry, out: Path) -> bool:
         return False
 
 
-def list_scans(dataset: Path | str, sequences: Sequence[str], missing_ok: bool = False) -> list[ScanEntry]:
+def list_scans(
+    dataset: Path | str, sequences: Sequence[str], missing_ok: bool = False
+) -> list[ScanEntry]:
     """The scans of `sequences`, in order; a missing or empty sequence is an error naming it
     unless `missing_ok` (a partial local copy, logged)."""
     found = discover(dataset, sequences, missing_ok=missing_ok)
@@ -113,7 +113,9 @@ def predict_tree(
     pending = [e for e in entries if not is_complete(e, out)]
     summary.skipped = len(entries) - len(pending)
     if summary.skipped:
-        log.info("%d of %d scans already have predictions; skipping them", summary.skipped, len(entries))
+        log.info(
+            "%d of %d scans already have predictions; skipping them", summary.skipped, len(entries)
+        )
     _write_run_info(out, predictor, dataset, sequences, batch_size)
 
     def load(batch: list[ScanEntry]) -> list[tuple[ScanEntry, Projection | None, str | None]]:
@@ -153,13 +155,17 @@ def predict_tree(
                 for (entry, proj), scan_logits in zip(good, logits, strict=False):
                     result = predictor.finish(proj, scan_logits)
                     with predictor.times.stage("write"):
-                        write_labels(prediction_path(out, entry.sequence, entry.name), result.labels)
+                        write_labels(
+                            prediction_path(out, entry.sequence, entry.name), result.labels
+                        )
                     summary.written += 1
                     summary.points += proj.num_points
             bar.update(len(loaded))
             bar.set_postfix(failed=len(summary.failed))
             if on_progress is not None:
-                on_progress(summary.written + len(summary.failed), len(summary.failed), len(pending))
+                on_progress(
+                    summary.written + len(summary.failed), len(summary.failed), len(pending)
+                )
     bar.close()
     summary.seconds = time.perf_counter() - start
     return summary
@@ -175,4 +181,3 @@ def _write_run_info(out: Path, predictor: Predictor, dataset, sequences, batch_s
         "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
     (out / RUN_INFO).write_text(json.dumps(info, indent=2) + "\n")
-

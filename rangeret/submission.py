@@ -110,7 +110,9 @@ def _label_problem(data: bytes, name: str, num_points: int, valid: np.ndarray) -
     return None
 
 
-def _dataset_scans(dataset: Path, allow_partial: bool) -> tuple[list[ScanEntry], list[str], list[str]]:
+def _dataset_scans(
+    dataset: Path, allow_partial: bool
+) -> tuple[list[ScanEntry], list[str], list[str]]:
     """The test scans the dataset holds, the sequences present, and problems with completeness."""
     found = discover(dataset, TEST_SEQUENCES, missing_ok=allow_partial)
     problems = list(found.problems)

@@ -13,7 +13,9 @@ from service.server import add_serve_arguments, run_serve
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Parse the options and serve; bad input becomes a one-line message and exit code 1."""
-    parser = argparse.ArgumentParser(prog="python -m service", description="The RangeRet HTTP gateway.")
+    parser = argparse.ArgumentParser(
+        prog="python -m service", description="The RangeRet HTTP gateway."
+    )
     add_serve_arguments(parser)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")

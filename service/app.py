@@ -181,7 +181,10 @@ def job_status(record: JobRecord) -> JobStatus:
 def resolve_dataset(text: str, roots: Sequence[Path]) -> Path:
     """The dataset folder named by a job request: 403 outside the data roots, 404 when absent."""
     if not roots:
-        raise ApiError(403, "No data roots are configured (RANGERET_DATA_ROOTS), so no dataset on the server can be used.")
+        raise ApiError(
+            403,
+            "No data roots are configured (RANGERET_DATA_ROOTS), so no dataset on the server can be used.",
+        )
     try:
         path = Path(text)
         candidates = [path] if path.is_absolute() else [root / path for root in roots]
@@ -211,10 +214,15 @@ def _v1_router(settings: Settings) -> APIRouter:
     if settings.token is not None:
         expected = settings.token.encode()
 
-        async def require_token(credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_BEARER)]) -> None:
+        async def require_token(
+            credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_BEARER)],
+        ) -> None:
             if credentials is None:
-                raise ApiError(401, "This endpoint needs the header 'Authorization: Bearer <token>'.",
-                               {"WWW-Authenticate": "Bearer"})
+                raise ApiError(
+                    401,
+                    "This endpoint needs the header 'Authorization: Bearer <token>'.",
+                    {"WWW-Authenticate": "Bearer"},
+                )
             if not hmac.compare_digest(credentials.credentials.encode(), expected):
                 raise ApiError(401, "The bearer token is wrong.", {"WWW-Authenticate": "Bearer"})
 
@@ -235,7 +243,10 @@ def _v1_router(settings: Settings) -> APIRouter:
         responses={
             200: {
                 "description": "One raw label per point",
-                "content": {OCTET: _BINARY, "application/json": {"schema": ScanLabels.model_json_schema()}},
+                "content": {
+                    OCTET: _BINARY,
+                    "application/json": {"schema": ScanLabels.model_json_schema()},
+                },
             },
             **error_responses(400, *auth, 413, 415, 503),
         },
@@ -249,10 +260,16 @@ def _v1_router(settings: Settings) -> APIRouter:
         limits = gw.settings
         if media_type(request) != OCTET:
             await drain(request, limits.max_body_bytes)
-            raise ApiError(415, f"Send the scan as {OCTET}, not {media_type(request) or 'without a Content-Type'}.")
+            raise ApiError(
+                415,
+                f"Send the scan as {OCTET}, not {media_type(request) or 'without a Content-Type'}.",
+            )
         body = await read_body(request, limits.max_body_bytes)
         if len(body) // POINT_BYTES > limits.max_points:
-            raise ApiError(413, f"The scan has {len(body) // POINT_BYTES:,} points, over the limit of {limits.max_points:,}.")
+            raise ApiError(
+                413,
+                f"The scan has {len(body) // POINT_BYTES:,} points, over the limit of {limits.max_points:,}.",
+            )
         try:
             points = await asyncio.to_thread(parse_scan, body, "the scan")
         except ScanFormatError as exc:
@@ -267,7 +284,11 @@ def _v1_router(settings: Settings) -> APIRouter:
         gw.metrics.points.inc(len(points))
         raw = labels.astype("<u4", copy=False)
         if wants_json(request.headers.get("accept")):
-            body = ScanLabels(num_points=len(raw), labels=raw.tolist(), class_counts=_class_counts(raw, gw.label_config))
+            body = ScanLabels(
+                num_points=len(raw),
+                labels=raw.tolist(),
+                class_counts=_class_counts(raw, gw.label_config),
+            )
             return JSONResponse(body.model_dump())
         return Response(raw.tobytes(), media_type=OCTET)
 
@@ -277,9 +298,14 @@ def _v1_router(settings: Settings) -> APIRouter:
             "multipart/form-data": {
                 "schema": {
                     "type": "object",
-                    "properties": {"archive": {"type": "string", "format": "binary",
-                                               "description": ".zip, .tar or .tar.gz with sequences/XX/velodyne/*.bin "
-                                                              "and optional sequences/XX/labels/*.label"}},
+                    "properties": {
+                        "archive": {
+                            "type": "string",
+                            "format": "binary",
+                            "description": ".zip, .tar or .tar.gz with sequences/XX/velodyne/*.bin "
+                            "and optional sequences/XX/labels/*.label",
+                        }
+                    },
                     "required": ["archive"],
                 }
             },
@@ -309,11 +335,18 @@ def _v1_router(settings: Settings) -> APIRouter:
             record = await _dataset_job(request, gw)
         else:
             await drain(request, gw.settings.max_body_bytes)
-            raise ApiError(415, "Send a job as multipart/form-data (an 'archive' file) or as application/json (a dataset).")
+            raise ApiError(
+                415,
+                "Send a job as multipart/form-data (an 'archive' file) or as application/json (a dataset).",
+            )
         created = JobCreated(id=record.id, status_url=f"/v1/jobs/{record.id}")
-        return JSONResponse(created.model_dump(), status_code=202, headers={"Location": created.status_url})
+        return JSONResponse(
+            created.model_dump(), status_code=202, headers={"Location": created.status_url}
+        )
 
-    @router.get("/jobs", summary="List jobs", response_model=JobList, responses=error_responses(*auth))
+    @router.get(
+        "/jobs", summary="List jobs", response_model=JobList, responses=error_responses(*auth)
+    )
     async def list_jobs(request: Request) -> JobList:
         jobs = _gateway(request).manager()
         records = await asyncio.to_thread(jobs.store.list)
@@ -333,22 +366,34 @@ def _v1_router(settings: Settings) -> APIRouter:
         summary="A succeeded job's predictions (zip)",
         description="A zip of sequences/XX/predictions/*.label with directory entries for the job's sequences.",
         response_class=FileResponse,
-        responses={200: {"description": "The predictions archive", "content": {"application/zip": _BINARY}},
-                   **error_responses(*auth, 404, 409)},
+        responses={
+            200: {
+                "description": "The predictions archive",
+                "content": {"application/zip": _BINARY},
+            },
+            **error_responses(*auth, 404, 409),
+        },
     )
     async def get_predictions(request: Request, job_id: str) -> FileResponse:
         record = _succeeded_or_409(request, job_id)
         if not record.predictions or not Path(record.predictions).is_file():
             raise ApiError(404, "The job's predictions are no longer on the server.")
-        return FileResponse(record.predictions, media_type="application/zip", filename=f"{job_id}-predictions.zip")
+        return FileResponse(
+            record.predictions, media_type="application/zip", filename=f"{job_id}-predictions.zip"
+        )
 
     @router.get(
         "/jobs/{job_id}/report",
         summary="A succeeded labelled job's evaluation report",
         description="The evaluation JSON of `rangeret evaluate`: miou, accuracy, iou by class, confusion[pred][gt].",
         response_class=FileResponse,
-        responses={200: {"description": "The evaluation report", "content": {"application/json": {"schema": {"type": "object"}}}},
-                   **error_responses(*auth, 404, 409)},
+        responses={
+            200: {
+                "description": "The evaluation report",
+                "content": {"application/json": {"schema": {"type": "object"}}},
+            },
+            **error_responses(*auth, 404, 409),
+        },
     )
     async def get_report(request: Request, job_id: str) -> FileResponse:
         record = _succeeded_or_409(request, job_id)
@@ -385,7 +430,9 @@ def _record_or_404(request: Request, job_id: str) -> JobRecord:
 def _succeeded_or_409(request: Request, job_id: str) -> JobRecord:
     record = _record_or_404(request, job_id)
     if record.state is not JobState.succeeded:
-        raise ApiError(409, f"The job is {record.state.value}, and results exist only once it has succeeded.")
+        raise ApiError(
+            409, f"The job is {record.state.value}, and results exist only once it has succeeded."
+        )
     return record
 
 
@@ -397,7 +444,9 @@ async def _archive_job(request: Request, gw: Gateway) -> JobRecord:
     try:
         upload = folder / "upload.part"
         await receive_archive(request, upload, settings.max_archive_bytes)
-        limits = ArchiveLimits(settings.max_archive_bytes, settings.max_archive_members, settings.max_points)
+        limits = ArchiveLimits(
+            settings.max_archive_bytes, settings.max_archive_members, settings.max_points
+        )
         try:
             found = await asyncio.to_thread(extract_archive, upload, folder / "data", limits)
         except ArchiveError as exc:
@@ -436,7 +485,9 @@ async def _dataset_job(request: Request, gw: Gateway) -> JobRecord:
 
 
 def _error(status_code: int, detail: str, headers: dict[str, str] | None = None) -> JSONResponse:
-    return JSONResponse(ErrorResponse(detail=detail).model_dump(), status_code=status_code, headers=headers)
+    return JSONResponse(
+        ErrorResponse(detail=detail).model_dump(), status_code=status_code, headers=headers
+    )
 
 
 def _install_error_handlers(app: FastAPI) -> None:
@@ -446,7 +497,11 @@ def _install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
-        return _error(exc.status_code, default_sentence(exc.status_code, exc.detail), getattr(exc, "headers", None))
+        return _error(
+            exc.status_code,
+            default_sentence(exc.status_code, exc.detail),
+            getattr(exc, "headers", None),
+        )
 
     @app.exception_handler(RequestValidationError)
     async def invalid_request(_: Request, exc: RequestValidationError) -> JSONResponse:
@@ -462,7 +517,9 @@ def _openapi(app: FastAPI) -> dict[str, Any]:
     """The OpenAPI description, with 400 (not FastAPI's 422) for request validation."""
     if app.openapi_schema:
         return app.openapi_schema
-    schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+    schema = get_openapi(
+        title=app.title, version=app.version, description=app.description, routes=app.routes
+    )
     error_ref = {"$ref": "#/components/schemas/ErrorResponse"}
     for path in schema.get("paths", {}).values():
         for operation in path.values():
@@ -471,7 +528,11 @@ def _openapi(app: FastAPI) -> dict[str, Any]:
             queries = [p for p in operation.get("parameters", []) if p.get("in") == "query"]
             if queries or operation.get("requestBody"):
                 responses.setdefault(
-                    "400", {"description": "Malformed request", "content": {"application/json": {"schema": error_ref}}}
+                    "400",
+                    {
+                        "description": "Malformed request",
+                        "content": {"application/json": {"schema": error_ref}},
+                    },
                 )
     components = schema.setdefault("components", {}).setdefault("schemas", {})
     components.pop("HTTPValidationError", None)
@@ -493,7 +554,9 @@ def create_app(
     problem = settings.address_problem()
     if problem:
         raise ValueError(problem)
-    gateway = Gateway(settings, pool, executor, label_config or semantickitti(), checkpoint_sha256, dispatchers)
+    gateway = Gateway(
+        settings, pool, executor, label_config or semantickitti(), checkpoint_sha256, dispatchers
+    )
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -509,7 +572,7 @@ def create_app(
         description=(
             "LiDAR semantic segmentation with RangeRet over HTTP: label single scans, or run jobs over "
             "whole sequences (uploaded archives or datasets under the data roots) and download the "
-            "predictions and the per-class IoU. Errors are `{\"detail\": \"<one sentence>\"}`."
+            'predictions and the per-class IoU. Errors are `{"detail": "<one sentence>"}`.'
         ),
         lifespan=lifespan,
     )
@@ -518,8 +581,12 @@ def create_app(
     _install_error_handlers(app)
     app.include_router(_v1_router(settings))
 
-    @app.get("/healthz", summary="Health of the gateway and its workers", response_model=Health,
-             responses={503: {"model": Health, "description": "The worker backend is unavailable"}})
+    @app.get(
+        "/healthz",
+        summary="Health of the gateway and its workers",
+        response_model=Health,
+        responses={503: {"model": Health, "description": "The worker backend is unavailable"}},
+    )
     async def healthz() -> JSONResponse:
         state = await asyncio.to_thread(gateway.pool.health)
         ok = bool(state.get("ok"))
@@ -535,13 +602,23 @@ def create_app(
         )
         return JSONResponse(body.model_dump(mode="json"), status_code=200 if ok else 503)
 
-    @app.get("/metrics", summary="Prometheus metrics", response_class=Response,
-             responses={200: {"description": "Prometheus text exposition", "content": {"text/plain": {"schema": {"type": "string"}}}}})
+    @app.get(
+        "/metrics",
+        summary="Prometheus metrics",
+        response_class=Response,
+        responses={
+            200: {
+                "description": "Prometheus text exposition",
+                "content": {"text/plain": {"schema": {"type": "string"}}},
+            }
+        },
+    )
     async def metrics() -> Response:
         depth = gateway.batcher.depth() if gateway.batcher else 0
         counts = await asyncio.to_thread(gateway.jobs.store.counts) if gateway.jobs else {}
-        return Response(gateway.metrics.render(depth, counts), media_type=gateway.metrics.content_type)
+        return Response(
+            gateway.metrics.render(depth, counts), media_type=gateway.metrics.content_type
+        )
 
     app.openapi = lambda: _openapi(app)
     return app
-

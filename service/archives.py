@@ -23,7 +23,9 @@ from typing import IO
 from rangeret.io import LABEL_BYTES, POINT_BYTES, ScanFormatError, parse_scan
 
 _DIRECTORY = re.compile(r"^sequences(/[A-Za-z0-9_-]{1,64}(/(velodyne|labels))?)?/?$")
-_FILE = re.compile(r"^sequences/([A-Za-z0-9_-]{1,64})/(velodyne|labels)/([A-Za-z0-9_-]{1,64})\.(bin|label)$")
+_FILE = re.compile(
+    r"^sequences/([A-Za-z0-9_-]{1,64})/(velodyne|labels)/([A-Za-z0-9_-]{1,64})\.(bin|label)$"
+)
 _SUFFIX = {"velodyne": "bin", "labels": "label"}
 _CHUNK = 1 << 20
 
@@ -68,7 +70,7 @@ class _Member:
 
 
 def archive_kind(path: Path) -> str:
-    """"zip", "tar" or "tar.gz" from the file's first bytes (never from its name)."""
+    """ "zip", "tar" or "tar.gz" from the file's first bytes (never from its name)."""
     with open(path, "rb") as f:
         head = f.read(512)
     if head[:4] in (b"PK\x03\x04", b"PK\x05\x06"):
@@ -103,7 +105,9 @@ def _check_name(raw: str, is_dir: bool) -> str:
     """The member's checked name, or ArchiveError saying why it is refused."""
     problem = _escape_problem(raw)
     if problem:
-        raise ArchiveError(f"Archive member {raw[:200]!r} {problem} and would escape the job folder.")
+        raise ArchiveError(
+            f"Archive member {raw[:200]!r} {problem} and would escape the job folder."
+        )
     name = _clean(raw)
     if is_dir:
         if name in ("", ".") or _DIRECTORY.match(name):
@@ -124,7 +128,9 @@ def _zip_members(zf: zipfile.ZipFile) -> Iterator[_Member]:
     for info in zf.infolist():
         kind = stat.S_IFMT(info.external_attr >> 16)
         if kind == stat.S_IFLNK:
-            raise ArchiveError(f"Archive member {info.filename[:200]!r} is a link, and links are refused.")
+            raise ArchiveError(
+                f"Archive member {info.filename[:200]!r} is a link, and links are refused."
+            )
         if kind and kind not in (stat.S_IFREG, stat.S_IFDIR):
             raise ArchiveError(
                 f"Archive member {info.filename[:200]!r} is a device or special file, and those are refused."
@@ -137,7 +143,9 @@ def _zip_members(zf: zipfile.ZipFile) -> Iterator[_Member]:
 def _tar_members(tf: tarfile.TarFile) -> Iterator[_Member]:
     for info in tf:
         if info.issym() or info.islnk():
-            raise ArchiveError(f"Archive member {info.name[:200]!r} is a link, and links are refused.")
+            raise ArchiveError(
+                f"Archive member {info.name[:200]!r} is a link, and links are refused."
+            )
         if info.ischr() or info.isblk() or info.isfifo():
             raise ArchiveError(
                 f"Archive member {info.name[:200]!r} is a device or pipe, and those are refused."
@@ -166,8 +174,17 @@ def extract_archive(archive: Path, dest: Path, limits: ArchiveLimits) -> Extract
         with tarfile.open(archive, "r:gz" if kind == "tar.gz" else "r:") as tf:
             members = _listing(_tar_members(tf), limits)
             return _extract(members, dest, limits, lambda m: tf.extractfile(m.handle))
-    except (zipfile.BadZipFile, tarfile.TarError, gzip.BadGzipFile, zlib.error, EOFError, NotImplementedError) as exc:
-        raise ArchiveError(f"The {kind} archive is damaged or uses an unsupported feature ({exc}).") from exc
+    except (
+        zipfile.BadZipFile,
+        tarfile.TarError,
+        gzip.BadGzipFile,
+        zlib.error,
+        EOFError,
+        NotImplementedError,
+    ) as exc:
+        raise ArchiveError(
+            f"The {kind} archive is damaged or uses an unsupported feature ({exc})."
+        ) from exc
 
 
 def _listing(found: Iterator[_Member], limits: ArchiveLimits) -> list[_Member]:
@@ -186,10 +203,14 @@ def _listing(found: Iterator[_Member], limits: ArchiveLimits) -> list[_Member]:
         names.add(name)
         total += member.size
         if total > limits.max_bytes:
-            raise ArchiveTooLarge(f"The archive's files add up to more than {limits.max_bytes:,} bytes.")
+            raise ArchiveTooLarge(
+                f"The archive's files add up to more than {limits.max_bytes:,} bytes."
+            )
         per_point = POINT_BYTES if name.endswith(".bin") else LABEL_BYTES
         if member.size > limits.max_points * per_point:
-            raise ArchiveTooLarge(f"Archive member {name!r} holds more than {limits.max_points:,} points.")
+            raise ArchiveTooLarge(
+                f"Archive member {name!r} holds more than {limits.max_points:,} points."
+            )
         members.append(_Member(name, member.size, False, member.handle))
     return members
 
@@ -228,7 +249,9 @@ def _extract(members: list[_Member], dest: Path, limits: ArchiveLimits, opener) 
     return _summarise(root, scans, labels)
 
 
-def _summarise(root: Path, scans: dict[str, dict[str, int]], labels: dict[str, dict[str, int]]) -> ExtractedDataset:
+def _summarise(
+    root: Path, scans: dict[str, dict[str, int]], labels: dict[str, dict[str, int]]
+) -> ExtractedDataset:
     """The extracted dataset, once every label file is known to match a scan of its length."""
     if not scans:
         raise ArchiveError("The archive holds no scan under sequences/XX/velodyne/.")
@@ -236,7 +259,9 @@ def _summarise(root: Path, scans: dict[str, dict[str, int]], labels: dict[str, d
         have = scans.get(seq, {})
         for stem, count in sorted(found.items()):
             if stem not in have:
-                raise ArchiveError(f"Label file sequences/{seq}/labels/{stem}.label has no matching scan.")
+                raise ArchiveError(
+                    f"Label file sequences/{seq}/labels/{stem}.label has no matching scan."
+                )
             if count != have[stem]:
                 raise ArchiveError(
                     f"Label file sequences/{seq}/labels/{stem}.label holds {count} labels but its scan "

@@ -25,7 +25,9 @@ log = logging.getLogger(__name__)
 class ScanBackend(Protocol):
     """What the batcher needs from a pool (`workers.pool.ScanPool` or `LocalScanPool`)."""
 
-    async def predict_async(self, scans: Sequence[np.ndarray], knn: bool = True) -> list[np.ndarray]:
+    async def predict_async(
+        self, scans: Sequence[np.ndarray], knn: bool = True
+    ) -> list[np.ndarray]:
         """Raw labels for a batch of scans."""
         ...
 
@@ -58,7 +60,9 @@ class ScanBatcher:
         on_batch: Callable[[int, float], None] | None = None,
     ) -> None:
         if batch_size < 1 or dispatchers < 1 or max_wait < 0:
-            raise ValueError("batch_size and dispatchers must be at least 1 and max_wait not negative")
+            raise ValueError(
+                "batch_size and dispatchers must be at least 1 and max_wait not negative"
+            )
         self.pool = pool
         self.batch_size = batch_size
         self.max_wait = max_wait
@@ -70,7 +74,10 @@ class ScanBatcher:
 
     async def start(self) -> None:
         """Start the dispatchers (call from the serving event loop)."""
-        self._tasks = [asyncio.create_task(self._dispatch(), name=f"batcher-{i}") for i in range(self.dispatchers)]
+        self._tasks = [
+            asyncio.create_task(self._dispatch(), name=f"batcher-{i}")
+            for i in range(self.dispatchers)
+        ]
 
     async def stop(self) -> None:
         """Stop the dispatchers and fail the requests still waiting."""

@@ -13,7 +13,14 @@ _DEFAULT_SENTENCES = {
     405: "This endpoint does not accept that HTTP method.",
 }
 
-_KINDS = {"setting": "setting", "query": "query parameter", "path": "path parameter", "header": "header", "cookie": "cookie", "body": "body field"}
+_KINDS = {
+    "setting": "setting",
+    "query": "query parameter",
+    "path": "path parameter",
+    "header": "header",
+    "cookie": "cookie",
+    "body": "body field",
+}
 
 _DESCRIPTIONS = {
     400: "Malformed scan, archive or request",
@@ -30,7 +37,9 @@ _DESCRIPTIONS = {
 class ApiError(Exception):
     """An error to answer with `status_code` and a one-sentence `detail`."""
 
-    def __init__(self, status_code: int, detail: str, headers: Mapping[str, str] | None = None) -> None:
+    def __init__(
+        self, status_code: int, detail: str, headers: Mapping[str, str] | None = None
+    ) -> None:
         super().__init__(detail)
         self.status_code = status_code
         self.detail = sentence(detail)
@@ -48,7 +57,12 @@ def sentence(text: str) -> str:
 
 def default_sentence(status_code: int, detail: Any) -> str:
     """Starlette's short phrases ("Not Found") as sentences; other details kept."""
-    if isinstance(detail, str) and detail and " " in detail.strip() and status_code not in _DEFAULT_SENTENCES:
+    if (
+        isinstance(detail, str)
+        and detail
+        and " " in detail.strip()
+        and status_code not in _DEFAULT_SENTENCES
+    ):
         return sentence(detail)
     return _DEFAULT_SENTENCES.get(status_code, sentence(str(detail or "The request failed")))
 

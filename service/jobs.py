@@ -111,7 +111,9 @@ class JobStore:
 
     def _query(self, sql: str, params: Sequence = ()) -> list[JobRecord]:
         with self._lock:
-            rows = self._db.execute(f"SELECT {', '.join(_COLUMNS)} FROM jobs {sql}", params).fetchall()
+            rows = self._db.execute(
+                f"SELECT {', '.join(_COLUMNS)} FROM jobs {sql}", params
+            ).fetchall()
         return [_record(row) for row in rows]
 
     def create(self, job_id: str, kind: str, dataset: Path, sequences: Sequence[str]) -> JobRecord:
@@ -133,7 +135,9 @@ class JobStore:
         if not states:
             return self._query("ORDER BY created DESC")
         marks = ", ".join("?" * len(states))
-        return self._query(f"WHERE state IN ({marks}) ORDER BY created DESC", [s.value for s in states])
+        return self._query(
+            f"WHERE state IN ({marks}) ORDER BY created DESC", [s.value for s in states]
+        )
 
     def next_queued(self) -> JobRecord | None:
         """The oldest queued job."""
@@ -149,10 +153,13 @@ class JobStore:
 
     def start(self, job_id: str) -> bool:
         """queued -> running; False when the job is no longer queued."""
-        return self._execute(
-            "UPDATE jobs SET state = ?, started = ?, attempts = attempts + 1 WHERE id = ? AND state = ?",
-            (JobState.running.value, time.time(), job_id, JobState.queued.value),
-        ) == 1
+        return (
+            self._execute(
+                "UPDATE jobs SET state = ?, started = ?, attempts = attempts + 1 WHERE id = ? AND state = ?",
+                (JobState.running.value, time.time(), job_id, JobState.queued.value),
+            )
+            == 1
+        )
 
     def progress(self, job_id: str, total: int, done: int, failed: int) -> None:
         """Record a running job's counts."""
@@ -172,42 +179,51 @@ class JobStore:
         report: Path | None = None,
     ) -> bool:
         """running -> a final state; False when the job was cancelled meanwhile."""
-        return self._execute(
-            """UPDATE jobs SET state = ?, reason = ?, errors = ?, metrics = ?, predictions = ?,
+        return (
+            self._execute(
+                """UPDATE jobs SET state = ?, reason = ?, errors = ?, metrics = ?, predictions = ?,
                report = ?, finished = ? WHERE id = ? AND state = ?""",
-            (
-                state.value,
-                reason,
-                json.dumps(list(errors)[:MAX_ERRORS]),
-                json.dumps(metrics) if metrics is not None else None,
-                str(predictions) if predictions else None,
-                str(report) if report else None,
-                time.time(),
-                job_id,
-                JobState.running.value,
-            ),
-        ) == 1
+                (
+                    state.value,
+                    reason,
+                    json.dumps(list(errors)[:MAX_ERRORS]),
+                    json.dumps(metrics) if metrics is not None else None,
+                    str(predictions) if predictions else None,
+                    str(report) if report else None,
+                    time.time(),
+                    job_id,
+                    JobState.running.value,
+                ),
+            )
+            == 1
+        )
 
     def requeue(self, job_id: str) -> bool:
         """running -> queued, to be resumed."""
-        return self._execute(
-            "UPDATE jobs SET state = ? WHERE id = ? AND state = ?",
-            (JobState.queued.value, job_id, JobState.running.value),
-        ) == 1
+        return (
+            self._execute(
+                "UPDATE jobs SET state = ? WHERE id = ? AND state = ?",
+                (JobState.queued.value, job_id, JobState.running.value),
+            )
+            == 1
+        )
 
     def cancel(self, job_id: str) -> bool:
         """queued or running -> cancelled; False when the job had already finished."""
-        return self._execute(
-            "UPDATE jobs SET state = ?, reason = ?, finished = ? WHERE id = ? AND state IN (?, ?)",
-            (
-                JobState.cancelled.value,
-                "cancelled by request",
-                time.time(),
-                job_id,
-                JobState.queued.value,
-                JobState.running.value,
-            ),
-        ) == 1
+        return (
+            self._execute(
+                "UPDATE jobs SET state = ?, reason = ?, finished = ? WHERE id = ? AND state IN (?, ?)",
+                (
+                    JobState.cancelled.value,
+                    "cancelled by request",
+                    time.time(),
+                    job_id,
+                    JobState.queued.value,
+                    JobState.running.value,
+                ),
+            )
+            == 1
+        )
 
     def delete(self, job_id: str) -> None:
         """Forget a job."""
@@ -234,8 +250,13 @@ class JobExecutor(Protocol):
     backend: str
 
     def predict(
-        self, entries: list[ScanEntry], dataset: Path, sequences: list[str], out: Path,
-        progress: Progress, cancel: threading.Event,
+        self,
+        entries: list[ScanEntry],
+        dataset: Path,
+        sequences: list[str],
+        out: Path,
+        progress: Progress,
+        cancel: threading.Event,
     ) -> dict[str, str]:
         """Write the predictions of the scans not done yet; return failures by scan key."""
         ...
@@ -252,15 +273,26 @@ class LocalExecutor:
         self._predictor: Predictor | None = None
 
     def predict(
-        self, entries: list[ScanEntry], dataset: Path, sequences: list[str], out: Path,
-        progress: Progress, cancel: threading.Event,
+        self,
+        entries: list[ScanEntry],
+        dataset: Path,
+        sequences: list[str],
+        out: Path,
+        progress: Progress,
+        cancel: threading.Event,
     ) -> dict[str, str]:
         """Predict the dataset's sequences into `out`, skipping scans already done."""
         if self._predictor is None:
             self._predictor = self.spec.build()
         summary = predict_tree(
-            self._predictor, dataset, sequences, out, batch_size=self.batch_size, progress=False,
-            on_progress=progress, cancel=cancel,
+            self._predictor,
+            dataset,
+            sequences,
+            out,
+            batch_size=self.batch_size,
+            progress=False,
+            on_progress=progress,
+            cancel=cancel,
         )
         return summary.failed
 
@@ -271,8 +303,12 @@ class RayExecutor:
     backend = "ray"
 
     def __init__(
-        self, spec: PredictorSpec, projection: ProjectionConfig, batch_size: int = 1,
-        actors: int | None = None, label_config: LabelConfig | None = None,
+        self,
+        spec: PredictorSpec,
+        projection: ProjectionConfig,
+        batch_size: int = 1,
+        actors: int | None = None,
+        label_config: LabelConfig | None = None,
     ) -> None:
         self.spec = spec
         self.projection = projection
@@ -281,8 +317,13 @@ class RayExecutor:
         self.label_config = label_config
 
     def predict(
-        self, entries: list[ScanEntry], dataset: Path, sequences: list[str], out: Path,
-        progress: Progress, cancel: threading.Event,
+        self,
+        entries: list[ScanEntry],
+        dataset: Path,
+        sequences: list[str],
+        out: Path,
+        progress: Progress,
+        cancel: threading.Event,
     ) -> dict[str, str]:
         """Send the scans without a finished prediction through the pipeline."""
         from workers.pipeline import PipelineOptions, run_pipeline
@@ -290,8 +331,14 @@ class RayExecutor:
         pending = [e for e in entries if not is_complete(e, out)]
         options = PipelineOptions(batch_size=self.batch_size, actors=self.actors)
         result = run_pipeline(
-            self.spec, self.projection, pending, out, options, self.label_config,
-            progress=progress, cancel=cancel,
+            self.spec,
+            self.projection,
+            pending,
+            out,
+            options,
+            self.label_config,
+            progress=progress,
+            cancel=cancel,
         )
         return result.failed
 
@@ -313,7 +360,11 @@ def _zip_info(name: str, folder: bool = False) -> zipfile.ZipInfo:
 
 
 def write_predictions_zip(
-    pred_root: Path, entries: Sequence[ScanEntry], sequences: Sequence[str], path: Path, description: str
+    pred_root: Path,
+    entries: Sequence[ScanEntry],
+    sequences: Sequence[str],
+    path: Path,
+    description: str,
 ) -> None:
     """The job's predictions as a reproducible zip with explicit directory entries.
 
@@ -336,7 +387,10 @@ def write_predictions_zip(
                 zf.writestr(_zip_info(name, folder=True), b"")
             for entry in entries:
                 name = f"sequences/{entry.sequence}/predictions/{entry.name}.label"
-                zf.writestr(_zip_info(name), prediction_path(pred_root, entry.sequence, entry.name).read_bytes())
+                zf.writestr(
+                    _zip_info(name),
+                    prediction_path(pred_root, entry.sequence, entry.name).read_bytes(),
+                )
             zf.writestr(_zip_info("description.txt"), description.rstrip("\n") + "\n")
         os.replace(tmp, path)
     finally:
@@ -534,7 +588,9 @@ class JobManager:
         failures = self.executor.predict(entries, dataset, job.sequences, out, progress, cancel)
         if cancel.is_set():
             if self._stop.is_set() and self.store.requeue(job.id):
-                log.info("job %s paused by the gateway stopping; it resumes at the next start", job.id)
+                log.info(
+                    "job %s paused by the gateway stopping; it resumes at the next start", job.id
+                )
             return
         if failures:
             self.store.finish(
@@ -551,12 +607,22 @@ class JobManager:
         labelled = labelled_sequences(dataset, job.sequences)
         if labelled:
             report = evaluate_predictions(
-                dataset, out, labelled, config=self.label_config, checkpoint_sha256=self.checkpoint_sha256
+                dataset,
+                out,
+                labelled,
+                config=self.label_config,
+                checkpoint_sha256=self.checkpoint_sha256,
             )
             report_path = folder / REPORT_JSON
             report.write_json(report_path)
-            metrics = {"miou": report.miou, "accuracy": report.accuracy, "iou": report.iou_by_name()}
-        self.store.finish(job.id, JobState.succeeded, metrics=metrics, predictions=zip_path, report=report_path)
+            metrics = {
+                "miou": report.miou,
+                "accuracy": report.accuracy,
+                "iou": report.iou_by_name(),
+            }
+        self.store.finish(
+            job.id, JobState.succeeded, metrics=metrics, predictions=zip_path, report=report_path
+        )
 
     def _description(self) -> str:
         return (

@@ -25,32 +25,52 @@ class GatewayMetrics:
     def __init__(self) -> None:
         self.registry = CollectorRegistry()
         self.requests = Counter(
-            "rangeret_http_requests", "HTTP requests answered, by method, route and status code",
-            ["method", "route", "status"], registry=self.registry,
+            "rangeret_http_requests",
+            "HTTP requests answered, by method, route and status code",
+            ["method", "route", "status"],
+            registry=self.registry,
         )
         self.latency = Histogram(
-            "rangeret_http_request_duration_seconds", "Time to answer an HTTP request, by method and route",
-            ["method", "route"], buckets=LATENCY_BUCKETS, registry=self.registry,
+            "rangeret_http_request_duration_seconds",
+            "Time to answer an HTTP request, by method and route",
+            ["method", "route"],
+            buckets=LATENCY_BUCKETS,
+            registry=self.registry,
         )
         self.scans = Counter(
-            "rangeret_scans_labelled", "Scans labelled, by source (single-scan requests or jobs)",
-            ["source"], registry=self.registry,
+            "rangeret_scans_labelled",
+            "Scans labelled, by source (single-scan requests or jobs)",
+            ["source"],
+            registry=self.registry,
         )
         self.points = Counter(
-            "rangeret_points_labelled", "Points labelled by single-scan requests", registry=self.registry
+            "rangeret_points_labelled",
+            "Points labelled by single-scan requests",
+            registry=self.registry,
         )
         self.batch_size = Histogram(
-            "rangeret_batch_scans", "Scans per network batch of single-scan requests",
-            buckets=(1, 2, 4, 8, 16, 32, 64), registry=self.registry,
+            "rangeret_batch_scans",
+            "Scans per network batch of single-scan requests",
+            buckets=(1, 2, 4, 8, 16, 32, 64),
+            registry=self.registry,
         )
         self.batch_latency = Histogram(
-            "rangeret_batch_duration_seconds", "Time the workers took for one batch",
-            buckets=LATENCY_BUCKETS, registry=self.registry,
+            "rangeret_batch_duration_seconds",
+            "Time the workers took for one batch",
+            buckets=LATENCY_BUCKETS,
+            registry=self.registry,
         )
         self.queue_depth = Gauge(
-            "rangeret_queue_depth", "Single-scan requests waiting for or in the workers", registry=self.registry
+            "rangeret_queue_depth",
+            "Single-scan requests waiting for or in the workers",
+            registry=self.registry,
         )
-        self.jobs = Gauge("rangeret_jobs", "Jobs known to the gateway, by state", ["state"], registry=self.registry)
+        self.jobs = Gauge(
+            "rangeret_jobs",
+            "Jobs known to the gateway, by state",
+            ["state"],
+            registry=self.registry,
+        )
 
     def observe_batch(self, size: int, seconds: float) -> None:
         """Record one batch sent to the workers."""
@@ -97,4 +117,6 @@ class MetricsMiddleware:
                 path = getattr(route, "path", None) or "unmatched"
                 method = scope.get("method", "")
                 metrics.requests.labels(method=method, route=path, status=str(status[0])).inc()
-                metrics.latency.labels(method=method, route=path).observe(time.perf_counter() - start)
+                metrics.latency.labels(method=method, route=path).observe(
+                    time.perf_counter() - start
+                )

@@ -24,14 +24,22 @@ class ScanLabels(BaseModel):
     model_config = ConfigDict(
         json_schema_extra={
             "examples": [
-                {"num_points": 4, "labels": [40, 40, 10, 70], "class_counts": {"car": 1, "road": 2, "vegetation": 1}}
+                {
+                    "num_points": 4,
+                    "labels": [40, 40, 10, 70],
+                    "class_counts": {"car": 1, "road": 2, "vegetation": 1},
+                }
             ]
         }
     )
 
     num_points: int = Field(ge=0, description="points in the scan, and labels in `labels`")
-    labels: list[int] = Field(description="raw SemanticKITTI id of every point, in the scan's point order")
-    class_counts: dict[str, int] = Field(description="points per class name, for the classes present")
+    labels: list[int] = Field(
+        description="raw SemanticKITTI id of every point, in the scan's point order"
+    )
+    class_counts: dict[str, int] = Field(
+        description="points per class name, for the classes present"
+    )
 
 
 class DatasetJobRequest(BaseModel):
@@ -93,7 +101,14 @@ class JobCreated(BaseModel):
     """The answer to a new job: where to follow it."""
 
     model_config = ConfigDict(
-        json_schema_extra={"examples": [{"id": "3f2c9a0e5b7d4c1e8f6a2b9d0c4e7f1a", "status_url": "/v1/jobs/3f2c9a0e5b7d4c1e8f6a2b9d0c4e7f1a"}]}
+        json_schema_extra={
+            "examples": [
+                {
+                    "id": "3f2c9a0e5b7d4c1e8f6a2b9d0c4e7f1a",
+                    "status_url": "/v1/jobs/3f2c9a0e5b7d4c1e8f6a2b9d0c4e7f1a",
+                }
+            ]
+        }
     )
 
     id: str
@@ -105,7 +120,9 @@ class JobMetrics(BaseModel):
 
     miou: float = Field(ge=0, le=1)
     accuracy: float = Field(ge=0, le=1)
-    iou: dict[str, float] = Field(description="IoU (0..1) of each of the 19 evaluated classes, by name")
+    iou: dict[str, float] = Field(
+        description="IoU (0..1) of each of the 19 evaluated classes, by name"
+    )
 
 
 class JobStatus(BaseModel):
@@ -143,8 +160,12 @@ class JobStatus(BaseModel):
     total: int = Field(ge=0, description="scans in the job")
     done: int = Field(ge=0, description="scans whose prediction is written")
     failed: int = Field(ge=0, description="scans that could not be predicted (named in `errors`)")
-    metrics: JobMetrics | None = Field(default=None, description="set when the job's scans had labels")
-    errors: list[str] = Field(default_factory=list, description="failed scans, each with its reason")
+    metrics: JobMetrics | None = Field(
+        default=None, description="set when the job's scans had labels"
+    )
+    errors: list[str] = Field(
+        default_factory=list, description="failed scans, each with its reason"
+    )
     reason: str | None = Field(default=None, description="why the job failed or was cancelled")
     created: datetime
     started: datetime | None = None

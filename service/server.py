@@ -29,22 +29,42 @@ _OVERRIDES = ("host", "port", "batch_size", "batch_wait_ms", "ray_address", "act
 def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of `rangeret serve`: address, batching, Ray backend, and the shared network options."""
     g = parser.add_argument_group("gateway")
-    g.add_argument("--host", help="address to listen on (default 127.0.0.1; another needs RANGERET_API_TOKEN)")
+    g.add_argument(
+        "--host", help="address to listen on (default 127.0.0.1; another needs RANGERET_API_TOKEN)"
+    )
     g.add_argument("--port", type=int, help="port to listen on (default 8000)")
-    g.add_argument("--batch-wait-ms", type=float, metavar="MS",
-                   help="longest a single-scan request waits for others to fill its batch (default 10)")
-    g.add_argument("--ray-address", metavar="ADDR",
-                   help="Ray cluster for the workers ('auto' or host:port); default: run them in this process")
-    g.add_argument("--actors", type=int, metavar="N", help="model actors on the Ray cluster (default: one per GPU, or 1)")
-    g.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"],
-                   help="uvicorn's log level (default info)")
+    g.add_argument(
+        "--batch-wait-ms",
+        type=float,
+        metavar="MS",
+        help="longest a single-scan request waits for others to fill its batch (default 10)",
+    )
+    g.add_argument(
+        "--ray-address",
+        metavar="ADDR",
+        help="Ray cluster for the workers ('auto' or host:port); default: run them in this process",
+    )
+    g.add_argument(
+        "--actors",
+        type=int,
+        metavar="N",
+        help="model actors on the Ray cluster (default: one per GPU, or 1)",
+    )
+    g.add_argument(
+        "--log-level",
+        default="info",
+        choices=["critical", "error", "warning", "info", "debug"],
+        help="uvicorn's log level (default info)",
+    )
     add_network_options(parser)
     parser.set_defaults(batch_size=None)  # unset: RANGERET_BATCH_SIZE, else 1
 
 
 def settings_from_args(args: argparse.Namespace) -> Settings:
     """The settings from RANGERET_* variables, with the command line's options on top."""
-    overrides = {name: getattr(args, name) for name in _OVERRIDES if getattr(args, name, None) is not None}
+    overrides = {
+        name: getattr(args, name) for name in _OVERRIDES if getattr(args, name, None) is not None
+    }
     try:
         return Settings(**overrides)
     except ValidationError as exc:
@@ -65,9 +85,13 @@ def checkpoint_facts(spec: PredictorSpec) -> CheckpointFacts:
     """Load the checkpoint once to check it and read its label map, projection and hash."""
     from rangeret.models import load_checkpoint
 
-    info = load_checkpoint(spec.checkpoint, model=spec.model, height=spec.height, width=spec.width).checkpoint_info
+    info = load_checkpoint(
+        spec.checkpoint, model=spec.model, height=spec.height, width=spec.width
+    ).checkpoint_info
     labels = LabelConfig.from_dict(info.label_config) if info.label_config else semantickitti()
-    return CheckpointFacts(labels, projection_for(info, spec.fov_up, spec.fov_down), info.sha256, info.name)
+    return CheckpointFacts(
+        labels, projection_for(info, spec.fov_up, spec.fov_down), info.sha256, info.name
+    )
 
 
 def build_backend(settings: Settings, spec: PredictorSpec, facts: CheckpointFacts):
@@ -82,7 +106,9 @@ def build_backend(settings: Settings, spec: PredictorSpec, facts: CheckpointFact
             ray.init(address=settings.ray_address, log_to_driver=False)
         use_gpu = None if spec.device == "auto" else spec.device == "cuda"
         pool = ScanPool(spec, actors=settings.actors, use_gpu=use_gpu)
-        executor = RayExecutor(spec, facts.projection, settings.batch_size, settings.actors, facts.label_config)
+        executor = RayExecutor(
+            spec, facts.projection, settings.batch_size, settings.actors, facts.label_config
+        )
         return pool, executor, len(pool.actors)
     return LocalScanPool(spec), LocalExecutor(spec, settings.batch_size), 1
 
@@ -105,7 +131,12 @@ def run_serve(args: argparse.Namespace) -> int:
         workers = pool.wait_ready()
         log.info(
             "%s (sha256 %s) on %d %s worker(s); batches of up to %d scans, waiting up to %g ms",
-            facts.model, facts.sha256[:12], len(workers), pool.backend, settings.batch_size, settings.batch_wait_ms,
+            facts.model,
+            facts.sha256[:12],
+            len(workers),
+            pool.backend,
+            settings.batch_size,
+            settings.batch_wait_ms,
         )
         app = create_app(settings, pool, executor, facts.label_config, facts.sha256, dispatchers)
         uvicorn.run(

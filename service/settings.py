@@ -1,19 +1,19 @@
 """Gateway settings from the environment (`RANGERET_*`), overridable by `rangeret serve` options.
 
-    RANGERET_API_TOKEN         bearer token every /v1 request must carry (unset: loopback only)
-    RANGERET_DATA_ROOTS        folders, separated by ':' (or a JSON list), that dataset jobs may read
-    RANGERET_STATE_DIR         where job folders and the job database live (default runs/gateway)
-    RANGERET_JOBS_DIR          job folders (default STATE_DIR/jobs)
-    RANGERET_DATABASE          the SQLite job database (default STATE_DIR/jobs.sqlite)
-    RANGERET_RETENTION         seconds (or ISO 8601) a finished job's files are kept (default 1 day)
-    RANGERET_MAX_BODY_BYTES    largest single-scan or JSON request body (default 64 MiB)
-    RANGERET_MAX_POINTS        most points per scan (default 2,000,000)
-    RANGERET_MAX_ARCHIVE_BYTES largest archive upload, and largest extracted total (default 4 GiB)
-    RANGERET_MAX_ARCHIVE_MEMBERS most members per archive (default 100,000)
-    RANGERET_BATCH_SIZE        most single-scan requests per network pass (default 1)
-    RANGERET_BATCH_WAIT_MS     longest a request waits for others to fill its batch (default 10)
-    RANGERET_RAY_ADDRESS       Ray cluster to use ("auto" or host:port); unset: in-process worker
-    RANGERET_ACTORS            model actors on the Ray cluster (default: one per GPU, or 1)
+RANGERET_API_TOKEN         bearer token every /v1 request must carry (unset: loopback only)
+RANGERET_DATA_ROOTS        folders, separated by ':' (or a JSON list), that dataset jobs may read
+RANGERET_STATE_DIR         where job folders and the job database live (default runs/gateway)
+RANGERET_JOBS_DIR          job folders (default STATE_DIR/jobs)
+RANGERET_DATABASE          the SQLite job database (default STATE_DIR/jobs.sqlite)
+RANGERET_RETENTION         seconds (or ISO 8601) a finished job's files are kept (default 1 day)
+RANGERET_MAX_BODY_BYTES    largest single-scan or JSON request body (default 64 MiB)
+RANGERET_MAX_POINTS        most points per scan (default 2,000,000)
+RANGERET_MAX_ARCHIVE_BYTES largest archive upload, and largest extracted total (default 4 GiB)
+RANGERET_MAX_ARCHIVE_MEMBERS most members per archive (default 100,000)
+RANGERET_BATCH_SIZE        most single-scan requests per network pass (default 1)
+RANGERET_BATCH_WAIT_MS     longest a request waits for others to fill its batch (default 10)
+RANGERET_RAY_ADDRESS       Ray cluster to use ("auto" or host:port); unset: in-process worker
+RANGERET_ACTORS            model actors on the Ray cluster (default: one per GPU, or 1)
 """
 
 from __future__ import annotations

@@ -43,7 +43,9 @@ def declared_length(request: Request) -> int | None:
     return length
 
 
-async def drain(request: Request, limit: int = DRAIN_MAX, stream: AsyncIterator[bytes] | None = None) -> None:
+async def drain(
+    request: Request, limit: int = DRAIN_MAX, stream: AsyncIterator[bytes] | None = None
+) -> None:
     """Read and drop what is left of the body (at most `limit` more bytes) before an error answer.
 
     `stream` is the body iterator already being read, when there is one.
@@ -162,7 +164,10 @@ async def receive_archive(request: Request, target: Path, limit: int) -> int:
                 parser.write(chunk)
                 if part.other_bytes > _FORM_SLACK:
                     await drain(request, DRAIN_MAX, stream)
-                    raise ApiError(400, f"The form field {part.other_field!r} is unexpected: send only 'archive'.")
+                    raise ApiError(
+                        400,
+                        f"The form field {part.other_field!r} is unexpected: send only 'archive'.",
+                    )
                 if part.pending:
                     data = b"".join(part.pending)
                     part.pending.clear()

@@ -18,7 +18,9 @@ def shared_path(*parts: str) -> Path:
     if not path.exists():
         if os.environ.get("CI") == "true":
             pytest.fail(f"{path} is missing, and CI must have ../shared beside the project")
-        pytest.skip(f"{path} is not here (../shared is only beside the project on CI and dev machines)")
+        pytest.skip(
+            f"{path} is not here (../shared is only beside the project on CI and dev machines)"
+        )
     return path
 
 

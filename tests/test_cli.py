@@ -32,9 +32,24 @@ def test_evaluate_command_writes_report_and_plots(tmp_path):
     _copy_truth_as_predictions(data, preds, ["08"])
     exe = shutil.which("rangeret") or str(Path(sys.executable).with_name("rangeret"))
     run = subprocess.run(
-        [exe, "evaluate", "-q", "--dataset", data, "--predictions", preds, "--split", "valid",
-         "--json", tmp_path / "r.json", "--plots", tmp_path / "plots"],
-        capture_output=True, text=True, check=False,
+        [
+            exe,
+            "evaluate",
+            "-q",
+            "--dataset",
+            data,
+            "--predictions",
+            preds,
+            "--split",
+            "valid",
+            "--json",
+            tmp_path / "r.json",
+            "--plots",
+            tmp_path / "plots",
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
     )
     assert run.returncode == 0, run.stderr
     assert "mIoU" in run.stdout and "traffic-sign" in run.stdout
@@ -48,7 +63,9 @@ def test_evaluate_reports_missing_files_in_one_line(tmp_path, capsys):
     make_tree(data, {"05": [40, 50]})
     _copy_truth_as_predictions(data, preds, ["05"])
     prediction_path(preds, "05", "000001").unlink()
-    code = main(["evaluate", "-q", "--dataset", str(data), "--predictions", str(preds), "--sequences", "5"])
+    code = main(
+        ["evaluate", "-q", "--dataset", str(data), "--predictions", str(preds), "--sequences", "5"]
+    )
     err = capsys.readouterr().err
     assert code == 1
     first = err.splitlines()[0]
@@ -62,13 +79,38 @@ def test_bad_scan_is_one_line_error(tmp_path, capsys):
     make_tree(data, {"08": [10]})
     _copy_truth_as_predictions(data, preds, ["08"])
     (velodyne_dir(data, "08") / "000000.bin").write_bytes(b"\x00" * 20)
-    assert main(["evaluate", "-q", "--dataset", str(data), "--predictions", str(preds), "--split", "valid"]) == 1
+    assert (
+        main(
+            [
+                "evaluate",
+                "-q",
+                "--dataset",
+                str(data),
+                "--predictions",
+                str(preds),
+                "--split",
+                "valid",
+            ]
+        )
+        == 1
+    )
     err = capsys.readouterr().err
     assert "000000.bin" in err and "multiple of 16" in err and "Traceback" not in err
 
 
 def test_missing_dataset_is_one_line_error(tmp_path, capsys):
-    code = main(["evaluate", "-q", "--dataset", str(tmp_path / "nope"), "--predictions", str(tmp_path), "--split", "valid"])
+    code = main(
+        [
+            "evaluate",
+            "-q",
+            "--dataset",
+            str(tmp_path / "nope"),
+            "--predictions",
+            str(tmp_path),
+            "--split",
+            "valid",
+        ]
+    )
     assert code == 1
     assert "sequence 08 is missing" in capsys.readouterr().err
 
@@ -85,7 +127,10 @@ def test_submission_and_validation_commands(tmp_path, capsys):
 
     assert main(["submission", "-q", *base, "--allow-partial", "--description", "x"]) == 0
     assert "valid partial archive" in capsys.readouterr().out
-    assert main(["validate-submission", "-q", str(out), "--dataset", str(data), "--allow-partial"]) == 0
+    assert (
+        main(["validate-submission", "-q", str(out), "--dataset", str(data), "--allow-partial"])
+        == 0
+    )
     assert main(["validate-submission", "-q", str(out), "--dataset", str(data)]) == 1
     assert "would be refused" in capsys.readouterr().err
 
@@ -93,7 +138,16 @@ def test_submission_and_validation_commands(tmp_path, capsys):
         for info in zin.infolist():
             if not info.filename.endswith("/"):
                 zout.writestr(info, zin.read(info))
-    code = main(["validate-submission", "-q", str(tmp_path / "flat.zip"), "--dataset", str(data), "--allow-partial"])
+    code = main(
+        [
+            "validate-submission",
+            "-q",
+            str(tmp_path / "flat.zip"),
+            "--dataset",
+            str(data),
+            "--allow-partial",
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 1 and "directory entry 'sequences/' is missing" in err
     assert err.count("\n  - ") == 2 * len(TEST_SEQUENCES) + 1
@@ -112,11 +166,21 @@ def test_light_commands_start_without_torch():
 def test_every_entry_point_reports_errors_the_same_way(tmp_path, capsys):
     from workers.predict_job import main as job_main
 
-    args = ["--dataset", str(tmp_path / "nope"), "--split", "valid", "--out", str(tmp_path / "out"), "-q"]
+    args = [
+        "--dataset",
+        str(tmp_path / "nope"),
+        "--split",
+        "valid",
+        "--out",
+        str(tmp_path / "out"),
+        "-q",
+    ]
     assert job_main(args) == 1
     job = capsys.readouterr().err.splitlines()
     assert main(["predict", *args]) == 1
     cli = capsys.readouterr().err.splitlines()
-    assert job[0].startswith("predict_job: error: ") and cli[0].startswith("rangeret predict: error: ")
+    assert job[0].startswith("predict_job: error: ") and cli[0].startswith(
+        "rangeret predict: error: "
+    )
     assert job[0].split(": error: ")[1] == cli[0].split(": error: ")[1]
     assert "sequence 08 is missing" in job[0]

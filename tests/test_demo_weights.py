@@ -20,7 +20,9 @@ def test_demo_weights_load_and_beat_the_majority_class(tmp_path):
     assert not info.published and info.name == "rangeret-thesis"
     assert is_demo_checkpoint(info.sha256) and predictor.describe()["demo_weights"]
 
-    simulate_dataset(tmp_path, {"08": 2}, sensor=SensorConfig(beams=64, azimuth_steps=2048), seed=99)
+    simulate_dataset(
+        tmp_path, {"08": 2}, sensor=SensorConfig(beams=64, azimuth_steps=2048), seed=99
+    )
     cfg = semantickitti()
     ours, majority = RawLabelEvaluator(), RawLabelEvaluator()
     gts = []

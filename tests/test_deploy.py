@@ -26,7 +26,9 @@ def _docs(path: Path) -> list[dict]:
 
 
 def test_kuberay_manifests_parse_and_fit_together():
-    kinds = {p.name: [d["kind"] for d in _docs(p)] for p in sorted((DEPLOY / "kuberay").glob("*.yaml"))}
+    kinds = {
+        p.name: [d["kind"] for d in _docs(p)] for p in sorted((DEPLOY / "kuberay").glob("*.yaml"))
+    }
     assert kinds == {
         "gateway.yaml": ["Deployment", "Service"],
         "raycluster.yaml": ["RayCluster"],
@@ -36,7 +38,10 @@ def test_kuberay_manifests_parse_and_fit_together():
     }
     claims = {d["metadata"]["name"] for d in _docs(DEPLOY / "kuberay" / "storage.yaml")}
     secret = _docs(DEPLOY / "kuberay" / "secrets.example.yaml")[0]
-    text = "".join((DEPLOY / "kuberay" / n).read_text() for n in ("raycluster.yaml", "rayjob.yaml", "gateway.yaml"))
+    text = "".join(
+        (DEPLOY / "kuberay" / n).read_text()
+        for n in ("raycluster.yaml", "rayjob.yaml", "gateway.yaml")
+    )
     for claim in re.findall(r"claimName: ([\w-]+)", text):
         assert claim in claims
     for key in re.findall(r"secretKeyRef: \{name: rangeret-tokens, key: ([\w-]+)\}", text):
@@ -68,10 +73,13 @@ def test_container_files_exist_and_pins_agree():
         for item in source.split():
             assert (REPO / item).exists(), item
     assert "USER rangeret" in dockerfile and "HEALTHCHECK" in dockerfile
-    pins = dict(line.split("==") for line in (DEPLOY / "constraints.txt").read_text().splitlines()
-                if line and not line.startswith("#"))
+    pins = dict(
+        line.split("==")
+        for line in (DEPLOY / "constraints.txt").read_text().splitlines()
+        if line and not line.startswith("#")
+    )
     pyproject = (REPO / "pyproject.toml").read_text()
-    assert f'ray[default,data]=={pins["ray"]}' in pyproject
+    assert f"ray[default,data]=={pins['ray']}" in pyproject
     entry = (DEPLOY / "entrypoint.sh").read_text()
     for mode in ("gateway)", "ray-head)", "ray-worker)"):
         assert mode in entry
@@ -83,7 +91,11 @@ def test_cluster_launcher_config():
     assert config["provider"]["type"] == "local"
     assert len(config["provider"]["worker_ips"]) == config["max_workers"]
     assert any("--head" in c for c in config["head_start_ray_commands"])
-    assert all("RAY_AUTH_MODE=token" in c for c in config["head_start_ray_commands"] + config["worker_start_ray_commands"] if "start" in c)
+    assert all(
+        "RAY_AUTH_MODE=token" in c
+        for c in config["head_start_ray_commands"] + config["worker_start_ray_commands"]
+        if "start" in c
+    )
 
 
 @pytest.mark.slow
@@ -92,22 +104,65 @@ def test_two_nodes_run_a_simulated_split_through_ray_job_submit(tmp_path):
     second node joined: predictions, the evaluation report and a valid (partial) archive."""
     data, out, archive = tmp_path / "data", tmp_path / "pred", tmp_path / "submission.zip"
     report = tmp_path / "report.json"
-    simulate_dataset(data, {"08": 2, **{s: 1 for s in TEST_SEQUENCES[:3]}}, labelled=["08"],
-                     sensor=SensorConfig(beams=32, azimuth_steps=512), seed=3)
+    simulate_dataset(
+        data,
+        {"08": 2, **{s: 1 for s in TEST_SEQUENCES[:3]}},
+        labelled=["08"],
+        sensor=SensorConfig(beams=32, azimuth_steps=512),
+        seed=3,
+    )
     weights = small_weights(tmp_path)
     with ray_node(tmp_path, num_cpus=1) as head, ray_node(tmp_path / "..", head=head, num_cpus=2):
-        status = subprocess.run([str(head.bindir / "ray"), "status", "--address", head.gcs], env=head.env,
-                                capture_output=True, text=True, check=True)
+        status = subprocess.run(
+            [str(head.bindir / "ray"), "status", "--address", head.gcs],
+            env=head.env,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
         assert status.stdout.count("node_") >= 2
         cmd = [
-            str(head.bindir / "ray"), "job", "submit", "--address", head.dashboard, "--working-dir", str(REPO),
-            "--runtime-env-json", json.dumps({"excludes": [".venv", ".git", "runs"]}),
-            "--", "python", "-m", "workers.predict_job", "--dataset", str(data),
-            "--sequences", "08", *TEST_SEQUENCES, "--report", str(report),
-            "--out", str(out), "--submission", str(archive), "--allow-partial", "--checkpoint", str(weights),
-            "--height", "32", "--width", "256", "--read-cpus", "0.25", "--actors", "2", "--actor-cpus", "1",
+            str(head.bindir / "ray"),
+            "job",
+            "submit",
+            "--address",
+            head.dashboard,
+            "--working-dir",
+            str(REPO),
+            "--runtime-env-json",
+            json.dumps({"excludes": [".venv", ".git", "runs"]}),
+            "--",
+            "python",
+            "-m",
+            "workers.predict_job",
+            "--dataset",
+            str(data),
+            "--sequences",
+            "08",
+            *TEST_SEQUENCES,
+            "--report",
+            str(report),
+            "--out",
+            str(out),
+            "--submission",
+            str(archive),
+            "--allow-partial",
+            "--checkpoint",
+            str(weights),
+            "--height",
+            "32",
+            "--width",
+            "256",
+            "--read-cpus",
+            "0.25",
+            "--actors",
+            "2",
+            "--actor-cpus",
+            "1",
         ]
-        run = subprocess.run(cmd, env=head.env, capture_output=True, text=True, timeout=600, check=False)
+        run = subprocess.run(
+            cmd, env=head.env, capture_output=True, text=True, timeout=600, check=False
+        )
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     assert "5 written" in run.stdout
     check = validate_submission(archive, data, allow_partial=True)

@@ -52,7 +52,9 @@ def test_missing_prediction_and_wrong_length_are_named(tmp_path):
     with pytest.raises(EvaluationError, match=r"000001\.label is missing"):
         evaluate_predictions(data, preds, ["08"])
     write_labels(prediction_path(preds, "08", "000001"), np.zeros(59, np.uint32))
-    with pytest.raises(EvaluationError, match=r"000001\.label: holds 59 labels but the scan has 60"):
+    with pytest.raises(
+        EvaluationError, match=r"000001\.label: holds 59 labels but the scan has 60"
+    ):
         evaluate_predictions(data, preds, ["08"])
 
 

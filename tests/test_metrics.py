@@ -70,7 +70,9 @@ def test_perfect_predictions_on_the_real_scan(real_gt):
     present = set(np.unique(cfg.to_class(real_gt)).tolist()) - {0}
     assert report.accuracy == pytest.approx(1.0)
     assert report.miou == pytest.approx(len(present) / 19)
-    assert {n for n, v in report.iou_by_name().items() if v > 0.999} == {cfg.class_names[c] for c in present}
+    assert {n for n, v in report.iou_by_name().items() if v > 0.999} == {
+        cfg.class_names[c] for c in present
+    }
 
 
 def test_shuffled_predictions_equal_the_official_formulation(real_gt):

@@ -67,14 +67,18 @@ def test_stages_compose_to_predict(small_weights, scan):
 
 
 def test_without_knn_points_take_their_pixel_class_and_unprojected_get_zero(small_weights, scan):
-    predictor = Predictor.from_checkpoint(small_weights, height=32, width=256, device="cpu", knn=None)
+    predictor = Predictor.from_checkpoint(
+        small_weights, height=32, width=256, device="cpu", knn=None
+    )
     pts = scan[::9].copy()
     pts[:3, :3] = 0.0
     result = predictor.predict(pts)
     assert result.labels[:3].tolist() == [0, 0, 0]
     proj = predictor.project(pts)
     pixel_classes = predictor.network([proj])[0].argmax(0).numpy()
-    np.testing.assert_array_equal(result.classes[3:], pixel_classes[proj.proj_y[3:], proj.proj_x[3:]])
+    np.testing.assert_array_equal(
+        result.classes[3:], pixel_classes[proj.proj_y[3:], proj.proj_x[3:]]
+    )
 
 
 def test_batches_give_the_same_labels_as_single_scans(small_weights, scan):
@@ -115,8 +119,23 @@ def test_tta_runs_and_keeps_one_label_per_point(small_weights, scan):
 
 
 def _predict_args(data, out, weights, *extra):
-    return ["predict", "-q", "--dataset", str(data), "--out", str(out), "--checkpoint", str(weights),
-            "--height", "32", "--width", "256", "--device", "cpu", *extra]
+    return [
+        "predict",
+        "-q",
+        "--dataset",
+        str(data),
+        "--out",
+        str(out),
+        "--checkpoint",
+        str(weights),
+        "--height",
+        "32",
+        "--width",
+        "256",
+        "--device",
+        "cpu",
+        *extra,
+    ]
 
 
 def test_predict_command_writes_resumes_and_names_bad_scans(tree, tmp_path, small_weights, capsys):
@@ -144,7 +163,9 @@ def test_predict_command_writes_resumes_and_names_bad_scans(tree, tmp_path, smal
     (velodyne_dir(tree, "42") / "000009.bin").write_bytes(b"\x01" * 30)
     for f in out.rglob("*.label"):
         f.unlink()
-    code = main(_predict_args(tree, out, small_weights, "--sequences", "08", "42", "--batch-size", "2"))
+    code = main(
+        _predict_args(tree, out, small_weights, "--sequences", "08", "42", "--batch-size", "2")
+    )
     captured = capsys.readouterr()
     assert code == 1
     assert "1 of 5 scans could not be predicted" in captured.err
@@ -158,7 +179,14 @@ def test_predict_command_errors(tree, tmp_path, small_weights, capsys):
     (tmp_path / "junk.pt").write_bytes(b"junk")
     assert main(_predict_args(tree, tmp_path / "p", tmp_path / "junk.pt", "--split", "valid")) == 1
     assert "junk.pt is not a RangeRet checkpoint" in capsys.readouterr().err
-    assert main(_predict_args(tree, tmp_path / "p", small_weights, "--split", "valid", "--batch-size", "0")) == 1
+    assert (
+        main(
+            _predict_args(
+                tree, tmp_path / "p", small_weights, "--split", "valid", "--batch-size", "0"
+            )
+        )
+        == 1
+    )
     assert "--batch-size must be at least 1" in capsys.readouterr().err
 
 

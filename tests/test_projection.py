@@ -60,7 +60,9 @@ def test_ties_go_to_the_lower_index():
         assert p.mask.sum() == 1
         winner = int(p.proj_idx[p.mask][0])
         assert winner == (0 if order[0] is a else 1)
-        assert p.image[4][p.mask][0] == pytest.approx((order[winner][3] - CHANNEL_MEANS[4]) / CHANNEL_STDS[4])
+        assert p.image[4][p.mask][0] == pytest.approx(
+            (order[winner][3] - CHANNEL_MEANS[4]) / CHANNEL_STDS[4]
+        )
 
 
 def test_label_round_trip_is_lossless(scan, real_label_path):
@@ -78,7 +80,13 @@ def test_label_round_trip_is_lossless(scan, real_label_path):
 
 def test_invalid_points_are_kept_out_but_labelled():
     pts = np.array(
-        [[10, 0, 0, 0.5], [0, 0, 0, 0.2], [np.nan, 1, 1, 0.1], [0, 10, -1, np.inf], [-3, -4, 0, 0.4]],
+        [
+            [10, 0, 0, 0.5],
+            [0, 0, 0, 0.2],
+            [np.nan, 1, 1, 0.1],
+            [0, 10, -1, np.inf],
+            [-3, -4, 0, 0.4],
+        ],
         np.float32,
     )
     p = project(pts, 16, 128)

@@ -89,10 +89,14 @@ class Gateway:
                 self.proc.wait(10)
 
 
-def gateway_env(state: Path, roots: list[Path], token: str | None = TOKEN, **extra: str) -> dict[str, str]:
+def gateway_env(
+    state: Path, roots: list[Path], token: str | None = TOKEN, **extra: str
+) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("RANGERET_")}
     env.update(LIMITS)
-    env.update(RANGERET_STATE_DIR=str(state), RANGERET_DATA_ROOTS=os.pathsep.join(map(str, roots)), **extra)
+    env.update(
+        RANGERET_STATE_DIR=str(state), RANGERET_DATA_ROOTS=os.pathsep.join(map(str, roots)), **extra
+    )
     if token:
         env["RANGERET_API_TOKEN"] = token
     return env
@@ -100,8 +104,19 @@ def gateway_env(state: Path, roots: list[Path], token: str | None = TOKEN, **ext
 
 def start_gateway(weights: Path, env: dict[str, str], log: Path, *args: str) -> Gateway:
     port = free_port()
-    cmd = [sys.executable, "-m", "service", "--checkpoint", str(weights), *NET, "--port", str(port),
-           "--log-level", "warning", *args]
+    cmd = [
+        sys.executable,
+        "-m",
+        "service",
+        "--checkpoint",
+        str(weights),
+        *NET,
+        "--port",
+        str(port),
+        "--log-level",
+        "warning",
+        *args,
+    ]
     with open(log, "ab") as out:
         proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT)
     gw = Gateway(f"http://127.0.0.1:{port}", proc, log)
@@ -151,20 +166,73 @@ def setup(tmp_path_factory) -> dict:
     roots = base / "roots"
     data = build_tree(roots / "data", labelled=3, unlabelled=2)
     real = roots / "real"
-    write_scan(velodyne_dir(real, "00") / "000000.bin", read_scan(shared_path("data", "semantickitti-scan", "000000.bin")))
+    write_scan(
+        velodyne_dir(real, "00") / "000000.bin",
+        read_scan(shared_path("data", "semantickitti-scan", "000000.bin")),
+    )
     net = ["--checkpoint", str(weights), *NET, "-q"]
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # the labels do not depend on it; one thread is quickest on a busy machine
+    torch.set_num_threads(
+        1
+    )  # the labels do not depend on it; one thread is quickest on a busy machine
     try:
-        assert rangeret_main(["predict", "--dataset", str(data), "--sequences", "08", "11", "--out", str(base / "ref"),
-                              *net]) == 0
-        assert rangeret_main(["predict", "--dataset", str(real), "--sequences", "00", "--out", str(base / "real-knn"),
-                              *net]) == 0
-        assert rangeret_main(["predict", "--dataset", str(real), "--sequences", "00", "--out", str(base / "real-raw"),
-                              "--no-knn", *net]) == 0
+        assert (
+            rangeret_main(
+                [
+                    "predict",
+                    "--dataset",
+                    str(data),
+                    "--sequences",
+                    "08",
+                    "11",
+                    "--out",
+                    str(base / "ref"),
+                    *net,
+                ]
+            )
+            == 0
+        )
+        assert (
+            rangeret_main(
+                [
+                    "predict",
+                    "--dataset",
+                    str(real),
+                    "--sequences",
+                    "00",
+                    "--out",
+                    str(base / "real-knn"),
+                    *net,
+                ]
+            )
+            == 0
+        )
+        assert (
+            rangeret_main(
+                [
+                    "predict",
+                    "--dataset",
+                    str(real),
+                    "--sequences",
+                    "00",
+                    "--out",
+                    str(base / "real-raw"),
+                    "--no-knn",
+                    *net,
+                ]
+            )
+            == 0
+        )
     finally:
         torch.set_num_threads(threads)
-    return {"base": base, "weights": weights, "roots": roots, "data": data, "real": real, "ref": base / "ref"}
+    return {
+        "base": base,
+        "weights": weights,
+        "roots": roots,
+        "data": data,
+        "real": real,
+        "ref": base / "ref",
+    }
 
 
 @pytest.fixture(scope="module")
@@ -183,9 +251,16 @@ def test_real_scan_labels_equal_rangeret_predict(setup, gateway):
     with gateway.client() as client:
         with_knn = client.post("/v1/scans", content=body, headers=OCTET)
         without = client.post("/v1/scans", content=body, headers=OCTET, params={"knn": "false"})
-    assert with_knn.status_code == 200 and with_knn.headers["content-type"] == "application/octet-stream"
-    assert with_knn.content == prediction_path(setup["base"] / "real-knn", "00", "000000").read_bytes()
-    assert without.content == prediction_path(setup["base"] / "real-raw", "00", "000000").read_bytes()
+    assert (
+        with_knn.status_code == 200
+        and with_knn.headers["content-type"] == "application/octet-stream"
+    )
+    assert (
+        with_knn.content == prediction_path(setup["base"] / "real-knn", "00", "000000").read_bytes()
+    )
+    assert (
+        without.content == prediction_path(setup["base"] / "real-raw", "00", "000000").read_bytes()
+    )
     assert len(with_knn.content) == len(body) // 4
 
 
@@ -193,14 +268,18 @@ def test_json_form(setup, gateway):
     scan = setup["data"] / "sequences" / "08" / "velodyne" / "000000.bin"
     expected = read_labels(prediction_path(setup["ref"], "08", "000000"))
     with gateway.client() as client:
-        r = client.post("/v1/scans", content=scan.read_bytes(), headers={**OCTET, "Accept": "application/json"})
+        r = client.post(
+            "/v1/scans", content=scan.read_bytes(), headers={**OCTET, "Accept": "application/json"}
+        )
     assert r.status_code == 200 and r.headers["content-type"] == "application/json"
     body = r.json()
     assert set(body) == {"num_points", "labels", "class_counts"}
     assert body["num_points"] == expected.size and body["labels"] == expected.tolist()
     config = semantickitti()
     counts = np.bincount(config.to_class(expected), minlength=config.num_classes)
-    assert body["class_counts"] == {config.class_names[c]: int(n) for c, n in enumerate(counts) if n}
+    assert body["class_counts"] == {
+        config.class_names[c]: int(n) for c, n in enumerate(counts) if n
+    }
     assert sum(body["class_counts"].values()) == expected.size
 
 
@@ -226,14 +305,21 @@ def test_concurrent_requests_are_batched_and_each_equals_rangeret_predict(setup,
         assert results[path] == prediction_path(setup["ref"], seq, name).read_bytes(), path
     with gateway.client(auth=False) as client:
         text = client.get("/metrics").text
-    assert _metric(text, "rangeret_batch_scans_count") - before < len(scans)  # some batches held several
+    assert _metric(text, "rangeret_batch_scans_count") - before < len(
+        scans
+    )  # some batches held several
     assert 'rangeret_scans_labelled_total{source="request"}' in text
-    assert "rangeret_queue_depth" in text and "rangeret_http_request_duration_seconds_bucket" in text
+    assert (
+        "rangeret_queue_depth" in text and "rangeret_http_request_duration_seconds_bucket" in text
+    )
 
 
 def _metric(text: str, name: str) -> float:
-    return sum(float(line.split()[-1]) for line in text.splitlines() if line.startswith(name + " ") or
-               line.startswith(name + "{"))
+    return sum(
+        float(line.split()[-1])
+        for line in text.splitlines()
+        if line.startswith(name + " ") or line.startswith(name + "{")
+    )
 
 
 def test_bad_scans(setup, gateway):
@@ -241,19 +327,39 @@ def test_bad_scans(setup, gateway):
     nan = good.copy()
     nan[5, 2] = np.nan
     with gateway.client() as client:
-        assert "multiple of 16" in assert_error(client.post("/v1/scans", content=good.tobytes()[:-3], headers=OCTET), 400)
-        assert "NaN" in assert_error(client.post("/v1/scans", content=nan.tobytes(), headers=OCTET), 400)
+        assert "multiple of 16" in assert_error(
+            client.post("/v1/scans", content=good.tobytes()[:-3], headers=OCTET), 400
+        )
+        assert "NaN" in assert_error(
+            client.post("/v1/scans", content=nan.tobytes(), headers=OCTET), 400
+        )
         assert_error(client.post("/v1/scans", content=b"", headers=OCTET), 400)
         assert "application/octet-stream" in assert_error(
-            client.post("/v1/scans", content=good.tobytes(), headers={"Content-Type": "text/plain"}), 415)
-        assert_error(client.post("/v1/scans", content=good.tobytes(), headers={"Content-Type": "application/json"}), 415)
+            client.post(
+                "/v1/scans", content=good.tobytes(), headers={"Content-Type": "text/plain"}
+            ),
+            415,
+        )
+        assert_error(
+            client.post(
+                "/v1/scans", content=good.tobytes(), headers={"Content-Type": "application/json"}
+            ),
+            415,
+        )
         over = np.zeros(((4 << 20) // 16 + 1, 4), dtype=np.float32).tobytes()
         assert "limit" in assert_error(client.post("/v1/scans", content=over, headers=OCTET), 413)
         chunks = (over[i : i + 65536] for i in range(0, len(over), 65536))
-        assert_error(client.post("/v1/scans", content=chunks, headers=OCTET), 413)  # no Content-Length
+        assert_error(
+            client.post("/v1/scans", content=chunks, headers=OCTET), 413
+        )  # no Content-Length
         many = np.ones((200_001, 4), dtype=np.float32).tobytes()
         assert "200,000" in assert_error(client.post("/v1/scans", content=many, headers=OCTET), 413)
-        assert "knn" in assert_error(client.post("/v1/scans", content=good.tobytes(), headers=OCTET, params={"knn": "maybe"}), 400)
+        assert "knn" in assert_error(
+            client.post(
+                "/v1/scans", content=good.tobytes(), headers=OCTET, params={"knn": "maybe"}
+            ),
+            400,
+        )
         assert client.post("/v1/scans", content=good.tobytes(), headers=OCTET).status_code == 200
 
 
@@ -262,21 +368,41 @@ def test_token_rule(setup, gateway):
     with gateway.client(auth=False) as anon:
         r = anon.post("/v1/scans", content=scan, headers=OCTET)
         assert "Authorization" in assert_error(r, 401) and r.headers["www-authenticate"] == "Bearer"
-        assert_error(anon.post("/v1/scans", content=scan, headers={**OCTET, "Authorization": "Bearer wrong"}), 401)
+        assert_error(
+            anon.post(
+                "/v1/scans", content=scan, headers={**OCTET, "Authorization": "Bearer wrong"}
+            ),
+            401,
+        )
         assert_error(anon.get("/v1/jobs", headers={"Authorization": f"Basic {TOKEN}"}), 401)
         assert_error(anon.get("/v1/jobs"), 401)
         assert_error(anon.post("/v1/jobs", json={"dataset": "/etc", "split": "valid"}), 401)
         assert_error(anon.delete("/v1/jobs/0123"), 401)
         health = anon.get("/healthz")
-        assert health.status_code == 200 and health.json()["status"] == "ok" and health.json()["backend"] == "local"
+        assert (
+            health.status_code == 200
+            and health.json()["status"] == "ok"
+            and health.json()["backend"] == "local"
+        )
         assert anon.get("/metrics").status_code == 200
         assert anon.get("/openapi.json").status_code == 200
 
 
 def test_refuses_a_public_address_without_a_token(setup, tmp_path):
     env = gateway_env(tmp_path / "state", [setup["roots"]], token=None)
-    cmd = [sys.executable, "-m", "service", "--checkpoint", str(setup["weights"]), *NET, "--host", "0.0.0.0"]
-    run = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=120, check=False)
+    cmd = [
+        sys.executable,
+        "-m",
+        "service",
+        "--checkpoint",
+        str(setup["weights"]),
+        *NET,
+        "--host",
+        "0.0.0.0",
+    ]
+    run = subprocess.run(
+        cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=120, check=False
+    )
     assert run.returncode == 1
     assert "RANGERET_API_TOKEN" in run.stderr and "loopback" in run.stderr
 
@@ -302,7 +428,10 @@ def test_archive_job_with_labels_equals_rangeret_evaluate(setup, gateway, tmp_pa
         r = _upload(client, _zip_tree(setup["data"]))
         assert r.status_code == 202, r.text
         job_id = r.json()["id"]
-        assert r.json()["status_url"] == f"/v1/jobs/{job_id}" and r.headers["location"] == r.json()["status_url"]
+        assert (
+            r.json()["status_url"] == f"/v1/jobs/{job_id}"
+            and r.headers["location"] == r.json()["status_url"]
+        )
         status = wait_job(client, job_id)
         assert status["state"] == "succeeded", status
         assert (status["total"], status["done"], status["failed"]) == (5, 5, 0)
@@ -316,31 +445,68 @@ def test_archive_job_with_labels_equals_rangeret_evaluate(setup, gateway, tmp_pa
         for seq in ("08", "11"):
             assert f"sequences/{seq}/" in names and f"sequences/{seq}/predictions/" in names
         zf.extractall(tmp_path / "pred")
-    labels = {p.relative_to(tmp_path / "pred").as_posix(): p.read_bytes() for p in (tmp_path / "pred").rglob("*.label")}
-    expected = {p.relative_to(setup["ref"]).as_posix(): p.read_bytes() for p in setup["ref"].rglob("*.label")}
+    labels = {
+        p.relative_to(tmp_path / "pred").as_posix(): p.read_bytes()
+        for p in (tmp_path / "pred").rglob("*.label")
+    }
+    expected = {
+        p.relative_to(setup["ref"]).as_posix(): p.read_bytes()
+        for p in setup["ref"].rglob("*.label")
+    }
     assert labels == expected and len(labels) == 5
 
-    assert rangeret_main(["evaluate", "-q", "--dataset", str(setup["data"]), "--predictions", str(tmp_path / "pred"),
-                          "--sequences", "08", "--json", str(tmp_path / "eval.json")]) == 0
+    assert (
+        rangeret_main(
+            [
+                "evaluate",
+                "-q",
+                "--dataset",
+                str(setup["data"]),
+                "--predictions",
+                str(tmp_path / "pred"),
+                "--sequences",
+                "08",
+                "--json",
+                str(tmp_path / "eval.json"),
+            ]
+        )
+        == 0
+    )
     reference = json.loads((tmp_path / "eval.json").read_text())
     assert report.status_code == 200
     served = report.json()
     assert served["confusion"] == reference["confusion"] and served["miou"] == reference["miou"]
     assert served["iou"] == reference["iou"] and served["checkpoint_sha256"]
-    assert status["metrics"]["miou"] == reference["miou"] and status["metrics"]["iou"] == reference["iou"]
+    assert (
+        status["metrics"]["miou"] == reference["miou"]
+        and status["metrics"]["iou"] == reference["iou"]
+    )
 
 
 def test_dataset_jobs_test_sequences_pass_the_validator(setup, gateway):
     with gateway.client() as client:
-        absolute = client.post("/v1/jobs", json={"dataset": str(setup["data"]), "sequences": ["11"]})
+        absolute = client.post(
+            "/v1/jobs", json={"dataset": str(setup["data"]), "sequences": ["11"]}
+        )
         relative = client.post("/v1/jobs", json={"dataset": "data", "split": "valid"})
-        assert absolute.status_code == 202 and relative.status_code == 202, (absolute.text, relative.text)
+        assert absolute.status_code == 202 and relative.status_code == 202, (
+            absolute.text,
+            relative.text,
+        )
         first = wait_job(client, absolute.json()["id"])
         second = wait_job(client, relative.json()["id"])
-        assert first["state"] == "succeeded" and first["metrics"] is None and first["kind"] == "dataset"
+        assert (
+            first["state"] == "succeeded"
+            and first["metrics"] is None
+            and first["kind"] == "dataset"
+        )
         assert "no labels" in assert_error(client.get(f"/v1/jobs/{first['id']}/report"), 404)
         archive = client.get(f"/v1/jobs/{first['id']}/predictions").content
-        assert second["state"] == "succeeded" and second["metrics"] is not None and second["sequences"] == ["08"]
+        assert (
+            second["state"] == "succeeded"
+            and second["metrics"] is not None
+            and second["sequences"] == ["08"]
+        )
         assert client.get(f"/v1/jobs/{second['id']}/report").json()["num_scans"] == 3
     path = setup["base"] / "test-job.zip"
     path.write_bytes(archive)
@@ -355,14 +521,33 @@ def test_dataset_paths_outside_the_data_roots_are_refused(setup, gateway):
         link.symlink_to(setup["base"] / "state")
     with gateway.client() as client:
         for path in ("/etc", str(setup["roots"] / ".." / "state"), "../state", str(link), "escape"):
-            assert "outside" in assert_error(client.post("/v1/jobs", json={"dataset": path, "split": "valid"}), 403)
-        assert_error(client.post("/v1/jobs", json={"dataset": str(setup["roots"] / "nothing"), "split": "valid"}), 404)
-        assert "missing" in assert_error(client.post("/v1/jobs", json={"dataset": "data", "sequences": ["09"]}), 400)
+            assert "outside" in assert_error(
+                client.post("/v1/jobs", json={"dataset": path, "split": "valid"}), 403
+            )
+        assert_error(
+            client.post(
+                "/v1/jobs", json={"dataset": str(setup["roots"] / "nothing"), "split": "valid"}
+            ),
+            404,
+        )
+        assert "missing" in assert_error(
+            client.post("/v1/jobs", json={"dataset": "data", "sequences": ["09"]}), 400
+        )
         assert_error(client.post("/v1/jobs", json={"dataset": "data", "sequences": ["../08"]}), 400)
         assert_error(client.post("/v1/jobs", json={"dataset": "data"}), 400)
         assert_error(client.post("/v1/jobs", json={"dataset": "data", "split": "all"}), 400)
-        assert_error(client.post("/v1/jobs", content=b"{not json", headers={"Content-Type": "application/json"}), 400)
-        assert_error(client.post("/v1/jobs", content=b"dataset=data", headers={"Content-Type": "text/plain"}), 415)
+        assert_error(
+            client.post(
+                "/v1/jobs", content=b"{not json", headers={"Content-Type": "application/json"}
+            ),
+            400,
+        )
+        assert_error(
+            client.post(
+                "/v1/jobs", content=b"dataset=data", headers={"Content-Type": "text/plain"}
+            ),
+            415,
+        )
 
 
 def _zip_with(name: str, data: bytes = b"\0" * 16, mode: int | None = None) -> bytes:
@@ -420,26 +605,39 @@ def test_bad_archives_are_refused_and_leave_nothing(setup, gateway):
         assert "members" in assert_error(_upload(client, many.getvalue()), 413)
         assert_error(_upload(client, b"\0" * (9 << 20)), 413)
         assert_error(client.post("/v1/jobs", files={"other": ("x.zip", b"data")}), 400)
-        assert_error(client.post("/v1/jobs", content=b"--x--", headers={"Content-Type": "multipart/form-data"}), 400)
+        assert_error(
+            client.post(
+                "/v1/jobs", content=b"--x--", headers={"Content-Type": "multipart/form-data"}
+            ),
+            400,
+        )
         assert {j["id"] for j in client.get("/v1/jobs").json()["jobs"]} == before
     assert not (Path("/tmp") / "evil.bin").exists() and not (setup["base"] / "evil.bin").exists()
     assert {p.name for p in jobs_dir.iterdir()} <= before
 
 
 def test_tar_gz_job_conflicts_cancel_and_unknown_jobs(setup, gateway):
-    members = [(f"./sequences/11/velodyne/{p.name}", p.read_bytes(), tarfile.REGTYPE)
-               for p in sorted((setup["data"] / "sequences" / "11" / "velodyne").glob("*.bin"))]
+    members = [
+        (f"./sequences/11/velodyne/{p.name}", p.read_bytes(), tarfile.REGTYPE)
+        for p in sorted((setup["data"] / "sequences" / "11" / "velodyne").glob("*.bin"))
+    ]
     with gateway.client() as client:
         r = _upload(client, _tar_with(*members, gz=True), "data.tar.gz")
         assert r.status_code == 202, r.text
         job_id = r.json()["id"]
-        assert "results exist only once" in assert_error(client.get(f"/v1/jobs/{job_id}/predictions"), 409)
+        assert "results exist only once" in assert_error(
+            client.get(f"/v1/jobs/{job_id}/predictions"), 409
+        )
         assert_error(client.get(f"/v1/jobs/{job_id}/report"), 409)
         assert wait_job(client, job_id)["state"] == "succeeded"
-        with zipfile.ZipFile(io.BytesIO(client.get(f"/v1/jobs/{job_id}/predictions").content)) as zf:
+        with zipfile.ZipFile(
+            io.BytesIO(client.get(f"/v1/jobs/{job_id}/predictions").content)
+        ) as zf:
             assert sum(n.endswith(".label") for n in zf.namelist()) == 2
 
-        second = client.post("/v1/jobs", json={"dataset": "data", "sequences": ["08", "11"]}).json()["id"]
+        second = client.post(
+            "/v1/jobs", json={"dataset": "data", "sequences": ["08", "11"]}
+        ).json()["id"]
         cancelled = client.delete(f"/v1/jobs/{second}")
         assert cancelled.status_code == 200 and cancelled.json()["state"] == "cancelled"
         assert client.get(f"/v1/jobs/{second}").json()["state"] == "cancelled"
@@ -451,7 +649,11 @@ def test_tar_gz_job_conflicts_cancel_and_unknown_jobs(setup, gateway):
 
         assert client.delete(f"/v1/jobs/{job_id}").json()["state"] == "succeeded"
         assert not (setup["base"] / "state" / "jobs" / job_id).exists()
-        for path in (f"/v1/jobs/{job_id}", f"/v1/jobs/{job_id}/predictions", "/v1/jobs/not-a-job/report"):
+        for path in (
+            f"/v1/jobs/{job_id}",
+            f"/v1/jobs/{job_id}/predictions",
+            "/v1/jobs/not-a-job/report",
+        ):
             assert_error(client.get(path), 404)
         assert_error(client.delete("/v1/jobs/not-a-job"), 404)
         assert_error(client.get("/v1/nothing-here"), 404)
@@ -466,9 +668,13 @@ def test_gateway_killed_mid_job_resumes_it(setup, tmp_path):
     first = start_gateway(setup["weights"], env, tmp_path / "first.log")
     try:
         with first.client() as client:
-            job_id = client.post("/v1/jobs", json={"dataset": "long", "sequences": ["42"]}).json()["id"]
+            job_id = client.post("/v1/jobs", json={"dataset": "long", "sequences": ["42"]}).json()[
+                "id"
+            ]
             deadline = time.time() + 120
-            while (status := client.get(f"/v1/jobs/{job_id}").json())["done"] < 3 and time.time() < deadline:
+            while (status := client.get(f"/v1/jobs/{job_id}").json())[
+                "done"
+            ] < 3 and time.time() < deadline:
                 time.sleep(0.05)
     finally:
         first.stop(signal.SIGKILL)
@@ -481,7 +687,11 @@ def test_gateway_killed_mid_job_resumes_it(setup, tmp_path):
             archive = client.get(f"/v1/jobs/{job_id}/predictions").content
     finally:
         second.stop()
-    assert final["state"] == "succeeded" and (final["total"], final["done"], final["failed"]) == (16, 16, 0), final
+    assert final["state"] == "succeeded" and (final["total"], final["done"], final["failed"]) == (
+        16,
+        16,
+        0,
+    ), final
     with zipfile.ZipFile(io.BytesIO(archive)) as zf:
         for i in range(16):
             data = zf.read(f"sequences/42/predictions/{i:06d}.label")
@@ -502,14 +712,21 @@ def test_fuzz_no_server_error(gateway):
     def check(case) -> None:
         response = case.call(base_url=gateway.url, headers=AUTH, timeout=60)
         answered.append((f"{case.method} {case.path}", response.status_code))
-        assert response.status_code < 500, f"{case.method} {case.path}: {response.status_code} {response.text[:300]}"
+        assert response.status_code < 500, (
+            f"{case.method} {case.path}: {response.status_code} {response.text[:300]}"
+        )
 
     operations = [result.ok() for result in schema.get_all_operations()]
     assert len(operations) == 9
     for operation in operations:
         for mode in (GenerationMode.POSITIVE, GenerationMode.NEGATIVE):
-            run = settings(max_examples=6, deadline=None, database=None, derandomize=True,
-                           suppress_health_check=list(HealthCheck))(given(case=operation.as_strategy(mode))(check))
+            run = settings(
+                max_examples=6,
+                deadline=None,
+                database=None,
+                derandomize=True,
+                suppress_health_check=list(HealthCheck),
+            )(given(case=operation.as_strategy(mode))(check))
             try:
                 run()
             except Unsatisfiable:

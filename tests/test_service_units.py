@@ -45,23 +45,49 @@ def _zip(tmp_path: Path, members: dict[str, bytes]) -> Path:
 
 def test_archive_with_labels_is_extracted(tmp_path):
     labels = np.full(10, 40, dtype=np.uint32).tobytes()
-    archive = _zip(tmp_path, {
-        "sequences/": b"", "sequences/08/velodyne/000000.bin": SCAN, "./sequences/08/labels/000000.label": labels,
-        "sequences/11/velodyne/000000.bin": SCAN, "sequences/11/velodyne/000001.bin": SCAN,
-    })
+    archive = _zip(
+        tmp_path,
+        {
+            "sequences/": b"",
+            "sequences/08/velodyne/000000.bin": SCAN,
+            "./sequences/08/labels/000000.label": labels,
+            "sequences/11/velodyne/000000.bin": SCAN,
+            "sequences/11/velodyne/000001.bin": SCAN,
+        },
+    )
     found = extract_archive(archive, tmp_path / "data", LIMITS)
     assert found.sequences == ["08", "11"] and found.labelled == ["08"] and found.scans == 3
-    assert (tmp_path / "data" / "sequences" / "08" / "labels" / "000000.label").read_bytes() == labels
+    assert (
+        tmp_path / "data" / "sequences" / "08" / "labels" / "000000.label"
+    ).read_bytes() == labels
     assert len(list_scans(found.root, found.sequences)) == 3
 
 
 @pytest.mark.parametrize(
     ("members", "words"),
     [
-        ({"sequences/08/velodyne/000000.bin": SCAN, "sequences/08/labels/000001.label": b"\0" * 40}, "no matching scan"),
-        ({"sequences/08/velodyne/000000.bin": SCAN, "sequences/08/labels/000000.label": b"\0" * 36}, "holds 9 labels"),
-        ({"sequences/08/velodyne/000000.bin": SCAN, "sequences/08/velodyne/000001.bin": SCAN,
-          "sequences/08/labels/000000.label": b"\0" * 40}, "not for 1"),
+        (
+            {
+                "sequences/08/velodyne/000000.bin": SCAN,
+                "sequences/08/labels/000001.label": b"\0" * 40,
+            },
+            "no matching scan",
+        ),
+        (
+            {
+                "sequences/08/velodyne/000000.bin": SCAN,
+                "sequences/08/labels/000000.label": b"\0" * 36,
+            },
+            "holds 9 labels",
+        ),
+        (
+            {
+                "sequences/08/velodyne/000000.bin": SCAN,
+                "sequences/08/velodyne/000001.bin": SCAN,
+                "sequences/08/labels/000000.label": b"\0" * 40,
+            },
+            "not for 1",
+        ),
         ({"sequences\\08\\velodyne\\000000.bin": SCAN}, "escape"),
         ({"C:/sequences/08/velodyne/000000.bin": SCAN}, "escape"),
         ({"data/sequences/08/velodyne/000000.bin": SCAN}, "not a sequences"),
@@ -101,7 +127,11 @@ def test_tar_duplicates_and_special_members_are_refused(tmp_path):
 
     name = "sequences/08/velodyne/000000.bin"
     with pytest.raises(ArchiveError, match="more than once"):
-        extract_archive(tar((name, SCAN, tarfile.REGTYPE), (name, SCAN, tarfile.REGTYPE)), tmp_path / "d", LIMITS)
+        extract_archive(
+            tar((name, SCAN, tarfile.REGTYPE), (name, SCAN, tarfile.REGTYPE)),
+            tmp_path / "d",
+            LIMITS,
+        )
     with pytest.raises(ArchiveError, match="pipe"):
         extract_archive(tar((name, b"", tarfile.FIFOTYPE)), tmp_path / "d", LIMITS)
     with pytest.raises(ArchiveError, match=r"not a \.zip"):
@@ -151,7 +181,9 @@ def test_batcher_gathers_concurrent_requests_up_to_the_batch_size():
         batcher = ScanBatcher(pool, batch_size=4, max_wait=0.05)
         await batcher.start()
         try:
-            results = await asyncio.gather(*(batcher.label(_scan(n), knn=n % 2 == 0) for n in range(1, 12)))
+            results = await asyncio.gather(
+                *(batcher.label(_scan(n), knn=n % 2 == 0) for n in range(1, 12))
+            )
         finally:
             await batcher.stop()
         return pool, results
@@ -213,16 +245,22 @@ class FakeExecutor:
             if cancel.is_set():
                 break
             n = os.path.getsize(entry.scan_path) // 16
-            write_labels(prediction_path(out, entry.sequence, entry.name), np.zeros(n, dtype=np.uint32))
+            write_labels(
+                prediction_path(out, entry.sequence, entry.name), np.zeros(n, dtype=np.uint32)
+            )
             progress(i + 1, 0, len(entries))
         return {}
 
 
 def _manager(tmp_path: Path, executor=None, retention: float = 3600) -> JobManager:
-    return JobManager(JobStore(tmp_path / "jobs.sqlite"), executor or FakeExecutor(), tmp_path / "jobs", retention)
+    return JobManager(
+        JobStore(tmp_path / "jobs.sqlite"), executor or FakeExecutor(), tmp_path / "jobs", retention
+    )
 
 
-def _wait_state(manager: JobManager, job_id: str, *states: JobState, timeout: float = 30) -> JobState:
+def _wait_state(
+    manager: JobManager, job_id: str, *states: JobState, timeout: float = 30
+) -> JobState:
     deadline = time.time() + timeout
     while time.time() < deadline:
         state = manager.store.get(job_id).state
@@ -240,7 +278,9 @@ def test_job_runs_to_success_with_predictions_and_report(tmp_path):
     try:
         job_id, _ = manager.new_job()
         manager.submit(job_id, "dataset", data, ["08"])
-        assert _wait_state(manager, job_id, JobState.succeeded, JobState.failed) is JobState.succeeded
+        assert (
+            _wait_state(manager, job_id, JobState.succeeded, JobState.failed) is JobState.succeeded
+        )
     finally:
         manager.stop()
     record = manager.store.get(job_id)
@@ -307,7 +347,13 @@ def test_retention_removes_old_finished_jobs_only(tmp_path):
     assert manager.sweep() == 1
     assert store.get(old) is None and not manager.job_dir(old).exists()
     assert store.get(recent) is not None and store.get(running).state is JobState.running
-    assert store.counts() == {"queued": 0, "running": 1, "succeeded": 0, "failed": 1, "cancelled": 0}
+    assert store.counts() == {
+        "queued": 0,
+        "running": 1,
+        "succeeded": 0,
+        "failed": 1,
+        "cancelled": 0,
+    }
 
 
 def test_predictions_zip_directory_entries(tmp_path):
@@ -315,7 +361,9 @@ def test_predictions_zip_directory_entries(tmp_path):
     pred = tmp_path / "pred"
     entries = list_scans(tmp_path / "data", ["08", "11"])
     for entry in entries:
-        write_labels(prediction_path(pred, entry.sequence, entry.name), np.zeros(5, dtype=np.uint32))
+        write_labels(
+            prediction_path(pred, entry.sequence, entry.name), np.zeros(5, dtype=np.uint32)
+        )
     test_only = [e for e in entries if e.sequence == "11"]
     write_predictions_zip(pred, test_only, ["11"], tmp_path / "a.zip", "d")
     write_predictions_zip(pred, entries, ["08", "11"], tmp_path / "b.zip", "d")
@@ -323,7 +371,12 @@ def test_predictions_zip_directory_entries(tmp_path):
     names_b = zipfile.ZipFile(tmp_path / "b.zip").namelist()
     assert [n for n in names_a if n.endswith("/")] == list(required_directories())
     assert [n for n in names_b if n.endswith("/")] == [
-        "sequences/", "sequences/08/", "sequences/08/predictions/", "sequences/11/", "sequences/11/predictions/"]
+        "sequences/",
+        "sequences/08/",
+        "sequences/08/predictions/",
+        "sequences/11/",
+        "sequences/11/predictions/",
+    ]
     assert "sequences/08/predictions/000000.label" in names_b and "description.txt" in names_a
 
 
@@ -349,9 +402,14 @@ def test_settings_from_the_environment(monkeypatch, tmp_path):
 @pytest.mark.parametrize(
     ("accept", "json"),
     [
-        (None, False), ("*/*", False), ("application/json", True), ("application/json, */*", True),
-        ("application/octet-stream, application/json", False), ("application/octet-stream;q=0.5, application/json", True),
-        ("application/json;q=0", False), ("text/html", False),
+        (None, False),
+        ("*/*", False),
+        ("application/json", True),
+        ("application/json, */*", True),
+        ("application/octet-stream, application/json", False),
+        ("application/octet-stream;q=0.5, application/json", True),
+        ("application/json;q=0", False),
+        ("text/html", False),
     ],
 )
 def test_accept_negotiation(accept, json):
@@ -359,10 +417,13 @@ def test_accept_negotiation(accept, json):
 
 
 def test_validation_sentences():
-    errors = [{"loc": ("query", "knn"), "msg": "Input should be a valid boolean"}, {"loc": ("body",), "msg": "x"}]
+    errors = [
+        {"loc": ("query", "knn"), "msg": "Input should be a valid boolean"},
+        {"loc": ("body",), "msg": "x"},
+    ]
     assert validation_sentence(errors) == (
         "The query parameter 'knn' is invalid: Input should be a valid boolean (and 1 more problem(s))."
     )
-    assert validation_sentence([{"loc": (), "msg": "Value error, give either 'split' or 'sequences'"}], "body") == (
-        "The request body is invalid: give either 'split' or 'sequences'."
-    )
+    assert validation_sentence(
+        [{"loc": (), "msg": "Value error, give either 'split' or 'sequences'"}], "body"
+    ) == ("The request body is invalid: give either 'split' or 'sequences'.")

@@ -48,7 +48,9 @@ def _predict(dataset: Path, preds: Path, seed: int = 0) -> None:
     rng = np.random.default_rng(seed)
     for entry in discover(dataset, TEST_SEQUENCES, missing_ok=True).scans:
         n = entry.scan_path.stat().st_size // 16
-        write_labels(prediction_path(preds, entry.sequence, entry.name), cfg.to_raw(rng.integers(0, 20, n)))
+        write_labels(
+            prediction_path(preds, entry.sequence, entry.name), cfg.to_raw(rng.integers(0, 20, n))
+        )
 
 
 @pytest.fixture
@@ -71,7 +73,10 @@ def test_partial_archive_passes_the_official_checks(small_test_set, tmp_path):
     with zipfile.ZipFile(out) as zf:
         names = zf.namelist()
         assert zf.read("description.txt") == b"test run\n"
-        assert zf.read("sequences/11/predictions/000001.label") == prediction_path(preds, "11", "000001").read_bytes()
+        assert (
+            zf.read("sequences/11/predictions/000001.label")
+            == prediction_path(preds, "11", "000001").read_bytes()
+        )
     assert names[0] == "sequences/" and len([n for n in names if n.endswith("/")]) == 23
     assert validate_submission(out, data, allow_partial=True).ok
 
@@ -97,13 +102,27 @@ def test_without_partial_an_incomplete_test_set_is_refused(small_test_set, tmp_p
 @pytest.mark.parametrize(
     ("damage", "message"),
     [
-        (lambda p: prediction_path(p, "11", "000001").unlink(), r"11/predictions/000001\.label is missing"),
-        (lambda p: write_labels(prediction_path(p, "12", "000000"), np.full(24, 10, np.uint32)), "holds 24 labels but its scan has 25"),
-        (lambda p: write_labels(prediction_path(p, "15", "000002"), np.full(12, 252, np.uint32)), r"raw ids .* cannot produce \(e\.g\. \[252\]\)"),
-        (lambda p: write_labels(prediction_path(p, "15", "000000"), np.full(10, 1, np.uint32)), r"e\.g\. \[1\]"),
+        (
+            lambda p: prediction_path(p, "11", "000001").unlink(),
+            r"11/predictions/000001\.label is missing",
+        ),
+        (
+            lambda p: write_labels(prediction_path(p, "12", "000000"), np.full(24, 10, np.uint32)),
+            "holds 24 labels but its scan has 25",
+        ),
+        (
+            lambda p: write_labels(prediction_path(p, "15", "000002"), np.full(12, 252, np.uint32)),
+            r"raw ids .* cannot produce \(e\.g\. \[252\]\)",
+        ),
+        (
+            lambda p: write_labels(prediction_path(p, "15", "000000"), np.full(10, 1, np.uint32)),
+            r"e\.g\. \[1\]",
+        ),
     ],
 )
-def test_writer_lists_wrong_predictions_and_writes_nothing(small_test_set, tmp_path, damage, message):
+def test_writer_lists_wrong_predictions_and_writes_nothing(
+    small_test_set, tmp_path, damage, message
+):
     data, preds = small_test_set
     damage(preds)
     with pytest.raises(SubmissionError, match=message):
@@ -146,12 +165,20 @@ def _symlink(name: str) -> zipfile.ZipInfo:
     [
         (dict(keep_dirs=False), "directory entry 'sequences/' is missing"),
         (dict(drop=["sequences/21/predictions/"]), "'sequences/21/predictions/' is missing"),
-        (dict(drop=["sequences/12/predictions/000000.label"]), r"sequences/12/predictions/000000\.label is missing"),
+        (
+            dict(drop=["sequences/12/predictions/000000.label"]),
+            r"sequences/12/predictions/000000\.label is missing",
+        ),
         (dict(add=[("sequences/../evil.label", b"")]), "contains '..'"),
         (dict(add=[("/etc/passwd", b"")]), "absolute"),
         (dict(add=[_symlink("sequences/11/predictions/link.label")]), "link or special file"),
         (dict(add=[("notes/readme.md", b"hi")]), "unexpected entry 'notes/readme.md'"),
-        (dict(add=[("sequences/11/predictions/000000.label", np.zeros(30, np.uint32).tobytes())]), "appears more than once"),
+        (
+            dict(
+                add=[("sequences/11/predictions/000000.label", np.zeros(30, np.uint32).tobytes())]
+            ),
+            "appears more than once",
+        ),
     ],
 )
 def test_validator_failures(small_test_set, tmp_path, edit, message):
@@ -198,4 +225,6 @@ def test_full_test_split_archive_without_partial(tmp_path):
     official_checks(out, data)
     (velodyne_dir(data, "19") / "004980.bin").unlink()
     check = validate_submission(out, data)
-    assert any("holds 4980 scans but the official test sequence 19 has 4981" in p for p in check.problems)
+    assert any(
+        "holds 4980 scans but the official test sequence 19 has 4981" in p for p in check.problems
+    )

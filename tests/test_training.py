@@ -71,7 +71,9 @@ def one_thread():
 def sim_root(tmp_path_factory) -> Path:
     """A tiny simulated tree: 4 training scans in 00, 2 validation scans in 08 (16 x 256 sensor)."""
     root = tmp_path_factory.mktemp("sim")
-    simulate_dataset(root, {"00": 4, "08": 2}, sensor=SensorConfig(beams=16, azimuth_steps=256), seed=3)
+    simulate_dataset(
+        root, {"00": 4, "08": 2}, sensor=SensorConfig(beams=16, azimuth_steps=256), seed=3
+    )
     return root
 
 
@@ -110,7 +112,9 @@ def test_each_point_augmentation_does_what_algorithm_2_says():
         assert np.allclose(np.linalg.norm(rotated, axis=1), norms)
         shift = random_jitter(xy, np.random.default_rng(seed)) - xy
         assert np.allclose(shift, shift[0]) and np.all(np.abs(shift[0]) <= JITTER_RATE)
-    flips = {tuple(np.sign(random_flip(xy[:1], np.random.default_rng(s))[0] / xy[0])) for s in range(40)}
+    flips = {
+        tuple(np.sign(random_flip(xy[:1], np.random.default_rng(s))[0] / xy[0])) for s in range(40)
+    }
     assert flips == {(1, 1), (-1, 1), (1, -1), (-1, -1)}
 
 
@@ -182,7 +186,11 @@ def assert_pixels_from(result: RangeImage, sources: list[RangeImage]) -> np.ndar
     assert result.mask.shape == sources[0].mask.shape and result.mask.dtype == bool
     origin = np.full(result.label.shape, -1)
     for k, src in reversed(list(enumerate(sources))):
-        same = (result.image == src.image).all(0) & (result.label == src.label) & (result.mask == src.mask)
+        same = (
+            (result.image == src.image).all(0)
+            & (result.label == src.label)
+            & (result.mask == src.mask)
+        )
         origin[same] = k
     assert (origin >= 0).all()
     assert np.all(result.label[~result.mask] == 0)
@@ -207,7 +215,9 @@ def test_range_mix_swaps_whole_strips(two_images):
         origin = assert_pixels_from(range_mix(a, b, np.random.default_rng(seed)), [a, b])
         taken = origin == 1
         assert taken[differs].any() and not taken[differs].all()
-        assert any(np.array_equal(taken[differs], layout[differs]) for layout in strip_layouts(16, 256))
+        assert any(
+            np.array_equal(taken[differs], layout[differs]) for layout in strip_layouts(16, 256)
+        )
 
 
 def test_range_union_fills_half_of_the_empty_pixels(two_images):
@@ -239,8 +249,12 @@ def test_range_shift_rolls_the_azimuth(two_images):
     a, _ = two_images
     w = a.label.shape[1]
     out = range_shift(a, np.random.default_rng(4))
-    shifts = [k for k in range(w) if np.array_equal(np.roll(a.label, k, axis=1), out.label)
-              and np.array_equal(np.roll(a.image, k, axis=-1), out.image)]
+    shifts = [
+        k
+        for k in range(w)
+        if np.array_equal(np.roll(a.label, k, axis=1), out.label)
+        and np.array_equal(np.roll(a.image, k, axis=-1), out.image)
+    ]
     assert shifts and any(w // 4 <= k < 3 * w // 4 for k in shifts)
     assert np.array_equal(np.roll(a.mask, shifts[0], axis=1), out.mask)
 
@@ -255,7 +269,9 @@ def test_mix_settings_apply_each_mix_with_its_probability(two_images):
 
     unchanged = MixSettings(MIXES, probability=0.0).apply(a, partner, np.random.default_rng(0))
     assert unchanged is a and not loads
-    mixed = MixSettings(MIXES, probability=1.0, paste_classes=(9, 11)).apply(a, partner, np.random.default_rng(0))
+    mixed = MixSettings(MIXES, probability=1.0, paste_classes=(9, 11)).apply(
+        a, partner, np.random.default_rng(0)
+    )
     assert len(loads) == 1
     assert mixed.image.shape == a.image.shape and mixed.label.shape == a.label.shape
     assert np.all(mixed.label[~mixed.mask] == 0)
@@ -265,7 +281,9 @@ def test_mix_settings_apply_each_mix_with_its_probability(two_images):
 
 def test_dataset_with_mixes_is_reproducible(sim_scans):
     settings = MixSettings(MIXES, probability=1.0, paste_classes=(1, 9))
-    ds = RangeDataset(sim_scans, ProjectionConfig(**SMALL), semantickitti(), augment=True, mixing=settings)
+    ds = RangeDataset(
+        sim_scans, ProjectionConfig(**SMALL), semantickitti(), augment=True, mixing=settings
+    )
     first, second = ds[(1, 2)], ds[(1, 2)]
     for key in ("image", "label", "mask"):
         assert np.array_equal(first[key], second[key])
@@ -275,7 +293,9 @@ def test_dataset_with_mixes_is_reproducible(sim_scans):
 
 
 def test_epoch_sampler_deals_equal_shares_and_skips_done_batches():
-    shares = [EpochSampler(10, 3, 0, batch_size=2, rank=r, world_size=3).indices() for r in range(3)]
+    shares = [
+        EpochSampler(10, 3, 0, batch_size=2, rank=r, world_size=3).indices() for r in range(3)
+    ]
     assert all(len(s) == 4 for s in shares)
     assert set(itertools.chain(*shares)) == set(range(10))
     assert EpochSampler(10, 3, 0).indices() != EpochSampler(10, 4, 0).indices()
@@ -311,7 +331,9 @@ def test_weighted_cross_entropy_by_hand():
     # Pixel 1: softmax (1/3, 1/3, 1/3) -> -log(1/3); pixel 2: p = 1/4 for class 2 -> -log(1/4).
     weights = torch.tensor([0.0, 1.0, 3.0])
     expected = (1 * math.log(3) + 3 * math.log(4)) / 4
-    assert math.isclose(float(weighted_cross_entropy(logits, labels, weights)), expected, rel_tol=1e-6)
+    assert math.isclose(
+        float(weighted_cross_entropy(logits, labels, weights)), expected, rel_tol=1e-6
+    )
 
 
 def test_focal_loss_by_hand():
@@ -321,7 +343,9 @@ def test_focal_loss_by_hand():
     assert math.isclose(float(focal_loss(logits, labels, alpha, gamma=2.0)), expected, rel_tol=1e-6)
     # gamma 0 and alpha 1 is the plain cross-entropy.
     plain = (math.log(3) + math.log(4)) / 2
-    assert math.isclose(float(focal_loss(logits, labels, torch.ones(3), gamma=0.0)), plain, rel_tol=1e-6)
+    assert math.isclose(
+        float(focal_loss(logits, labels, torch.ones(3), gamma=0.0)), plain, rel_tol=1e-6
+    )
 
 
 def test_lovasz_softmax_by_hand():
@@ -384,10 +408,14 @@ def test_lovasz_softmax_equals_its_definition_on_random_inputs():
         labels[0] = 1
         probs = logits.softmax(dim=1)
         ours = float(lovasz_softmax(probs, labels))
-        assert math.isclose(ours, lovasz_by_definition(probs.numpy(), labels.numpy()), rel_tol=1e-9, abs_tol=1e-12)
+        assert math.isclose(
+            ours, lovasz_by_definition(probs.numpy(), labels.numpy()), rel_tol=1e-9, abs_tol=1e-12
+        )
     image = torch.randn(2, 4, 3, 5, generator=gen, dtype=torch.float64).softmax(dim=1)
     target = torch.randint(0, 4, (2, 3, 5), generator=gen)
-    flat = lovasz_by_definition(image.permute(0, 2, 3, 1).reshape(-1, 4).numpy(), target.reshape(-1).numpy())
+    flat = lovasz_by_definition(
+        image.permute(0, 2, 3, 1).reshape(-1, 4).numpy(), target.reshape(-1).numpy()
+    )
     assert math.isclose(float(lovasz_softmax(image, target)), flat, rel_tol=1e-9)
 
 
@@ -434,7 +462,9 @@ def test_onecycle_and_cosine_schedules():
         buffer = io.BytesIO()
         torch.save(sched.state_dict(), buffer)
         buffer.seek(0)
-        restored = build_scheduler(build_optimizer([p]), kind, total_steps=100, max_lr=1e-2, warmup=0.3)
+        restored = build_scheduler(
+            build_optimizer([p]), kind, total_steps=100, max_lr=1e-2, warmup=0.3
+        )
         restored.load_state_dict(torch.load(buffer, weights_only=True))
         assert restored.last_epoch == 100
     assert all(a <= b for a, b in itertools.pairwise(lrs[:30]))
@@ -458,8 +488,13 @@ def test_unused_parameters_are_the_released_networks_gate():
 
 
 def test_train_config_round_trip_and_overrides():
-    config = TrainConfig(dataset="d", out="o", model_overrides=(("decay", "manhattan"), ("patch_size", (4, 4))),
-                         mixes=("rangemix",), val_sequences=())
+    config = TrainConfig(
+        dataset="d",
+        out="o",
+        model_overrides=(("decay", "manhattan"), ("patch_size", (4, 4))),
+        mixes=("rangemix",),
+        val_sequences=(),
+    )
     assert TrainConfig.from_dict(config.to_dict()) == config
     assert parse_override("patch_size=4x4") == ("patch_size", (4, 4))
     assert parse_override("residual=false") == ("residual", False)
@@ -513,10 +548,29 @@ def test_run_train_end_to_end(sim_root, tmp_path, capsys):
     add_train_arguments(parser)
     out = tmp_path / "run"
     argv = [
-        "--dataset", str(sim_root), "--model", "rangeret-thesis", "--out", str(out),
-        "--epochs", "2", "--height", "16", "--width", "256", "--train-sequences", "00",
-        "--val-sequences", "08", "--loader-workers", "0", "--mixes", "rangemix", "rangeshift",
-        "--override", "layers=2",
+        "--dataset",
+        str(sim_root),
+        "--model",
+        "rangeret-thesis",
+        "--out",
+        str(out),
+        "--epochs",
+        "2",
+        "--height",
+        "16",
+        "--width",
+        "256",
+        "--train-sequences",
+        "00",
+        "--val-sequences",
+        "08",
+        "--loader-workers",
+        "0",
+        "--mixes",
+        "rangemix",
+        "rangeshift",
+        "--override",
+        "layers=2",
     ]
     args = parser.parse_args(argv)
     args.quiet = True
@@ -534,9 +588,13 @@ def test_run_train_end_to_end(sim_root, tmp_path, capsys):
     assert meta["epoch"] == 2 and meta["step"] == 8 and meta["epoch_complete"]
     assert meta["optimizer"]["name"] == "AdamW" and meta["scheduler"]["name"] == "OneCycleLR"
     assert meta["losses"] == ["ce", "lovasz", "focal"]
-    assert {"val_miou_image", "val_miou_points", "val_miou_knn", "train_loss"} <= set(meta["metrics"])
+    assert {"val_miou_image", "val_miou_points", "val_miou_knn", "train_loss"} <= set(
+        meta["metrics"]
+    )
     assert LabelConfig.from_dict(info.label_config) == semantickitti()
-    assert ProjectionConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in info.projection.items()}) == ProjectionConfig(**SMALL)
+    assert ProjectionConfig(
+        **{k: tuple(v) if isinstance(v, list) else v for k, v in info.projection.items()}
+    ) == ProjectionConfig(**SMALL)
     best = load_checkpoint(out / "best.pt").checkpoint_info.metadata["best"]
     assert best["metric"] == "val_miou_knn" and best["epoch"] in (1, 2)
     rows = (out / "metrics.csv").read_text().splitlines()
@@ -564,8 +622,13 @@ def test_ray_train_with_two_cpu_workers(sim_root, tmp_path):
     ray = pytest.importorskip("ray")
     from workers.train_job import run_ray
 
-    config = small_config(sim_root, tmp_path / "ray-run", model="rangeret-cir", epochs=1,
-                          model_overrides=(("layers", 2),))
+    config = small_config(
+        sim_root,
+        tmp_path / "ray-run",
+        model="rangeret-cir",
+        epochs=1,
+        model_overrides=(("layers", 2),),
+    )
     ray.init(num_cpus=2, include_dashboard=False)
     try:
         out = run_ray(config, workers=2)
@@ -575,7 +638,10 @@ def test_ray_train_with_two_cpu_workers(sim_root, tmp_path):
     meta = model.checkpoint_info.metadata
     assert meta["world_size"] == 2 and meta["step"] == 2 and meta["epoch_complete"]
     assert model.config.name == "rangeret-cir" and model.config.layers == 2
-    assert load_checkpoint(out / "best.pt").checkpoint_info.metadata["best"]["metric"] == "val_miou_knn"
+    assert (
+        load_checkpoint(out / "best.pt").checkpoint_info.metadata["best"]["metric"]
+        == "val_miou_knn"
+    )
     assert len((out / "steps.csv").read_text().splitlines()) == 3
 
 
@@ -594,8 +660,17 @@ def test_overfitting_the_real_scan(tmp_path):
         (velodyne_dir(root, "00") / f"{i:06d}.bin").symlink_to(scan)
         (labels_dir(root, "00") / f"{i:06d}.label").symlink_to(labels)
     config = small_config(
-        root, tmp_path / "out", height=32, width=512, val_sequences=(), augment=False,
-        class_weighting="none", epochs=1, lr=1e-3, max_lr=3e-3, warmup=0.1,
+        root,
+        tmp_path / "out",
+        height=32,
+        width=512,
+        val_sequences=(),
+        augment=False,
+        class_weighting="none",
+        epochs=1,
+        lr=1e-3,
+        max_lr=3e-3,
+        warmup=0.1,
     )
     start = time.perf_counter()
     trainer = Trainer(config, device="cpu")
@@ -607,6 +682,8 @@ def test_overfitting_the_real_scan(tmp_path):
     elapsed = time.perf_counter() - start
     labelled = sample["label"] > 0
     accuracy = float((pred[labelled] == sample["label"][labelled]).mean())
-    print(f"over-fit: accuracy {accuracy:.4f} on {labelled.sum()} labelled pixels in {elapsed:.1f} s")
+    print(
+        f"over-fit: accuracy {accuracy:.4f} on {labelled.sum()} labelled pixels in {elapsed:.1f} s"
+    )
     assert accuracy >= 0.95
     assert elapsed < 180

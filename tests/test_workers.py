@@ -42,16 +42,58 @@ def _net(weights, *extra):
 def test_job_equals_rangeret_predict_and_evaluate(ray_local, setup, tmp_path, batch, capsys):
     data, weights = setup
     seqs = ["--sequences", "08", "11"]
-    assert rangeret_main(["predict", "-q", "--dataset", str(data), "--out", str(tmp_path / "single"), *seqs,
-                          *_net(weights, "--batch-size", batch)]) == 0
-    code = job_main(["-q", "--dataset", str(data), "--out", str(tmp_path / "ray"), *seqs, "--report",
-                     str(tmp_path / "report.json"), "--actors", "1", "--read-cpus", "0.25",
-                     *_net(weights, "--batch-size", batch)])
+    assert (
+        rangeret_main(
+            [
+                "predict",
+                "-q",
+                "--dataset",
+                str(data),
+                "--out",
+                str(tmp_path / "single"),
+                *seqs,
+                *_net(weights, "--batch-size", batch),
+            ]
+        )
+        == 0
+    )
+    code = job_main(
+        [
+            "-q",
+            "--dataset",
+            str(data),
+            "--out",
+            str(tmp_path / "ray"),
+            *seqs,
+            "--report",
+            str(tmp_path / "report.json"),
+            "--actors",
+            "1",
+            "--read-cpus",
+            "0.25",
+            *_net(weights, "--batch-size", batch),
+        ]
+    )
     assert code == 0
     single, distributed = tree_bytes(tmp_path / "single"), tree_bytes(tmp_path / "ray")
     assert len(single) == 5 and single == distributed
-    assert rangeret_main(["evaluate", "-q", "--dataset", str(data), "--predictions", str(tmp_path / "ray"),
-                          "--sequences", "08", "--json", str(tmp_path / "eval.json")]) == 0
+    assert (
+        rangeret_main(
+            [
+                "evaluate",
+                "-q",
+                "--dataset",
+                str(data),
+                "--predictions",
+                str(tmp_path / "ray"),
+                "--sequences",
+                "08",
+                "--json",
+                str(tmp_path / "eval.json"),
+            ]
+        )
+        == 0
+    )
     job_report = json.loads((tmp_path / "report.json").read_text())
     eval_report = json.loads((tmp_path / "eval.json").read_text())
     assert job_report["confusion"] == eval_report["confusion"]
@@ -62,8 +104,19 @@ def test_job_equals_rangeret_predict_and_evaluate(ray_local, setup, tmp_path, ba
 
 def test_job_resumes_and_names_bad_scans(ray_local, setup, tmp_path, capsys):
     data, weights = setup
-    args = ["-q", "--dataset", str(data), "--out", str(tmp_path / "p"), "--sequences", "08", "11",
-            "--read-cpus", "0.25", *_net(weights)]
+    args = [
+        "-q",
+        "--dataset",
+        str(data),
+        "--out",
+        str(tmp_path / "p"),
+        "--sequences",
+        "08",
+        "11",
+        "--read-cpus",
+        "0.25",
+        *_net(weights),
+    ]
     assert job_main(args) == 0
     first = tree_bytes(tmp_path / "p")
     victim = tmp_path / "p" / "sequences" / "08" / "predictions" / "000001.label"
@@ -76,8 +129,21 @@ def test_job_resumes_and_names_bad_scans(ray_local, setup, tmp_path, capsys):
     bad = tmp_path / "bad"
     build_tree(bad, labelled=2, unlabelled=1)
     (bad / "sequences" / "11" / "velodyne" / "000002.bin").write_bytes(b"\x00" * 7)
-    code = job_main(["-q", "--dataset", str(bad), "--out", str(tmp_path / "q"), "--sequences", "08", "11",
-                     "--read-cpus", "0.25", *_net(weights)])
+    code = job_main(
+        [
+            "-q",
+            "--dataset",
+            str(bad),
+            "--out",
+            str(tmp_path / "q"),
+            "--sequences",
+            "08",
+            "11",
+            "--read-cpus",
+            "0.25",
+            *_net(weights),
+        ]
+    )
     out = capsys.readouterr()
     assert code == 1
     assert "FAILED 11/000002" in out.out and "multiple of 16" in out.out
@@ -88,12 +154,40 @@ def test_job_resumes_and_names_bad_scans(ray_local, setup, tmp_path, capsys):
 def test_a_model_actor_killed_mid_run_costs_no_scan(ray_local, tmp_path, setup, capsys):
     _, weights = setup
     data = build_tree(tmp_path / "data", labelled=4, unlabelled=20)
-    assert rangeret_main(["predict", "-q", "--dataset", str(data), "--out", str(tmp_path / "single"),
-                          "--sequences", "08", "11", *_net(weights)]) == 0
+    assert (
+        rangeret_main(
+            [
+                "predict",
+                "-q",
+                "--dataset",
+                str(data),
+                "--out",
+                str(tmp_path / "single"),
+                "--sequences",
+                "08",
+                "11",
+                *_net(weights),
+            ]
+        )
+        == 0
+    )
     out = tmp_path / "ray"
     killer = kill_actor_when(lambda: len(list(out.rglob("*.label"))) >= 1)
-    code = job_main(["-q", "--dataset", str(data), "--out", str(out), "--sequences", "08", "11",
-                     "--read-cpus", "0.25", *_net(weights)])
+    code = job_main(
+        [
+            "-q",
+            "--dataset",
+            str(data),
+            "--out",
+            str(out),
+            "--sequences",
+            "08",
+            "11",
+            "--read-cpus",
+            "0.25",
+            *_net(weights),
+        ]
+    )
     killer.join(timeout=5)
     assert killer.killed, "no model actor was killed: the test did not exercise a crash"
     assert code == 0
@@ -132,11 +226,24 @@ def test_a_job_runs_beside_the_gateways_pool_actors(ray_local, setup, tmp_path, 
     from workers.pool import ScanPool
 
     data, weights = setup
-    pool = ScanPool(PredictorSpec(checkpoint=str(weights), height=32, width=256, device="cpu"), actors=1)
+    pool = ScanPool(
+        PredictorSpec(checkpoint=str(weights), height=32, width=256, device="cpu"), actors=1
+    )
     try:
         pool.wait_ready(timeout=120)
-        code = job_main(["-q", "--dataset", str(data), "--out", str(tmp_path / "p"), "--sequences", "08", "11",
-                         *_net(weights)])
+        code = job_main(
+            [
+                "-q",
+                "--dataset",
+                str(data),
+                "--out",
+                str(tmp_path / "p"),
+                "--sequences",
+                "08",
+                "11",
+                *_net(weights),
+            ]
+        )
         assert code == 0 and len(tree_bytes(tmp_path / "p")) == 5
     finally:
         pool.shutdown()

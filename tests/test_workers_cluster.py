@@ -35,16 +35,39 @@ def _job(weights, data, out):
     spec = PredictorSpec(checkpoint=str(weights), height=32, width=256, device="auto")
     info = load_checkpoint(weights, height=32, width=256).checkpoint_info
     entries = discover(data, ["08", "11"]).scans
-    return run_pipeline(spec, projection_for(info), entries, out, PipelineOptions(read_cpus=0.25, write_cpus=0.1))
+    return run_pipeline(
+        spec, projection_for(info), entries, out, PipelineOptions(read_cpus=0.25, write_cpus=0.1)
+    )
 
 
 def test_one_model_actor_per_gpu_and_a_node_leaving(cluster, tmp_path):
     c, nodes = cluster
     weights = small_weights(tmp_path)
     data = build_tree(tmp_path / "data", labelled=3, unlabelled=5)
-    assert rangeret_main(["predict", "-q", "--dataset", str(data), "--out", str(tmp_path / "single"),
-                          "--sequences", "08", "11", "--checkpoint", str(weights), "--height", "32",
-                          "--width", "256", "--device", "cpu"]) == 0
+    assert (
+        rangeret_main(
+            [
+                "predict",
+                "-q",
+                "--dataset",
+                str(data),
+                "--out",
+                str(tmp_path / "single"),
+                "--sequences",
+                "08",
+                "11",
+                "--checkpoint",
+                str(weights),
+                "--height",
+                "32",
+                "--width",
+                "256",
+                "--device",
+                "cpu",
+            ]
+        )
+        == 0
+    )
 
     result = _job(weights, data, tmp_path / "a")
     assert result.actors == 2
@@ -82,6 +105,14 @@ def test_more_gpu_actors_than_gpus_is_a_named_error_not_a_hang(cluster, tmp_path
     spec = PredictorSpec(checkpoint=str(weights), height=32, width=256, device="auto")
     info = load_checkpoint(weights, height=32, width=256).checkpoint_info
     options = PipelineOptions(actors=3, read_cpus=0.25, write_cpus=0.1, actor_start_timeout=10)
-    with pytest.raises(ClusterCapacityError, match=r"3 model actor.*did not start within 10 s.*1 GPU"):
-        run_pipeline(spec, projection_for(info), discover(data, ["08", "11"]).scans, tmp_path / "out", options)
+    with pytest.raises(
+        ClusterCapacityError, match=r"3 model actor.*did not start within 10 s.*1 GPU"
+    ):
+        run_pipeline(
+            spec,
+            projection_for(info),
+            discover(data, ["08", "11"]).scans,
+            tmp_path / "out",
+            options,
+        )
     assert not list((tmp_path / "out").rglob("*.label"))

@@ -47,7 +47,9 @@ def tree_bytes(pred: Path) -> dict[str, bytes]:
     return {str(p.relative_to(pred)): p.read_bytes() for p in sorted(pred.rglob("*.label"))}
 
 
-def kill_actor_when(predicate, class_part: str = "ModelWorker", timeout: float = 120.0) -> threading.Thread:
+def kill_actor_when(
+    predicate, class_part: str = "ModelWorker", timeout: float = 120.0
+) -> threading.Thread:
     """In the background, once `predicate()` holds, SIGKILL the process of one live actor whose
     class name contains `class_part` (a real crash, which Ray must recover from)."""
     from ray._private.state import actors  # the GCS view; needs no dashboard
@@ -60,7 +62,11 @@ def kill_actor_when(predicate, class_part: str = "ModelWorker", timeout: float =
             time.sleep(0.05)
         while time.time() < deadline:
             for actor in actors().values():
-                if actor["State"] == "ALIVE" and class_part in actor["ActorClassName"] and actor["Pid"]:
+                if (
+                    actor["State"] == "ALIVE"
+                    and class_part in actor["ActorClassName"]
+                    and actor["Pid"]
+                ):
                     os.kill(actor["Pid"], signal.SIGKILL)
                     killed.append(actor["Pid"])
                     return
@@ -105,23 +111,56 @@ def ray_node(folder: Path, head: RayNode | None = None, num_cpus: int = 2, num_g
     env = dict(os.environ, PATH=f"{bindir}{os.pathsep}{os.environ['PATH']}", RAY_AUTH_MODE="token")
     gcs, dash, client, agent, grpc, metrics, nm, om, wmin, runtime_env = free_ports(10)
     cmd = [
-        str(bindir / "ray"), "start", "--block", "--num-cpus", str(num_cpus), "--num-gpus", str(num_gpus),
-        "--dashboard-agent-listen-port", str(agent), "--dashboard-agent-grpc-port", str(grpc),
-        "--metrics-export-port", str(metrics), "--node-manager-port", str(nm),
-        "--object-manager-port", str(om), "--min-worker-port", str(wmin),
-        "--max-worker-port", str(wmin + 40), "--runtime-env-agent-port", str(runtime_env),
+        str(bindir / "ray"),
+        "start",
+        "--block",
+        "--num-cpus",
+        str(num_cpus),
+        "--num-gpus",
+        str(num_gpus),
+        "--dashboard-agent-listen-port",
+        str(agent),
+        "--dashboard-agent-grpc-port",
+        str(grpc),
+        "--metrics-export-port",
+        str(metrics),
+        "--node-manager-port",
+        str(nm),
+        "--object-manager-port",
+        str(om),
+        "--min-worker-port",
+        str(wmin),
+        "--max-worker-port",
+        str(wmin + 40),
+        "--runtime-env-agent-port",
+        str(runtime_env),
         "--disable-usage-stats",
     ]
     temp = Path(f"/tmp/rr-{os.getpid()}-{gcs}")
     if head is None:
-        cmd += ["--head", "--port", str(gcs), "--include-dashboard", "true", "--dashboard-host", "127.0.0.1",
-                "--dashboard-port", str(dash), "--ray-client-server-port", str(client), "--temp-dir", str(temp)]
+        cmd += [
+            "--head",
+            "--port",
+            str(gcs),
+            "--include-dashboard",
+            "true",
+            "--dashboard-host",
+            "127.0.0.1",
+            "--dashboard-port",
+            str(dash),
+            "--ray-client-server-port",
+            str(client),
+            "--temp-dir",
+            str(temp),
+        ]
         node_gcs, dashboard = f"127.0.0.1:{gcs}", f"http://127.0.0.1:{dash}"
     else:
         cmd += ["--address", head.gcs]
         node_gcs, dashboard = head.gcs, head.dashboard
     log = open(folder / "ray-node.log", "w")  # noqa: SIM115
-    proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    proc = subprocess.Popen(
+        cmd, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
+    )
     node = RayNode(node_gcs, dashboard, env, bindir, proc)
     try:
         _wait_until_up(node, head is None, log.name)

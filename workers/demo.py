@@ -56,8 +56,14 @@ def run_demo(
     projection = projection_for(info)
 
     sequences = {"08": valid_scans, **{s: test_scans for s in TEST_SEQUENCES}}
-    n = simulate_dataset(dataset, sequences, labelled=["08"], sensor=SensorConfig(beams=64, azimuth_steps=2048),
-                         seed=2026, progress=progress)
+    n = simulate_dataset(
+        dataset,
+        sequences,
+        labelled=["08"],
+        sensor=SensorConfig(beams=64, azimuth_steps=2048),
+        seed=2026,
+        progress=progress,
+    )
     log.info("simulated %d scans into %s", n, dataset)
 
     own_ray = not ray.is_initialized()
@@ -66,7 +72,9 @@ def run_demo(
     try:
         spec = PredictorSpec(checkpoint=str(weights), device="auto")
         entries = discover(dataset, list(sequences)).scans
-        result = run_pipeline(spec, projection, entries, preds, PipelineOptions(read_cpus=0.25, write_cpus=0.1))
+        result = run_pipeline(
+            spec, projection, entries, preds, PipelineOptions(read_cpus=0.25, write_cpus=0.1)
+        )
     finally:
         if own_ray:
             ray.shutdown()
@@ -81,14 +89,22 @@ def run_demo(
     plots.append(_range_image_png(dataset, preds, projection, out / "plots" / "range-image.png"))
 
     archive = out / "submission.zip"
-    write_submission(preds, dataset, archive, allow_partial=True, progress=progress,
-                     description=f"rangeret demo: simulated scans, demo weights (sha256 {info.sha256}); "
-                     "not a real submission")
+    write_submission(
+        preds,
+        dataset,
+        archive,
+        allow_partial=True,
+        progress=progress,
+        description=f"rangeret demo: simulated scans, demo weights (sha256 {info.sha256}); "
+        "not a real submission",
+    )
     validate_submission(archive, dataset, allow_partial=True).raise_for_problems()
 
     print(report.table())
-    print(f"\nDone in {time.perf_counter() - started:.0f} s with {info.name} at "
-          f"{projection.height}x{projection.width} on {', '.join(result.devices)}. Results in {out}/:")
+    print(
+        f"\nDone in {time.perf_counter() - started:.0f} s with {info.name} at "
+        f"{projection.height}x{projection.width} on {', '.join(result.devices)}. Results in {out}/:"
+    )
     print(f"  dataset (simulated, SemanticKITTI layout): {dataset}")
     print(f"  predictions tree:                         {preds}")
     print(f"  evaluation report:                        {out / 'report.json'}")
@@ -97,9 +113,15 @@ def run_demo(
     print(f"  submission archive (partial, for tests):  {archive}")
     print(f"\nNote: {DEMO_WARNING}.")
     print("\nOn real SemanticKITTI data with a published checkpoint:")
-    print("  rangeret predict --dataset ROOT --split valid --out PRED --checkpoint rangeret-kitti-657.pt")
-    print("  rangeret evaluate --dataset ROOT --predictions PRED --split valid --json report.json --plots plots")
-    print("  ray job submit --working-dir . -- python -m workers.predict_job --dataset ROOT --split test \\")
+    print(
+        "  rangeret predict --dataset ROOT --split valid --out PRED --checkpoint rangeret-kitti-657.pt"
+    )
+    print(
+        "  rangeret evaluate --dataset ROOT --predictions PRED --split valid --json report.json --plots plots"
+    )
+    print(
+        "  ray job submit --working-dir . -- python -m workers.predict_job --dataset ROOT --split test \\"
+    )
     print("      --out PRED --submission submission.zip --checkpoint rangeret-kitti-657.pt")
     print("  rangeret validate-submission submission.zip --dataset ROOT")
     return out
@@ -111,6 +133,14 @@ def _range_image_png(dataset: Path, preds: Path, projection, path: Path) -> Path
     entry = discover(dataset, ["08"], with_labels=True).scans[0]
     proj = project_with(read_scan(entry.scan_path), projection)
     gt = config.to_class(read_labels(entry.label_path)).astype(np.int64)
-    pred = config.to_class(read_labels(prediction_path(preds, entry.sequence, entry.name))).astype(np.int64)
-    return plot_range_image(proj.proj_range, proj.to_image(gt), proj.to_image(pred), path, config,
-                            title=f"simulated scan {entry.key}")
+    pred = config.to_class(read_labels(prediction_path(preds, entry.sequence, entry.name))).astype(
+        np.int64
+    )
+    return plot_range_image(
+        proj.proj_range,
+        proj.to_image(gt),
+        proj.to_image(pred),
+        path,
+        config,
+        title=f"simulated scan {entry.key}",
+    )

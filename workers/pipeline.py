@@ -117,9 +117,18 @@ class ModelWorker:
             good = [proj for proj, err in items if err is None]
             try:
                 logits = self.predictor.network(good) if good else []
-                done = iter([self.predictor.finish(p, lg).labels for p, lg in zip(good, logits, strict=True)])
-                results = [(None, err) if err is not None else (next(done), None) for _, err in items]
-            except RuntimeError as exc:  # e.g. out of device memory: name the scans, keep the job going
+                done = iter(
+                    [
+                        self.predictor.finish(p, lg).labels
+                        for p, lg in zip(good, logits, strict=True)
+                    ]
+                )
+                results = [
+                    (None, err) if err is not None else (next(done), None) for _, err in items
+                ]
+            except (
+                RuntimeError
+            ) as exc:  # e.g. out of device memory: name the scans, keep the job going
                 reason = f"the network failed: {exc}"
                 results = [(None, err or reason) for _, err in items]
             out_payload.append(pickle.dumps(results, protocol=pickle.HIGHEST_PROTOCOL))
@@ -175,7 +184,10 @@ def run_pipeline(
         return result
 
     batches = [
-        {"batch": i, "entries": json.dumps([entry_record(e) for e in entries[s : s + options.batch_size]])}
+        {
+            "batch": i,
+            "entries": json.dumps([entry_record(e) for e in entries[s : s + options.batch_size]]),
+        }
         for i, s in enumerate(range(0, len(entries), options.batch_size))
     ]
     ctx = ray.data.DataContext.get_current()
@@ -189,11 +201,18 @@ def run_pipeline(
         warnings.filterwarnings("ignore", message=".*actor_locality_enabled")
         ctx.execution_options.actor_locality_enabled = False
 
-    actor_resources = {"num_gpus": 1, "num_cpus": actor_cpus} if use_gpu else {"num_cpus": actor_cpus}
+    actor_resources = (
+        {"num_gpus": 1, "num_cpus": actor_cpus} if use_gpu else {"num_cpus": actor_cpus}
+    )
     worker_spec = spec if use_gpu or spec.device != "auto" else _cpu_spec(spec)
     ds = ray.data.from_items(batches, override_num_blocks=len(batches))
     readers = ray.data.ActorPoolStrategy(min_size=1, max_size=max(2, actors))
-    ds = ds.map(Reader, fn_constructor_kwargs={"projection": projection}, compute=readers, num_cpus=options.read_cpus)
+    ds = ds.map(
+        Reader,
+        fn_constructor_kwargs={"projection": projection},
+        compute=readers,
+        num_cpus=options.read_cpus,
+    )
     ds = ds.map_batches(
         ModelWorker,
         fn_constructor_kwargs={"spec": worker_spec, "cpus": actor_cpus},
@@ -202,8 +221,12 @@ def run_pipeline(
         **actor_resources,
     )
     writers = ray.data.ActorPoolStrategy(min_size=1, max_size=max(2, actors))
-    ds = ds.map(Writer, fn_constructor_kwargs={"out": out, "label_config": label_config}, compute=writers,
-                num_cpus=options.write_cpus)
+    ds = ds.map(
+        Writer,
+        fn_constructor_kwargs={"out": out, "label_config": label_config},
+        compute=writers,
+        num_cpus=options.write_cpus,
+    )
 
     start = time.perf_counter()
     last_log = start
@@ -223,7 +246,9 @@ def run_pipeline(
         if cancel is not None and cancel.is_set():
             log.info("cancelled after %d of %d scans", seen, total)
             break
-        for record, error in zip(json.loads(row["entries"]), json.loads(row["status"]), strict=True):
+        for record, error in zip(
+            json.loads(row["entries"]), json.loads(row["status"]), strict=True
+        ):
             seen += 1
             if error is None:
                 result.written += 1
@@ -239,8 +264,14 @@ def run_pipeline(
         if now - last_log >= options.progress_interval or seen == total:
             rate = seen / (now - start)
             left = (total - seen) / rate if rate else float("inf")
-            log.info("%d / %d scans done (%d failed), %.2f scans/s, about %.0f s left",
-                     seen, total, len(result.failed), rate, left)
+            log.info(
+                "%d / %d scans done (%d failed), %.2f scans/s, about %.0f s left",
+                seen,
+                total,
+                len(result.failed),
+                rate,
+                left,
+            )
             last_log = now
     result.seconds = time.perf_counter() - start
     result.devices = sorted(devices)
@@ -267,7 +298,9 @@ def _cpu_spec(spec: PredictorSpec) -> PredictorSpec:
     return replace(spec, device="cpu")
 
 
-def count_labels(entries: Iterable[ScanEntry], out: Path | str, label_config: LabelConfig) -> RawLabelEvaluator:
+def count_labels(
+    entries: Iterable[ScanEntry], out: Path | str, label_config: LabelConfig
+) -> RawLabelEvaluator:
     """Confusion counts of scans predicted earlier (skipped on resume), read from their files."""
     evaluator = RawLabelEvaluator(label_config)
     for entry in entries:
@@ -276,4 +309,3 @@ def count_labels(entries: Iterable[ScanEntry], out: Path | str, label_config: La
         pred = read_labels(prediction_path(out, entry.sequence, entry.name))
         evaluator.add(pred, read_labels(entry.label_path, num_points=pred.size))
     return evaluator
-

@@ -106,7 +106,9 @@ class ScanPool:
         finally:
             self._release(index)
 
-    async def predict_async(self, scans: Sequence[np.ndarray], knn: bool = True) -> list[np.ndarray]:
+    async def predict_async(
+        self, scans: Sequence[np.ndarray], knn: bool = True
+    ) -> list[np.ndarray]:
         """`predict` for an event loop: awaits the actor without blocking the loop."""
         index = self._pick()
         try:
@@ -154,7 +156,9 @@ class LocalScanPool:
         with self._lock:
             return self.worker.predict(scans, knn)
 
-    async def predict_async(self, scans: Sequence[np.ndarray], knn: bool = True) -> list[np.ndarray]:
+    async def predict_async(
+        self, scans: Sequence[np.ndarray], knn: bool = True
+    ) -> list[np.ndarray]:
         self._waiting += 1
         try:
             return await asyncio.to_thread(self.predict, scans, knn)

@@ -39,19 +39,43 @@ log = logging.getLogger("workers.predict_job")
 
 def build_parser() -> argparse.ArgumentParser:
     """Arguments of the job: the dataset selection, outputs, actors and the shared network options."""
-    p = argparse.ArgumentParser(prog="python -m workers.predict_job", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m workers.predict_job", description=__doc__.split("\n\n")[0]
+    )
     p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
     add_selection(p, ("train", "valid", "test"))
-    p.add_argument("--out", type=Path, required=True, metavar="PRED", help="predictions tree to write")
-    p.add_argument("--submission", type=Path, metavar="FILE.zip", help="also write the validated archive")
-    p.add_argument("--allow-partial", action="store_true",
-                   help="accept a dataset with missing sequences or scans, and archive it (for tests only)")
-    p.add_argument("--report", type=Path, metavar="FILE.json",
-                   help="evaluation report of the labelled scans (PNGs beside it)")
-    p.add_argument("--actors", type=int, metavar="N", help="model actors (default: one per GPU; on CPU clusters one per free CPU of a node)")
-    p.add_argument("--read-cpus", type=float, default=0.25, help="CPU share of each read + project actor")
-    p.add_argument("--actor-cpus", type=float, metavar="N",
-                   help="CPUs of each CPU model actor (default: what readers and writers leave)")
+    p.add_argument(
+        "--out", type=Path, required=True, metavar="PRED", help="predictions tree to write"
+    )
+    p.add_argument(
+        "--submission", type=Path, metavar="FILE.zip", help="also write the validated archive"
+    )
+    p.add_argument(
+        "--allow-partial",
+        action="store_true",
+        help="accept a dataset with missing sequences or scans, and archive it (for tests only)",
+    )
+    p.add_argument(
+        "--report",
+        type=Path,
+        metavar="FILE.json",
+        help="evaluation report of the labelled scans (PNGs beside it)",
+    )
+    p.add_argument(
+        "--actors",
+        type=int,
+        metavar="N",
+        help="model actors (default: one per GPU; on CPU clusters one per free CPU of a node)",
+    )
+    p.add_argument(
+        "--read-cpus", type=float, default=0.25, help="CPU share of each read + project actor"
+    )
+    p.add_argument(
+        "--actor-cpus",
+        type=float,
+        metavar="N",
+        help="CPUs of each CPU model actor (default: what readers and writers leave)",
+    )
     p.add_argument("-q", "--quiet", action="store_true", help="less logging")
     add_network_options(p)
     return p
@@ -69,7 +93,12 @@ def connect(address: str | None) -> None:
     else:
         ray.init(include_dashboard=False)
     res = ray.cluster_resources()
-    log.info("Ray cluster: %d nodes, %g CPUs, %g GPUs", len(ray.nodes()), res.get("CPU", 0), res.get("GPU", 0))
+    log.info(
+        "Ray cluster: %d nodes, %g CPUs, %g GPUs",
+        len(ray.nodes()),
+        res.get("CPU", 0),
+        res.get("GPU", 0),
+    )
 
 
 def run(args: argparse.Namespace, label_config: LabelConfig | None = None) -> int:
@@ -80,26 +109,44 @@ def run(args: argparse.Namespace, label_config: LabelConfig | None = None) -> in
     spec = spec_from_args(args)
     if args.actors is not None and args.actors < 1:
         raise CommandError(f"--actors must be at least 1, got {args.actors}")
-    info = load_checkpoint(spec.checkpoint, model=spec.model, height=spec.height, width=spec.width).checkpoint_info
+    info = load_checkpoint(
+        spec.checkpoint, model=spec.model, height=spec.height, width=spec.width
+    ).checkpoint_info
     projection = projection_for(info, spec.fov_up, spec.fov_down)
     sequences = selected_sequences(args, label_config)
     entries = list_scans(args.dataset, sequences, missing_ok=args.allow_partial)
     done = [e for e in entries if is_complete(e, args.out)]
     pending = [e for e in entries if not is_complete(e, args.out)]
-    log.info("%d scans in %s: %d to predict, %d already done", len(entries), ", ".join(sequences),
-             len(pending), len(done))
+    log.info(
+        "%d scans in %s: %d to predict, %d already done",
+        len(entries),
+        ", ".join(sequences),
+        len(pending),
+        len(done),
+    )
     demo = is_demo_checkpoint(info.sha256)
     _write_run_info(args, spec.checkpoint, info, projection, sequences, demo)
 
     connect(None)
-    options = PipelineOptions(batch_size=args.batch_size, actors=args.actors, read_cpus=args.read_cpus,
-                              actor_cpus=args.actor_cpus, use_gpu=None if args.device == "auto" else args.device == "cuda")
+    options = PipelineOptions(
+        batch_size=args.batch_size,
+        actors=args.actors,
+        read_cpus=args.read_cpus,
+        actor_cpus=args.actor_cpus,
+        use_gpu=None if args.device == "auto" else args.device == "cuda",
+    )
     result = run_pipeline(spec, projection, pending, args.out, options, label_config)
     log.info("model actors: %s", ", ".join(result.devices) or "none needed")
 
-    summary = PredictSummary(total=len(entries), written=result.written, skipped=len(done),
-                             points=result.points, seconds=result.seconds, failed=result.failed,
-                             times=result.times)
+    summary = PredictSummary(
+        total=len(entries),
+        written=result.written,
+        skipped=len(done),
+        points=result.points,
+        seconds=result.seconds,
+        failed=result.failed,
+        times=result.times,
+    )
     print(summary.text())
 
     evaluator = result.evaluator
@@ -127,9 +174,15 @@ def run(args: argparse.Namespace, label_config: LabelConfig | None = None) -> in
     if args.submission:
         from rangeret.submission import write_submission
 
-        check = write_submission(args.out, args.dataset, args.submission, allow_partial=args.allow_partial,
-                                 description=_description(info, demo), config=label_config,
-                                 progress=not args.quiet)
+        check = write_submission(
+            args.out,
+            args.dataset,
+            args.submission,
+            allow_partial=args.allow_partial,
+            description=_description(info, demo),
+            config=label_config,
+            progress=not args.quiet,
+        )
         print(check.summary())
     return 0
 
@@ -145,8 +198,14 @@ def _description(info, demo: bool) -> str:
     return "\n".join(lines)
 
 
-def _write_run_info(args: argparse.Namespace, checkpoint: str, info, projection,
-                    sequences: Sequence[str], demo: bool) -> None:
+def _write_run_info(
+    args: argparse.Namespace,
+    checkpoint: str,
+    info,
+    projection,
+    sequences: Sequence[str],
+    demo: bool,
+) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     record = {
         "model": info.name,
@@ -167,9 +226,12 @@ def _write_run_info(args: argparse.Namespace, checkpoint: str, info, projection,
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point: parse, run, and turn input errors into one-line messages and exit code 1."""
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.WARNING if args.quiet else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
     return run_command("predict_job", run, args)
+
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -23,7 +23,12 @@ from rangeret.timing import StageTimes
 
 def entry_record(entry: ScanEntry) -> list:
     """A scan as a JSON-able record (sequence, name, scan path, label path or None)."""
-    return [entry.sequence, entry.name, str(entry.scan_path), str(entry.label_path) if entry.label_path else None]
+    return [
+        entry.sequence,
+        entry.name,
+        str(entry.scan_path),
+        str(entry.label_path) if entry.label_path else None,
+    ]
 
 
 def entry_from(record: Sequence) -> ScanEntry:
@@ -60,7 +65,9 @@ def write_results(row: dict, out: str, label_config: LabelConfig) -> dict:
     times = StageTimes.from_json(row["times"])
     status = []
     points = 0
-    for record, (labels, error) in zip(json.loads(row["entries"]), pickle.loads(row["payload"]), strict=True):
+    for record, (labels, error) in zip(
+        json.loads(row["entries"]), pickle.loads(row["payload"]), strict=True
+    ):
         entry = entry_from(record)
         if error is not None:
             status.append(error)

@@ -79,7 +79,9 @@ def run_ray(config: TrainConfig, workers: int = 2, max_failures: int = 0) -> Pat
     if config.resume and not state.exists():
         raise FileNotFoundError(f"cannot resume: {state} does not exist")
     if not config.resume and state.exists():
-        raise ValueError(f"{out} already holds a training run ({STATE}): pass --resume to continue it, or choose another folder")
+        raise ValueError(
+            f"{out} already holds a training run ({STATE}): pass --resume to continue it, or choose another folder"
+        )
     labels = load_label_config(config.label_config)
     if not find_scans(config.dataset, config.train_sequences, "train", labels):
         raise ValueError(f"no labelled training scan under {config.dataset}")
@@ -105,11 +107,18 @@ def run_ray(config: TrainConfig, workers: int = 2, max_failures: int = 0) -> Pat
 
 def build_parser() -> argparse.ArgumentParser:
     """The options of `rangeret train`, plus the job's own."""
-    parser = argparse.ArgumentParser(prog="python -m workers.train_job", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m workers.train_job", description=__doc__.split("\n\n")[0]
+    )
     add_training_options(parser)
     add_workers_option(parser)
-    parser.add_argument("--max-failures", type=int, default=0, metavar="N",
-                        help="restart a failed worker group up to N times, continuing the saved run")
+    parser.add_argument(
+        "--max-failures",
+        type=int,
+        default=0,
+        metavar="N",
+        help="restart a failed worker group up to N times, continuing the saved run",
+    )
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars, less logging")
     return parser
 
@@ -117,8 +126,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point: parse, train, and turn input errors into one-line messages and exit code 1."""
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.WARNING if args.quiet else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
     try:
         out = run_ray(config_from_args(args), workers=args.workers, max_failures=args.max_failures)
     except (ValueError, FileNotFoundError) as exc:

@@ -30,7 +30,9 @@ def global_rotation(xy: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return xy @ np.array([[cos, sin], [-sin, cos]])
 
 
-def random_jitter(xy: np.ndarray, rng: np.random.Generator, rate: float = JITTER_RATE) -> np.ndarray:
+def random_jitter(
+    xy: np.ndarray, rng: np.random.Generator, rate: float = JITTER_RATE
+) -> np.ndarray:
     """(N, 2) x, y shifted by one offset per scan from N(0, rate) per axis, clipped to +-rate."""
     return xy + np.clip(rng.normal(0.0, rate, 2), -rate, rate)
 

@@ -25,78 +25,199 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     `add_training_options` and the choice of running on Ray (--ray, --workers)."""
     add_training_options(parser)
     ray = parser.add_argument_group("ray")
-    ray.add_argument("--ray", action="store_true",
-                     help="data-parallel on the Ray cluster of RAY_ADDRESS (or a local one) with Ray Train")
+    ray.add_argument(
+        "--ray",
+        action="store_true",
+        help="data-parallel on the Ray cluster of RAY_ADDRESS (or a local one) with Ray Train",
+    )
     add_workers_option(ray)
 
 
 def add_workers_option(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
     """--workers: the number of Ray Train workers."""
-    parser.add_argument("--workers", type=int, default=2, metavar="N",
-                        help="Ray Train workers, one GPU each when the cluster has GPUs (default 2)")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=2,
+        metavar="N",
+        help="Ray Train workers, one GPU each when the cluster has GPUs (default 2)",
+    )
 
 
 def add_training_options(parser: argparse.ArgumentParser) -> None:
     """The options that define a training run (everything but where it runs)."""
     defaults = TrainConfig(dataset="", out="")
     data = parser.add_argument_group("data")
-    data.add_argument("--dataset", type=Path, required=True, metavar="ROOT",
-                      help="SemanticKITTI tree: ROOT/sequences/XX/{velodyne,labels}")
-    data.add_argument("--train-sequences", nargs="+", metavar="XX",
-                      help="training sequences (default: the label configuration's train split)")
-    data.add_argument("--val-sequences", nargs="*", metavar="XX",
-                      help="validation sequences (default: the valid split); give none to skip validation")
-    data.add_argument("--label-config", type=Path, metavar="FILE",
-                      help="label configuration (.json of this project or an official .yaml); default SemanticKITTI")
-    data.add_argument("--height", type=int, default=defaults.height, help="range image rows (default 64)")
-    data.add_argument("--width", type=int, default=defaults.width, help="range image columns (default 1024)")
-    data.add_argument("--fov-up", type=float, default=defaults.fov_up, metavar="DEG", help="default 3")
-    data.add_argument("--fov-down", type=float, default=defaults.fov_down, metavar="DEG", help="default -25")
-    data.add_argument("--no-augment", action="store_true",
-                      help="no point augmentation (scale, rotation, shift, flip)")
-    data.add_argument("--mixes", nargs="+", choices=MIXES, default=[], metavar="MIX",
-                      help=f"RangeFormer's range-image mixes to apply ({', '.join(MIXES)})")
-    data.add_argument("--mix-probability", type=float, default=defaults.mix_probability, metavar="P",
-                      help="probability of each chosen mix per sample (default 0.5)")
-    data.add_argument("--loader-workers", type=int, default=defaults.loader_workers, metavar="N",
-                      help="data-loading processes per trainer (default 2; 0 loads in the training process)")
+    data.add_argument(
+        "--dataset",
+        type=Path,
+        required=True,
+        metavar="ROOT",
+        help="SemanticKITTI tree: ROOT/sequences/XX/{velodyne,labels}",
+    )
+    data.add_argument(
+        "--train-sequences",
+        nargs="+",
+        metavar="XX",
+        help="training sequences (default: the label configuration's train split)",
+    )
+    data.add_argument(
+        "--val-sequences",
+        nargs="*",
+        metavar="XX",
+        help="validation sequences (default: the valid split); give none to skip validation",
+    )
+    data.add_argument(
+        "--label-config",
+        type=Path,
+        metavar="FILE",
+        help="label configuration (.json of this project or an official .yaml); default SemanticKITTI",
+    )
+    data.add_argument(
+        "--height", type=int, default=defaults.height, help="range image rows (default 64)"
+    )
+    data.add_argument(
+        "--width", type=int, default=defaults.width, help="range image columns (default 1024)"
+    )
+    data.add_argument(
+        "--fov-up", type=float, default=defaults.fov_up, metavar="DEG", help="default 3"
+    )
+    data.add_argument(
+        "--fov-down", type=float, default=defaults.fov_down, metavar="DEG", help="default -25"
+    )
+    data.add_argument(
+        "--no-augment",
+        action="store_true",
+        help="no point augmentation (scale, rotation, shift, flip)",
+    )
+    data.add_argument(
+        "--mixes",
+        nargs="+",
+        choices=MIXES,
+        default=[],
+        metavar="MIX",
+        help=f"RangeFormer's range-image mixes to apply ({', '.join(MIXES)})",
+    )
+    data.add_argument(
+        "--mix-probability",
+        type=float,
+        default=defaults.mix_probability,
+        metavar="P",
+        help="probability of each chosen mix per sample (default 0.5)",
+    )
+    data.add_argument(
+        "--loader-workers",
+        type=int,
+        default=defaults.loader_workers,
+        metavar="N",
+        help="data-loading processes per trainer (default 2; 0 loads in the training process)",
+    )
 
     net = parser.add_argument_group("network")
     net.add_argument("--model", required=True, choices=list_models(), help="network to train")
-    net.add_argument("--override", action="append", default=[], metavar="NAME=VALUE",
-                     help=f"ablation switch of the network ({', '.join(OVERRIDES)}), e.g. decay=manhattan; repeatable")
+    net.add_argument(
+        "--override",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help=f"ablation switch of the network ({', '.join(OVERRIDES)}), e.g. decay=manhattan; repeatable",
+    )
 
     opt = parser.add_argument_group("optimisation")
     opt.add_argument("--epochs", type=int, default=defaults.epochs, metavar="N", help="default 64")
-    opt.add_argument("--max-steps", type=int, metavar="N",
-                     help="stop after N steps; the schedule then spans min(epochs x steps per epoch, N)")
-    opt.add_argument("--batch-size", type=int, default=defaults.batch_size, metavar="N",
-                     help="scans per step and per trainer (default 1, as in the thesis)")
-    opt.add_argument("--lr", type=float, default=defaults.lr, help="AdamW learning rate, where the schedule starts (default 1e-3)")
-    opt.add_argument("--max-lr", type=float, default=defaults.max_lr, help="peak of the schedule (default 1e-2)")
-    opt.add_argument("--weight-decay", type=float, default=defaults.weight_decay, help="AdamW weight decay (default 0.05)")
-    opt.add_argument("--schedule", choices=SCHEDULES, default=defaults.schedule,
-                     help="onecycle (the thesis's) or linear warm-up + cosine")
-    opt.add_argument("--warmup", type=float, default=defaults.warmup, metavar="SHARE",
-                     help="share of the steps spent warming up (default 0.3; chapter 5 used 0.02)")
-    opt.add_argument("--loss", nargs="+", choices=LOSSES, default=list(LOSSES), dest="losses",
-                     help="losses to sum with equal weights (default: all three)")
-    opt.add_argument("--class-weights", choices=WEIGHTINGS, default=defaults.class_weighting,
-                     help="cross-entropy class weights from class frequencies (default 1/sqrt(f + 1e-3))")
+    opt.add_argument(
+        "--max-steps",
+        type=int,
+        metavar="N",
+        help="stop after N steps; the schedule then spans min(epochs x steps per epoch, N)",
+    )
+    opt.add_argument(
+        "--batch-size",
+        type=int,
+        default=defaults.batch_size,
+        metavar="N",
+        help="scans per step and per trainer (default 1, as in the thesis)",
+    )
+    opt.add_argument(
+        "--lr",
+        type=float,
+        default=defaults.lr,
+        help="AdamW learning rate, where the schedule starts (default 1e-3)",
+    )
+    opt.add_argument(
+        "--max-lr", type=float, default=defaults.max_lr, help="peak of the schedule (default 1e-2)"
+    )
+    opt.add_argument(
+        "--weight-decay",
+        type=float,
+        default=defaults.weight_decay,
+        help="AdamW weight decay (default 0.05)",
+    )
+    opt.add_argument(
+        "--schedule",
+        choices=SCHEDULES,
+        default=defaults.schedule,
+        help="onecycle (the thesis's) or linear warm-up + cosine",
+    )
+    opt.add_argument(
+        "--warmup",
+        type=float,
+        default=defaults.warmup,
+        metavar="SHARE",
+        help="share of the steps spent warming up (default 0.3; chapter 5 used 0.02)",
+    )
+    opt.add_argument(
+        "--loss",
+        nargs="+",
+        choices=LOSSES,
+        default=list(LOSSES),
+        dest="losses",
+        help="losses to sum with equal weights (default: all three)",
+    )
+    opt.add_argument(
+        "--class-weights",
+        choices=WEIGHTINGS,
+        default=defaults.class_weighting,
+        help="cross-entropy class weights from class frequencies (default 1/sqrt(f + 1e-3))",
+    )
     opt.add_argument("--focal-gamma", type=float, default=defaults.focal_gamma, help="default 2")
-    opt.add_argument("--clip-grad", type=float, default=defaults.clip_grad, metavar="NORM",
-                     help="clip the gradient norm (default 1; 0 turns clipping off)")
+    opt.add_argument(
+        "--clip-grad",
+        type=float,
+        default=defaults.clip_grad,
+        metavar="NORM",
+        help="clip the gradient norm (default 1; 0 turns clipping off)",
+    )
     opt.add_argument("--no-amp", action="store_true", help="no fp16 mixed precision on CUDA")
-    opt.add_argument("--seed", type=int, default=defaults.seed, help="seed of initialisation, order and augmentation")
+    opt.add_argument(
+        "--seed",
+        type=int,
+        default=defaults.seed,
+        help="seed of initialisation, order and augmentation",
+    )
 
     run = parser.add_argument_group("run")
-    run.add_argument("--out", type=Path, required=True, metavar="DIR",
-                     help="writes last.pt, best.pt, last.state.pt, metrics.csv, steps.csv, curves.png")
+    run.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        metavar="DIR",
+        help="writes last.pt, best.pt, last.state.pt, metrics.csv, steps.csv, curves.png",
+    )
     run.add_argument("--resume", action="store_true", help="continue the run saved in DIR exactly")
-    run.add_argument("--checkpoint-every", type=int, default=0, metavar="N",
-                     help="also save last.pt and the state every N steps (default: at epoch ends)")
-    run.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],
-                     help="auto picks CUDA when present (default)")
+    run.add_argument(
+        "--checkpoint-every",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also save last.pt and the state every N steps (default: at epoch ends)",
+    )
+    run.add_argument(
+        "--device",
+        default="auto",
+        choices=["auto", "cpu", "cuda"],
+        help="auto picks CUDA when present (default)",
+    )
 
 
 def parse_override(text: str) -> tuple[str, Any]:
@@ -104,7 +225,9 @@ def parse_override(text: str) -> tuple[str, Any]:
     name, sep, value = text.partition("=")
     name = name.strip().replace("-", "_")
     if not sep or name not in OVERRIDES:
-        raise ValueError(f"--override takes NAME=VALUE with NAME one of {', '.join(OVERRIDES)}, got {text!r}")
+        raise ValueError(
+            f"--override takes NAME=VALUE with NAME one of {', '.join(OVERRIDES)}, got {text!r}"
+        )
     value = value.strip()
     if value.lower() in ("true", "false"):
         return name, value.lower() == "true"
@@ -175,6 +298,8 @@ def run_train(args: argparse.Namespace) -> int:
     record = best.get("best") or {}
     print(f"last checkpoint: {out / LAST}")
     if record:
-        print(f"best checkpoint: {out / BEST} (epoch {record['epoch']}, {record['metric']} {record['value']:.4f})")
+        print(
+            f"best checkpoint: {out / BEST} (epoch {record['epoch']}, {record['metric']} {record['value']:.4f})"
+        )
     print(f"metrics: {out / METRICS_CSV}; curves: {out / CURVES_PNG}")
     return 0

@@ -17,7 +17,15 @@ from rangeret.training.mixing import MIXES
 from rangeret.training.schedule import SCHEDULES
 
 #: Fields a resumed run may change: where and how it runs, not what it computes.
-RUNTIME_FIELDS = ("dataset", "out", "resume", "progress", "loader_workers", "device", "checkpoint_every")
+RUNTIME_FIELDS = (
+    "dataset",
+    "out",
+    "resume",
+    "progress",
+    "loader_workers",
+    "device",
+    "checkpoint_every",
+)
 
 
 @dataclass(frozen=True)
@@ -67,21 +75,48 @@ class TrainConfig:
     def __post_init__(self) -> None:
         checks = [
             (self.epochs >= 1, f"epochs must be at least 1, got {self.epochs}"),
-            (self.max_steps is None or self.max_steps >= 1, f"max_steps must be at least 1, got {self.max_steps}"),
+            (
+                self.max_steps is None or self.max_steps >= 1,
+                f"max_steps must be at least 1, got {self.max_steps}",
+            ),
             (self.batch_size >= 1, f"batch_size must be at least 1, got {self.batch_size}"),
-            (self.lr > 0 and self.max_lr >= self.lr, f"need 0 < lr <= max_lr, got {self.lr} and {self.max_lr}"),
+            (
+                self.lr > 0 and self.max_lr >= self.lr,
+                f"need 0 < lr <= max_lr, got {self.lr} and {self.max_lr}",
+            ),
             (self.weight_decay >= 0, f"weight_decay must not be negative, got {self.weight_decay}"),
-            (self.schedule in SCHEDULES, f"schedule must be one of {SCHEDULES}, got {self.schedule!r}"),
+            (
+                self.schedule in SCHEDULES,
+                f"schedule must be one of {SCHEDULES}, got {self.schedule!r}",
+            ),
             (0 < self.warmup < 1, f"warmup must lie in (0, 1), got {self.warmup}"),
-            (bool(self.losses) and set(self.losses) <= set(LOSSES), f"losses must be chosen from {LOSSES}, got {self.losses}"),
-            (self.class_weighting in WEIGHTINGS, f"class_weighting must be one of {WEIGHTINGS}, got {self.class_weighting!r}"),
+            (
+                bool(self.losses) and set(self.losses) <= set(LOSSES),
+                f"losses must be chosen from {LOSSES}, got {self.losses}",
+            ),
+            (
+                self.class_weighting in WEIGHTINGS,
+                f"class_weighting must be one of {WEIGHTINGS}, got {self.class_weighting!r}",
+            ),
             (self.focal_gamma >= 0, f"focal_gamma must not be negative, got {self.focal_gamma}"),
-            (self.clip_grad >= 0, f"clip_grad must not be negative (0 turns clipping off), got {self.clip_grad}"),
+            (
+                self.clip_grad >= 0,
+                f"clip_grad must not be negative (0 turns clipping off), got {self.clip_grad}",
+            ),
             (set(self.mixes) <= set(MIXES), f"mixes must be chosen from {MIXES}, got {self.mixes}"),
-            (0 <= self.mix_probability <= 1, f"mix_probability must lie in [0, 1], got {self.mix_probability}"),
+            (
+                0 <= self.mix_probability <= 1,
+                f"mix_probability must lie in [0, 1], got {self.mix_probability}",
+            ),
             (self.seed >= 0, f"seed must not be negative, got {self.seed}"),
-            (self.loader_workers >= 0, f"loader_workers must not be negative, got {self.loader_workers}"),
-            (self.checkpoint_every >= 0, f"checkpoint_every must not be negative, got {self.checkpoint_every}"),
+            (
+                self.loader_workers >= 0,
+                f"loader_workers must not be negative, got {self.loader_workers}",
+            ),
+            (
+                self.checkpoint_every >= 0,
+                f"checkpoint_every must not be negative, got {self.checkpoint_every}",
+            ),
         ]
         for ok, message in checks:
             if not ok:

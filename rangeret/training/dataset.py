@@ -84,7 +84,9 @@ class RangeDataset(Dataset):
             counts += np.bincount(classes, minlength=counts.size)
         return counts
 
-    def _sample(self, index: int, rng: np.random.Generator | None) -> tuple[RangeImage, dict[str, Any]]:
+    def _sample(
+        self, index: int, rng: np.random.Generator | None
+    ) -> tuple[RangeImage, dict[str, Any]]:
         points, classes = self.points_and_classes(index)
         if rng is not None:
             points = augment_points(points, rng)
@@ -114,7 +116,13 @@ class RangeDataset(Dataset):
                 return self._sample(other, child if self.augment else None)[0]
 
             sample = self.mixing.apply(sample, partner, rng)
-        return {"image": sample.image, "label": sample.label, "mask": sample.mask, **extra, "index": index}
+        return {
+            "image": sample.image,
+            "label": sample.label,
+            "mask": sample.mask,
+            **extra,
+            "index": index,
+        }
 
 
 def collate(samples: Sequence[dict[str, Any]]) -> dict[str, Any]:

@@ -26,7 +26,9 @@ class CsvLog:
     def start(self, keep_until: int | None, key: str = "step") -> None:
         """Start the file: a fresh one, or (resuming) the rows whose `key` is at most `keep_until`."""
         rows = self.read() if keep_until is not None and self.path.exists() else []
-        kept = [r for r in rows if r.get(key) not in (None, "") and int(float(r[key])) <= keep_until]
+        kept = [
+            r for r in rows if r.get(key) not in (None, "") and int(float(r[key])) <= keep_until
+        ]
         with self.path.open("w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=self.fields, extrasaction="ignore")
             writer.writeheader()
@@ -82,7 +84,9 @@ def plot_curves(steps_csv: Path, metrics_csv: Path, path: Path) -> Path:
     ax_loss.plot(step_x, losses, color="0.75", linewidth=0.7, label="train (step)")
     window = max(1, len(losses) // 50)
     if window > 1:
-        ax_loss.plot(step_x, _running_mean(losses, window), color="C0", label=f"train (mean of {window})")
+        ax_loss.plot(
+            step_x, _running_mean(losses, window), color="C0", label=f"train (mean of {window})"
+        )
     epoch_x = _column(epochs, "step")
     ax_loss.plot(epoch_x, _column(epochs, "train_loss"), "o-", color="C1", label="train (epoch)")
     if any(not math.isnan(v) for v in _column(epochs, "val_loss")):

@@ -137,7 +137,9 @@ class SegmentationLoss(nn.Module):
         super().__init__()
         unknown = sorted(set(losses) - set(LOSSES))
         if unknown or not losses:
-            raise ValueError(f"losses must be a non-empty selection of {', '.join(LOSSES)}, got {list(losses)}")
+            raise ValueError(
+                f"losses must be a non-empty selection of {', '.join(LOSSES)}, got {list(losses)}"
+            )
         self.losses = tuple(name for name in LOSSES if name in losses)
         self.gamma = gamma
         self.ignore_index = ignore_index

@@ -90,11 +90,15 @@ def range_shift(a: RangeImage, rng: np.random.Generator) -> RangeImage:
     w = a.label.shape[1]
     shift = int(rng.integers(w // 4, max(3 * w // 4, w // 4 + 1)))
     return RangeImage(
-        np.roll(a.image, shift, axis=-1), np.roll(a.label, shift, axis=-1), np.roll(a.mask, shift, axis=-1)
+        np.roll(a.image, shift, axis=-1),
+        np.roll(a.label, shift, axis=-1),
+        np.roll(a.mask, shift, axis=-1),
     )
 
 
-def rare_classes(frequencies: np.ndarray, ignored: Sequence[bool], share: float = RARE_SHARE) -> tuple[int, ...]:
+def rare_classes(
+    frequencies: np.ndarray, ignored: Sequence[bool], share: float = RARE_SHARE
+) -> tuple[int, ...]:
     """Evaluated classes whose share of points is below `share` (what RangePaste copies)."""
     return tuple(
         int(c) for c in range(len(frequencies)) if not ignored[c] and frequencies[c] < share

@@ -73,11 +73,15 @@ class CycleSchedule(torch.optim.lr_scheduler.LRScheduler):
         if step < self.warmup_steps:
             progress = step / self.warmup_steps
             if self.shape == "onecycle":
-                return _cosine_step(1.0, self.peak, progress), 0.5 * (1.0 - math.cos(math.pi * progress))
+                return _cosine_step(1.0, self.peak, progress), 0.5 * (
+                    1.0 - math.cos(math.pi * progress)
+                )
             return 1.0 + (self.peak - 1.0) * progress, progress
         span = max(self.total_steps - 1 - self.warmup_steps, 1)
         progress = min((step - self.warmup_steps) / span, 1.0)
-        return _cosine_step(self.peak, self.floor, progress), 0.5 * (1.0 + math.cos(math.pi * progress))
+        return _cosine_step(self.peak, self.floor, progress), 0.5 * (
+            1.0 + math.cos(math.pi * progress)
+        )
 
     def get_lr(self) -> list[float]:
         """Learning rates of the current step (and, for onecycle, beta1 set on the groups)."""

@@ -94,7 +94,9 @@ class Ranks:
         """The torch.distributed group's rank and size, when one is initialised."""
         if dist.is_available() and dist.is_initialized():
             nccl = dist.get_backend() == "nccl"
-            return cls(dist.get_rank(), dist.get_world_size(), device if nccl else torch.device("cpu"))
+            return cls(
+                dist.get_rank(), dist.get_world_size(), device if nccl else torch.device("cpu")
+            )
         return cls()
 
     @property
@@ -214,7 +216,11 @@ def find_scans(
     )
     found = discover(root, names, with_labels=True)
     if found.problems:
-        hint = "" if sequences is not None else f" (the {split!r} split; choose sequences with --{split.replace('valid', 'val')}-sequences)"
+        hint = (
+            ""
+            if sequences is not None
+            else f" (the {split!r} split; choose sequences with --{split.replace('valid', 'val')}-sequences)"
+        )
         raise DatasetLayoutError(
             f"{len(found.problems)} problem(s) with the {split} data under {root}{hint}: "
             + "; ".join(found.problems[:5])
@@ -246,7 +252,9 @@ class Trainer:
         self.ranks = Ranks.detect(self.device)
         self.on_epoch_end = on_epoch_end
         self.label_config = label_config or load_label_config(config.label_config)
-        self.projection = ProjectionConfig(config.height, config.width, config.fov_up, config.fov_down)
+        self.projection = ProjectionConfig(
+            config.height, config.width, config.fov_up, config.fov_down
+        )
         self.num_classes = self.label_config.num_classes
         self.ignored = [c for c in range(self.num_classes) if self.label_config.ignored[c]]
         self.knn = KnnSettings()
@@ -269,7 +277,11 @@ class Trainer:
         if config.mixes:
             paste = rare_classes(self.frequencies, self.label_config.ignored)
             mixing = MixSettings(tuple(config.mixes), config.mix_probability, paste)
-        common = {"projection": self.projection, "label_config": self.label_config, "seed": config.seed}
+        common = {
+            "projection": self.projection,
+            "label_config": self.label_config,
+            "seed": config.seed,
+        }
         self.train_set = RangeDataset(train_scans, augment=config.augment, mixing=mixing, **common)
         self.val_set = RangeDataset(val_scans, with_points=True, **common)
 
@@ -277,9 +289,13 @@ class Trainer:
             config.model, config.height, config.width, self.num_classes, **config.overrides
         ).to(self.device)
         weights = class_weights(self.frequencies, self.label_config.ignored, config.class_weighting)
-        self.criterion = SegmentationLoss(config.losses, weights, config.focal_gamma).to(self.device)
+        self.criterion = SegmentationLoss(config.losses, weights, config.focal_gamma).to(
+            self.device
+        )
         self.optimizer = build_optimizer(self.model.parameters(), config.lr, config.weight_decay)
-        self.steps_per_epoch = steps_per_epoch(len(self.train_set), config.batch_size, self.ranks.world_size)
+        self.steps_per_epoch = steps_per_epoch(
+            len(self.train_set), config.batch_size, self.ranks.world_size
+        )
         planned = config.epochs * self.steps_per_epoch
         self.total_steps = min(planned, config.max_steps) if config.max_steps else planned
         self.num_epochs = -(-self.total_steps // self.steps_per_epoch)
@@ -299,8 +315,11 @@ class Trainer:
         if self.ranks.world_size > 1:
             unused = unused_parameters(self.model)
             if unused:
-                log.info("%d parameters take no part in the loss (%s, ...): DDP will expect them",
-                         len(unused), unused[0])
+                log.info(
+                    "%d parameters take no part in the loss (%s, ...): DDP will expect them",
+                    len(unused),
+                    unused[0],
+                )
             self.network = DistributedDataParallel(
                 self.model,
                 device_ids=[self.device.index] if self.device.type == "cuda" else None,
@@ -310,8 +329,16 @@ class Trainer:
         self.steps_log = CsvLog(self.out / STEPS_CSV, ["step", "epoch", *self.loss_names, "lr"])
         self.metrics_log = CsvLog(
             self.out / METRICS_CSV,
-            ["epoch", "step", "lr", "seconds", "train_loss",
-             *(f"train_{n}" for n in self.criterion.losses), "train_miou_image", *VAL_METRICS],
+            [
+                "epoch",
+                "step",
+                "lr",
+                "seconds",
+                "train_loss",
+                *(f"train_{n}" for n in self.criterion.losses),
+                "train_miou_image",
+                *VAL_METRICS,
+            ],
         )
         self._pending_steps: list[dict[str, float]] = []
         self._pending_epochs: list[dict[str, Any]] = []
@@ -351,9 +378,17 @@ class Trainer:
         log.info(
             "%s at %dx%d: %d training and %d validation scans, %d steps per epoch, %d steps "
             "(%d epochs) on %s x %d%s",
-            self.config.model, self.config.height, self.config.width, len(self.train_set),
-            len(self.val_set), self.steps_per_epoch, self.total_steps, self.num_epochs,
-            self.device, self.ranks.world_size, f", resumed at step {self.step}" if self.step else "",
+            self.config.model,
+            self.config.height,
+            self.config.width,
+            len(self.train_set),
+            len(self.val_set),
+            self.steps_per_epoch,
+            self.total_steps,
+            self.num_epochs,
+            self.device,
+            self.ranks.world_size,
+            f", resumed at step {self.step}" if self.step else "",
         )
         while self.step < stop:
             epoch = self.step // self.steps_per_epoch
@@ -369,13 +404,26 @@ class Trainer:
         """Steps of `epoch` from the current step up to step `stop`."""
         offset = self.step - epoch * self.steps_per_epoch
         sampler = EpochSampler(
-            len(self.train_set), epoch, self.config.seed, batch_size=self.config.batch_size,
-            rank=self.ranks.rank, world_size=self.ranks.world_size, start=offset,
+            len(self.train_set),
+            epoch,
+            self.config.seed,
+            batch_size=self.config.batch_size,
+            rank=self.ranks.rank,
+            world_size=self.ranks.world_size,
+            start=offset,
         )
         loader = self._loader(self.train_set, sampler)
-        span = min(self.total_steps, (epoch + 1) * self.steps_per_epoch) - epoch * self.steps_per_epoch
-        bar = tqdm(total=span, initial=offset, desc=f"epoch {epoch + 1}/{self.num_epochs}",
-                   unit="step", disable=not (self.config.progress and self.ranks.main), leave=False)
+        span = (
+            min(self.total_steps, (epoch + 1) * self.steps_per_epoch) - epoch * self.steps_per_epoch
+        )
+        bar = tqdm(
+            total=span,
+            initial=offset,
+            desc=f"epoch {epoch + 1}/{self.num_epochs}",
+            unit="step",
+            disable=not (self.config.progress and self.ranks.main),
+            leave=False,
+        )
         self.epoch_started = time.perf_counter()
         try:
             for batch in loader:
@@ -383,13 +431,21 @@ class Trainer:
                     break
                 lr = self.optimizer.param_groups[0]["lr"]
                 values = self.train_step(batch)
-                row = {"step": self.step, "epoch": epoch + 1, "lr": lr,
-                       **dict(zip(self.loss_names, values, strict=True))}
+                row = {
+                    "step": self.step,
+                    "epoch": epoch + 1,
+                    "lr": lr,
+                    **dict(zip(self.loss_names, values, strict=True)),
+                }
                 self._pending_steps.append(row)
                 self.result.steps.append(row)
                 bar.update(1)
                 bar.set_postfix(loss=f"{values[0]:.4f}", lr=f"{lr:.2e}")
-                if self.config.checkpoint_every and self.step % self.config.checkpoint_every == 0 and self.step < stop:
+                if (
+                    self.config.checkpoint_every
+                    and self.step % self.config.checkpoint_every == 0
+                    and self.step < stop
+                ):
                     self._save(epoch, complete=False, metrics=None)
         finally:
             bar.close()
@@ -447,7 +503,10 @@ class Trainer:
             "step": self.step,
             "lr": self.optimizer.param_groups[0]["lr"],
             "train_loss": float(train[0]),
-            **{f"train_{n}": float(v) for n, v in zip(self.criterion.losses, train[1:], strict=True)},
+            **{
+                f"train_{n}": float(v)
+                for n, v in zip(self.criterion.losses, train[1:], strict=True)
+            },
             "train_miou_image": cm.miou(),
         }
         if len(self.val_set):
@@ -456,7 +515,9 @@ class Trainer:
         self._pending_epochs.append(metrics)
         self.result.epochs.append(metrics)
         if self.ranks.main:
-            text = ", ".join(f"{k} {v:.4f}" for k, v in metrics.items() if k.startswith(("train_loss", "val_")))
+            text = ", ".join(
+                f"{k} {v:.4f}" for k, v in metrics.items() if k.startswith(("train_loss", "val_"))
+            )
             log.info("epoch %d/%d (step %d): %s", epoch + 1, self.num_epochs, self.step, text)
         self._save(epoch, complete=True, metrics=metrics)
         if self.on_epoch_end is not None:
@@ -473,13 +534,25 @@ class Trainer:
         """Loss and mIoU / accuracy on the validation scans: range image, points, points + kNN."""
         self.model.eval()
         c = self.num_classes
-        sampler = EpochSampler(len(self.val_set), 0, self.config.seed, batch_size=self.config.batch_size,
-                               rank=self.ranks.rank, world_size=self.ranks.world_size,
-                               shuffle=False, pad=False)
+        sampler = EpochSampler(
+            len(self.val_set),
+            0,
+            self.config.seed,
+            batch_size=self.config.batch_size,
+            rank=self.ranks.rank,
+            world_size=self.ranks.world_size,
+            shuffle=False,
+            pad=False,
+        )
         counts = torch.zeros(3, c * c, dtype=torch.int64)
         loss_sum = torch.zeros(2, dtype=torch.float64)
-        bar = tqdm(total=len(sampler), desc="validation", unit="scan", leave=False,
-                   disable=not (self.config.progress and self.ranks.main))
+        bar = tqdm(
+            total=len(sampler),
+            desc="validation",
+            unit="scan",
+            leave=False,
+            disable=not (self.config.progress and self.ranks.main),
+        )
         for batch in self._loader(self.val_set, sampler):
             images = batch["image"].to(self.device)
             labels = batch["label"].to(self.device)
@@ -499,12 +572,19 @@ class Trainer:
                 refined = refine(
                     batch["proj_range"][i].to(self.device),
                     batch["unproj_range"][i].to(self.device),
-                    argmax[i], px, py,
-                    k=self.knn.k, search=self.knn.search, sigma=self.knn.sigma,
-                    cutoff=self.knn.cutoff, num_classes=c,
+                    argmax[i],
+                    px,
+                    py,
+                    k=self.knn.k,
+                    search=self.knn.search,
+                    sigma=self.knn.sigma,
+                    cutoff=self.knn.cutoff,
+                    num_classes=c,
                 )
                 counts[1] += torch.bincount(points * c + truth, minlength=c * c).cpu()
-                counts[2] += torch.bincount(refined.to(truth.dtype) * c + truth, minlength=c * c).cpu()
+                counts[2] += torch.bincount(
+                    refined.to(truth.dtype) * c + truth, minlength=c * c
+                ).cpu()
             bar.update(len(images))
         bar.close()
         counts = self.ranks.sum(counts)
@@ -530,10 +610,17 @@ class Trainer:
             name, value, better = "train_loss", metrics["train_loss"], min
         if self.best is not None and better(value, self.best["value"]) == self.best["value"]:
             return False
-        self.best = {"metric": name, "value": value, "epoch": metrics["epoch"], "step": metrics["step"]}
+        self.best = {
+            "metric": name,
+            "value": value,
+            "epoch": metrics["epoch"],
+            "step": metrics["step"],
+        }
         return True
 
-    def _metadata(self, epoch: int, complete: bool, metrics: Mapping[str, Any] | None) -> dict[str, Any]:
+    def _metadata(
+        self, epoch: int, complete: bool, metrics: Mapping[str, Any] | None
+    ) -> dict[str, Any]:
         config = self.config
         return {
             "epoch": epoch + 1,
@@ -613,7 +700,9 @@ class Trainer:
         if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
             raise ValueError(f"{path} is not a training state written by rangeret.training")
         if state.get("format_version") != STATE_VERSION:
-            raise ValueError(f"{path} has state version {state.get('format_version')!r}; this code reads {STATE_VERSION}")
+            raise ValueError(
+                f"{path} has state version {state.get('format_version')!r}; this code reads {STATE_VERSION}"
+            )
         stored = TrainConfig.from_dict(state["config"])
         changed = stored.differences(self.config)
         if changed:
