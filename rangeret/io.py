@@ -8,10 +8,11 @@ instance id. Every reader checks what it reads and raises `ScanFormatError` nami
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from rangeret.atomic import atomic_write_bytes
 
 POINT_BYTES = 16
 LABEL_BYTES = 4
@@ -71,23 +72,6 @@ def scan_num_points(path: str | os.PathLike[str]) -> int:
     return size // POINT_BYTES
 
 
-def parse_labels(
-    data: bytes | memoryview, source: str = "<labels>", num_points: int | None = None
-) -> np.ndarray:
-    """Decode the bytes of a `.label` file into a uint32 (N,) array, validating the size."""
-    size = len(data)
-    if size % LABEL_BYTES:
-        raise ScanFormatError(
-            source, f"size {size} bytes is not a multiple of {LABEL_BYTES} (one uint32 per point)"
-        )
-    labels = np.frombuffer(data, dtype=LABEL_DTYPE)
-    if num_points is not None and labels.size != num_points:
-        raise ScanFormatError(
-            source, f"holds {labels.size} labels but the scan has {num_points} points"
-        )
-    return labels.astype(np.uint32, copy=False)
-
-
 def read_labels(path: str | os.PathLike[str], num_points: int | None = None) -> np.ndarray:
     """Read a `.label` file as uint32 (N,) (raw id in the low 16 bits, instance in the high 16).
 
@@ -104,23 +88,6 @@ def read_labels(path: str | os.PathLike[str], num_points: int | None = None) -> 
             path, f"holds {size // LABEL_BYTES} labels but the scan has {num_points} points"
         )
     return np.fromfile(path, dtype=LABEL_DTYPE).astype(np.uint32, copy=False)
-
-
-def atomic_write_bytes(path: str | os.PathLike[str], data: bytes | memoryview) -> None:
-    """Write `data` to `path` through a temporary file in the same folder and a rename.
-
-    A reader never sees a half-written file, and an interrupted write leaves no file behind.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def write_labels(path: str | os.PathLike[str], labels: np.ndarray) -> None:

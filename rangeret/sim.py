@@ -22,7 +22,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from rangeret.io import atomic_write_bytes, write_labels, write_scan
+from rangeret.atomic import atomic_write_bytes
+from rangeret.io import write_labels, write_scan
 from rangeret.layout import labels_dir, normalise_sequence, velodyne_dir
 
 #: Seconds between two scans (the HDL-64E spins at 10 Hz).

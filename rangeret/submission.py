@@ -13,10 +13,8 @@ file is listed instead.
 
 from __future__ import annotations
 
-import os
 import re
 import stat
-import tempfile
 import zipfile
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -25,9 +23,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from rangeret.atomic import atomic_path
 from rangeret.io import LABEL_BYTES, ScanFormatError, scan_num_points
 from rangeret.labels import LabelConfig, semantickitti
 from rangeret.layout import ScanEntry, discover, prediction_path
+from rangeret.zipfiles import ReproducibleZip
 
 #: Scans per sequence of the official SemanticKITTI test split (20,351 in all).
 TEST_SCAN_COUNTS: dict[str, int] = {
@@ -37,7 +37,6 @@ TEST_SCAN_COUNTS: dict[str, int] = {
 TEST_SEQUENCES: tuple[str, ...] = tuple(TEST_SCAN_COUNTS)
 
 DESCRIPTION_NAME = "description.txt"
-_ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
 _LABEL_ENTRY = re.compile(r"^sequences/(\d\d)/predictions/([^/]+)\.label$")
 _MAX_LISTED = 50
 
@@ -133,20 +132,6 @@ def _entry_name(entry: ScanEntry) -> str:
     return f"sequences/{entry.sequence}/predictions/{entry.name}.label"
 
 
-def _dir_info(name: str) -> zipfile.ZipInfo:
-    info = zipfile.ZipInfo(name, date_time=_ZIP_EPOCH)
-    info.external_attr = (stat.S_IFDIR | 0o755) << 16 | 0x10
-    info.compress_type = zipfile.ZIP_STORED
-    return info
-
-
-def _file_info(name: str) -> zipfile.ZipInfo:
-    info = zipfile.ZipInfo(name, date_time=_ZIP_EPOCH)
-    info.external_attr = (stat.S_IFREG | 0o644) << 16
-    info.compress_type = zipfile.ZIP_DEFLATED
-    return info
-
-
 def required_directories() -> Iterator[str]:
     """The directory entries every archive must hold, in order."""
     yield "sequences/"
@@ -179,14 +164,10 @@ def write_submission(
         problems.append(f"{dataset} holds no test scan (sequences 11 to 21)")
     valid = _valid_id_table(config)
 
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=".tmp-", suffix=f"-{out.name}", dir=out.parent)
-    os.close(fd)
-    tmp = Path(tmp_name)
-    try:
-        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=6) as zf:
+    with atomic_path(out, suffix=".zip") as tmp:
+        with ReproducibleZip(tmp) as zf:
             for name in required_directories():
-                zf.writestr(_dir_info(name), b"")
+                zf.add_directory(name)
             for entry in tqdm(scans, desc="submission", unit="scan", disable=not progress):
                 pred = prediction_path(predictions, entry.sequence, entry.name)
                 try:
@@ -202,18 +183,15 @@ def write_submission(
                 if problem:
                     problems.append(problem)
                 elif not problems:
-                    zf.writestr(_file_info(_entry_name(entry)), data)
+                    zf.add_file(_entry_name(entry), data)
             if description and not problems:
-                zf.writestr(_file_info(DESCRIPTION_NAME), description.rstrip("\n") + "\n")
+                zf.add_file(DESCRIPTION_NAME, description.rstrip("\n") + "\n")
         if problems:
             raise SubmissionError(problems)
         check = validate_submission(tmp, dataset, allow_partial=allow_partial, config=config)
         check.path = out
         check.raise_for_problems()
-        os.replace(tmp, out)
-        return check
-    finally:
-        tmp.unlink(missing_ok=True)
+    return check
 
 
 def validate_submission(

@@ -12,20 +12,17 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import shutil
 import sqlite3
-import stat
-import tempfile
 import threading
 import time
 import uuid
-import zipfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
+from rangeret.atomic import atomic_path
 from rangeret.evaluation import evaluate_predictions
 from rangeret.inference import Predictor, PredictorSpec
 from rangeret.labels import LabelConfig, semantickitti
@@ -33,6 +30,7 @@ from rangeret.layout import ScanEntry, discover, prediction_path
 from rangeret.predict import is_complete, list_scans, predict_tree
 from rangeret.projection import ProjectionConfig
 from rangeret.submission import TEST_SEQUENCES, required_directories
+from rangeret.zipfiles import ReproducibleZip
 from service.schemas import JobState
 
 log = logging.getLogger(__name__)
@@ -43,7 +41,6 @@ MAX_ATTEMPTS = 3
 MAX_ERRORS = 1000
 PREDICTIONS_ZIP = "predictions.zip"
 REPORT_JSON = "report.json"
-_ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
 
 Progress = Callable[[int, int, int], None]
 
@@ -349,16 +346,6 @@ def labelled_sequences(dataset: Path, sequences: Sequence[str]) -> list[str]:
     return [s for s, scans in found.items() if scans and all(e.label_path for e in scans)]
 
 
-def _zip_info(name: str, folder: bool = False) -> zipfile.ZipInfo:
-    info = zipfile.ZipInfo(name, date_time=_ZIP_EPOCH)
-    if folder:
-        info.external_attr = (stat.S_IFDIR | 0o755) << 16 | 0x10
-    else:
-        info.external_attr = (stat.S_IFREG | 0o644) << 16
-        info.compress_type = zipfile.ZIP_DEFLATED
-    return info
-
-
 def write_predictions_zip(
     pred_root: Path,
     entries: Sequence[ScanEntry],
@@ -378,23 +365,13 @@ def write_predictions_zip(
         directories = ["sequences/"]
         for seq in sorted(names):
             directories += [f"sequences/{seq}/", f"sequences/{seq}/predictions/"]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".predictions-", suffix=".zip", dir=path.parent)
-    os.close(fd)
-    try:
-        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=6) as zf:
-            for name in directories:
-                zf.writestr(_zip_info(name, folder=True), b"")
-            for entry in entries:
-                name = f"sequences/{entry.sequence}/predictions/{entry.name}.label"
-                zf.writestr(
-                    _zip_info(name),
-                    prediction_path(pred_root, entry.sequence, entry.name).read_bytes(),
-                )
-            zf.writestr(_zip_info("description.txt"), description.rstrip("\n") + "\n")
-        os.replace(tmp, path)
-    finally:
-        Path(tmp).unlink(missing_ok=True)
+    with atomic_path(path) as tmp, ReproducibleZip(tmp) as zf:
+        for name in directories:
+            zf.add_directory(name)
+        for entry in entries:
+            name = f"sequences/{entry.sequence}/predictions/{entry.name}.label"
+            zf.add_file(name, prediction_path(pred_root, entry.sequence, entry.name).read_bytes())
+        zf.add_file("description.txt", description.rstrip("\n") + "\n")
 
 
 class JobManager:

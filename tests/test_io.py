@@ -7,7 +7,6 @@ import pytest
 
 from rangeret.io import (
     ScanFormatError,
-    atomic_write_bytes,
     parse_scan,
     read_labels,
     read_scan,
@@ -77,12 +76,6 @@ def test_truncated_scan_size_check_without_reading(tmp_path):
     path.write_bytes(b"\x00" * 33)
     with pytest.raises(ScanFormatError, match=r"t\.bin"):
         scan_num_points(path)
-
-
-def test_atomic_write_leaves_nothing_on_failure(tmp_path):
-    with pytest.raises(TypeError):
-        atomic_write_bytes(tmp_path / "f.label", object())  # type: ignore[arg-type]
-    assert list(tmp_path.iterdir()) == []
 
 
 def test_write_rejects_bad_shapes(tmp_path):

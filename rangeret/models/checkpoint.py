@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from rangeret.io import atomic_write_bytes
+from rangeret.atomic import atomic_write_bytes
 from rangeret.models.configs import OVERRIDES, ModelConfig, list_models, resolve_config
 from rangeret.models.rangeret import RangeRet
 

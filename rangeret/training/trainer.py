@@ -27,11 +27,8 @@ told to expect them (`find_unused_parameters`).
 from __future__ import annotations
 
 import copy
-import io
 import logging
-import os
 import random
-import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -45,6 +42,7 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
+from rangeret.atomic import atomic_path
 from rangeret.inference import KnnSettings, select_device
 from rangeret.knn import refine
 from rangeret.labels import LabelConfig, load_label_config
@@ -185,18 +183,9 @@ def unused_parameters(model: torch.nn.Module) -> list[str]:
 
 
 def save_atomic(payload: Any, path: Path) -> None:
-    """torch.save `payload` to `path` through a temporary file and a rename."""
-    buffer = io.BytesIO()
-    torch.save(payload, buffer)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(buffer.getvalue())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """torch.save `payload` to `path` atomically."""
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
 
 
 def find_scans(
