@@ -1,7 +1,9 @@
-"""The `rangeret` command: evaluation, submission archives and the example run.
+"""The `rangeret` command: predict, evaluate, submission archives, training and simulation.
 
-Each subcommand exits 0 on success and 1 with a one-line reason (then the details) on any
-problem with its input; it never shows a traceback for bad input.
+The library's own subcommands are defined here; `serve`, `demo` and `train --ray` come from the
+layers above it through entry points (`rangeret.plugins`). Each subcommand exits 0 on success and
+1 with a one-line reason (then the details) on any problem with its input; it never shows a
+traceback for bad input.
 """
 
 from __future__ import annotations
@@ -9,143 +11,30 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from rangeret.evaluation import EvaluationError
-from rangeret.io import ScanFormatError
-from rangeret.labels import LabelConfig, load_label_config
-from rangeret.layout import DatasetLayoutError, resolve_sequences
-from rangeret.submission import SubmissionError
+from rangeret.errors import CommandError, run_command
+from rangeret.labels import load_label_config
+from rangeret.options import (
+    add_label_config,
+    add_network_options,
+    add_output_options,
+    add_selection,
+    label_config_from_args,
+    selected_sequences,
+    spec_from_args,
+)
+from rangeret.plugins import COMMANDS_GROUP, Subcommand, load_plugins
+
+if TYPE_CHECKING:
+    from rangeret.inference import Predictor
 
 log = logging.getLogger("rangeret")
 
-_MAX_DETAILS = 30
 
-
-class CommandError(Exception):
-    """A failure to report to the user as one line, with optional details below it."""
-
-    def __init__(self, reason: str, details: Sequence[str] = ()) -> None:
-        super().__init__(reason)
-        self.reason = reason
-        self.details = list(details)
-
-
-def add_selection(parser: argparse.ArgumentParser, splits: Sequence[str]) -> None:
-    """--split or --sequences, exactly one of them."""
-    group = parser.add_mutually_exclusive_group(required=True)
-    group.add_argument(
-        "--split", choices=list(splits), help="an official split of the label configuration"
-    )
-    group.add_argument(
-        "--sequences",
-        nargs="+",
-        metavar="XX",
-        help="sequence folder names (also data outside the official splits)",
-    )
-
-
-def _add_label_config(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--label-config",
-        type=Path,
-        metavar="FILE",
-        help="label configuration (.json of this project or an official semantic-kitti .yaml); "
-        "default: the bundled SemanticKITTI one",
-    )
-
-
-def _label_config(args: argparse.Namespace) -> LabelConfig:
-    try:
-        return load_label_config(args.label_config)
-    except (OSError, ValueError, KeyError) as exc:
-        raise CommandError(
-            f"cannot read the label configuration {args.label_config}: {exc}"
-        ) from exc
-
-
-def selected_sequences(args: argparse.Namespace, config: LabelConfig) -> list[str]:
-    """The sequences chosen by --split or --sequences."""
-    return resolve_sequences(split=args.split, sequences=args.sequences, config=config)
-
-
-def add_network_options(parser: argparse.ArgumentParser) -> None:
-    """The options shared by every command that runs a network (predict, serve, the Ray job)."""
-    g = parser.add_argument_group("network")
-    g.add_argument(
-        "--model",
-        choices=["rangeret-thesis", "rangeret-cir"],
-        help="network name; recognised from the checkpoint when omitted",
-    )
-    g.add_argument(
-        "--checkpoint",
-        type=Path,
-        metavar="FILE",
-        help="weights: the project's own checkpoint or a published .pt file "
-        "(default: the bundled demo weights, trained on simulated scenes only)",
-    )
-    g.add_argument("--height", type=int, help="range image rows (published files: default 64)")
-    g.add_argument("--width", type=int, help="range image columns (published files: default 1024)")
-    g.add_argument(
-        "--fov-up", type=float, metavar="DEG", help="upper vertical field of view (default 3)"
-    )
-    g.add_argument(
-        "--fov-down", type=float, metavar="DEG", help="lower vertical field of view (default -25)"
-    )
-    g.add_argument(
-        "--batch-size", type=int, default=1, metavar="N", help="scans per network pass (default 1)"
-    )
-    g.add_argument(
-        "--no-knn",
-        action="store_true",
-        help="take each point's pixel class, without kNN refinement",
-    )
-    g.add_argument(
-        "--device",
-        default="auto",
-        choices=["auto", "cpu", "cuda"],
-        help="auto picks CUDA when present (default)",
-    )
-    g.add_argument(
-        "--tta-flip", action="store_true", help="test-time augmentation: add the mirrored view"
-    )
-    g.add_argument(
-        "--tta-shifts",
-        type=int,
-        default=0,
-        metavar="N",
-        help="test-time augmentation: add N azimuth-rotated views",
-    )
-
-
-def spec_from_args(args: argparse.Namespace):
-    """A `PredictorSpec` from the shared network options (checked, not loaded yet)."""
-    from rangeret.inference import KnnSettings, PredictorSpec, TtaSettings, resolve_checkpoint
-
-    if args.batch_size < 1:
-        raise CommandError(f"--batch-size must be at least 1, got {args.batch_size}")
-    if args.tta_shifts < 0:
-        raise CommandError(f"--tta-shifts must not be negative, got {args.tta_shifts}")
-    tta = (
-        TtaSettings(flip=args.tta_flip, shifts=args.tta_shifts)
-        if (args.tta_flip or args.tta_shifts)
-        else None
-    )
-    return PredictorSpec(
-        checkpoint=str(resolve_checkpoint(args.checkpoint)),
-        model=args.model,
-        height=args.height,
-        width=args.width,
-        fov_up=args.fov_up,
-        fov_down=args.fov_down,
-        device=args.device,
-        knn=None if args.no_knn else KnnSettings(),
-        tta=tta,
-    )
-
-
-def predictor_from_args(args: argparse.Namespace):
+def predictor_from_args(args: argparse.Namespace) -> Predictor:
     """A loaded `Predictor` from the shared network options, announced in the log."""
     predictor = spec_from_args(args).build()
     info = predictor.describe()
@@ -189,7 +78,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     """Evaluate a predictions tree against ground truth with the official semantics."""
     from rangeret.evaluation import evaluate_predictions
 
-    config = _label_config(args)
+    config = label_config_from_args(args)
     sequences = selected_sequences(args, config)
     report = evaluate_predictions(
         args.dataset, args.predictions, sequences, config=config, progress=not args.quiet
@@ -218,7 +107,7 @@ def cmd_submission(args: argparse.Namespace) -> int:
         args.out,
         allow_partial=args.allow_partial,
         description=args.description,
-        config=_label_config(args),
+        config=label_config_from_args(args),
         progress=not args.quiet,
     )
     print(check.summary())
@@ -237,7 +126,7 @@ def cmd_validate_submission(args: argparse.Namespace) -> int:
         args.archive,
         args.dataset,
         allow_partial=args.allow_partial,
-        config=_label_config(args),
+        config=label_config_from_args(args),
         progress=not args.quiet,
     )
     if not check.ok:
@@ -269,113 +158,62 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_serve(args: argparse.Namespace) -> int:
-    """Serve the HTTP gateway until interrupted."""
-    from service.server import run_serve
-
-    return run_serve(args)
-
-
 def cmd_train(args: argparse.Namespace) -> int:
     """Train a network from a config and the command line (see `rangeret.training.command`)."""
-    from rangeret.training import run_train
+    from rangeret.training.command import run_train
 
     return run_train(args)
 
 
-def cmd_demo(args: argparse.Namespace) -> int:
-    """Run evaluation and submission end to end on a small simulated example."""
-    from workers.demo import run_demo
-
-    run_demo(args.out, checkpoint=args.checkpoint, progress=not args.quiet)
-    return 0
-
-
-def build_parser(command: str | None = None) -> argparse.ArgumentParser:
-    """The argument parser of the `rangeret` command and its subcommands.
-
-    The options of `serve` and `train` need torch and the web stack; they are added only when
-    `command` is one of them, or when it is None (every option), so other commands start quickly.
-    """
-    parser = argparse.ArgumentParser(
-        prog="rangeret",
-        description="RangeRet LiDAR semantic segmentation: evaluation, submissions and more.",
-    )
-    common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
-    common.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    splits = ("train", "valid", "test")
-
-    p = sub.add_parser(
-        "predict", parents=[common], help="label every scan of a split or of sequences"
-    )
+def _predict_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
-    add_selection(p, splits)
+    add_selection(p)
     p.add_argument(
         "--out", type=Path, required=True, metavar="PRED", help="predictions tree to write"
     )
     add_network_options(p)
-    p.set_defaults(func=cmd_predict)
 
-    p = sub.add_parser(
-        "evaluate", parents=[common], help="per-class IoU of predictions against ground truth"
-    )
+
+def _evaluate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
     p.add_argument("--predictions", type=Path, required=True, metavar="PRED")
-    add_selection(p, splits)
+    add_selection(p)
     p.add_argument("--json", type=Path, metavar="FILE", help="write the JSON report here")
     p.add_argument("--plots", type=Path, metavar="DIR", help="write confusion.png and iou.png here")
-    _add_label_config(p)
-    p.set_defaults(func=cmd_evaluate)
+    add_label_config(p)
 
-    p = sub.add_parser(
-        "submission", parents=[common], help="write and validate a CodaLab/Codabench zip"
+
+def _allow_partial_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--allow-partial",
+        action="store_true",
+        help="accept a dataset with missing test sequences or scans (an archive for tests only)",
     )
+
+
+def _submission_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--predictions", type=Path, required=True, metavar="PRED")
     p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
     p.add_argument("--out", type=Path, required=True, metavar="FILE.zip")
-    p.add_argument(
-        "--allow-partial",
-        action="store_true",
-        help="accept a dataset with missing test sequences or scans (an archive for tests only)",
-    )
+    _allow_partial_option(p)
     p.add_argument("--description", metavar="TEXT", help="text of description.txt in the archive")
-    _add_label_config(p)
-    p.set_defaults(func=cmd_submission)
+    add_label_config(p)
 
-    p = sub.add_parser(
-        "validate-submission", parents=[common], help="check a submission zip before uploading it"
-    )
+
+def _validate_submission_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("archive", type=Path, metavar="FILE.zip")
     p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
-    p.add_argument(
-        "--allow-partial",
-        action="store_true",
-        help="accept a dataset with missing test sequences or scans (an archive for tests only)",
-    )
-    _add_label_config(p)
-    p.set_defaults(func=cmd_validate_submission)
+    _allow_partial_option(p)
+    add_label_config(p)
 
-    p = sub.add_parser("serve", parents=[common], help="the HTTP gateway (FastAPI on uvicorn)")
-    if command in (None, "serve"):
-        from service.server import add_serve_arguments
 
-        add_serve_arguments(p)
-    p.set_defaults(func=cmd_serve)
+def _train_arguments(p: argparse.ArgumentParser) -> None:
+    from rangeret.training.command import add_train_arguments
 
-    p = sub.add_parser(
-        "train", parents=[common], help="train a network (in this process or with --ray)"
-    )
-    if command in (None, "train"):
-        from rangeret.training import add_train_arguments
+    add_train_arguments(p)
 
-        add_train_arguments(p)
-    p.set_defaults(func=cmd_train)
 
-    p = sub.add_parser(
-        "simulate", parents=[common], help="write a simulated dataset (street scenes)"
-    )
+def _simulate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, required=True, metavar="ROOT")
     p.add_argument(
         "--sequences", nargs="+", required=True, metavar="XX:N", help="sequences and scan counts"
@@ -386,30 +224,70 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--beams", type=int, default=64)
     p.add_argument("--azimuth-steps", type=int, default=2048)
     p.add_argument("--seed", type=int, default=0)
-    p.set_defaults(func=cmd_simulate)
-
-    p = sub.add_parser(
-        "demo", parents=[common], help="the whole pipeline on a small simulated example"
-    )
-    p.add_argument("--out", type=Path, metavar="DIR", help="results folder (default: a new one)")
-    p.add_argument(
-        "--checkpoint",
-        type=Path,
-        metavar="FILE",
-        help="other weights (default: the bundled demo weights)",
-    )
-    p.set_defaults(func=cmd_demo)
-    return parser
 
 
-_USER_ERRORS: tuple[type[BaseException], ...] = (
-    ScanFormatError,
-    DatasetLayoutError,
-    EvaluationError,
-    SubmissionError,
-    FileNotFoundError,
-    ValueError,  # CheckpointError and the other input errors of the library derive from it
+#: The library's own subcommands, in the order `rangeret --help` lists them.
+BUILTIN_COMMANDS = (
+    Subcommand(
+        "predict", "label every scan of a split or of sequences", _predict_arguments, cmd_predict
+    ),
+    Subcommand(
+        "evaluate",
+        "per-class IoU of predictions against ground truth",
+        _evaluate_arguments,
+        cmd_evaluate,
+    ),
+    Subcommand(
+        "submission",
+        "write and validate a CodaLab/Codabench zip",
+        _submission_arguments,
+        cmd_submission,
+    ),
+    Subcommand(
+        "validate-submission",
+        "check a submission zip before uploading it",
+        _validate_submission_arguments,
+        cmd_validate_submission,
+    ),
+    Subcommand(
+        "train",
+        "train a network (in this process, or with --ray on a cluster)",
+        _train_arguments,
+        cmd_train,
+    ),
+    Subcommand(
+        "simulate",
+        "write a simulated dataset (street scenes)",
+        _simulate_arguments,
+        cmd_simulate,
+    ),
 )
+
+
+def subcommands() -> list[Subcommand]:
+    """The library's subcommands, then those the installed layers contribute."""
+    return [*BUILTIN_COMMANDS, *load_plugins(COMMANDS_GROUP)]
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The argument parser of the `rangeret` command and its subcommands.
+
+    A subcommand's options are added only when `command` names it, or when it is None (every
+    option): some need torch or the web stack, and other commands start without them.
+    """
+    parser = argparse.ArgumentParser(
+        prog="rangeret",
+        description="RangeRet LiDAR semantic segmentation: evaluation, submissions and more.",
+    )
+    common = argparse.ArgumentParser(add_help=False)
+    add_output_options(common)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for cmd in subcommands():
+        p = sub.add_parser(cmd.name, parents=[common], help=cmd.help)
+        if command is None or command == cmd.name:
+            cmd.add_arguments(p)
+        p.set_defaults(func=cmd.run)
+    return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -422,42 +300,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         format="%(levelname)s %(name)s: %(message)s",
     )
     return run_command(f"rangeret {args.command}", args.func, args)
-
-
-def run_command(
-    program: str, func: Callable[[argparse.Namespace], int], args: argparse.Namespace
-) -> int:
-    """Run a command's body; input errors become one line on stderr (details below it) and exit code 1.
-
-    Every entry point (`rangeret`, `python -m service`, `python -m workers.predict_job`) goes through
-    here, so users see the same message shape, and never a traceback, whatever they launched.
-    """
-    try:
-        return func(args)
-    except CommandError as exc:
-        return fail(program, exc.reason, exc.details)
-    except (EvaluationError, SubmissionError) as exc:
-        return fail(program, _first_line(exc), exc.problems)
-    except _USER_ERRORS as exc:
-        return fail(program, str(exc))
-    except KeyboardInterrupt:
-        return fail(program, "interrupted", code=130)
-
-
-def _first_line(exc: EvaluationError | SubmissionError) -> str:
-    n = len(exc.problems)
-    return f"{n} problem(s), the first: {exc.problems[0]}" if n else str(exc)
-
-
-def fail(program: str, reason: str, details: Sequence[str] = (), code: int = 1) -> int:
-    """Print `program: error: reason` and up to a screenful of details to stderr; return `code`."""
-    print(f"{program}: error: {reason}", file=sys.stderr)
-    if len(details) > 1:
-        for line in details[:_MAX_DETAILS]:
-            print(f"  - {line}", file=sys.stderr)
-        if len(details) > _MAX_DETAILS:
-            print(f"  ... and {len(details) - _MAX_DETAILS} more", file=sys.stderr)
-    return code
 
 
 if __name__ == "__main__":

@@ -13,9 +13,10 @@ from dataclasses import dataclass
 
 from pydantic import ValidationError
 
-from rangeret.cli import CommandError, add_network_options, spec_from_args
+from rangeret.errors import CommandError
 from rangeret.inference import PredictorSpec, projection_for
 from rangeret.labels import LabelConfig, semantickitti
+from rangeret.options import add_network_options, spec_from_args
 from rangeret.projection import ProjectionConfig
 from service.errors import validation_sentence
 from service.settings import Settings

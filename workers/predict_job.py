@@ -21,16 +21,10 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from rangeret.cli import (
-    CommandError,
-    add_network_options,
-    add_selection,
-    run_command,
-    selected_sequences,
-    spec_from_args,
-)
+from rangeret.errors import CommandError, run_command
 from rangeret.inference import DEMO_WARNING, is_demo_checkpoint, projection_for
 from rangeret.labels import LabelConfig, load_label_config
+from rangeret.options import add_network_options, add_selection, selected_sequences, spec_from_args
 from rangeret.predict import RUN_INFO, PredictSummary, is_complete, list_scans
 from workers.pipeline import PipelineOptions, count_labels, run_pipeline
 

@@ -24,11 +24,13 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from rangeret.errors import run_command
 from rangeret.labels import load_label_config
 from rangeret.training import TrainConfig, Trainer, config_from_args
-from rangeret.training.command import add_training_options, add_workers_option
+from rangeret.training.command import add_training_options
 from rangeret.training.trainer import STATE, find_scans
 from workers.predict_job import connect
+from workers.train_options import add_ray_options
 
 log = logging.getLogger("workers.train_job")
 
@@ -111,7 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m workers.train_job", description=__doc__.split("\n\n")[0]
     )
     add_training_options(parser)
-    add_workers_option(parser)
+    add_ray_options(parser)
     parser.add_argument(
         "--max-failures",
         type=int,
@@ -130,11 +132,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=logging.WARNING if args.quiet else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-    try:
-        out = run_ray(config_from_args(args), workers=args.workers, max_failures=args.max_failures)
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"train_job: error: {exc}", file=sys.stderr)
-        return 1
+    return run_command("train_job", _run, args)
+
+
+def _run(args: argparse.Namespace) -> int:
+    out = run_ray(config_from_args(args), workers=args.workers, max_failures=args.max_failures)
     print(f"last checkpoint: {out / 'last.pt'}; best checkpoint: {out / 'best.pt'}")
     return 0
 

@@ -1,4 +1,4 @@
-"""Building networks by name, and reading and writing their checkpoints.
+"""Reading and writing networks' checkpoints.
 
 Two kinds of file load:
 
@@ -24,7 +24,6 @@ import io
 import os
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +31,7 @@ import numpy as np
 import torch
 
 from rangeret.atomic import atomic_write_bytes
+from rangeret.models.checkpoint_info import CheckpointInfo
 from rangeret.models.configs import OVERRIDES, ModelConfig, list_models, resolve_config
 from rangeret.models.rangeret import RangeRet
 
@@ -43,31 +43,6 @@ _LISTED = 8
 
 class CheckpointError(ValueError):
     """A file that is not a loadable RangeRet checkpoint, or does not fit the network asked for."""
-
-
-@dataclass(frozen=True)
-class CheckpointInfo:
-    """Where a loaded network's weights came from and what was stored with them.
-
-    `config` is the network's full configuration (`ModelConfig.to_dict()`); `published` is True for
-    files without the project's metadata (label_config, projection and metadata are then None).
-    """
-
-    path: str
-    sha256: str
-    name: str
-    config: dict[str, Any]
-    published: bool
-    label_config: dict[str, Any] | None
-    projection: dict[str, Any] | None
-    metadata: dict[str, Any] | None
-
-
-def build_model(
-    name: str, height: int = 64, width: int = 1024, num_classes: int = 20, **overrides: Any
-) -> RangeRet:
-    """A freshly initialised network `name` (see `list_models`) for (B, 5, height, width) input."""
-    return RangeRet(resolve_config(name, height, width, num_classes, **overrides))
 
 
 def save_checkpoint(

@@ -2,19 +2,17 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any
 
 import torch
 from torch import nn
 
 from rangeret.models.backbone import RetNetBackbone
-from rangeret.models.configs import ModelConfig
+from rangeret.models.checkpoint_info import CheckpointInfo
+from rangeret.models.configs import ModelConfig, resolve_config
 from rangeret.models.embedding import PatchEmbedding
 from rangeret.models.head import SemanticHead
 from rangeret.models.stem import build_stem
-
-if TYPE_CHECKING:
-    from rangeret.models.checkpoint import CheckpointInfo
 
 
 class RangeRet(nn.Module):
@@ -46,3 +44,10 @@ class RangeRet(nn.Module):
         tokens = self.backbone(tokens, grid)
         residual = features if self.config.residual else None
         return self.head(tokens, grid, (x.shape[-2], x.shape[-1]), residual)
+
+
+def build_model(
+    name: str, height: int = 64, width: int = 1024, num_classes: int = 20, **overrides: Any
+) -> RangeRet:
+    """A freshly initialised network `name` (see `list_models`) for (B, 5, height, width) input."""
+    return RangeRet(resolve_config(name, height, width, num_classes, **overrides))

@@ -10,7 +10,7 @@
 
 Each mixer takes (B, N, dim) tokens, the (Hp, Wp) grid they come from and the backbone's
 `GridCache`, and returns (B, N, dim). On CUDA the full-matrix forms run (fused attention kernels
-where they apply); elsewhere the tiled forms of `mixing.py`.
+where they apply); elsewhere the tiled forms of `token_mixing.py`.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from rangeret.models import mixing
+from rangeret.models import token_mixing
 from rangeret.models.decay import GridCache, decay_rates
 from rangeret.models.position import rotate_pairs
 
@@ -71,13 +71,13 @@ class MultiScaleRetention(_HeadProjections):
         q, k, v = self.project(x, grid, cache)
         table_dtype = _table_dtype(q.dtype)
         if q.device.type == "cuda":
-            mixed = mixing.retention_full(
+            mixed = token_mixing.retention_full(
                 q, k, v, cache.get("decay_full", grid, q.device, table_dtype)
             )
         else:
             table = cache.get("decay_table", grid, q.device, table_dtype)
             norm = cache.get("decay_norm", grid, q.device, table_dtype)
-            mixed = mixing.retention_tiled(q, k, v, table, norm, grid)
+            mixed = token_mixing.retention_tiled(q, k, v, table, norm, grid)
         return self._output(x, mixed)
 
     def forward_recurrent(
@@ -90,7 +90,7 @@ class MultiScaleRetention(_HeadProjections):
             )
         q, k, v = self.project(x, grid, cache)
         gamma = decay_rates(self.heads).to(q.device)
-        return self._output(x, mixing.retention_recurrent(q, k, v, gamma))
+        return self._output(x, token_mixing.retention_recurrent(q, k, v, gamma))
 
     def _output(self, x: torch.Tensor, mixed: torch.Tensor) -> torch.Tensor:
         """GroupNorm over heads, swish gate and output projection of (B, N, heads, d_v) retention."""
@@ -110,7 +110,7 @@ class SoftmaxAttention(_HeadProjections):
         """(B, N, dim) -> (B, N, dim)."""
         b, n, _ = x.shape
         q, k, v = self.project(x, grid, cache)
-        return self.out_proj(mixing.softmax_fused(q, k, v, None).reshape(b, n, -1))
+        return self.out_proj(token_mixing.softmax_fused(q, k, v, None).reshape(b, n, -1))
 
 
 class CircularRetention(_HeadProjections):
@@ -130,11 +130,13 @@ class CircularRetention(_HeadProjections):
         b, n, _ = x.shape
         q, k, v = self.project(x, grid, cache)
         if not self.decayed:
-            mixed = mixing.softmax_fused(q, k, v, None)
+            mixed = token_mixing.softmax_fused(q, k, v, None)
         elif q.device.type == "cuda":
-            mixed = mixing.softmax_fused(q, k, v, cache.get("bias_full", grid, q.device, q.dtype))
+            mixed = token_mixing.softmax_fused(
+                q, k, v, cache.get("bias_full", grid, q.device, q.dtype)
+            )
         else:
             table = cache.get("bias_table", grid, q.device, _table_dtype(q.dtype))
-            mixed = mixing.softmax_tiled(q, k, v, table, grid)
+            mixed = token_mixing.softmax_tiled(q, k, v, table, grid)
         mixed = mixed * torch.rsqrt(mixed.pow(2).mean(-1, keepdim=True) + 1e-5)
         return self.out_proj(mixed.reshape(b, n, -1))

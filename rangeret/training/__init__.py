@@ -3,7 +3,7 @@
 - `dataset`: SemanticKITTI scans as range images with per-pixel training classes, seeded per
   (epoch, scan) so runs and resumes are reproducible.
 - `augment`: the thesis's point augmentations (scale, rotation, shift, flip of x and y).
-- `mixing`: RangeFormer's range-image mixes (RangeMix, RangeUnion, RangePaste, RangeShift).
+- `range_mixes`: RangeFormer's range-image mixes (RangeMix, RangeUnion, RangePaste, RangeShift).
 - `losses`: class-weighted cross-entropy, Lovász-Softmax, alpha-balanced focal loss, and their sum.
 - `schedule`: AdamW with OneCycle or warm-up + cosine.
 - `trainer`: the loop, validation (range image, points, points + kNN), checkpoints, exact resume,

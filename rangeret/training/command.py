@@ -1,8 +1,8 @@
 """The `rangeret train` subcommand: its options and what it runs.
 
 `add_train_arguments(parser)` adds the options to an argparse parser and `run_train(args)` runs a
-parsed namespace: in this process, or data-parallel on a Ray cluster with `--ray` (then
-`workers.train_job` is imported, lazily, so that the library itself never imports Ray).
+parsed namespace in this process, or on a back-end that a layer above the library contributes as
+a `TrainBackend` entry point (the Ray layer adds `--ray`): the library itself never imports Ray.
 """
 
 from __future__ import annotations
@@ -13,35 +13,25 @@ from typing import Any
 
 from rangeret.models import list_models
 from rangeret.models.configs import OVERRIDES
+from rangeret.plugins import TRAIN_BACKENDS_GROUP, TrainBackend, load_plugins
 from rangeret.training.config import TrainConfig
 from rangeret.training.losses import LOSSES, WEIGHTINGS
-from rangeret.training.mixing import MIXES
+from rangeret.training.range_mixes import MIXES
 from rangeret.training.schedule import SCHEDULES
 from rangeret.training.trainer import BEST, CURVES_PNG, LAST, METRICS_CSV, Trainer
 
 
+def train_backends() -> list[TrainBackend]:
+    """The back-ends the installed layers contribute (group `rangeret.train_backends`)."""
+    return load_plugins(TRAIN_BACKENDS_GROUP)
+
+
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the options of `rangeret train` (DESIGN section 7, plus the recipe's knobs) to `parser`:
-    `add_training_options` and the choice of running on Ray (--ray, --workers)."""
+    """Add the options of `rangeret train` to `parser`: `add_training_options` and those of every
+    installed back-end (--ray, --workers)."""
     add_training_options(parser)
-    ray = parser.add_argument_group("ray")
-    ray.add_argument(
-        "--ray",
-        action="store_true",
-        help="data-parallel on the Ray cluster of RAY_ADDRESS (or a local one) with Ray Train",
-    )
-    add_workers_option(ray)
-
-
-def add_workers_option(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    """--workers: the number of Ray Train workers."""
-    parser.add_argument(
-        "--workers",
-        type=int,
-        default=2,
-        metavar="N",
-        help="Ray Train workers, one GPU each when the cluster has GPUs (default 2)",
-    )
+    for backend in train_backends():
+        backend.add_arguments(parser)
 
 
 def add_training_options(parser: argparse.ArgumentParser) -> None:
@@ -285,12 +275,9 @@ def run_train(args: argparse.Namespace) -> int:
     from rangeret.models import load_checkpoint
 
     config = config_from_args(args)
-    if args.ray:
-        if args.workers < 1:
-            raise ValueError(f"--workers must be at least 1, got {args.workers}")
-        from workers.train_job import run_ray
-
-        run_ray(config, workers=args.workers)
+    backend = next((b for b in train_backends() if b.selected(args)), None)
+    if backend is not None:
+        backend.run(config, args)
     else:
         Trainer(config).fit()
     out = Path(config.out)

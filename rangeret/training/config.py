@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from rangeret.training.losses import LOSSES, WEIGHTINGS
-from rangeret.training.mixing import MIXES
+from rangeret.training.range_mixes import MIXES
 from rangeret.training.schedule import SCHEDULES
 
 #: Fields a resumed run may change: where and how it runs, not what it computes.

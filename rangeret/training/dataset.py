@@ -26,7 +26,7 @@ from rangeret.labels import LabelConfig
 from rangeret.layout import ScanEntry
 from rangeret.projection import ProjectionConfig, project_with
 from rangeret.training.augment import augment_points
-from rangeret.training.mixing import MixSettings, RangeImage
+from rangeret.training.range_mixes import MixSettings, RangeImage
 
 #: Keys of a sample that are per-point arrays (validation only), kept as lists when batching.
 POINT_KEYS = ("proj_x", "proj_y", "unproj_range", "point_labels")

@@ -54,7 +54,7 @@ from rangeret.training.config import TrainConfig
 from rangeret.training.dataset import EpochSampler, RangeDataset, collate, steps_per_epoch
 from rangeret.training.logs import CsvLog, plot_curves
 from rangeret.training.losses import SegmentationLoss, class_weights
-from rangeret.training.mixing import MixSettings, rare_classes
+from rangeret.training.range_mixes import MixSettings, rare_classes
 from rangeret.training.schedule import build_optimizer, build_scheduler
 
 log = logging.getLogger("rangeret.training")

@@ -1,0 +1,24 @@
+"""`CheckpointInfo`: where a loaded network's weights came from, attached to the network."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+
+@dataclass(frozen=True)
+class CheckpointInfo:
+    """Where a loaded network's weights came from and what was stored with them.
+
+    `config` is the network's full configuration (`ModelConfig.to_dict()`); `published` is True for
+    files without the project's metadata (label_config, projection and metadata are then None).
+    """
+
+    path: str
+    sha256: str
+    name: str
+    config: dict[str, Any]
+    published: bool
+    label_config: dict[str, Any] | None
+    projection: dict[str, Any] | None
+    metadata: dict[str, Any] | None

@@ -1,0 +1,148 @@
+"""Command-line options shared by every entry point, written once so each takes them the same way.
+
+`rangeret` subcommands, `rangeret serve` / `python -m service` and `python -m workers.predict_job`
+all build their parsers from these. Torch-free: the network options are checked here and the
+network is loaded only when a command runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from rangeret.errors import CommandError
+from rangeret.labels import LabelConfig, load_label_config
+from rangeret.layout import resolve_sequences
+
+if TYPE_CHECKING:
+    from rangeret.inference import PredictorSpec
+
+#: The splits every label configuration names.
+SPLITS = ("train", "valid", "test")
+
+
+def add_output_options(parser: argparse.ArgumentParser) -> None:
+    """-q (no progress bars) and -v (debug logging)."""
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+
+
+def add_selection(parser: argparse.ArgumentParser, splits: Sequence[str] = SPLITS) -> None:
+    """--split or --sequences, exactly one of them."""
+    group = parser.add_mutually_exclusive_group(required=True)
+    group.add_argument(
+        "--split", choices=list(splits), help="an official split of the label configuration"
+    )
+    group.add_argument(
+        "--sequences",
+        nargs="+",
+        metavar="XX",
+        help="sequence folder names (also data outside the official splits)",
+    )
+
+
+def selected_sequences(args: argparse.Namespace, config: LabelConfig) -> list[str]:
+    """The sequences chosen by --split or --sequences."""
+    return resolve_sequences(split=args.split, sequences=args.sequences, config=config)
+
+
+def add_label_config(parser: argparse.ArgumentParser) -> None:
+    """--label-config FILE: another label configuration than the bundled SemanticKITTI one."""
+    parser.add_argument(
+        "--label-config",
+        type=Path,
+        metavar="FILE",
+        help="label configuration (.json of this project or an official semantic-kitti .yaml); "
+        "default: the bundled SemanticKITTI one",
+    )
+
+
+def label_config_from_args(args: argparse.Namespace) -> LabelConfig:
+    """The label configuration of --label-config, or the bundled one; a bad file is a CommandError."""
+    try:
+        return load_label_config(args.label_config)
+    except (OSError, ValueError, KeyError) as exc:
+        raise CommandError(
+            f"cannot read the label configuration {args.label_config}: {exc}"
+        ) from exc
+
+
+def add_network_options(parser: argparse.ArgumentParser) -> None:
+    """The options shared by every command that runs a network (predict, serve, the Ray job)."""
+    g = parser.add_argument_group("network")
+    g.add_argument(
+        "--model",
+        choices=["rangeret-thesis", "rangeret-cir"],
+        help="network name; recognised from the checkpoint when omitted",
+    )
+    g.add_argument(
+        "--checkpoint",
+        type=Path,
+        metavar="FILE",
+        help="weights: the project's own checkpoint or a published .pt file "
+        "(default: the bundled demo weights, trained on simulated scenes only)",
+    )
+    g.add_argument("--height", type=int, help="range image rows (published files: default 64)")
+    g.add_argument("--width", type=int, help="range image columns (published files: default 1024)")
+    g.add_argument(
+        "--fov-up", type=float, metavar="DEG", help="upper vertical field of view (default 3)"
+    )
+    g.add_argument(
+        "--fov-down", type=float, metavar="DEG", help="lower vertical field of view (default -25)"
+    )
+    g.add_argument(
+        "--batch-size",
+        type=int,
+        default=1,
+        metavar="N",
+        help="scans per network pass (default 1)",
+    )
+    g.add_argument(
+        "--no-knn",
+        action="store_true",
+        help="take each point's pixel class, without kNN refinement",
+    )
+    g.add_argument(
+        "--device",
+        default="auto",
+        choices=["auto", "cpu", "cuda"],
+        help="auto picks CUDA when present (default)",
+    )
+    g.add_argument(
+        "--tta-flip", action="store_true", help="test-time augmentation: add the mirrored view"
+    )
+    g.add_argument(
+        "--tta-shifts",
+        type=int,
+        default=0,
+        metavar="N",
+        help="test-time augmentation: add N azimuth-rotated views",
+    )
+
+
+def spec_from_args(args: argparse.Namespace) -> PredictorSpec:
+    """A `PredictorSpec` from the shared network options (checked, not loaded yet)."""
+    from rangeret.inference import KnnSettings, PredictorSpec, TtaSettings, resolve_checkpoint
+
+    if args.batch_size < 1:
+        raise CommandError(f"--batch-size must be at least 1, got {args.batch_size}")
+    if args.tta_shifts < 0:
+        raise CommandError(f"--tta-shifts must not be negative, got {args.tta_shifts}")
+    tta = (
+        TtaSettings(flip=args.tta_flip, shifts=args.tta_shifts)
+        if (args.tta_flip or args.tta_shifts)
+        else None
+    )
+    return PredictorSpec(
+        checkpoint=str(resolve_checkpoint(args.checkpoint)),
+        model=args.model,
+        height=args.height,
+        width=args.width,
+        fov_up=args.fov_up,
+        fov_down=args.fov_down,
+        device=args.device,
+        knn=None if args.no_knn else KnnSettings(),
+        tta=tta,
+    )

@@ -1,0 +1,66 @@
+"""What the Ray layer adds to the `rangeret` command: `rangeret demo` and `rangeret train --ray`.
+
+Declared as entry points in `pyproject.toml` and loaded by `rangeret.plugins`. This module
+imports neither torch nor Ray: the bodies import them when they run.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from rangeret.plugins import Subcommand, TrainBackend
+from workers.train_options import add_ray_options
+
+if TYPE_CHECKING:
+    from rangeret.training.config import TrainConfig
+
+
+def _demo_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--out", type=Path, metavar="DIR", help="results folder (default: a new one)"
+    )
+    parser.add_argument(
+        "--checkpoint",
+        type=Path,
+        metavar="FILE",
+        help="other weights (default: the bundled demo weights)",
+    )
+
+
+def _run_demo(args: argparse.Namespace) -> int:
+    from workers.demo import run_demo
+
+    run_demo(args.out, checkpoint=args.checkpoint, progress=not args.quiet)
+    return 0
+
+
+DEMO = Subcommand(
+    "demo", "the whole pipeline on a small simulated example", _demo_arguments, _run_demo
+)
+
+
+def _ray_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("ray")
+    group.add_argument(
+        "--ray",
+        action="store_true",
+        help="data-parallel on the Ray cluster of RAY_ADDRESS (or a local one) with Ray Train",
+    )
+    add_ray_options(group)
+
+
+def _train_on_ray(config: TrainConfig, args: argparse.Namespace) -> None:
+    from workers.train_job import run_ray
+
+    if args.workers < 1:
+        raise ValueError(f"--workers must be at least 1, got {args.workers}")
+    run_ray(config, workers=args.workers)
+
+
+RAY_TRAINING = TrainBackend(
+    add_arguments=_ray_arguments,
+    selected=lambda args: bool(getattr(args, "ray", False)),
+    run=_train_on_ray,
+)
