@@ -1,34 +1,19 @@
-"""Synthetic SemanticKITTI data: a ray-casting simulator of a spinning LiDAR in street scenes.
+"""The simulated street: labelled primitives over a classified ground plane, and their generation.
 
 A scene is a straight street along +x built from labelled primitives (upright boxes that may be
 rotated about the vertical, vertical capped cylinders, ellipsoids) over a ground plane whose
 label depends on where a ray lands (road, lane markings, parking, sidewalk, terrain, other
-ground). A sensor modelled on the Velodyne HDL-64E (evenly spread beams, 360 degrees of azimuth)
-drives along the street. A scan tests all its (ray, primitive) pairs at once, vectorised: the
-pairs are those whose ray lies in the primitive's angular bounding window, so the work grows
-with what the sensor sees rather than with rays x primitives. The nearest hit of each ray wins.
-
-Labels use raw SemanticKITTI ids (instance ids in the high 16 bits for things), so the data goes
-through the same readers, evaluator and pipeline as the real dataset. `simulate_dataset` writes a
-SemanticKITTI tree, reproducible byte for byte from its seed.
+ground). Labels use raw SemanticKITTI ids (instance ids in the high 16 bits for things), so
+simulated data goes through the same readers, evaluator and pipeline as the real dataset.
 """
 
 from __future__ import annotations
 
-import os
-from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 
-from rangeret.atomic import atomic_write_bytes
-from rangeret.io import write_labels, write_scan
-from rangeret.layout import labels_dir, normalise_sequence, velodyne_dir
-
-#: Seconds between two scans (the HDL-64E spins at 10 Hz).
-SCAN_PERIOD = 0.1
-
+#: Raw SemanticKITTI ids of the simulated classes, and the moving variants of those that move.
 UNLABELED, OUTLIER = 0, 1
 CAR, BICYCLE, MOTORCYCLE, TRUCK, OTHER_VEHICLE = 10, 11, 15, 18, 20
 PERSON, BICYCLIST = 30, 31
@@ -64,47 +49,10 @@ REMISSION = {
 for _static, _moving in MOVING.items():
     REMISSION[_moving] = REMISSION[_static]
 
-#: Per-point remission noise, and the share of returns that are spurious (dust, multipath).
-REMISSION_NOISE = 0.04
-OUTLIER_RATE = 0.0005
 #: Height of the raised sidewalk above the road.
 CURB_HEIGHT = 0.12
 #: Content reaches this far beyond both ends of the street, more than the sensor's range.
 MARGIN = 90.0
-
-_REMISSION_LUT = np.zeros(1 << 16, dtype=np.float64)
-for _raw, _value in REMISSION.items():
-    _REMISSION_LUT[_raw] = _value
-
-
-@dataclass
-class SensorConfig:
-    """A spinning multi-beam LiDAR: beams evenly spread from `fov_up` to `fov_down` (degrees),
-    `azimuth_steps` columns over 360 degrees, mounted `height` m above the ground, returns up to
-    `max_range` m with gaussian range noise (m) and a share `dropout` of returns lost."""
-
-    beams: int = 64
-    azimuth_steps: int = 2048
-    fov_up: float = 2.0
-    fov_down: float = -24.8
-    height: float = 1.73
-    max_range: float = 80.0
-    range_noise: float = 0.02
-    dropout: float = 0.02
-
-    def __post_init__(self) -> None:
-        if self.beams < 1 or self.azimuth_steps < 1:
-            raise ValueError(
-                f"beams and azimuth_steps must be positive, got {self.beams} x {self.azimuth_steps}"
-            )
-        if not self.fov_down < self.fov_up or not -90 < self.fov_down <= self.fov_up < 90:
-            raise ValueError(
-                f"need -90 < fov_down < fov_up < 90 degrees, got {self.fov_down}, {self.fov_up}"
-            )
-        if self.height <= 0 or self.max_range <= 0:
-            raise ValueError("height and max_range must be positive")
-        if self.range_noise < 0 or not 0 <= self.dropout < 1:
-            raise ValueError("range_noise must be >= 0 and dropout in [0, 1)")
 
 
 @dataclass
@@ -169,11 +117,6 @@ class Scene:
     cylinders: Cylinders
     ellipsoids: Ellipsoids
 
-    @property
-    def num_primitives(self) -> int:
-        """Number of boxes, cylinders and ellipsoids."""
-        return len(self.boxes.yaw) + len(self.cylinders.radius) + len(self.ellipsoids.radii)
-
 
 class _Builder:
     """Collects primitives while a scene is generated, and hands out instance ids."""
@@ -209,18 +152,22 @@ class _Builder:
         vx: float = 0.0,
         remission: float | None = None,
     ) -> None:
+        """An upright box of `length` x `width` centred on (x, y) from z0 to z1, turned by `yaw`."""
         rem = self.remission(label) if remission is None else remission
         self.boxes.append((x, y, length / 2, width / 2, yaw, z0, z1, label, rem, vx))
 
     def cylinder(self, x: float, y: float, r: float, z0: float, z1: float, label: int) -> None:
+        """A vertical cylinder of radius `r` on the axis (x, y) from z0 to z1."""
         self.cylinders.append((x, y, r, z0, z1, label, self.remission(label)))
 
     def ellipsoid(
         self, x: float, y: float, z: float, rx: float, ry: float, rz: float, label: int
     ) -> None:
+        """An axis-aligned ellipsoid centred on (x, y, z) with radii (rx, ry, rz)."""
         self.ellipsoids.append((x, y, z, rx, ry, rz, label, self.remission(label)))
 
     def build(self) -> tuple[Boxes, Cylinders, Ellipsoids]:
+        """The collected primitives as arrays, one dataclass per kind."""
         b = np.asarray(self.boxes, dtype=np.float64).reshape(-1, 10)
         c = np.asarray(self.cylinders, dtype=np.float64).reshape(-1, 7)
         e = np.asarray(self.ellipsoids, dtype=np.float64).reshape(-1, 8)
@@ -630,298 +577,3 @@ def ground_labels(scene: Scene, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     edge = np.abs(ay - (scene.road_half - 0.2)) < half_line
     out[divider | edge] = LANE_MARKING
     return out
-
-
-@lru_cache(maxsize=8)
-def _ray_grid(
-    beams: int, steps: int, fov_up: float, fov_down: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Unit ray directions (beams * steps, 3), beam-major, and the beam elevations and column
-    azimuths (radians). Column j looks at azimuth pi - (j + 0.5) 2 pi / steps, so the
-    projection's u = floor(0.5 (-azimuth / pi + 1) W) gives back column j when W = steps."""
-    elev = np.radians(np.linspace(fov_up, fov_down, beams)) if beams > 1 else np.radians([fov_up])
-    azim = np.pi - (np.arange(steps) + 0.5) * (2 * np.pi / steps)
-    ce = np.cos(elev)[:, None]
-    dirs = np.empty((beams, steps, 3))
-    dirs[..., 0] = ce * np.cos(azim)[None, :]
-    dirs[..., 1] = ce * np.sin(azim)[None, :]
-    dirs[..., 2] = np.sin(elev)[:, None]
-    dirs = dirs.reshape(-1, 3)
-    for array in (elev, azim, dirs):
-        array.flags.writeable = False
-    return elev, azim, dirs
-
-
-def _candidate_pairs(
-    lo: np.ndarray, hi: np.ndarray, sensor: SensorConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """(ray, primitive) pairs worth testing: rays inside each primitive's angular window.
-
-    `lo`, `hi` are (P, 3) corners of the primitives' axis-aligned bounds relative to the sensor.
-    The window spans the beams between the lowest and highest elevation the bounds can show and
-    the columns between the extreme azimuths of the footprint's corners; it is conservative.
-    """
-    beams, steps = sensor.beams, sensor.azimuth_steps
-    nx = np.clip(0.0, lo[:, 0], hi[:, 0])
-    ny = np.clip(0.0, lo[:, 1], hi[:, 1])
-    dmin = np.hypot(nx, ny)
-    dmax = np.hypot(np.maximum(-lo[:, 0], hi[:, 0]), np.maximum(-lo[:, 1], hi[:, 1]))
-    zlo, zhi = lo[:, 2], hi[:, 2]
-    e_hi = np.degrees(np.arctan2(zhi, np.where(zhi >= 0, dmin, dmax)))
-    e_lo = np.degrees(np.arctan2(zlo, np.where(zlo >= 0, dmax, dmin)))
-    step = (sensor.fov_up - sensor.fov_down) / (beams - 1) if beams > 1 else 1.0
-    r0 = np.clip(np.floor((sensor.fov_up - e_hi) / step), 0, beams).astype(np.int64)
-    r1 = np.clip(np.ceil((sensor.fov_up - e_lo) / step), -1, beams - 1).astype(np.int64)
-    nrow = np.maximum(r1 - r0 + 1, 0)
-
-    cx, cy = (lo[:, 0] + hi[:, 0]) / 2, (lo[:, 1] + hi[:, 1]) / 2
-    centre = np.arctan2(cy, cx)
-    corners = np.arctan2(
-        np.stack([lo[:, 1], hi[:, 1], lo[:, 1], hi[:, 1]]),
-        np.stack([lo[:, 0], lo[:, 0], hi[:, 0], hi[:, 0]]),
-    )
-    delta = np.mod(corners - centre + np.pi, 2 * np.pi) - np.pi
-    a_hi = centre + delta.max(axis=0)
-    a_lo = centre + delta.min(axis=0)
-    scale = steps / (2 * np.pi)
-    c0 = np.floor((np.pi - a_hi) * scale - 0.5).astype(np.int64)
-    c1 = np.ceil((np.pi - a_lo) * scale - 0.5).astype(np.int64)
-    inside = dmin <= 0.0
-    c0 = np.where(inside, 0, c0)
-    ncol = np.where(inside, steps, np.minimum(c1 - c0 + 1, steps))
-
-    sizes = np.where(dmin <= sensor.max_range, nrow * ncol, 0)
-    total = int(sizes.sum())
-    prim = np.repeat(np.arange(len(sizes)), sizes)
-    k = np.arange(total) - np.repeat(np.cumsum(sizes) - sizes, sizes)
-    width = ncol[prim]
-    row = r0[prim] + k // width
-    col = np.mod(c0[prim] + k % width, steps)
-    return row * steps + col, prim
-
-
-def _hit_boxes(
-    o: np.ndarray, d: np.ndarray, boxes: Boxes, centre: np.ndarray, p: np.ndarray
-) -> np.ndarray:
-    """Distances along rays `d` (M, 3) from `o` to boxes `p` (slab test in each box's frame)."""
-    c, s = np.cos(boxes.yaw)[p], np.sin(boxes.yaw)[p]
-    ox, oy = o[0] - centre[p, 0], o[1] - centre[p, 1]
-    dx, dy = d[:, 0], d[:, 1]
-    near = np.full(len(p), -np.inf)
-    far = np.full(len(p), np.inf)
-    for origin, direction, half in (
-        (c * ox + s * oy, c * dx + s * dy, boxes.half[p, 0]),
-        (c * oy - s * ox, c * dy - s * dx, boxes.half[p, 1]),
-    ):
-        inv = 1.0 / np.where(np.abs(direction) < 1e-12, 1e-12, direction)
-        t1, t2 = (-half - origin) * inv, (half - origin) * inv
-        near = np.maximum(near, np.minimum(t1, t2))
-        far = np.minimum(far, np.maximum(t1, t2))
-    inv = 1.0 / np.where(np.abs(d[:, 2]) < 1e-12, 1e-12, d[:, 2])
-    t1, t2 = (boxes.z[p, 0] - o[2]) * inv, (boxes.z[p, 1] - o[2]) * inv
-    near = np.maximum(near, np.minimum(t1, t2))
-    far = np.minimum(far, np.maximum(t1, t2))
-    return np.where((near <= far) & (near > 0), near, np.inf)
-
-
-def _hit_cylinders(o: np.ndarray, d: np.ndarray, cyl: Cylinders, p: np.ndarray) -> np.ndarray:
-    """Distances along rays to vertical capped cylinders (side, then top and bottom caps)."""
-    ox, oy = o[0] - cyl.center[p, 0], o[1] - cyl.center[p, 1]
-    dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
-    r2 = cyl.radius[p] ** 2
-    z0, z1 = cyl.z[p, 0], cyl.z[p, 1]
-    a = dx * dx + dy * dy
-    half_b = ox * dx + oy * dy
-    disc = half_b * half_b - a * (ox * ox + oy * oy - r2)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        t = (-half_b - np.sqrt(np.maximum(disc, 0.0))) / a
-    z = o[2] + t * dz
-    best = np.where((disc >= 0) & (t > 0) & (z >= z0) & (z <= z1), t, np.inf)
-    inv = 1.0 / np.where(np.abs(dz) < 1e-12, 1e-12, dz)
-    for zc in (z0, z1):
-        tc = (zc - o[2]) * inv
-        px, py = ox + tc * dx, oy + tc * dy
-        best = np.where((tc > 0) & (px * px + py * py <= r2) & (tc < best), tc, best)
-    return best
-
-
-def _hit_ellipsoids(o: np.ndarray, d: np.ndarray, ell: Ellipsoids, p: np.ndarray) -> np.ndarray:
-    """Distances along rays to ellipsoids (a unit sphere after scaling by the radii)."""
-    radii = ell.radii[p]
-    oc = (o[None, :] - ell.center[p]) / radii
-    dc = d / radii
-    a = np.einsum("ij,ij->i", dc, dc)
-    half_b = np.einsum("ij,ij->i", oc, dc)
-    disc = half_b * half_b - a * (np.einsum("ij,ij->i", oc, oc) - 1.0)
-    t = (-half_b - np.sqrt(np.maximum(disc, 0.0))) / a
-    return np.where((disc >= 0) & (t > 0), t, np.inf)
-
-
-def _box_centres(scene: Scene, time: float) -> np.ndarray:
-    """Box centres at `time`: moving boxes advance along x and wrap around the scene's extent."""
-    boxes = scene.boxes
-    centre = boxes.center.copy()
-    moving = boxes.vx != 0
-    if moving.any():
-        x_lo, x_hi = scene.extent
-        moved = centre[moving, 0] + boxes.vx[moving] * time
-        centre[moving, 0] = x_lo + np.mod(moved - x_lo, x_hi - x_lo)
-    return centre
-
-
-def simulate_scan(
-    scene: Scene, pose_x: float, sensor: SensorConfig, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray]:
-    """One scan of `scene` by `sensor` at (pose_x, scene.ego_y), facing +x.
-
-    Returns float32 (N, 4) points (x, y, z, remission) in the sensor frame (the ground at
-    z = -height) and uint32 (N,) labels (raw id | instance << 16). Rays that hit nothing within
-    `max_range`, and a random share `dropout` of the others, give no point.
-    """
-    _, _, dirs = _ray_grid(sensor.beams, sensor.azimuth_steps, sensor.fov_up, sensor.fov_down)
-    origin = np.array([pose_x, scene.ego_y, sensor.height])
-    time = pose_x / scene.ego_speed
-
-    # The ground plane z = 0 catches every downward ray; primitives may come nearer.
-    with np.errstate(divide="ignore"):
-        best = np.where(dirs[:, 2] < 0, -sensor.height / dirs[:, 2], np.inf)
-    owner = np.where(np.isfinite(best), -1, -2)
-
-    box_centre = _box_centres(scene, time)
-    cyl, ell = scene.cylinders, scene.ellipsoids
-    c, s = np.abs(np.cos(scene.boxes.yaw)), np.abs(np.sin(scene.boxes.yaw))
-    hx, hy = scene.boxes.half[:, 0], scene.boxes.half[:, 1]
-    ext = np.column_stack([c * hx + s * hy, s * hx + c * hy])
-    bounds = [
-        (
-            np.column_stack([box_centre - ext, scene.boxes.z[:, 0]]),
-            np.column_stack([box_centre + ext, scene.boxes.z[:, 1]]),
-        ),
-        (
-            np.column_stack([cyl.center - cyl.radius[:, None], cyl.z[:, 0]]),
-            np.column_stack([cyl.center + cyl.radius[:, None], cyl.z[:, 1]]),
-        ),
-        (ell.center - ell.radii, ell.center + ell.radii),
-    ]
-    rays, dists, owners = [], [], []
-    offset = 0
-    for kind, (lo, hi) in enumerate(bounds):
-        ray, prim = _candidate_pairs(lo - origin, hi - origin, sensor)
-        d = dirs[ray]
-        if kind == 0:
-            t = _hit_boxes(origin, d, scene.boxes, box_centre, prim)
-        elif kind == 1:
-            t = _hit_cylinders(origin, d, cyl, prim)
-        else:
-            t = _hit_ellipsoids(origin, d, ell, prim)
-        hit = t < sensor.max_range
-        rays.append(ray[hit])
-        dists.append(t[hit])
-        owners.append(prim[hit] + offset)
-        offset += len(lo)
-    ray, t, prim = np.concatenate(rays), np.concatenate(dists), np.concatenate(owners)
-    np.minimum.at(best, ray, t)
-    nearest = t == best[ray]
-    owner[ray[nearest]] = prim[nearest]
-
-    idx = np.flatnonzero(best <= sensor.max_range)
-    idx = idx[rng.random(idx.size) >= sensor.dropout]
-    dist, owner = best[idx], owner[idx]
-    d = dirs[idx]
-
-    labels = np.empty(idx.size, dtype=np.uint32)
-    on_ground = owner == -1
-    world = origin[None, :2] + d[on_ground, :2] * dist[on_ground, None]
-    labels[on_ground] = ground_labels(scene, world[:, 0], world[:, 1])
-    all_labels = np.concatenate([scene.boxes.label, cyl.label, ell.label])
-    all_rem = np.concatenate([scene.boxes.remission, cyl.remission, ell.remission])
-    labels[~on_ground] = all_labels[owner[~on_ground]]
-    mean = np.empty(idx.size)
-    mean[on_ground] = _REMISSION_LUT[labels[on_ground]]
-    mean[~on_ground] = all_rem[owner[~on_ground]]
-    remission = mean + rng.normal(0.0, REMISSION_NOISE, idx.size)
-
-    dist = dist + rng.normal(0.0, sensor.range_noise, idx.size)
-    spurious = rng.random(idx.size) < OUTLIER_RATE
-    dist[spurious] *= rng.uniform(0.05, 0.9, int(spurious.sum()))
-    labels[spurious] = OUTLIER
-    remission[spurious] = rng.uniform(0.0, 0.1, int(spurious.sum()))
-
-    keep = (dist > 0.5) & (dist <= sensor.max_range)
-    points = np.empty((int(keep.sum()), 4), dtype=np.float32)
-    points[:, :3] = d[keep] * dist[keep, None]
-    points[:, 3] = np.clip(remission[keep], 0.0, 1.0)
-    return points, labels[keep]
-
-
-def _sequence_seed(seed: int, name: str) -> np.random.SeedSequence:
-    """The seed of one sequence: the dataset seed and the sequence's name."""
-    return np.random.SeedSequence(seed, spawn_key=tuple(name.encode("utf-8")))
-
-
-def _matrix_line(values: Iterable[float]) -> str:
-    return " ".join(f"{v:.12e}" for v in values)
-
-
-def simulate_dataset(
-    root: str | os.PathLike[str],
-    sequences: Mapping[str, int],
-    labelled: Iterable[str] | bool = True,
-    sensor: SensorConfig | None = None,
-    seed: int = 0,
-    progress: bool = False,
-) -> int:
-    """Write a simulated SemanticKITTI tree under `root` and return the number of scans written.
-
-    `sequences` maps a sequence name to its number of scans. Each sequence gets its own street
-    and writes `sequences/XX/velodyne/NNNNNN.bin`, `labels/NNNNNN.label` when it is labelled
-    (`labelled`: True for all, False for none, or the names of the labelled ones), and
-    `poses.txt`, `times.txt` and `calib.txt` (the LiDAR is the reference frame: `Tr` is the
-    identity and the poses are the sensor's). The same seed writes the same bytes.
-    """
-    sensor = sensor or SensorConfig()
-    counts = {normalise_sequence(name): int(n) for name, n in sequences.items()}
-    if any(n < 0 for n in counts.values()):
-        raise ValueError(f"numbers of scans must be >= 0, got {counts}")
-    if isinstance(labelled, bool):
-        with_labels = set(counts) if labelled else set()
-    else:
-        with_labels = {normalise_sequence(name) for name in labelled}
-        unknown = sorted(with_labels - set(counts))
-        if unknown:
-            raise ValueError(f"labelled sequences {unknown} are not among the sequences")
-
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=sum(counts.values()), unit="scan", desc="simulating")
-    written = 0
-    try:
-        for name, n in counts.items():
-            seeds = _sequence_seed(seed, name).spawn(n + 1)
-            scene = make_scene(np.random.default_rng(seeds[0]), max(200.0, 1.25 * n))
-            step = scene.ego_speed * SCAN_PERIOD
-            seq_dir = velodyne_dir(root, name).parent
-            seq_dir.mkdir(parents=True, exist_ok=True)
-            poses, times = [], []
-            for k in range(n):
-                points, labels = simulate_scan(
-                    scene, k * step, sensor, np.random.default_rng(seeds[k + 1])
-                )
-                write_scan(velodyne_dir(root, name) / f"{k:06d}.bin", points)
-                if name in with_labels:
-                    write_labels(labels_dir(root, name) / f"{k:06d}.label", labels)
-                poses.append(_matrix_line([1, 0, 0, k * step, 0, 1, 0, 0, 0, 0, 1, 0]))
-                times.append(f"{k * SCAN_PERIOD:.6e}")
-                written += 1
-                if bar is not None:
-                    bar.update(1)
-            identity = _matrix_line([1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0])
-            calib = [f"P{i}: {identity}" for i in range(4)] + [f"Tr: {identity}"]
-            for file, lines in (("poses.txt", poses), ("times.txt", times), ("calib.txt", calib)):
-                atomic_write_bytes(seq_dir / file, "".join(f"{x}\n" for x in lines).encode())
-    finally:
-        if bar is not None:
-            bar.close()
-    return written

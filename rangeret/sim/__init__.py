@@ -1,0 +1,25 @@
+"""Synthetic SemanticKITTI data: a ray-casting simulator of a spinning LiDAR in street scenes.
+
+- `scene`: the street (labelled boxes, cylinders and ellipsoids over a classified ground plane)
+  and its random generation, `make_scene`;
+- `raycast`: the sensor, `SensorConfig`, and `simulate_scan`, which casts its beams against a
+  scene into points, labels and remissions;
+- `dataset`: `simulate_dataset`, which writes sequences of scans in the SemanticKITTI layout,
+  reproducible byte for byte from its seed.
+"""
+
+from rangeret.sim.dataset import simulate_dataset
+from rangeret.sim.raycast import SensorConfig, simulate_scan
+from rangeret.sim.scene import Boxes, Cylinders, Ellipsoids, Scene, ground_labels, make_scene
+
+__all__ = [
+    "Boxes",
+    "Cylinders",
+    "Ellipsoids",
+    "Scene",
+    "SensorConfig",
+    "ground_labels",
+    "make_scene",
+    "simulate_dataset",
+    "simulate_scan",
+]
