@@ -1,4 +1,4 @@
-"""Request and response bodies of the HTTP API (DESIGN section 8), with OpenAPI examples."""
+"""Request and response bodies of the HTTP API, with OpenAPI examples."""
 
 from __future__ import annotations
 
@@ -10,6 +10,8 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 SEQUENCE_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+#: The OpenAPI content of a binary body (a scan, its labels, an archive).
+BINARY_CONTENT: dict[str, Any] = {"schema": {"type": "string", "format": "binary"}}
 
 
 class ErrorResponse(BaseModel):

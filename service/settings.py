@@ -1,5 +1,7 @@
 """Gateway settings from the environment (`RANGERET_*`), overridable by `rangeret serve` options.
 
+RANGERET_HOST              address to listen on (default 127.0.0.1; another needs a token)
+RANGERET_PORT              port to listen on (default 8000)
 RANGERET_API_TOKEN         bearer token every /v1 request must carry (unset: loopback only)
 RANGERET_DATA_ROOTS        folders, separated by ':' (or a JSON list), that dataset jobs may read
 RANGERET_STATE_DIR         where job folders and the job database live (default runs/gateway)
@@ -14,6 +16,8 @@ RANGERET_BATCH_SIZE        most single-scan requests per network pass (default 1
 RANGERET_BATCH_WAIT_MS     longest a request waits for others to fill its batch (default 10)
 RANGERET_RAY_ADDRESS       Ray cluster to use ("auto" or host:port); unset: in-process worker
 RANGERET_ACTORS            model actors on the Ray cluster (default: one per GPU, or 1)
+
+docs/http-api.md describes every setting with the endpoints and answers it shapes.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The HTTP gateway against a real uvicorn process on 127.0.0.1, driven with httpx.
 
 Labels equal `rangeret predict`'s, a labelled job's report equals `rangeret evaluate`'s, every bad
-input of DESIGN section 8 gets its status and a one-sentence JSON error, a gateway killed in the
+input of docs/http-api.md gets its status and a one-sentence JSON error, a gateway killed in the
 middle of a job resumes it, and a schema-driven fuzz run gets no 5xx answer.
 """
 
@@ -12,6 +12,7 @@ import json
 import os
 import signal
 import socket
+import sqlite3
 import stat
 import subprocess
 import sys
@@ -35,6 +36,7 @@ from rangeret.io import read_labels, read_scan, write_scan
 from rangeret.labels import semantickitti
 from rangeret.layout import prediction_path, velodyne_dir
 from rangeret.submission import validate_submission
+from service.jobs import SCHEMA_VERSION, JobStore
 
 try:
     import schemathesis
@@ -405,6 +407,23 @@ def test_refuses_a_public_address_without_a_token(setup, tmp_path):
     )
     assert run.returncode == 1
     assert "RANGERET_API_TOKEN" in run.stderr and "loopback" in run.stderr
+
+
+def test_refuses_a_job_database_newer_than_it_knows(setup, tmp_path):
+    database = tmp_path / "state" / "jobs.sqlite"
+    JobStore(database).close()
+    db = sqlite3.connect(database)
+    db.execute(f"PRAGMA user_version = {SCHEMA_VERSION + 1}")
+    db.close()
+    env = gateway_env(tmp_path / "state", [setup["roots"]])
+    cmd = [sys.executable, "-m", "service", "--checkpoint", str(setup["weights"]), *NET]
+    run = subprocess.run(
+        cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=120, check=False
+    )
+    assert run.returncode == 1
+    lines = run.stderr.strip().splitlines()
+    assert "Traceback" not in run.stderr and str(database) in lines[-1], run.stderr
+    assert f"version {SCHEMA_VERSION + 1}" in lines[-1] and f"version {SCHEMA_VERSION}" in lines[-1]
 
 
 # Jobs ------------------------------------------------------------------------------------------

@@ -20,11 +20,11 @@ from rangeret.io import write_labels
 from rangeret.layout import prediction_path
 from rangeret.predict import list_scans
 from rangeret.submission import required_directories
-from service.app import wants_json
 from service.archives import ArchiveError, ArchiveLimits, ArchiveTooLarge, extract_archive
 from service.batching import BackendError, ScanBatcher
 from service.errors import validation_sentence
 from service.jobs import JobManager, JobStore, write_predictions_zip
+from service.routes.scans import wants_json
 from service.schemas import JobState
 from service.settings import Settings, is_loopback
 

@@ -3,6 +3,7 @@ resume, and a model actor killed mid-run."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import time
 
@@ -205,15 +206,15 @@ def test_scan_pool_serves_batches_and_survives_a_crash(ray_local, setup):
     pool = ScanPool(spec, actors=1, actor_cpus=1.0)
     try:
         assert pool.wait_ready(timeout=120)[0]["model"] == "rangeret-cir"
-        labels = pool.predict(scans)
+        labels = asyncio.run(pool.predict_async(scans))
         expected = [r.labels for r in predictor.predict_batch(scans)]
         assert all(np.array_equal(a, b) for a, b in zip(labels, expected, strict=True))
-        raw = pool.predict(scans[:1], knn=False)[0]
+        raw = asyncio.run(pool.predict_async(scans[:1], knn=False))[0]
         assert raw.shape == scans[0][:, 0].shape
         killer = kill_actor_when(lambda: True, class_part="ScanWorker")
         killer.join(timeout=30)
         assert killer.killed
-        again = pool.predict(scans[:1])
+        again = asyncio.run(pool.predict_async(scans[:1]))
         assert np.array_equal(again[0], expected[0])
         assert pool.health()["ok"]
     finally:

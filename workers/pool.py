@@ -24,33 +24,37 @@ log = logging.getLogger(__name__)
 
 
 class ScanWorker:
-    """The state of one model actor: a loaded predictor, with and without kNN refinement."""
+    """The state of one model actor: its predictor as the spec builds it, and one without kNN.
+
+    `spec_predictor` refines with kNN only when the spec asks for it; `knn=False` requests get
+    `without_knn`, which shares its network.
+    """
 
     def __init__(self, spec: PredictorSpec, cpus: float = 1.0) -> None:
         import torch
 
         torch.set_num_threads(max(1, math.ceil(cpus)))
-        self.with_knn = spec.build()
-        knn = self.with_knn.knn
+        self.spec_predictor = spec.build()
+        knn = self.spec_predictor.knn
         self.without_knn = Predictor(
-            self.with_knn.network_module,
-            self.with_knn.projection_config,
-            self.with_knn.label_config,
-            self.with_knn.device,
+            self.spec_predictor.network,
+            self.spec_predictor.projection_config,
+            self.spec_predictor.label_config,
+            self.spec_predictor.device,
             knn=None,
-            tta=self.with_knn.tta,
-            checkpoint_sha256=self.with_knn.checkpoint_sha256,
+            tta=self.spec_predictor.tta,
+            checkpoint_sha256=self.spec_predictor.checkpoint_sha256,
         )
         if knn is None:
-            self.with_knn = self.without_knn
+            self.spec_predictor = self.without_knn
 
     def info(self) -> dict:
         """Who this worker is: process, device and model, for health checks."""
-        return {"pid": os.getpid(), **self.with_knn.describe()}
+        return {"pid": os.getpid(), **self.spec_predictor.describe()}
 
     def predict(self, scans: Sequence[np.ndarray], knn: bool = True) -> list[np.ndarray]:
         """Raw labels (uint32, one per point) for a batch of (N, 4) scans."""
-        predictor = self.with_knn if knn else self.without_knn
+        predictor = self.spec_predictor if knn else self.without_knn
         return [r.labels for r in predictor.predict_batch(list(scans))]
 
 
@@ -96,20 +100,10 @@ class ScanPool:
         with self._lock:
             self._busy[index] -= 1
 
-    def predict(self, scans: Sequence[np.ndarray], knn: bool = True) -> list[np.ndarray]:
-        """Labels for a batch of scans, computed on the least busy actor (blocking)."""
-        import ray
-
-        index = self._pick()
-        try:
-            return ray.get(self.actors[index].predict.remote(list(scans), knn))
-        finally:
-            self._release(index)
-
     async def predict_async(
         self, scans: Sequence[np.ndarray], knn: bool = True
     ) -> list[np.ndarray]:
-        """`predict` for an event loop: awaits the actor without blocking the loop."""
+        """Labels for a batch of scans from the least busy actor, awaited without blocking the loop."""
         index = self._pick()
         try:
             return await self.actors[index].predict.remote(list(scans), knn)

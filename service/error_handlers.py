@@ -1,0 +1,61 @@
+"""The app's exception handlers: every error is answered as `{"detail": "<one sentence>"}`.
+
+`ApiError` keeps its status, sentence and headers; Starlette's own errors (404, 405) get readable
+sentences; request validation errors become 400 (not FastAPI's 422); anything else is a logged 500.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from service.errors import ApiError, default_sentence, validation_sentence
+from service.schemas import ErrorResponse
+
+log = logging.getLogger(__name__)
+
+
+def error_response(
+    status_code: int, detail: str, headers: dict[str, str] | None = None
+) -> JSONResponse:
+    """The JSON error answer: `ErrorResponse` with the status code and headers."""
+    return JSONResponse(
+        ErrorResponse(detail=detail).model_dump(), status_code=status_code, headers=headers
+    )
+
+
+async def api_error(_: Request, exc: ApiError) -> JSONResponse:
+    """An error the gateway raised on purpose, as it is."""
+    return error_response(exc.status_code, exc.detail, exc.headers)
+
+
+async def http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+    """Starlette's HTTP errors, with its short phrases turned into sentences."""
+    return error_response(
+        exc.status_code,
+        default_sentence(exc.status_code, exc.detail),
+        getattr(exc, "headers", None),
+    )
+
+
+async def invalid_request(_: Request, exc: RequestValidationError) -> JSONResponse:
+    """A query, path or body that does not validate: 400 with the first problem."""
+    return error_response(400, validation_sentence(exc.errors()))
+
+
+async def unexpected(_: Request, exc: Exception) -> JSONResponse:
+    """Any other exception: logged with its traceback, answered with a 500 sentence."""
+    log.error("unexpected error", exc_info=exc)
+    return error_response(500, "The gateway failed unexpectedly; the error is in its log.")
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Answer every error of `app` in the JSON error format."""
+    app.add_exception_handler(ApiError, api_error)
+    app.add_exception_handler(StarletteHTTPException, http_error)
+    app.add_exception_handler(RequestValidationError, invalid_request)
+    app.add_exception_handler(Exception, unexpected)

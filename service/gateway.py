@@ -1,0 +1,81 @@
+"""The `Gateway`: what every endpoint uses (settings, worker pool, batcher, job manager, metrics).
+
+`create_app` builds one per app and keeps it in `app.state.gateway`; the app's lifespan starts it
+(job store, runner, batcher) and stops it. Routes get it through `service.dependencies`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from rangeret.labels import LabelConfig
+from service.batching import ScanBackend, ScanBatcher
+from service.errors import ApiError
+from service.jobs import JobExecutor, JobManager, JobStore
+from service.metrics import GatewayMetrics
+from service.settings import Settings
+
+
+class WorkerPool(ScanBackend, Protocol):
+    """What the gateway needs from `workers.pool.ScanPool` / `LocalScanPool`."""
+
+    backend: str
+
+    def health(self) -> dict:
+        """The workers' state."""
+        ...
+
+
+@dataclass
+class Gateway:
+    """Everything the endpoints use, built by `create_app` and started by its lifespan."""
+
+    settings: Settings
+    pool: WorkerPool
+    executor: JobExecutor
+    label_config: LabelConfig
+    checkpoint_sha256: str | None
+    dispatchers: int
+    metrics: GatewayMetrics = field(default_factory=GatewayMetrics)
+    batcher: ScanBatcher | None = None
+    jobs: JobManager | None = None
+
+    async def start(self) -> None:
+        """Open the job store, recover and start the runner, start the batcher."""
+        settings = self.settings
+        settings.jobs_folder.mkdir(parents=True, exist_ok=True)
+        store = await asyncio.to_thread(JobStore, settings.database_path)
+        self.jobs = JobManager(
+            store,
+            self.executor,
+            settings.jobs_folder,
+            settings.retention.total_seconds(),
+            label_config=self.label_config,
+            checkpoint_sha256=self.checkpoint_sha256,
+            on_scans=self.metrics.job_scans,
+        )
+        await asyncio.to_thread(self.jobs.start)
+        self.batcher = ScanBatcher(
+            self.pool,
+            batch_size=settings.batch_size,
+            max_wait=settings.batch_wait_ms / 1000,
+            dispatchers=self.dispatchers,
+            on_batch=self.metrics.observe_batch,
+        )
+        await self.batcher.start()
+
+    async def stop(self) -> None:
+        """Stop the batcher and the job runner (a running job resumes at the next start)."""
+        if self.batcher is not None:
+            await self.batcher.stop()
+        if self.jobs is not None:
+            await asyncio.to_thread(self.jobs.stop)
+            await asyncio.to_thread(self.jobs.store.close)
+
+    def manager(self) -> JobManager:
+        """The job manager (the app is started)."""
+        if self.jobs is None:
+            raise ApiError(503, "The gateway is starting; try again in a moment.")
+        return self.jobs

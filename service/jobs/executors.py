@@ -1,0 +1,151 @@
+"""Running a job's scans through the network, and zipping the predictions it wrote.
+
+`LocalExecutor` runs `predict_tree` in this process; `RayExecutor` sends the scans through the Ray
+pipeline of the connected cluster. Both skip the scans whose prediction is already written, so an
+interrupted job resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Protocol
+
+from rangeret.atomic import atomic_path
+from rangeret.inference import Predictor, PredictorSpec
+from rangeret.labels import LabelConfig
+from rangeret.layout import ScanEntry, prediction_path
+from rangeret.predict import is_complete, predict_tree
+from rangeret.projection import ProjectionConfig
+from rangeret.submission import TEST_SEQUENCES, required_directories
+from rangeret.zipfiles import ReproducibleZip
+
+Progress = Callable[[int, int, int], None]
+
+
+class JobExecutor(Protocol):
+    """Runs the network over a job's scans (in this process or on a Ray cluster)."""
+
+    backend: str
+
+    def predict(
+        self,
+        entries: list[ScanEntry],
+        dataset: Path,
+        sequences: list[str],
+        out: Path,
+        progress: Progress,
+        cancel: threading.Event,
+    ) -> dict[str, str]:
+        """Write the predictions of the scans not done yet; return failures by scan key."""
+        ...
+
+
+class LocalExecutor:
+    """`predict_tree` in this process, with its own predictor (built on first use)."""
+
+    backend = "local"
+
+    def __init__(self, spec: PredictorSpec, batch_size: int = 1) -> None:
+        self.spec = spec
+        self.batch_size = batch_size
+        self._predictor: Predictor | None = None
+
+    def predict(
+        self,
+        entries: list[ScanEntry],
+        dataset: Path,
+        sequences: list[str],
+        out: Path,
+        progress: Progress,
+        cancel: threading.Event,
+    ) -> dict[str, str]:
+        """Predict the dataset's sequences into `out`, skipping scans already done."""
+        if self._predictor is None:
+            self._predictor = self.spec.build()
+        summary = predict_tree(
+            self._predictor,
+            dataset,
+            sequences,
+            out,
+            batch_size=self.batch_size,
+            progress=False,
+            on_progress=progress,
+            cancel=cancel,
+        )
+        return summary.failed
+
+
+class RayExecutor:
+    """`workers.pipeline.run_pipeline` on the connected Ray cluster."""
+
+    backend = "ray"
+
+    def __init__(
+        self,
+        spec: PredictorSpec,
+        projection: ProjectionConfig,
+        batch_size: int = 1,
+        actors: int | None = None,
+        label_config: LabelConfig | None = None,
+    ) -> None:
+        self.spec = spec
+        self.projection = projection
+        self.batch_size = batch_size
+        self.actors = actors
+        self.label_config = label_config
+
+    def predict(
+        self,
+        entries: list[ScanEntry],
+        dataset: Path,
+        sequences: list[str],
+        out: Path,
+        progress: Progress,
+        cancel: threading.Event,
+    ) -> dict[str, str]:
+        """Send the scans without a finished prediction through the pipeline."""
+        from workers.pipeline import PipelineOptions, run_pipeline
+
+        pending = [e for e in entries if not is_complete(e, out)]
+        options = PipelineOptions(batch_size=self.batch_size, actors=self.actors)
+        result = run_pipeline(
+            self.spec,
+            self.projection,
+            pending,
+            out,
+            options,
+            self.label_config,
+            progress=progress,
+            cancel=cancel,
+        )
+        return result.failed
+
+
+def write_predictions_zip(
+    pred_root: Path,
+    entries: Sequence[ScanEntry],
+    sequences: Sequence[str],
+    path: Path,
+    description: str,
+) -> None:
+    """The job's predictions as a reproducible zip with explicit directory entries.
+
+    When all its sequences are test sequences, the archive holds the directory entries of every
+    test sequence, as the benchmark server wants, so it passes the submission validator.
+    """
+    names = list(dict.fromkeys(sequences))
+    if all(s in TEST_SEQUENCES for s in names):
+        directories = list(required_directories())
+    else:
+        directories = ["sequences/"]
+        for seq in sorted(names):
+            directories += [f"sequences/{seq}/", f"sequences/{seq}/predictions/"]
+    with atomic_path(path) as tmp, ReproducibleZip(tmp) as zf:
+        for name in directories:
+            zf.add_directory(name)
+        for entry in entries:
+            name = f"sequences/{entry.sequence}/predictions/{entry.name}.label"
+            zf.add_file(name, prediction_path(pred_root, entry.sequence, entry.name).read_bytes())
+        zf.add_file("description.txt", description.rstrip("\n") + "\n")

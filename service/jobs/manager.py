@@ -1,0 +1,279 @@
+"""The job runner: queue, one background thread, cancellation, recovery and retention.
+
+A job predicts every scan of its sequences into `JOBS/<id>/predictions` with its executor, then
+writes the predictions zip and, for sequences with ground truth, the evaluation report. A restarted
+gateway queues a job that was running again, and it resumes (finished predictions are skipped), or
+marks it failed with the reason when it cannot. Finished jobs' files and records are removed after
+the retention time.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import threading
+import time
+import uuid
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from rangeret.evaluation import evaluate_predictions
+from rangeret.labels import LabelConfig, semantickitti
+from rangeret.layout import discover
+from rangeret.predict import is_complete, list_scans
+from service.jobs.executors import JobExecutor, write_predictions_zip
+from service.jobs.store import JobRecord, JobStore
+from service.schemas import JobState
+
+log = logging.getLogger(__name__)
+
+#: A job interrupted this many times by gateway restarts is failed rather than resumed again.
+MAX_ATTEMPTS = 3
+PREDICTIONS_ZIP = "predictions.zip"
+REPORT_JSON = "report.json"
+
+
+def labelled_sequences(dataset: Path, sequences: Sequence[str]) -> list[str]:
+    """The sequences every scan of which has a ground-truth label file."""
+    found = discover(dataset, sequences, missing_ok=True).by_sequence()
+    return [s for s, scans in found.items() if scans and all(e.label_path for e in scans)]
+
+
+class JobManager:
+    """Creates, runs (one at a time, oldest first), cancels, resumes and expires jobs."""
+
+    def __init__(
+        self,
+        store: JobStore,
+        executor: JobExecutor,
+        jobs_dir: Path,
+        retention_s: float,
+        label_config: LabelConfig | None = None,
+        checkpoint_sha256: str | None = None,
+        on_scans: Callable[[int], None] | None = None,
+    ) -> None:
+        self.store = store
+        self.executor = executor
+        self.jobs_dir = jobs_dir
+        self.retention_s = retention_s
+        self.label_config = label_config or semantickitti()
+        self.checkpoint_sha256 = checkpoint_sha256
+        self.on_scans = on_scans
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._current: tuple[str, threading.Event] | None = None
+        self._current_lock = threading.Lock()
+        self._threads: list[threading.Thread] = []
+
+    # Folders ------------------------------------------------------------------------------
+
+    def job_dir(self, job_id: str) -> Path:
+        """The folder of a job's files."""
+        return self.jobs_dir / job_id
+
+    def new_job(self) -> tuple[str, Path]:
+        """A fresh job id and its (new, empty) folder."""
+        job_id = uuid.uuid4().hex
+        folder = self.job_dir(job_id)
+        folder.mkdir(parents=True)
+        return job_id, folder
+
+    def remove_files(self, job_id: str) -> None:
+        """Delete a job's folder."""
+        shutil.rmtree(self.job_dir(job_id), ignore_errors=True)
+
+    # Life cycle -----------------------------------------------------------------------------
+
+    def submit(self, job_id: str, kind: str, dataset: Path, sequences: Sequence[str]) -> JobRecord:
+        """Queue a job whose folder is ready and wake the runner."""
+        record = self.store.create(job_id, kind, dataset, sequences)
+        self._wake.set()
+        return record
+
+    def cancel(self, job_id: str) -> JobRecord | None:
+        """Cancel a queued or running job and remove its files; a finished job is forgotten.
+
+        Returns the job's last record, or None when there is no such job.
+        """
+        record = self.store.get(job_id)
+        if record is None:
+            return None
+        if self.store.cancel(job_id):
+            with self._current_lock:
+                current = self._current
+            if current is not None and current[0] == job_id:
+                current[1].set()  # the runner removes the files once the batch in flight is done
+            else:
+                self.remove_files(job_id)
+            return self.store.get(job_id)
+        self.remove_files(job_id)
+        self.store.delete(job_id)
+        return record
+
+    def start(self) -> None:
+        """Recover from the previous run, then start the runner and the retention sweeper."""
+        self.recover()
+        self._stop.clear()
+        self._threads = [
+            threading.Thread(target=self._run_loop, name="rangeret-jobs", daemon=True),
+            threading.Thread(target=self._sweep_loop, name="rangeret-retention", daemon=True),
+        ]
+        for thread in self._threads:
+            thread.start()
+
+    def stop(self, timeout: float = 30.0) -> None:
+        """Stop after the batch in flight; a running job is queued again and resumes at next start."""
+        self._stop.set()
+        self._wake.set()
+        with self._current_lock:
+            if self._current is not None:
+                self._current[1].set()
+        for thread in self._threads:
+            thread.join(timeout)
+        self._threads = []
+
+    def recover(self) -> None:
+        """Requeue jobs a stopped gateway left running (or fail them, with the reason); tidy folders."""
+        for job in self.store.list(JobState.running):
+            if job.attempts >= MAX_ATTEMPTS:
+                self.store.finish(
+                    job.id,
+                    JobState.failed,
+                    reason=f"the gateway stopped {job.attempts} times while this job ran, so it is not resumed again",
+                )
+            elif not Path(job.dataset).is_dir():
+                self.store.finish(
+                    job.id,
+                    JobState.failed,
+                    reason=f"the gateway restarted and the job's input {job.dataset} no longer exists",
+                )
+            else:
+                self.store.requeue(job.id)
+                log.info("job %s was running when the gateway stopped; it resumes", job.id)
+        for job in self.store.list(JobState.cancelled):
+            self.remove_files(job.id)
+        known = {job.id for job in self.store.list()}
+        if self.jobs_dir.is_dir():
+            for folder in self.jobs_dir.iterdir():
+                if folder.is_dir() and folder.name not in known:
+                    log.info("removing %s: no job owns it (an upload cut short)", folder)
+                    shutil.rmtree(folder, ignore_errors=True)
+
+    def sweep(self, now: float | None = None) -> int:
+        """Remove the files and records of jobs finished longer than the retention time ago."""
+        now = time.time() if now is None else now
+        expired = self.store.finished_before(now - self.retention_s)
+        for job in expired:
+            self.remove_files(job.id)
+            self.store.delete(job.id)
+        if expired:
+            log.info("removed %d finished job(s) past the retention time", len(expired))
+        return len(expired)
+
+    # Threads ------------------------------------------------------------------------------
+
+    def _sweep_loop(self) -> None:
+        interval = min(60.0, max(0.5, self.retention_s / 4))
+        while not self._stop.wait(interval):
+            try:
+                self.sweep()
+            except Exception:
+                log.exception("the retention sweep failed")
+
+    def _run_loop(self) -> None:
+        while not self._stop.is_set():
+            job = self.store.next_queued()
+            if job is None:
+                self._wake.wait(1.0)
+                self._wake.clear()
+                continue
+            try:
+                self._run(job)
+            except Exception:
+                log.exception("job %s failed in the runner", job.id)
+
+    def _run(self, job: JobRecord) -> None:
+        """Run one job to a final state (or back to queued when the gateway stops)."""
+        cancel = threading.Event()
+        with self._current_lock:
+            self._current = (job.id, cancel)
+        try:
+            if self.store.start(job.id):
+                try:
+                    self._execute(job, cancel)
+                except Exception as exc:
+                    log.exception("job %s failed", job.id)
+                    self.store.finish(job.id, JobState.failed, reason=_sentence(exc))
+        finally:
+            with self._current_lock:
+                self._current = None
+        latest = self.store.get(job.id)
+        if latest is not None and latest.state is JobState.cancelled:
+            self.remove_files(job.id)
+
+    def _execute(self, job: JobRecord, cancel: threading.Event) -> None:
+        dataset = Path(job.dataset)
+        folder = self.job_dir(job.id)
+        out = folder / "predictions"
+        entries = list_scans(dataset, job.sequences)
+        skipped = sum(is_complete(e, out) for e in entries)
+        self.store.progress(job.id, len(entries), skipped, 0)
+        counted = [0]
+
+        def progress(seen: int, failed: int, _pending: int) -> None:
+            written = seen - failed
+            self.store.progress(job.id, len(entries), skipped + written, failed)
+            if self.on_scans is not None and written > counted[0]:
+                self.on_scans(written - counted[0])
+                counted[0] = written
+
+        failures = self.executor.predict(entries, dataset, job.sequences, out, progress, cancel)
+        if cancel.is_set():
+            if self._stop.is_set() and self.store.requeue(job.id):
+                log.info(
+                    "job %s paused by the gateway stopping; it resumes at the next start", job.id
+                )
+            return
+        if failures:
+            self.store.finish(
+                job.id,
+                JobState.failed,
+                reason=f"{len(failures)} of {len(entries)} scans could not be predicted (see errors)",
+                errors=[f"{key}: {reason}" for key, reason in failures.items()],
+            )
+            return
+        self.store.progress(job.id, len(entries), len(entries), 0)
+        zip_path = folder / PREDICTIONS_ZIP
+        write_predictions_zip(out, entries, job.sequences, zip_path, self._description())
+        metrics = report_path = None
+        labelled = labelled_sequences(dataset, job.sequences)
+        if labelled:
+            report = evaluate_predictions(
+                dataset,
+                out,
+                labelled,
+                config=self.label_config,
+                checkpoint_sha256=self.checkpoint_sha256,
+            )
+            report_path = folder / REPORT_JSON
+            report.write_json(report_path)
+            metrics = {
+                "miou": report.miou,
+                "accuracy": report.accuracy,
+                "iou": report.iou_by_name(),
+            }
+        self.store.finish(
+            job.id, JobState.succeeded, metrics=metrics, predictions=zip_path, report=report_path
+        )
+
+    def _description(self) -> str:
+        return (
+            "RangeRet predictions written by the rangeret gateway\n"
+            f"checkpoint sha256: {self.checkpoint_sha256 or 'unknown'}\n"
+        )
+
+
+def _sentence(exc: BaseException) -> str:
+    """One readable line for an exception."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text[:500]

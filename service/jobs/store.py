@@ -1,0 +1,279 @@
+"""The job records in SQLite: `JobRecord`, `JobStore` and the schema version of its file.
+
+Every job's state, progress, errors and results live in one SQLite file, so a restarted gateway
+knows every job. The file's schema version is kept in `PRAGMA user_version`: a new file is
+stamped with `SCHEMA_VERSION`, a file from before the version was kept is stamped too (its tables
+are those of version 1), and a file of a newer version is refused.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from service.schemas import JobState
+
+#: Failed scans kept in a job's record (the count is always exact).
+MAX_ERRORS = 1000
+#: The schema this code reads and writes, stored in the database's `PRAGMA user_version`.
+SCHEMA_VERSION = 1
+
+
+class JobDatabaseVersionError(ValueError):
+    """The job database was written by a newer gateway, with a schema this code does not know."""
+
+    def __init__(self, path: Path, found: int) -> None:
+        super().__init__(
+            f"the job database {path} has schema version {found}, newer than version "
+            f"{SCHEMA_VERSION} that this gateway knows: run a newer gateway, or set "
+            "RANGERET_DATABASE to another file"
+        )
+        self.path = path
+        self.found = found
+
+
+def check_schema_version(path: Path) -> None:
+    """Raise `JobDatabaseVersionError` when the database at `path` is newer than this code.
+
+    Lets the gateway refuse such a file before it starts serving; a missing file passes.
+    """
+    if not path.is_file():
+        return
+    db = sqlite3.connect(path, timeout=30)
+    try:
+        _check_version(db, path)
+    finally:
+        db.close()
+
+
+def _check_version(db: sqlite3.Connection, path: Path) -> int:
+    """The database's schema version; `JobDatabaseVersionError` when it is newer than ours."""
+    found = db.execute("PRAGMA user_version").fetchone()[0]
+    if found > SCHEMA_VERSION:
+        raise JobDatabaseVersionError(path, found)
+    return found
+
+
+@dataclass
+class JobRecord:
+    """One job as stored: what it runs on, where it is, and what it produced."""
+
+    id: str
+    kind: str
+    state: JobState
+    dataset: str
+    sequences: list[str]
+    created: float
+    total: int = 0
+    done: int = 0
+    failed: int = 0
+    errors: list[str] = field(default_factory=list)
+    reason: str | None = None
+    metrics: dict | None = None
+    predictions: str | None = None
+    report: str | None = None
+    started: float | None = None
+    finished: float | None = None
+    attempts: int = 0
+
+
+_COLUMNS = (
+    "id", "kind", "state", "dataset", "sequences", "created", "total", "done", "failed", "errors",
+    "reason", "metrics", "predictions", "report", "started", "finished", "attempts",
+)  # fmt: skip
+
+
+class JobStore:
+    """Job records in one SQLite file, safe to share between threads.
+
+    The gateway calls it from worker threads and the runner thread, never on its event loop.
+    """
+
+    def __init__(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.path = path
+        self._lock = threading.Lock()
+        self._db = sqlite3.connect(path, check_same_thread=False, isolation_level=None, timeout=30)
+        try:
+            with self._lock:
+                version = _check_version(self._db, path)
+                self._db.execute("PRAGMA journal_mode=WAL")
+                self._db.execute("PRAGMA synchronous=NORMAL")
+                if version < SCHEMA_VERSION:
+                    self._create_tables()
+        except BaseException:
+            self._db.close()
+            raise
+
+    def _create_tables(self) -> None:
+        """Create the tables where missing and stamp the file with `SCHEMA_VERSION`, atomically.
+
+        A new file gets its tables; a file from before the version was kept has them already
+        and is only stamped.
+        """
+        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            self._db.execute(
+                """CREATE TABLE IF NOT EXISTS jobs (
+                    id TEXT PRIMARY KEY, kind TEXT NOT NULL, state TEXT NOT NULL,
+                    dataset TEXT NOT NULL, sequences TEXT NOT NULL, created REAL NOT NULL,
+                    total INTEGER NOT NULL DEFAULT 0, done INTEGER NOT NULL DEFAULT 0,
+                    failed INTEGER NOT NULL DEFAULT 0, errors TEXT NOT NULL DEFAULT '[]',
+                    reason TEXT, metrics TEXT, predictions TEXT, report TEXT,
+                    started REAL, finished REAL, attempts INTEGER NOT NULL DEFAULT 0)"""
+            )
+            self._db.execute("CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state, created)")
+            self._db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            raise
+        self._db.execute("COMMIT")
+
+    def close(self) -> None:
+        """Close the database."""
+        with self._lock:
+            self._db.close()
+
+    def _execute(self, sql: str, params: Sequence = ()) -> int:
+        """Run one statement; the number of rows it changed."""
+        with self._lock:
+            return self._db.execute(sql, params).rowcount
+
+    def _query(self, sql: str, params: Sequence = ()) -> list[JobRecord]:
+        with self._lock:
+            rows = self._db.execute(
+                f"SELECT {', '.join(_COLUMNS)} FROM jobs {sql}", params
+            ).fetchall()
+        return [_record(row) for row in rows]
+
+    def create(self, job_id: str, kind: str, dataset: Path, sequences: Sequence[str]) -> JobRecord:
+        """Store a new queued job."""
+        now = time.time()
+        self._execute(
+            "INSERT INTO jobs (id, kind, state, dataset, sequences, created) VALUES (?, ?, ?, ?, ?, ?)",
+            (job_id, kind, JobState.queued.value, str(dataset), json.dumps(list(sequences)), now),
+        )
+        return JobRecord(job_id, kind, JobState.queued, str(dataset), list(sequences), now)
+
+    def get(self, job_id: str) -> JobRecord | None:
+        """The job with this id, or None."""
+        found = self._query("WHERE id = ?", (job_id,))
+        return found[0] if found else None
+
+    def list(self, *states: JobState) -> list[JobRecord]:
+        """Jobs, newest first; only those in `states` when given."""
+        if not states:
+            return self._query("ORDER BY created DESC")
+        marks = ", ".join("?" * len(states))
+        return self._query(
+            f"WHERE state IN ({marks}) ORDER BY created DESC", [s.value for s in states]
+        )
+
+    def next_queued(self) -> JobRecord | None:
+        """The oldest queued job."""
+        found = self._query("WHERE state = ? ORDER BY created LIMIT 1", (JobState.queued.value,))
+        return found[0] if found else None
+
+    def counts(self) -> dict[str, int]:
+        """Number of jobs in each state."""
+        with self._lock:
+            rows = self._db.execute("SELECT state, COUNT(*) FROM jobs GROUP BY state").fetchall()
+        found = dict(rows)
+        return {s.value: int(found.get(s.value, 0)) for s in JobState}
+
+    def start(self, job_id: str) -> bool:
+        """queued -> running; False when the job is no longer queued."""
+        return (
+            self._execute(
+                "UPDATE jobs SET state = ?, started = ?, attempts = attempts + 1 WHERE id = ? AND state = ?",
+                (JobState.running.value, time.time(), job_id, JobState.queued.value),
+            )
+            == 1
+        )
+
+    def progress(self, job_id: str, total: int, done: int, failed: int) -> None:
+        """Record a running job's counts."""
+        self._execute(
+            "UPDATE jobs SET total = ?, done = ?, failed = ? WHERE id = ? AND state = ?",
+            (total, done, failed, job_id, JobState.running.value),
+        )
+
+    def finish(
+        self,
+        job_id: str,
+        state: JobState,
+        reason: str | None = None,
+        errors: Sequence[str] = (),
+        metrics: dict | None = None,
+        predictions: Path | None = None,
+        report: Path | None = None,
+    ) -> bool:
+        """running -> a final state; False when the job was cancelled meanwhile."""
+        return (
+            self._execute(
+                """UPDATE jobs SET state = ?, reason = ?, errors = ?, metrics = ?, predictions = ?,
+               report = ?, finished = ? WHERE id = ? AND state = ?""",
+                (
+                    state.value,
+                    reason,
+                    json.dumps(list(errors)[:MAX_ERRORS]),
+                    json.dumps(metrics) if metrics is not None else None,
+                    str(predictions) if predictions else None,
+                    str(report) if report else None,
+                    time.time(),
+                    job_id,
+                    JobState.running.value,
+                ),
+            )
+            == 1
+        )
+
+    def requeue(self, job_id: str) -> bool:
+        """running -> queued, to be resumed."""
+        return (
+            self._execute(
+                "UPDATE jobs SET state = ? WHERE id = ? AND state = ?",
+                (JobState.queued.value, job_id, JobState.running.value),
+            )
+            == 1
+        )
+
+    def cancel(self, job_id: str) -> bool:
+        """queued or running -> cancelled; False when the job had already finished."""
+        return (
+            self._execute(
+                "UPDATE jobs SET state = ?, reason = ?, finished = ? WHERE id = ? AND state IN (?, ?)",
+                (
+                    JobState.cancelled.value,
+                    "cancelled by request",
+                    time.time(),
+                    job_id,
+                    JobState.queued.value,
+                    JobState.running.value,
+                ),
+            )
+            == 1
+        )
+
+    def delete(self, job_id: str) -> None:
+        """Forget a job."""
+        self._execute("DELETE FROM jobs WHERE id = ?", (job_id,))
+
+    def finished_before(self, when: float) -> list[JobRecord]:
+        """Finished jobs whose end is older than `when` (unix time)."""
+        states = [JobState.succeeded.value, JobState.failed.value, JobState.cancelled.value]
+        return self._query("WHERE state IN (?, ?, ?) AND finished < ?", [*states, when])
+
+
+def _record(row: Sequence) -> JobRecord:
+    values = dict(zip(_COLUMNS, row, strict=True))
+    values["state"] = JobState(values["state"])
+    values["sequences"] = json.loads(values["sequences"])
+    values["errors"] = json.loads(values["errors"])
+    values["metrics"] = json.loads(values["metrics"]) if values["metrics"] else None
+    return JobRecord(**values)

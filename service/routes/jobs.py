@@ -1,0 +1,273 @@
+"""/v1/jobs: start a job over whole sequences, list and follow jobs, fetch results, cancel.
+
+A job comes from an uploaded archive (multipart field `archive`) or names a dataset under the data
+roots (JSON). The job store is only ever called through a worker thread, never on the event loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import Sequence
+from datetime import datetime, timezone
+from pathlib import Path
+
+from fastapi import APIRouter, Request
+from fastapi.responses import FileResponse, JSONResponse
+from pydantic import ValidationError
+
+from rangeret.layout import DatasetLayoutError, resolve_sequences
+from rangeret.predict import list_scans
+from service.archives import ArchiveError, ArchiveLimits, extract_archive
+from service.dependencies import GatewayDep, JobsDep
+from service.errors import ApiError, error_responses, validation_sentence
+from service.gateway import Gateway
+from service.jobs import JobManager, JobRecord
+from service.schemas import (
+    BINARY_CONTENT,
+    DatasetJobRequest,
+    JobCreated,
+    JobList,
+    JobMetrics,
+    JobState,
+    JobStatus,
+)
+from service.uploads import drain, media_type, read_body, receive_archive
+
+router = APIRouter(prefix="/v1")
+
+_JOB_BODY = {
+    "required": True,
+    "content": {
+        "multipart/form-data": {
+            "schema": {
+                "type": "object",
+                "properties": {
+                    "archive": {
+                        "type": "string",
+                        "format": "binary",
+                        "description": ".zip, .tar or .tar.gz with sequences/XX/velodyne/*.bin "
+                        "and optional sequences/XX/labels/*.label",
+                    }
+                },
+                "required": ["archive"],
+            }
+        },
+        "application/json": {"schema": DatasetJobRequest.model_json_schema()},
+    },
+}
+
+
+def _iso(ts: float | None) -> datetime | None:
+    return datetime.fromtimestamp(ts, tz=timezone.utc) if ts is not None else None
+
+
+def job_status(record: JobRecord) -> JobStatus:
+    """The API form of a stored job."""
+    base = f"/v1/jobs/{record.id}"
+    return JobStatus(
+        id=record.id,
+        state=record.state,
+        kind=record.kind,
+        sequences=record.sequences,
+        total=record.total,
+        done=record.done,
+        failed=record.failed,
+        metrics=JobMetrics(**record.metrics) if record.metrics else None,
+        errors=record.errors,
+        reason=record.reason,
+        created=_iso(record.created),
+        started=_iso(record.started),
+        finished=_iso(record.finished),
+        status_url=base,
+        predictions_url=f"{base}/predictions",
+        report_url=f"{base}/report",
+    )
+
+
+def resolve_dataset(text: str, roots: Sequence[Path]) -> Path:
+    """The dataset folder named by a job request: 403 outside the data roots, 404 when absent."""
+    if not roots:
+        raise ApiError(
+            403,
+            "No data roots are configured (RANGERET_DATA_ROOTS), so no dataset on the server can be used.",
+        )
+    try:
+        path = Path(text)
+        candidates = [path] if path.is_absolute() else [root / path for root in roots]
+        inside = [c.resolve() for c in candidates]
+    except (ValueError, OSError) as exc:
+        raise ApiError(400, f"The dataset path is not a usable path ({exc}).") from exc
+    inside = [p for p in inside if any(p.is_relative_to(root) for root in roots)]
+    if not inside:
+        raise ApiError(403, "The dataset path is outside the configured data roots.")
+    for candidate in inside:
+        if candidate.is_dir():
+            return candidate
+    raise ApiError(404, "There is no dataset folder at that path under the data roots.")
+
+
+@router.post(
+    "/jobs",
+    summary="Start a job over sequences",
+    description=(
+        "Either upload an archive (multipart field `archive`) laid out as sequences/XX/velodyne/*.bin "
+        "with optional sequences/XX/labels/*.label, or name a dataset under the configured data roots "
+        "in JSON. The job predicts every scan; with labels it also evaluates them."
+    ),
+    status_code=202,
+    response_model=JobCreated,
+    responses=error_responses(400, 403, 404, 413, 415),
+    openapi_extra={"requestBody": _JOB_BODY},
+)
+async def create_job(request: Request, gw: GatewayDep, jobs: JobsDep) -> JSONResponse:
+    kind = media_type(request)
+    if kind == "multipart/form-data":
+        record = await _archive_job(request, gw, jobs)
+    elif kind == "application/json":
+        record = await _dataset_job(request, gw, jobs)
+    else:
+        await drain(request, gw.settings.max_body_bytes)
+        raise ApiError(
+            415,
+            "Send a job as multipart/form-data (an 'archive' file) or as application/json (a dataset).",
+        )
+    created = JobCreated(id=record.id, status_url=f"/v1/jobs/{record.id}")
+    return JSONResponse(
+        created.model_dump(), status_code=202, headers={"Location": created.status_url}
+    )
+
+
+@router.get("/jobs", summary="List jobs", response_model=JobList)
+async def list_jobs(jobs: JobsDep) -> JobList:
+    records = await asyncio.to_thread(jobs.store.list)
+    return JobList(jobs=[job_status(r) for r in records])
+
+
+@router.get(
+    "/jobs/{job_id}",
+    summary="A job's state and progress",
+    response_model=JobStatus,
+    responses=error_responses(404),
+)
+async def get_job(job_id: str, jobs: JobsDep) -> JobStatus:
+    return job_status(await _record_or_404(jobs, job_id))
+
+
+@router.get(
+    "/jobs/{job_id}/predictions",
+    summary="A succeeded job's predictions (zip)",
+    description="A zip of sequences/XX/predictions/*.label with directory entries for the job's sequences.",
+    response_class=FileResponse,
+    responses={
+        200: {
+            "description": "The predictions archive",
+            "content": {"application/zip": BINARY_CONTENT},
+        },
+        **error_responses(404, 409),
+    },
+)
+async def get_predictions(job_id: str, jobs: JobsDep) -> FileResponse:
+    record = await _succeeded_or_409(jobs, job_id)
+    if not record.predictions or not Path(record.predictions).is_file():
+        raise ApiError(404, "The job's predictions are no longer on the server.")
+    return FileResponse(
+        record.predictions, media_type="application/zip", filename=f"{job_id}-predictions.zip"
+    )
+
+
+@router.get(
+    "/jobs/{job_id}/report",
+    summary="A succeeded labelled job's evaluation report",
+    description="The evaluation JSON of `rangeret evaluate`: miou, accuracy, iou by class, confusion[pred][gt].",
+    response_class=FileResponse,
+    responses={
+        200: {
+            "description": "The evaluation report",
+            "content": {"application/json": {"schema": {"type": "object"}}},
+        },
+        **error_responses(404, 409),
+    },
+)
+async def get_report(job_id: str, jobs: JobsDep) -> FileResponse:
+    record = await _succeeded_or_409(jobs, job_id)
+    if not record.report:
+        raise ApiError(404, "The job's scans had no labels, so it has no evaluation report.")
+    if not Path(record.report).is_file():
+        raise ApiError(404, "The job's report is no longer on the server.")
+    return FileResponse(record.report, media_type="application/json")
+
+
+@router.delete(
+    "/jobs/{job_id}",
+    summary="Cancel a job and remove its files",
+    description="A queued or running job is cancelled and its files removed; a finished job's files and record are removed.",
+    response_model=JobStatus,
+    responses=error_responses(404),
+)
+async def delete_job(job_id: str, jobs: JobsDep) -> JobStatus:
+    record = await asyncio.to_thread(jobs.cancel, job_id)
+    if record is None:
+        raise ApiError(404, f"There is no job {job_id[:64]!r}.")
+    return job_status(record)
+
+
+async def _record_or_404(jobs: JobManager, job_id: str) -> JobRecord:
+    """The stored job, read in a worker thread; 404 when there is none."""
+    record = await asyncio.to_thread(jobs.store.get, job_id)
+    if record is None:
+        raise ApiError(404, f"There is no job {job_id[:64]!r}.")
+    return record
+
+
+async def _succeeded_or_409(jobs: JobManager, job_id: str) -> JobRecord:
+    """The stored job; 404 when there is none, 409 until it has succeeded."""
+    record = await _record_or_404(jobs, job_id)
+    if record.state is not JobState.succeeded:
+        raise ApiError(
+            409, f"The job is {record.state.value}, and results exist only once it has succeeded."
+        )
+    return record
+
+
+async def _archive_job(request: Request, gw: Gateway, jobs: JobManager) -> JobRecord:
+    """Receive, check and extract an uploaded archive into a new job's folder; queue the job."""
+    settings = gw.settings
+    job_id, folder = await asyncio.to_thread(jobs.new_job)
+    try:
+        upload = folder / "upload.part"
+        await receive_archive(request, upload, settings.max_archive_bytes)
+        limits = ArchiveLimits(
+            settings.max_archive_bytes, settings.max_archive_members, settings.max_points
+        )
+        try:
+            found = await asyncio.to_thread(extract_archive, upload, folder / "data", limits)
+        except ArchiveError as exc:
+            raise ApiError(exc.status_code, str(exc)) from exc
+        finally:
+            upload.unlink(missing_ok=True)
+        return await asyncio.to_thread(jobs.submit, job_id, "archive", found.root, found.sequences)
+    except BaseException:
+        await asyncio.to_thread(jobs.remove_files, job_id)
+        raise
+
+
+async def _dataset_job(request: Request, gw: Gateway, jobs: JobManager) -> JobRecord:
+    """Check a dataset job request (roots, sequences, layout) and queue the job."""
+    body = await read_body(request, gw.settings.max_body_bytes)
+    try:
+        data = json.loads(body)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ApiError(400, "The request body is not valid JSON.") from exc
+    try:
+        job = DatasetJobRequest.model_validate(data)
+    except ValidationError as exc:
+        raise ApiError(400, validation_sentence(exc.errors(), "body")) from exc
+    root = resolve_dataset(job.dataset, gw.settings.data_roots)
+    try:
+        sequences = resolve_sequences(job.split, job.sequences, gw.label_config)
+        await asyncio.to_thread(list_scans, root, sequences)
+    except (DatasetLayoutError, ValueError) as exc:
+        raise ApiError(400, f"The dataset cannot be used: {str(exc)[:400]}") from exc
+    job_id, _ = await asyncio.to_thread(jobs.new_job)
+    return await asyncio.to_thread(jobs.submit, job_id, "dataset", root, sequences)

@@ -1,0 +1,112 @@
+"""POST /v1/scans: label one scan, answered as raw `.label` bytes or, when asked for, as JSON."""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import JSONResponse, Response
+
+from rangeret.io import POINT_BYTES, ScanFormatError, parse_scan
+from rangeret.labels import LabelConfig
+from service.batching import BackendError
+from service.dependencies import GatewayDep
+from service.errors import ApiError, error_responses
+from service.schemas import BINARY_CONTENT, ScanLabels
+from service.uploads import drain, media_type, read_body
+
+OCTET = "application/octet-stream"
+
+router = APIRouter(prefix="/v1")
+
+
+def wants_json(accept: str | None) -> bool:
+    """Whether the Accept header prefers application/json to the raw label bytes."""
+    if not accept:
+        return False
+    weights: dict[str, float] = {}
+    for item in accept.split(","):
+        kind, *params = (p.strip() for p in item.split(";"))
+        q = 1.0
+        for param in params:
+            if param.lower().startswith("q="):
+                try:
+                    q = float(param[2:])
+                except ValueError:
+                    q = 0.0
+        weights[kind.lower()] = max(q, weights.get(kind.lower(), 0.0))
+    as_json = weights.get("application/json", 0.0)
+    if as_json <= 0:
+        return False
+    if OCTET not in weights:
+        return True
+    return as_json > weights[OCTET]
+
+
+def _class_counts(labels: np.ndarray, config: LabelConfig) -> dict[str, int]:
+    counts = np.bincount(config.to_class(labels), minlength=config.num_classes)
+    return {config.class_names[c]: int(n) for c, n in enumerate(counts) if n}
+
+
+@router.post(
+    "/scans",
+    summary="Label one scan",
+    description=(
+        "The body is the raw bytes of one `.bin` scan (float32 x, y, z, remission per point). "
+        "The answer is the raw `.label` bytes (uint32 raw SemanticKITTI ids, one per point), or "
+        "with `Accept: application/json` the labels with their class counts. Concurrent requests "
+        "are labelled together in batches."
+    ),
+    response_class=Response,
+    responses={
+        200: {
+            "description": "One raw label per point",
+            "content": {
+                OCTET: BINARY_CONTENT,
+                "application/json": {"schema": ScanLabels.model_json_schema()},
+            },
+        },
+        **error_responses(400, 413, 415, 503),
+    },
+    openapi_extra={"requestBody": {"required": True, "content": {OCTET: BINARY_CONTENT}}},
+)
+async def label_scan(
+    request: Request,
+    gw: GatewayDep,
+    knn: bool = Query(default=True, description="refine labels with kNN over the point cloud"),
+) -> Response:
+    limits = gw.settings
+    if media_type(request) != OCTET:
+        await drain(request, limits.max_body_bytes)
+        raise ApiError(
+            415,
+            f"Send the scan as {OCTET}, not {media_type(request) or 'without a Content-Type'}.",
+        )
+    body = await read_body(request, limits.max_body_bytes)
+    if len(body) // POINT_BYTES > limits.max_points:
+        raise ApiError(
+            413,
+            f"The scan has {len(body) // POINT_BYTES:,} points, over the limit of {limits.max_points:,}.",
+        )
+    try:
+        points = await asyncio.to_thread(parse_scan, body, "the scan")
+    except ScanFormatError as exc:
+        raise ApiError(400, f"The scan is malformed: {exc.problem}.") from exc
+    if gw.batcher is None:
+        raise ApiError(503, "The gateway is starting; try again in a moment.")
+    try:
+        labels = await gw.batcher.label(points, knn)
+    except BackendError as exc:
+        raise ApiError(503, str(exc)) from exc
+    gw.metrics.scans.labels(source="request").inc()
+    gw.metrics.points.inc(len(points))
+    raw = labels.astype("<u4", copy=False)
+    if wants_json(request.headers.get("accept")):
+        body = ScanLabels(
+            num_points=len(raw),
+            labels=raw.tolist(),
+            class_counts=_class_counts(raw, gw.label_config),
+        )
+        return JSONResponse(body.model_dump())
+    return Response(raw.tobytes(), media_type=OCTET)

@@ -1,0 +1,211 @@
+"""The job store's schema version (stamped, checked, refused when newer) and the rule that no
+SQLite call runs on the gateway's event loop."""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import io
+import os
+import sqlite3
+import threading
+import time
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import make_tree
+from fastapi.testclient import TestClient
+
+from rangeret.io import write_labels
+from rangeret.layout import prediction_path
+from service.app import create_app
+from service.jobs import SCHEMA_VERSION, JobDatabaseVersionError, JobStore
+from service.schemas import JobState
+from service.settings import Settings
+
+TOKEN = "store-test-token"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+def _user_version(path: Path) -> int:
+    db = sqlite3.connect(path)
+    try:
+        return db.execute("PRAGMA user_version").fetchone()[0]
+    finally:
+        db.close()
+
+
+def _set_user_version(path: Path, version: int) -> None:
+    db = sqlite3.connect(path)
+    try:
+        db.execute(f"PRAGMA user_version = {version}")
+        db.commit()
+    finally:
+        db.close()
+
+
+# Schema version --------------------------------------------------------------------------------
+
+
+def test_a_new_database_is_stamped_with_the_schema_version(tmp_path):
+    path = tmp_path / "state" / "jobs.sqlite"
+    store = JobStore(path)
+    store.create("a" * 32, "dataset", tmp_path, ["08"])
+    store.close()
+    assert _user_version(path) == SCHEMA_VERSION == 1
+    again = JobStore(path)
+    try:
+        assert again.get("a" * 32).state is JobState.queued
+    finally:
+        again.close()
+    assert _user_version(path) == SCHEMA_VERSION
+
+
+def test_a_database_from_before_the_version_is_stamped_and_keeps_its_jobs(tmp_path):
+    path = tmp_path / "jobs.sqlite"
+    store = JobStore(path)
+    store.create("b" * 32, "archive", tmp_path, ["11"])
+    store.start("b" * 32)
+    store.close()
+    _set_user_version(path, 0)  # what a gateway that kept no version left behind
+    reopened = JobStore(path)
+    try:
+        record = reopened.get("b" * 32)
+        assert record.state is JobState.running and record.sequences == ["11"]
+        assert record.attempts == 1
+    finally:
+        reopened.close()
+    assert _user_version(path) == SCHEMA_VERSION
+
+
+def test_a_newer_database_is_refused_naming_the_file_and_both_versions(tmp_path):
+    path = tmp_path / "jobs.sqlite"
+    JobStore(path).close()
+    _set_user_version(path, SCHEMA_VERSION + 1)
+    with pytest.raises(JobDatabaseVersionError) as caught:
+        JobStore(path)
+    message = str(caught.value)
+    assert isinstance(caught.value, ValueError) and "\n" not in message
+    assert str(path) in message
+    assert f"version {SCHEMA_VERSION + 1}" in message and f"version {SCHEMA_VERSION}" in message
+    assert _user_version(path) == SCHEMA_VERSION + 1  # left as it was
+
+
+def test_create_app_refuses_a_newer_database_before_serving(tmp_path):
+    settings = Settings(state_dir=tmp_path)
+    JobStore(settings.database_path).close()
+    _set_user_version(settings.database_path, SCHEMA_VERSION + 5)
+    with pytest.raises(JobDatabaseVersionError, match=str(SCHEMA_VERSION + 5)):
+        create_app(settings, FakePool(), FakeExecutor())
+    assert not (tmp_path / "absent").exists()
+    create_app(Settings(state_dir=tmp_path / "absent"), FakePool(), FakeExecutor())
+    assert not (tmp_path / "absent").exists()  # checking creates nothing
+
+
+# No SQLite on the event loop -------------------------------------------------------------------
+
+
+class FakePool:
+    """A worker pool answering label 40 for every point."""
+
+    backend = "local"
+
+    async def predict_async(self, scans, knn=True):
+        return [np.full(len(s), 40, dtype=np.uint32) for s in scans]
+
+    def queue_depth(self):
+        return 0
+
+    def health(self):
+        return {"backend": "local", "ok": True, "actors": [{"pid": os.getpid()}]}
+
+
+class FakeExecutor:
+    """Writes all-zero predictions of the right length."""
+
+    backend = "fake"
+
+    def predict(self, entries, dataset, sequences, out, progress, cancel):
+        for i, entry in enumerate(entries):
+            n = os.path.getsize(entry.scan_path) // 16
+            write_labels(
+                prediction_path(out, entry.sequence, entry.name), np.zeros(n, dtype=np.uint32)
+            )
+            progress(i + 1, 0, len(entries))
+        return {}
+
+
+def _loop_checked_store(on_loop: list[str]) -> type[JobStore]:
+    """A `JobStore` whose every method records (and refuses) a call made on a running event loop."""
+
+    def guarded(name: str, method):
+        @functools.wraps(method)
+        def call(self, *args, **kwargs):
+            try:
+                asyncio.get_running_loop()
+            except RuntimeError:
+                return method(self, *args, **kwargs)
+            on_loop.append(f"{name} in {threading.current_thread().name}")
+            raise AssertionError(f"JobStore.{name} was called on the event loop")
+
+        return call
+
+    methods = {
+        name: guarded(name, value)
+        for name, value in vars(JobStore).items()
+        if callable(value) and (not name.startswith("__") or name == "__init__")
+    }
+    return type("LoopCheckedStore", (JobStore,), methods)
+
+
+def _wait(client: TestClient, job_id: str) -> dict:
+    deadline = time.time() + 30
+    while time.time() < deadline:
+        status = client.get(f"/v1/jobs/{job_id}").json()
+        if status["state"] in ("succeeded", "failed", "cancelled"):
+            return status
+        time.sleep(0.05)
+    raise AssertionError(f"job {job_id} did not finish: {status}")
+
+
+def test_routes_never_touch_the_store_on_the_event_loop(tmp_path, monkeypatch):
+    on_loop: list[str] = []
+    monkeypatch.setattr("service.gateway.JobStore", _loop_checked_store(on_loop))
+    roots = tmp_path / "roots"
+    make_tree(roots / "data", {"08": [30, 40], "11": [20]}, labelled=True)
+    settings = Settings(state_dir=tmp_path / "state", data_roots=[roots], api_token=TOKEN)
+    app = create_app(settings, FakePool(), FakeExecutor())
+    archive = io.BytesIO()
+    with zipfile.ZipFile(archive, "w") as zf:
+        for path in sorted((roots / "data").rglob("*.bin")):
+            zf.write(path, path.relative_to(roots / "data").as_posix())
+    with TestClient(app, headers=AUTH) as client:
+        assert client.get("/healthz").status_code == 200
+        created = client.post("/v1/jobs", json={"dataset": "data", "sequences": ["08"]})
+        uploaded = client.post(
+            "/v1/jobs", files={"archive": ("data.zip", archive.getvalue(), "application/zip")}
+        )
+        assert created.status_code == 202 and uploaded.status_code == 202, (
+            created.text,
+            uploaded.text,
+        )
+        first, second = created.json()["id"], uploaded.json()["id"]
+        assert _wait(client, first)["state"] == "succeeded"
+        assert _wait(client, second)["state"] == "succeeded"
+        assert {j["id"] for j in client.get("/v1/jobs").json()["jobs"]} == {first, second}
+        assert client.get(f"/v1/jobs/{first}/predictions").status_code == 200
+        assert client.get(f"/v1/jobs/{first}/report").json()["num_scans"] == 2
+        assert client.get(f"/v1/jobs/{second}/report").status_code == 404  # no labels uploaded
+        assert 'rangeret_jobs{state="succeeded"} 2.0' in client.get("/metrics").text
+        assert client.delete(f"/v1/jobs/{first}").json()["state"] == "succeeded"
+        assert client.get(f"/v1/jobs/{first}").status_code == 404
+        assert client.delete(f"/v1/jobs/{first}").status_code == 404
+        assert client.get(f"/v1/jobs/{first}/predictions").status_code == 404
+        scan = np.ones((7, 4), dtype=np.float32).tobytes()
+        labelled = client.post(
+            "/v1/scans", content=scan, headers={"Content-Type": "application/octet-stream"}
+        )
+        assert labelled.content == np.full(7, 40, dtype="<u4").tobytes()
+    assert on_loop == []
