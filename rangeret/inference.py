@@ -1,26 +1,28 @@
 """From points to raw SemanticKITTI labels: projection, the network, kNN refinement, raw ids.
 
 `Predictor` holds a loaded network and the options of a run. Its stages are separate methods
-(`project`, `network`, `refine`, `to_raw`) so a pipeline can run them on different workers;
-`predict` and `predict_batch` chain them for one process. Output is deterministic: the same
-weights, options and batch size give the same labels everywhere.
+(`project`, `logits`, `refine`, `to_raw`) so a pipeline can run them on different workers;
+`predict` and `predict_batch` chain them for one process. Each stage records its time in the
+`StageTimes` its caller passes (a run's own record), or else in the predictor's `times`.
+Output is deterministic: the same weights, options and batch size give the same labels
+everywhere.
 """
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import logging
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from rangeret.knn import refine as knn_refine
 from rangeret.labels import LabelConfig, semantickitti
+from rangeret.loading import LoadedScan
 from rangeret.models import load_checkpoint
+from rangeret.point_labels import DEFAULT_KNN, KnnSettings, point_classes
 from rangeret.projection import Projection, ProjectionConfig, project_with
 from rangeret.timing import StageTimes
 
@@ -54,16 +56,6 @@ def is_demo_checkpoint(sha256: str | None) -> bool:
 
 
 @dataclass(frozen=True)
-class KnnSettings:
-    """kNN refinement parameters; the defaults are those the released checkpoints were scored with."""
-
-    k: int = 7
-    search: int = 7
-    sigma: float = 1.0
-    cutoff: float = 1.0
-
-
-@dataclass(frozen=True)
 class TtaSettings:
     """Test-time augmentation: mirror the range image and/or rotate it in azimuth, average logits."""
 
@@ -87,7 +79,7 @@ class PredictorSpec:
     fov_up: float | None = None
     fov_down: float | None = None
     device: str = "auto"
-    knn: KnnSettings | None = KnnSettings()
+    knn: KnnSettings | None = DEFAULT_KNN
     tta: TtaSettings | None = None
 
     def build(self) -> Predictor:
@@ -103,6 +95,30 @@ class PredictorSpec:
             knn=self.knn,
             tta=self.tta,
         )
+
+
+def describe_network(
+    *,
+    model: str,
+    checkpoint: str | None,
+    sha256: str | None,
+    projection: ProjectionConfig,
+    knn: KnnSettings | None,
+    tta: TtaSettings | None,
+    device: str,
+) -> dict:
+    """The description of a network and its options that logs, reports and `run.json` carry;
+    `device` is the device used, or the one asked for where the network runs elsewhere."""
+    return {
+        "model": model,
+        "checkpoint": checkpoint,
+        "checkpoint_sha256": sha256,
+        "demo_weights": is_demo_checkpoint(sha256),
+        "projection": projection.to_dict(),
+        "knn": asdict(knn) if knn else None,
+        "tta": asdict(tta) if tta else None,
+        "device": device,
+    }
 
 
 def select_device(device: str | torch.device = "auto") -> torch.device:
@@ -133,18 +149,18 @@ class Predictor:
         projection: ProjectionConfig,
         label_config: LabelConfig | None = None,
         device: str | torch.device = "auto",
-        knn: KnnSettings | None = KnnSettings(),
+        knn: KnnSettings | None = DEFAULT_KNN,
         tta: TtaSettings | None = None,
         checkpoint_sha256: str | None = None,
     ) -> None:
         self.device = select_device(device)
-        self.network_module = network.to(self.device).eval()
+        self.network = network.to(self.device).eval()
         self.projection_config = projection
         self.label_config = label_config or semantickitti()
         self.knn = knn
         self.tta = tta
         self.checkpoint_sha256 = checkpoint_sha256
-        self.times = StageTimes()
+        self.times = StageTimes()  # where stages record unless the caller passes its own record
         self.num_classes = self.label_config.num_classes
 
     @classmethod
@@ -157,7 +173,7 @@ class Predictor:
         fov_up: float | None = None,
         fov_down: float | None = None,
         device: str | torch.device = "auto",
-        knn: KnnSettings | None = KnnSettings(),
+        knn: KnnSettings | None = DEFAULT_KNN,
         tta: TtaSettings | None = None,
     ) -> Predictor:
         """A predictor for a checkpoint file: the project's own (self-describing) or a published one.
@@ -172,60 +188,51 @@ class Predictor:
         return cls(network, projection, labels, device, knn, tta, checkpoint_sha256=info.sha256)
 
     def describe(self) -> dict:
-        """Plain-data description of the run's settings, for logs and reports."""
-        info = getattr(self.network_module, "checkpoint_info", None)
-        return {
-            "model": getattr(info, "name", type(self.network_module).__name__),
-            "checkpoint": getattr(info, "path", None),
-            "checkpoint_sha256": self.checkpoint_sha256,
-            "demo_weights": is_demo_checkpoint(self.checkpoint_sha256),
-            "projection": self.projection_config.to_dict(),
-            "knn": asdict(self.knn) if self.knn else None,
-            "tta": asdict(self.tta) if self.tta else None,
-            "device": str(self.device),
-        }
+        """Plain-data description of the run's settings, for logs, reports and `run.json`."""
+        info = getattr(self.network, "checkpoint_info", None)
+        return describe_network(
+            model=getattr(info, "name", type(self.network).__name__),
+            checkpoint=getattr(info, "path", None),
+            sha256=self.checkpoint_sha256,
+            projection=self.projection_config,
+            knn=self.knn,
+            tta=self.tta,
+            device=str(self.device),
+        )
 
     # Stages -------------------------------------------------------------------------------
 
-    def project(self, points: np.ndarray) -> Projection:
+    def project(self, points: np.ndarray, times: StageTimes | None = None) -> Projection:
         """Stage 1 (CPU): the scan's range image and every point's pixel."""
-        with self.times.stage("project"):
+        with self._record(times).stage("project"):
             return project_with(points, self.projection_config)
 
     @torch.inference_mode()
-    def network(self, projections: Sequence[Projection]) -> torch.Tensor:
+    def logits(
+        self, projections: Sequence[Projection], times: StageTimes | None = None
+    ) -> torch.Tensor:
         """Stage 2: float32 logits (B, C, H, W) for a batch of projected scans, on the device."""
-        with self.times.stage("network", len(projections)):
+        with self._record(times).stage("network", len(projections)):
             batch = torch.from_numpy(np.stack([p.image for p in projections])).to(self.device)
             logits = self._forward(batch) if self.tta is None else self._forward_tta(batch)
             if self.device.type == "cuda":
                 torch.cuda.synchronize(self.device)
             return logits
 
-    def refine(self, projection: Projection, logits: torch.Tensor) -> np.ndarray:
+    def refine(
+        self, projection: Projection, logits: torch.Tensor, times: StageTimes | None = None
+    ) -> np.ndarray:
         """Stage 3: per-point training classes from one scan's (C, H, W) logits."""
-        with self.times.stage("refine"):
-            argmax = logits.argmax(dim=0)
-            if self.knn is None:
-                valid = projection.proj_x >= 0
-                classes = np.zeros(projection.num_points, dtype=np.int64)
-                pixels = argmax.cpu().numpy()
-                classes[valid] = pixels[projection.proj_y[valid], projection.proj_x[valid]]
-                return classes
-            device = argmax.device
-            with _single_thread_on_cpu(device):
-                classes = knn_refine(
-                    torch.from_numpy(projection.proj_range).to(device),
-                    torch.from_numpy(projection.unproj_range).to(device),
-                    argmax,
-                    torch.from_numpy(projection.proj_x).to(device),
-                    torch.from_numpy(projection.proj_y).to(device),
-                    k=self.knn.k,
-                    search=self.knn.search,
-                    sigma=self.knn.sigma,
-                    cutoff=self.knn.cutoff,
-                    num_classes=self.num_classes,
-                )
+        with self._record(times).stage("refine"):
+            classes = point_classes(
+                logits.argmax(dim=0),
+                torch.from_numpy(projection.proj_x),
+                torch.from_numpy(projection.proj_y),
+                torch.from_numpy(projection.proj_range),
+                torch.from_numpy(projection.unproj_range),
+                self.knn,
+                self.num_classes,
+            )
             return classes.cpu().numpy()
 
     def to_raw(self, classes: np.ndarray) -> np.ndarray:
@@ -251,27 +258,60 @@ class Predictor:
     ) -> list[ScanPrediction]:
         """Raw labels for several scans, run through the network as one batch."""
         projections = [self.project(p) for p in scans]
-        logits = self.network(projections)
+        return self.finish_batch(projections, with_probabilities)
+
+    def finish_batch(
+        self,
+        projections: Sequence[Projection],
+        with_probabilities: bool = False,
+        times: StageTimes | None = None,
+    ) -> list[ScanPrediction]:
+        """Stages 2 to 4 for a batch of projected scans: every runner's path from projection to
+        raw labels (one process, the Ray model actors, the gateway's actors)."""
+        logits = self.logits(projections, times)
         return [
-            self.finish(p, out, with_probabilities)
+            self.finish(p, out, with_probabilities, times)
             for p, out in zip(projections, logits, strict=True)
         ]
 
     def finish(
-        self, projection: Projection, logits: torch.Tensor, with_probabilities: bool = False
+        self,
+        projection: Projection,
+        logits: torch.Tensor,
+        with_probabilities: bool = False,
+        times: StageTimes | None = None,
     ) -> ScanPrediction:
         """Refinement and raw ids for one scan whose logits are known."""
-        classes = self.refine(projection, logits)
+        classes = self.refine(projection, logits, times)
         probs = self.probabilities(projection, logits) if with_probabilities else None
         return ScanPrediction(labels=self.to_raw(classes), classes=classes, probabilities=probs)
 
+    def label_loaded(
+        self, scans: Sequence[LoadedScan], times: StageTimes | None = None
+    ) -> list[tuple[np.ndarray | None, str | None]]:
+        """(raw labels, None) or (None, why) for each scan of a loaded batch, in order.
+
+        The network runs once on the readable scans; if it fails (out of device memory, say),
+        each of them becomes a named failure instead of stopping the run.
+        """
+        good = [s.projection for s in scans if s.error is None]
+        try:
+            done = iter([r.labels for r in self.finish_batch(good, times=times)] if good else [])
+        except RuntimeError as exc:
+            reason = f"the network failed: {exc}"
+            return [(None, s.error or reason) for s in scans]
+        return [(None, s.error) if s.error is not None else (next(done), None) for s in scans]
+
     # Internals -----------------------------------------------------------------------------
+
+    def _record(self, times: StageTimes | None) -> StageTimes:
+        return self.times if times is None else times
 
     def _forward(self, batch: torch.Tensor) -> torch.Tensor:
         if self.device.type == "cuda":
             with torch.autocast("cuda", dtype=torch.float16):
-                return self.network_module(batch).float()
-        return self.network_module(batch).float()
+                return self.network(batch).float()
+        return self.network(batch).float()
 
     def _forward_tta(self, batch: torch.Tensor) -> torch.Tensor:
         """Mean logits over mirrored and azimuth-rotated views, each mapped back to the original."""
@@ -287,25 +327,6 @@ class Predictor:
                 logits = torch.flip(logits, dims=[-1])
             total = logits if total is None else total + logits
         return total / len(views)
-
-
-@contextlib.contextmanager
-def _single_thread_on_cpu(device: torch.device) -> Iterator[None]:
-    """Run the body on one torch thread when on the CPU.
-
-    kNN refinement is many small operations: with several threads, each waits for a time slice
-    whenever the cores are shared (readers beside the model actor), which can make it a hundred
-    times slower; on one thread it costs about 1.5x its best time and never more.
-    """
-    if device.type != "cpu":
-        yield
-        return
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _transform(

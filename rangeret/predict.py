@@ -8,7 +8,6 @@ with the network on the current one.
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
@@ -20,14 +19,13 @@ from pathlib import Path
 from tqdm import tqdm
 
 from rangeret.inference import Predictor
-from rangeret.io import LABEL_BYTES, ScanFormatError, read_scan, scan_num_points, write_labels
+from rangeret.io import LABEL_BYTES, ScanFormatError, scan_num_points, write_labels
 from rangeret.layout import DatasetLayoutError, ScanEntry, discover, prediction_path
-from rangeret.projection import Projection
+from rangeret.loading import load_batch
+from rangeret.run_info import write_run_info
 from rangeret.timing import StageTimes
 
 log = logging.getLogger(__name__)
-
-RUN_INFO = "run.json"
 
 
 @dataclass
@@ -116,50 +114,37 @@ def predict_tree(
         log.info(
             "%d of %d scans already have predictions; skipping them", summary.skipped, len(entries)
         )
-    _write_run_info(out, predictor, dataset, sequences, batch_size)
+    write_run_info(
+        out,
+        predictor.describe(),
+        runner="rangeret predict",
+        dataset=dataset,
+        sequences=sequences,
+        batch_size=batch_size,
+    )
 
-    def load(batch: list[ScanEntry]) -> list[tuple[ScanEntry, Projection | None, str | None]]:
-        loaded = []
-        for entry in batch:
-            try:
-                with predictor.times.stage("read"):
-                    points = read_scan(entry.scan_path)
-            except (ScanFormatError, OSError) as exc:
-                loaded.append((entry, None, str(exc)))
-                continue
-            loaded.append((entry, predictor.project(points), None))
-        return loaded
-
+    times = summary.times
     start = time.perf_counter()
-    predictor.times = summary.times  # this run's stage times, fresh
     bar = tqdm(total=len(pending), desc="predict", unit="scan", disable=not progress)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="rangeret-read") as pool:
         batches = _batches(pending, batch_size)
-        future = pool.submit(load, next(batches, []))
+        config = predictor.projection_config
+        future = pool.submit(load_batch, next(batches, []), config, times)
         while True:
             loaded = future.result()
             if not loaded or (cancel is not None and cancel.is_set()):
                 break
-            future = pool.submit(load, next(batches, []))
-            for entry, _, error in loaded:
-                if error:
-                    summary.failed[entry.key] = error
-            good = [(e, p) for e, p, err in loaded if err is None]
-            if good:
-                try:
-                    logits = predictor.network([p for _, p in good])
-                except RuntimeError as exc:
-                    for entry, _ in good:
-                        summary.failed[entry.key] = f"the network failed: {exc}"
-                    logits = []
-                for (entry, proj), scan_logits in zip(good, logits, strict=False):
-                    result = predictor.finish(proj, scan_logits)
-                    with predictor.times.stage("write"):
-                        write_labels(
-                            prediction_path(out, entry.sequence, entry.name), result.labels
-                        )
-                    summary.written += 1
-                    summary.points += proj.num_points
+            future = pool.submit(load_batch, next(batches, []), config, times)
+            for scan, (labels, error) in zip(
+                loaded, predictor.label_loaded(loaded, times), strict=True
+            ):
+                if error is not None:
+                    summary.failed[scan.entry.key] = error
+                    continue
+                with times.stage("write"):
+                    write_labels(prediction_path(out, scan.entry.sequence, scan.entry.name), labels)
+                summary.written += 1
+                summary.points += scan.projection.num_points
             bar.update(len(loaded))
             bar.set_postfix(failed=len(summary.failed))
             if on_progress is not None:
@@ -169,15 +154,3 @@ def predict_tree(
     bar.close()
     summary.seconds = time.perf_counter() - start
     return summary
-
-
-def _write_run_info(out: Path, predictor: Predictor, dataset, sequences, batch_size: int) -> None:
-    """Record how the predictions were made next to them (checkpoint hash, options)."""
-    out.mkdir(parents=True, exist_ok=True)
-    info = predictor.describe() | {
-        "dataset": str(dataset),
-        "sequences": list(sequences),
-        "batch_size": batch_size,
-        "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-    }
-    (out / RUN_INFO).write_text(json.dumps(info, indent=2) + "\n")

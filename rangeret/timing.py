@@ -7,7 +7,6 @@ without importing the network's dependencies.
 from __future__ import annotations
 
 import contextlib
-import json
 import threading
 import time
 from collections import defaultdict
@@ -42,18 +41,14 @@ class StageTimes:
         for k, v in other.scans.items():
             self.scans[k] += v
 
-    def to_json(self) -> str:
-        """The record as JSON text, to travel between processes (the lock does not pickle)."""
-        return json.dumps([self.seconds, self.scans])
+    def __getstate__(self) -> dict:
+        """Pickle the times and counts; the lock stays behind (a new one is made on load)."""
+        return {"seconds": dict(self.seconds), "scans": dict(self.scans)}
 
-    @classmethod
-    def from_json(cls, text: str) -> StageTimes:
-        """A record from `to_json` text."""
-        seconds, scans = json.loads(text)
-        times = cls()
-        times.seconds.update(seconds)
-        times.scans.update(scans)
-        return times
+    def __setstate__(self, state: dict) -> None:
+        self.seconds = defaultdict(float, state["seconds"])
+        self.scans = defaultdict(int, state["scans"])
+        self._lock = threading.Lock()
 
     def per_scan_ms(self) -> dict[str, float]:
         """Mean milliseconds per scan of each stage."""

@@ -16,7 +16,7 @@ from rangeret.sim import SensorConfig, simulate_dataset
 def test_demo_weights_load_and_beat_the_majority_class(tmp_path):
     assert DEMO_CHECKPOINT.stat().st_size < 10 * 2**20
     predictor = Predictor.from_checkpoint(DEMO_CHECKPOINT, device="cpu")
-    info = predictor.network_module.checkpoint_info
+    info = predictor.network.checkpoint_info
     assert not info.published and info.name == "rangeret-thesis"
     assert is_demo_checkpoint(info.sha256) and predictor.describe()["demo_weights"]
 

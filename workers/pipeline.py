@@ -24,11 +24,9 @@ every write is atomic, so a retried batch leaves the same files.
 from __future__ import annotations
 
 import itertools
-import json
 import logging
 import math
 import os
-import pickle
 import threading
 import time
 import warnings
@@ -43,7 +41,7 @@ from rangeret.layout import ScanEntry, prediction_path
 from rangeret.metrics import RawLabelEvaluator
 from rangeret.projection import ProjectionConfig
 from rangeret.timing import StageTimes
-from workers.stages import Reader, Writer, entry_record
+from workers.stages import ROW_COLUMN, BatchRecord, Reader, Writer
 
 log = logging.getLogger(__name__)
 
@@ -110,37 +108,14 @@ class ModelWorker:
         log.info("model worker %d on %s", os.getpid(), self.device)
 
     def __call__(self, batch: dict) -> dict:
-        out_payload, out_times, devices = [], [], []
-        for payload, times in zip(batch["payload"], batch["times"], strict=True):
-            items = pickle.loads(payload)
-            self.predictor.times = StageTimes.from_json(times)
-            good = [proj for proj, err in items if err is None]
-            try:
-                logits = self.predictor.network(good) if good else []
-                done = iter(
-                    [
-                        self.predictor.finish(p, lg).labels
-                        for p, lg in zip(good, logits, strict=True)
-                    ]
-                )
-                results = [
-                    (None, err) if err is not None else (next(done), None) for _, err in items
-                ]
-            except (
-                RuntimeError
-            ) as exc:  # e.g. out of device memory: name the scans, keep the job going
-                reason = f"the network failed: {exc}"
-                results = [(None, err or reason) for _, err in items]
-            out_payload.append(pickle.dumps(results, protocol=pickle.HIGHEST_PROTOCOL))
-            out_times.append(self.predictor.times.to_json())
-            devices.append(f"{self.device}@{os.getpid()}")
-        return {
-            "batch": batch["batch"],
-            "entries": batch["entries"],
-            "payload": out_payload,
-            "times": out_times,
-            "worker": devices,
-        }
+        records = []
+        for encoded in batch[ROW_COLUMN]:
+            record = BatchRecord.decode({ROW_COLUMN: encoded})
+            record.results = self.predictor.label_loaded(record.loaded, record.times)
+            record.loaded = []
+            record.worker = f"{self.device}@{os.getpid()}"
+            records.append(record.encode()[ROW_COLUMN])
+        return {ROW_COLUMN: records}
 
 
 def cluster_gpus() -> int:
@@ -184,10 +159,7 @@ def run_pipeline(
         return result
 
     batches = [
-        {
-            "batch": i,
-            "entries": json.dumps([entry_record(e) for e in entries[s : s + options.batch_size]]),
-        }
+        BatchRecord(i, list(entries[s : s + options.batch_size])).encode()
         for i, s in enumerate(range(0, len(entries), options.batch_size))
     ]
     ctx = ray.data.DataContext.get_current()
@@ -246,18 +218,17 @@ def run_pipeline(
         if cancel is not None and cancel.is_set():
             log.info("cancelled after %d of %d scans", seen, total)
             break
-        for record, error in zip(
-            json.loads(row["entries"]), json.loads(row["status"]), strict=True
-        ):
+        record = BatchRecord.decode(row)
+        for entry, error in zip(record.entries, record.failures, strict=True):
             seen += 1
             if error is None:
                 result.written += 1
             else:
-                result.failed[f"{record[0]}/{record[1]}"] = error
-        result.points += int(row["points"])
-        result.evaluator.merge(pickle.loads(row["counts"]))
-        result.times.merge(StageTimes.from_json(row["times"]))
-        devices.add(row["worker"])
+                result.failed[entry.key] = error
+        result.points += record.points
+        result.evaluator.merge(record.counts)
+        result.times.merge(record.times)
+        devices.add(record.worker)
         if progress is not None:
             progress(seen, len(result.failed), total)
         now = time.perf_counter()

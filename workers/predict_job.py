@@ -13,7 +13,6 @@ exits non-zero when any scan could not be predicted, naming each one.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import sys
@@ -22,10 +21,19 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from rangeret.errors import CommandError, run_command
-from rangeret.inference import DEMO_WARNING, is_demo_checkpoint, projection_for
+from rangeret.inference import (
+    DEMO_WARNING,
+    PredictorSpec,
+    describe_network,
+    is_demo_checkpoint,
+    projection_for,
+)
 from rangeret.labels import LabelConfig, load_label_config
+from rangeret.models.checkpoint_info import CheckpointInfo
 from rangeret.options import add_network_options, add_selection, selected_sequences, spec_from_args
-from rangeret.predict import RUN_INFO, PredictSummary, is_complete, list_scans
+from rangeret.predict import PredictSummary, is_complete, list_scans
+from rangeret.projection import ProjectionConfig
+from rangeret.run_info import write_run_info
 from workers.pipeline import PipelineOptions, count_labels, run_pipeline
 
 log = logging.getLogger("workers.predict_job")
@@ -119,7 +127,7 @@ def run(args: argparse.Namespace, label_config: LabelConfig | None = None) -> in
         len(done),
     )
     demo = is_demo_checkpoint(info.sha256)
-    _write_run_info(args, spec.checkpoint, info, projection, sequences, demo)
+    _write_run_info(args, spec, info, projection, sequences)
 
     connect(None)
     options = PipelineOptions(
@@ -181,7 +189,7 @@ def run(args: argparse.Namespace, label_config: LabelConfig | None = None) -> in
     return 0
 
 
-def _description(info, demo: bool) -> str:
+def _description(info: CheckpointInfo, demo: bool) -> str:
     lines = [
         f"RangeRet ({info.name}) predictions",
         f"checkpoint sha256: {info.sha256}",
@@ -194,27 +202,28 @@ def _description(info, demo: bool) -> str:
 
 def _write_run_info(
     args: argparse.Namespace,
-    checkpoint: str,
-    info,
-    projection,
+    spec: PredictorSpec,
+    info: CheckpointInfo,
+    projection: ProjectionConfig,
     sequences: Sequence[str],
-    demo: bool,
 ) -> None:
-    args.out.mkdir(parents=True, exist_ok=True)
-    record = {
-        "model": info.name,
-        "checkpoint": checkpoint,
-        "checkpoint_sha256": info.sha256,
-        "demo_weights": demo,
-        "projection": projection.to_dict(),
-        "knn": not args.no_knn,
-        "batch_size": args.batch_size,
-        "dataset": str(args.dataset),
-        "sequences": list(sequences),
-        "runner": "workers.predict_job",
-        "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-    }
-    (args.out / RUN_INFO).write_text(json.dumps(record, indent=2) + "\n")
+    network = describe_network(
+        model=info.name,
+        checkpoint=spec.checkpoint,
+        sha256=info.sha256,
+        projection=projection,
+        knn=spec.knn,
+        tta=spec.tta,
+        device=spec.device,
+    )
+    write_run_info(
+        args.out,
+        network,
+        runner="workers.predict_job",
+        dataset=args.dataset,
+        sequences=sequences,
+        batch_size=args.batch_size,
+    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -2,95 +2,87 @@
 
 They run in small Ray Data actor pools beside the model actors. This module imports only numpy and
 the torch-free parts of the library, so a reader or writer process starts in about a second and
-holds no copy of torch.
-Rows carry scans as JSON records, projections and labels as pickles, stage times as JSON.
+holds no copy of torch. A batch travels between stages as one typed `BatchRecord`, encoded into a
+Ray Data row by `encode` and read back by `BatchRecord.decode`.
 """
 
 from __future__ import annotations
 
-import json
 import pickle
-from collections.abc import Sequence
-from pathlib import Path
+from dataclasses import dataclass, field
 
-from rangeret.io import ScanFormatError, read_labels, read_scan, write_labels
+import numpy as np
+
+from rangeret.io import ScanFormatError, read_labels, write_labels
 from rangeret.labels import LabelConfig
 from rangeret.layout import ScanEntry, prediction_path
+from rangeret.loading import LoadedScan, load_batch
 from rangeret.metrics import RawLabelEvaluator
-from rangeret.projection import ProjectionConfig, project_with
+from rangeret.projection import ProjectionConfig
 from rangeret.timing import StageTimes
 
-
-def entry_record(entry: ScanEntry) -> list:
-    """A scan as a JSON-able record (sequence, name, scan path, label path or None)."""
-    return [
-        entry.sequence,
-        entry.name,
-        str(entry.scan_path),
-        str(entry.label_path) if entry.label_path else None,
-    ]
+#: The one column of a pipeline row: the pickled `BatchRecord`.
+ROW_COLUMN = "record"
 
 
-def entry_from(record: Sequence) -> ScanEntry:
-    """The scan of an `entry_record`."""
-    seq, name, scan, label = record
-    return ScanEntry(seq, name, Path(scan), Path(label) if label else None)
+@dataclass
+class BatchRecord:
+    """One batch of scans on its way through the pipeline.
+
+    The reader fills `loaded` (a projection or a failure per scan); the model actor replaces it by
+    `results` (raw labels or a failure per scan) and names itself in `worker`; the writer clears
+    `results` once the files are written and fills `failures`, `points` and `counts`.
+    """
+
+    index: int
+    entries: list[ScanEntry]
+    times: StageTimes = field(default_factory=StageTimes)
+    loaded: list[LoadedScan] = field(default_factory=list)
+    results: list[tuple[np.ndarray | None, str | None]] = field(default_factory=list)
+    worker: str = ""
+    failures: list[str | None] = field(default_factory=list)
+    points: int = 0
+    counts: RawLabelEvaluator | None = None
+
+    def encode(self) -> dict:
+        """The record as a Ray Data row."""
+        return {ROW_COLUMN: pickle.dumps(self, protocol=pickle.HIGHEST_PROTOCOL)}
+
+    @classmethod
+    def decode(cls, row: dict) -> BatchRecord:
+        """The record of a row made by `encode`."""
+        record = pickle.loads(row[ROW_COLUMN])
+        if not isinstance(record, cls):
+            raise TypeError(f"a pipeline row holds {type(record).__name__}, not a BatchRecord")
+        return record
 
 
-def read_and_project(row: dict, projection: ProjectionConfig) -> dict:
+def read_and_project(record: BatchRecord, projection: ProjectionConfig) -> BatchRecord:
     """Stage 1: read and project every scan of a batch; unreadable scans become named failures."""
-    times = StageTimes()
-    items = []
-    for record in json.loads(row["entries"]):
-        entry = entry_from(record)
-        try:
-            with times.stage("read"):
-                points = read_scan(entry.scan_path)
-        except (ScanFormatError, OSError) as exc:
-            items.append((None, str(exc)))
-            continue
-        with times.stage("project"):
-            items.append((project_with(points, projection), None))
-    return {
-        "batch": row["batch"],
-        "entries": row["entries"],
-        "payload": pickle.dumps(items, protocol=pickle.HIGHEST_PROTOCOL),
-        "times": times.to_json(),
-    }
+    record.loaded = load_batch(record.entries, projection, record.times)
+    return record
 
 
-def write_results(row: dict, out: str, label_config: LabelConfig) -> dict:
+def write_results(record: BatchRecord, out: str, label_config: LabelConfig) -> BatchRecord:
     """Stage 3: atomic label writes, and the confusion counts of the batch's labelled scans."""
     evaluator = RawLabelEvaluator(label_config)
-    times = StageTimes.from_json(row["times"])
-    status = []
-    points = 0
-    for record, (labels, error) in zip(
-        json.loads(row["entries"]), pickle.loads(row["payload"]), strict=True
-    ):
-        entry = entry_from(record)
+    failures: list[str | None] = []
+    for entry, (labels, error) in zip(record.entries, record.results, strict=True):
         if error is not None:
-            status.append(error)
+            failures.append(error)
             continue
         try:
-            with times.stage("write"):
+            with record.times.stage("write"):
                 write_labels(prediction_path(out, entry.sequence, entry.name), labels)
             if entry.label_path is not None:
                 evaluator.add(labels, read_labels(entry.label_path, num_points=labels.size))
         except (OSError, ScanFormatError) as exc:
-            status.append(str(exc))
+            failures.append(str(exc))
             continue
-        points += int(labels.size)
-        status.append(None)
-    return {
-        "batch": row["batch"],
-        "entries": row["entries"],
-        "status": json.dumps(status),
-        "points": points,
-        "counts": pickle.dumps(evaluator, protocol=pickle.HIGHEST_PROTOCOL),
-        "times": times.to_json(),
-        "worker": row["worker"],
-    }
+        record.points += int(labels.size)
+        failures.append(None)
+    record.failures, record.counts, record.results = failures, evaluator, []
+    return record
 
 
 class Reader:
@@ -100,7 +92,7 @@ class Reader:
         self.projection = projection
 
     def __call__(self, row: dict) -> dict:
-        return read_and_project(row, self.projection)
+        return read_and_project(BatchRecord.decode(row), self.projection).encode()
 
 
 class Writer:
@@ -111,4 +103,4 @@ class Writer:
         self.label_config = label_config
 
     def __call__(self, row: dict) -> dict:
-        return write_results(row, self.out, self.label_config)
+        return write_results(BatchRecord.decode(row), self.out, self.label_config).encode()

@@ -43,12 +43,12 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from rangeret.atomic import atomic_path
-from rangeret.inference import KnnSettings, select_device
-from rangeret.knn import refine
+from rangeret.inference import select_device
 from rangeret.labels import LabelConfig, load_label_config
 from rangeret.layout import DatasetLayoutError, ScanEntry, discover, resolve_sequences
 from rangeret.metrics import ConfusionMatrix
 from rangeret.models import RangeRet, build_model, save_checkpoint
+from rangeret.point_labels import KnnSettings, point_classes
 from rangeret.projection import ProjectionConfig
 from rangeret.training.config import TrainConfig
 from rangeret.training.dataset import EpochSampler, RangeDataset, collate, steps_per_epoch
@@ -552,24 +552,15 @@ class Trainer:
             argmax = logits.argmax(dim=1)
             counts[0] += torch.bincount((argmax * c + labels).reshape(-1), minlength=c * c).cpu()
             for i in range(len(images)):
-                px = batch["proj_x"][i].to(self.device)
-                py = batch["proj_y"][i].to(self.device)
                 truth = batch["point_labels"][i].to(self.device)
-                valid = px >= 0
-                points = torch.zeros_like(truth)
-                points[valid] = argmax[i][py[valid], px[valid]]
-                refined = refine(
-                    batch["proj_range"][i].to(self.device),
-                    batch["unproj_range"][i].to(self.device),
-                    argmax[i],
-                    px,
-                    py,
-                    k=self.knn.k,
-                    search=self.knn.search,
-                    sigma=self.knn.sigma,
-                    cutoff=self.knn.cutoff,
-                    num_classes=c,
+                projection = (
+                    batch["proj_x"][i],
+                    batch["proj_y"][i],
+                    batch["proj_range"][i],
+                    batch["unproj_range"][i],
                 )
+                points = point_classes(argmax[i], *projection, None, c)
+                refined = point_classes(argmax[i], *projection, self.knn, c)
                 counts[1] += torch.bincount(points * c + truth, minlength=c * c).cpu()
                 counts[2] += torch.bincount(
                     refined.to(truth.dtype) * c + truth, minlength=c * c
