@@ -100,6 +100,11 @@ def test_job_equals_rangeret_predict_and_evaluate(ray_local, setup, tmp_path, ba
     assert job_report["confusion"] == eval_report["confusion"]
     assert job_report["miou"] == eval_report["miou"]
     assert (tmp_path / "report-plots" / "iou.png").exists()
+    runs = [json.loads((tmp_path / t / "run.json").read_text()) for t in ("single", "ray")]
+    assert [r["runner"] for r in runs] == ["rangeret predict", "workers.predict_job"]
+    assert sorted(runs[0]) == sorted(runs[1])
+    same = ("model", "checkpoint_sha256", "projection", "knn", "tta", "batch_size", "sequences")
+    assert all(runs[0][k] == runs[1][k] for k in same)
     capsys.readouterr()
 
 

@@ -119,20 +119,12 @@ class Ranks:
 
 @dataclass
 class TrainResult:
-    """What a run did: per-step losses, per-epoch rows, the best epoch and where the files are."""
+    """What a run did: per-step losses, per-epoch rows, the best epoch, and its output folder."""
 
     out: Path
     steps: list[dict[str, float]] = field(default_factory=list)
     epochs: list[dict[str, Any]] = field(default_factory=list)
     best: dict[str, Any] | None = None
-
-    @property
-    def last_path(self) -> Path:
-        return self.out / LAST
-
-    @property
-    def best_path(self) -> Path:
-        return self.out / BEST
 
 
 def seed_everything(seed: int) -> None:

@@ -1,0 +1,61 @@
+"""The pipeline's CPU stages and the record a batch travels in, without a Ray cluster."""
+
+from __future__ import annotations
+
+import pickle
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from conftest import make_tree
+
+from rangeret.io import read_labels
+from rangeret.labels import semantickitti
+from rangeret.layout import discover, prediction_path, velodyne_dir
+from rangeret.projection import ProjectionConfig
+from workers.stages import BatchRecord, read_and_project, write_results
+
+
+@pytest.fixture
+def entries(tmp_path):
+    data = tmp_path / "data"
+    make_tree(data, {"08": [300, 400, 500]})
+    (velodyne_dir(data, "08") / "000001.bin").write_bytes(b"\x00" * 33)
+    return discover(data, ["08"], with_labels=True).scans
+
+
+def test_a_batch_survives_encoding_between_stages(entries):
+    record = read_and_project(BatchRecord(4, entries), ProjectionConfig(height=16, width=128))
+    again = BatchRecord.decode(pickle.loads(pickle.dumps(record.encode())))
+    assert again.index == 4 and again.entries == entries
+    assert [s.error is None for s in again.loaded] == [True, False, True]
+    assert "000001.bin" in again.loaded[1].error
+    assert again.loaded[2].projection.num_points == 500
+    assert again.times.scans["read"] == 3 and again.times.scans["project"] == 2
+
+
+def test_writer_names_failures_and_counts_labelled_scans(entries, tmp_path):
+    config = semantickitti()
+    record = BatchRecord(0, entries)
+    truth = [read_labels(e.label_path) for e in entries]
+    record.results = [(truth[0], None), (None, "unreadable"), (truth[2], None)]
+    out = tmp_path / "pred"
+    done = BatchRecord.decode(write_results(record, str(out), config).encode())
+    assert done.failures == [None, "unreadable", None]
+    assert done.points == 800 and done.results == []
+    assert done.counts.num_scans == 2 and done.counts.report().accuracy == 1.0
+    written = prediction_path(out, "08", entries[2].name)
+    np.testing.assert_array_equal(read_labels(written), truth[2])
+    assert not prediction_path(out, "08", entries[1].name).exists()
+
+
+def test_a_row_that_is_not_a_batch_is_refused():
+    with pytest.raises(TypeError, match="BatchRecord"):
+        BatchRecord.decode({"record": pickle.dumps({"batch": 1})})
+
+
+def test_the_cpu_stages_start_without_torch():
+    code = "import sys, workers.stages; print('torch' in sys.modules)"
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert run.stdout.strip() == "False"
