@@ -124,6 +124,9 @@ def run_serve(args: argparse.Namespace) -> int:
     problem = settings.address_problem()
     if problem:
         raise CommandError(problem)
+    from service.jobs import check_schema_version
+
+    check_schema_version(settings.database_path)  # before minutes of loading weights and workers
     args.batch_size = settings.batch_size
     spec = spec_from_args(args)
     facts = checkpoint_facts(spec)
