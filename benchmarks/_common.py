@@ -1,4 +1,4 @@
-"""Helpers shared by the benchmarks: timing with medians and the real scan's location."""
+"""Helpers shared by the benchmarks: timing with medians and the location of their inputs."""
 
 from __future__ import annotations
 
@@ -9,9 +9,10 @@ from collections.abc import Callable
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-SHARED = REPO.parent / "shared"
-REAL_SCAN = SHARED / "data" / "semantickitti-scan" / "000000.bin"
-REAL_LABELS = SHARED / "data" / "semantickitti-scan" / "000000.label"
+DATA = REPO / "tests" / "data"  # the real scan and test vectors the repository carries
+REAL_SCAN = DATA / "semantickitti-scan" / "000000.bin"
+REAL_LABELS = DATA / "semantickitti-scan" / "000000.label"
+SMALL_VECTORS = DATA / "rangeret-cir-32x256-2block.pt"
 
 sys.path.insert(
     0, str(REPO / "tests")
@@ -34,6 +35,14 @@ def median_time(
 
 
 def require_real_scan() -> None:
-    """Exit with a message when the real scan is not beside the project."""
+    """Exit with a message when the real scan is missing from `tests/data`."""
     if not REAL_SCAN.exists():
-        sys.exit(f"{REAL_SCAN} is missing: the benchmarks need ../shared beside the project")
+        sys.exit(f"{REAL_SCAN} is missing: the repository carries it in tests/data")
+
+
+def small_state_dict() -> dict:
+    """The published-layout state_dict of the 32 x 256, 2-block test vectors, upcast to float32."""
+    import torch
+
+    state = torch.load(SMALL_VECTORS, weights_only=False)["state_dict"]
+    return {k: v.float() if v.is_floating_point() else v for k, v in state.items()}

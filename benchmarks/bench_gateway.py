@@ -1,7 +1,7 @@
 """Concurrent single-scan load on the HTTP gateway over loopback: throughput, p50/p99, batching gain.
 
 Starts a gateway of its own (`python -m service`, in-process worker, the small published-layout
-weights of ../shared at 32 x 256) once per configuration, warms it up, then lets `--clients`
+weights of the test vectors at 32 x 256) once per configuration, warms it up, then lets `--clients`
 clients each send `--scans` requests one after another (a subsampled real scan) and reports
 scans/s and latency percentiles, first with batch size 1, then with request batching. Bounded in
 count and time; loopback only. Run by hand: `python benchmarks/bench_gateway.py`.
@@ -24,7 +24,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import torch
-from _common import REAL_SCAN, REPO, SHARED, require_real_scan
+from _common import REAL_SCAN, REPO, require_real_scan, small_state_dict
 
 from rangeret.io import read_scan
 
@@ -157,9 +157,8 @@ def main() -> None:
     points = read_scan(REAL_SCAN)[:: args.stride]
     body = points.tobytes()
     with tempfile.TemporaryDirectory() as tmp:
-        fixture = torch.load(SHARED / "fixtures" / "rangeret-cir-small.pt", weights_only=False)
         weights = Path(tmp) / "cir-small.pt"
-        torch.save(fixture["state_dict"], weights)
+        torch.save(small_state_dict(), weights)
         print(
             f"{args.clients} clients x {args.scans} scans of {len(points):,} points, small rangeret-cir at 32x256, "
             f"device {args.device}, {os.cpu_count()} CPUs"

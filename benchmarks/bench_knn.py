@@ -12,11 +12,11 @@ import sys
 
 import numpy as np
 import torch
-from _common import SHARED, median_time
+from _common import DATA, median_time
 
 from rangeret.knn import refine
 
-FIXTURE = SHARED / "fixtures" / "knn-semantickitti-scan.npz"
+FIXTURE = DATA / "knn-semantickitti-scan.npz"
 INPUTS = ("proj_range", "unproj_range", "proj_argmax", "proj_x", "proj_y")
 PUBLISHED_S = 0.22
 TARGET_MS = 60.0
@@ -25,7 +25,7 @@ PARAMETERS = [(7, 7), (5, 5)]
 
 def main() -> None:
     if not FIXTURE.exists():
-        sys.exit(f"{FIXTURE} is missing: the benchmark needs ../shared beside the project")
+        sys.exit(f"{FIXTURE} is missing: the repository carries it in tests/data")
     with np.load(FIXTURE) as data:
         arrays = {name: data[name] for name in INPUTS}
         expected = {(k, s): data[f"expected_knn{k}_search{s}"] for k, s in PARAMETERS}

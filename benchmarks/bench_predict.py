@@ -1,8 +1,8 @@
 """Per-stage time of the single-process pipeline on the real scan, and end-to-end scans/s.
 
-Uses the release-shaped weights of `rangeret-cir-kitti.pt` (8 blocks, 64 x 1024) from ../shared,
-and, for comparison, the lighter thesis network. Run by hand: `python benchmarks/bench_predict.py
-[--device cuda] [--scans N]`. Prints medians; not a test.
+Uses the release-shaped network (`rangeret-cir`, 8 blocks, 64 x 1024, random weights) saved as a
+bare state_dict like the release file, and, for comparison, the lighter thesis network. Run by
+hand: `python benchmarks/bench_predict.py [--device cuda] [--scans N]`. Prints medians; not a test.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _common import REAL_SCAN, SHARED, require_real_scan
+from _common import REAL_SCAN, require_real_scan
 
 from rangeret.inference import Predictor
 from rangeret.io import read_scan, write_labels, write_scan
@@ -59,10 +59,10 @@ def main() -> None:
     args = parser.parse_args()
     require_real_scan()
     points = read_scan(REAL_SCAN)
-    fixture = torch.load(SHARED / "fixtures" / "rangeret-cir-kitti.pt", weights_only=False)
+    release = build_model("rangeret-cir", 64, 1024).state_dict()  # the release's 8-block shape
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        torch.save(fixture["state_dict"], tmp / "cir.pt")
+        torch.save(release, tmp / "cir.pt")
         cir = Predictor.from_checkpoint(tmp / "cir.pt", device=args.device)
         thesis = Predictor(build_model("rangeret-thesis"), ProjectionConfig(), device=args.device)
         print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, device {cir.device}")

@@ -2,8 +2,9 @@
 on the same cores, over a tree of subsampled copies of the real scan.
 
 Run by hand: `python benchmarks/bench_workers.py [--scans 40] [--rounds 3] [--weights kitti|small]`. `kitti`
-uses the release-shaped 8-block network at 64 x 1024 (about 2-3 s per scan on 2 cores), `small`
-the 2-block fixture at 32 x 256. Prints scans/s and the pipeline's overhead; not a test.
+uses the release-shaped 8-block network at 64 x 1024 (random weights; about 2-3 s per scan on 2
+cores), `small` the 2-block weights of the test vectors at 32 x 256. Prints scans/s and the
+pipeline's overhead; not a test.
 """
 
 from __future__ import annotations
@@ -16,12 +17,12 @@ import time
 from pathlib import Path
 
 import torch
-from _common import REAL_SCAN, SHARED, require_real_scan
+from _common import REAL_SCAN, require_real_scan, small_state_dict
 
 from rangeret.inference import PredictorSpec, projection_for
 from rangeret.io import read_scan, write_scan
 from rangeret.layout import velodyne_dir
-from rangeret.models import load_checkpoint
+from rangeret.models import build_model, load_checkpoint
 from rangeret.predict import list_scans, predict_tree
 from rangeret.timing import StageTimes
 from workers.pipeline import PipelineOptions, run_pipeline
@@ -42,13 +43,15 @@ def main() -> None:
     import ray
 
     points = read_scan(REAL_SCAN)
-    fixture = torch.load(
-        SHARED / "fixtures" / f"rangeret-cir-{args.weights}.pt", weights_only=False
-    )
     h, w = SIZES[args.weights]
+    state = (
+        build_model("rangeret-cir", h, w).state_dict()  # the release's 8-block shape
+        if args.weights == "kitti"
+        else small_state_dict()
+    )
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        torch.save(fixture["state_dict"], tmp / "w.pt")
+        torch.save(state, tmp / "w.pt")
         for i in range(args.scans):
             write_scan(
                 velodyne_dir(tmp / "data", "08") / f"{i:06d}.bin", points[i % 7 :: 1 + i % 2]

@@ -1,45 +1,47 @@
-"""Shared test fixtures: the `../shared` folder with the real scan and test vectors."""
+"""Shared test fixtures: the real scan, label configuration and test vectors of `tests/data`."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
-SHARED = REPO.parent / "shared"
+DATA = REPO / "tests" / "data"
 
 
-def shared_path(*parts: str) -> Path:
-    """A file under `../shared`: skipped when absent outside CI, a failure when absent under CI."""
-    path = SHARED.joinpath(*parts)
+def data_path(*parts: str) -> Path:
+    """A file under `tests/data` (see its README); a failure when it is missing."""
+    path = DATA.joinpath(*parts)
     if not path.exists():
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"{path} is missing, and CI must have ../shared beside the project")
-        pytest.skip(
-            f"{path} is not here (../shared is only beside the project on CI and dev machines)"
-        )
+        pytest.fail(f"{path} is missing: the repository carries it in tests/data")
     return path
 
 
-@pytest.fixture(scope="session")
-def shared_dir() -> Path:
-    """The `../shared` folder (skip when absent outside CI, fail when absent under CI)."""
-    return shared_path()
+def load_vectors(name: str) -> dict:
+    """A test-vector file of `tests/data`, with its float16-stored `state_dict` and `input` upcast
+    to float32 (exactly the weights and input its logits were computed from)."""
+    import torch
+
+    vectors = torch.load(data_path(name), weights_only=False)
+    vectors["state_dict"] = {
+        k: v.float() if v.is_floating_point() else v for k, v in vectors["state_dict"].items()
+    }
+    vectors["input"] = vectors["input"].float()
+    return vectors
 
 
 @pytest.fixture(scope="session")
 def real_scan_path() -> Path:
     """The real SemanticKITTI scan (123,389 points)."""
-    return shared_path("data", "semantickitti-scan", "000000.bin")
+    return data_path("semantickitti-scan", "000000.bin")
 
 
 @pytest.fixture(scope="session")
 def real_label_path() -> Path:
     """Ground-truth labels of the real scan."""
-    return shared_path("data", "semantickitti-scan", "000000.label")
+    return data_path("semantickitti-scan", "000000.label")
 
 
 def make_tree(

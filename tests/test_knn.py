@@ -1,35 +1,28 @@
 """kNN refinement (`rangeret.knn.refine`): the published output, the rule itself, types, errors.
 
-The published post-processing's output on a real scan (`../shared/fixtures/
-knn-semantickitti-scan.npz`) is the main check; a slow per-point version of the rule written
-directly from the rule checks everything else, ties included, on random images.
+The published post-processing's output on a real scan (`tests/data/knn-semantickitti-scan.npz`)
+is the main check; a slow per-point version of the rule written directly from the rule checks
+everything else, ties included, on random images.
 """
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
+from conftest import data_path
 
 from rangeret.knn import gaussian_kernel, refine
 
-FIXTURE = Path("fixtures") / "knn-semantickitti-scan.npz"
+FIXTURE = "knn-semantickitti-scan.npz"
 INPUTS = ("proj_range", "unproj_range", "proj_argmax", "proj_x", "proj_y")
 PUBLISHED = {(7, 7): "expected_knn7_search7", (5, 5): "expected_knn5_search5"}
 
 
 @pytest.fixture(scope="module")
-def scan(shared_dir: Path) -> dict[str, np.ndarray]:
-    """The fixture's arrays (skipped when absent outside CI, a failure under CI)."""
-    path = shared_dir / FIXTURE
-    if not path.exists():
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"{path} is missing, and CI must have it")
-        pytest.skip(f"{path} is not here")
-    with np.load(path) as data:
+def scan() -> dict[str, np.ndarray]:
+    """The fixture's arrays."""
+    with np.load(data_path(FIXTURE)) as data:
         return {name: data[name] for name in data.files}
 
 
@@ -321,10 +314,8 @@ def test_inputs_are_left_untouched():
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_matches_cpu():
     cases = [random_scan(seed) for seed in range(3)]
-    path = Path(__file__).resolve().parents[2] / "shared" / FIXTURE
-    if path.exists():
-        with np.load(path) as fixture:
-            cases.append({name: fixture[name] for name in INPUTS})
+    with np.load(data_path(FIXTURE)) as fixture:
+        cases.append({name: fixture[name] for name in INPUTS})
     for data in cases:
         for k, search, cutoff in [(7, 7, 1.0), (5, 5, 1.0), (9, 3, 0.0)]:
             cpu = refine(

@@ -6,12 +6,13 @@ import json
 
 import numpy as np
 import pytest
+from conftest import data_path
 
 from rangeret.labels import LabelConfig, load_label_config, semantickitti
 
 
-def test_bundled_config_equals_official_yaml(shared_dir):
-    official = load_label_config(shared_dir / "data" / "semantic-kitti.yaml")
+def test_bundled_config_equals_official_yaml():
+    official = load_label_config(data_path("semantic-kitti.yaml"))
     ours = semantickitti()
     assert ours.class_names == official.class_names
     assert ours.class_raw_ids == official.class_raw_ids

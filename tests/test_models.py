@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import shared_path
+from conftest import load_vectors
 
 from rangeret.models import (
     CheckpointError,
@@ -41,7 +41,7 @@ def num_parameters(model: torch.nn.Module) -> int:
 
 @pytest.fixture(scope="module")
 def small_fixture() -> dict:
-    return torch.load(shared_path("fixtures", "rangeret-cir-small.pt"), weights_only=False)
+    return load_vectors("rangeret-cir-32x256-2block.pt")
 
 
 @pytest.fixture(scope="module")
@@ -86,15 +86,21 @@ def test_cir_reproduces_small_fixture_from_bare_state_dict(small_fixture, small_
 
 
 def test_cir_reproduces_kitti_fixture_from_wrapped_state_dict(tmp_path):
-    fixture = torch.load(shared_path("fixtures", "rangeret-cir-kitti.pt"), weights_only=False)
+    release = build_model("rangeret-cir", 64, 1024).state_dict()  # the release's 8-block shape
     path = tmp_path / "rangeret-kitti.pt"
-    torch.save({"model_state_dict": fixture["state_dict"], "epoch": 3}, path)
+    torch.save({"model_state_dict": release, "epoch": 3}, path)
     model = load_checkpoint(path)
     assert model.config.layers == 8 and (model.config.height, model.config.width) == (64, 1024)
     assert num_parameters(model) == CIR_PARAMETERS
+    fixture = load_vectors("rangeret-cir-64x1024-1block.pt")
+    torch.save({"model_state_dict": fixture["state_dict"], "epoch": 3}, path)
+    model = load_checkpoint(path)
+    assert model.config.layers == 1 and (model.config.height, model.config.width) == (64, 1024)
     with torch.inference_mode():
         out = model(fixture["input"])
-    assert (out - fixture["logits"].permute(0, 3, 1, 2)).abs().max().item() <= 2e-4
+    at_pixels = out.flatten(2)[0, :, fixture["pixels"]].T
+    assert (at_pixels - fixture["logits_at_pixels"]).abs().max().item() <= 2e-4
+    assert torch.equal(out.argmax(1), fixture["argmax"].long())
 
 
 def test_cir_parameter_count_and_names():

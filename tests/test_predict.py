@@ -5,13 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import shared_path
+from conftest import load_vectors
 
 from rangeret.cli import main
 from rangeret.inference import KnnSettings, Predictor, TtaSettings, _transform
 from rangeret.io import read_labels, read_scan, write_scan
 from rangeret.labels import semantickitti
 from rangeret.layout import prediction_path, velodyne_dir
+from rangeret.models import build_model
 from rangeret.projection import ProjectionConfig, project
 
 VALID_RAW = np.array(semantickitti().class_raw_ids)
@@ -20,7 +21,7 @@ VALID_RAW = np.array(semantickitti().class_raw_ids)
 @pytest.fixture(scope="module")
 def small_weights(tmp_path_factory):
     """The small published-layout state_dict (32 x 256, 2 blocks), saved alone like a release file."""
-    fixture = torch.load(shared_path("fixtures", "rangeret-cir-small.pt"), weights_only=False)
+    fixture = load_vectors("rangeret-cir-32x256-2block.pt")
     path = tmp_path_factory.mktemp("weights") / "cir-small.pt"
     torch.save(fixture["state_dict"], path)
     return path
@@ -42,8 +43,8 @@ def tree(tmp_path, scan):
 
 @pytest.mark.slow
 def test_predictor_on_the_real_scan_with_release_shaped_weights(tmp_path, scan):
-    fixture = torch.load(shared_path("fixtures", "rangeret-cir-kitti.pt"), weights_only=False)
-    torch.save(fixture["state_dict"], tmp_path / "kitti.pt")
+    release = build_model("rangeret-cir", 64, 1024).state_dict()  # the release's 8-block shape
+    torch.save(release, tmp_path / "kitti.pt")
     predictor = Predictor.from_checkpoint(tmp_path / "kitti.pt", device="cpu")
     first = predictor.predict(scan)
     second = predictor.predict(scan)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import data_path
 
 from rangeret.io import read_labels, read_scan
 from rangeret.projection import CHANNEL_MEANS, CHANNEL_STDS, project
@@ -14,8 +15,8 @@ def scan(real_scan_path):
     return read_scan(real_scan_path)
 
 
-def test_pixels_match_the_published_projection(scan, shared_dir):
-    ref = np.load(shared_dir / "fixtures" / "knn-semantickitti-scan.npz")
+def test_pixels_match_the_published_projection(scan):
+    ref = np.load(data_path("knn-semantickitti-scan.npz"))
     p = project(scan, 64, 1024)
     np.testing.assert_array_equal(p.proj_x, ref["proj_x"])
     np.testing.assert_array_equal(p.proj_y, ref["proj_y"])

@@ -28,7 +28,7 @@ import httpx
 import numpy as np
 import pytest
 import torch
-from conftest import REPO, shared_path
+from conftest import REPO, data_path
 from workers_helpers import build_tree, small_weights
 
 from rangeret.cli import main as rangeret_main
@@ -170,7 +170,7 @@ def setup(tmp_path_factory) -> dict:
     real = roots / "real"
     write_scan(
         velodyne_dir(real, "00") / "000000.bin",
-        read_scan(shared_path("data", "semantickitti-scan", "000000.bin")),
+        read_scan(data_path("semantickitti-scan", "000000.bin")),
     )
     net = ["--checkpoint", str(weights), *NET, "-q"]
     threads = torch.get_num_threads()
@@ -679,7 +679,7 @@ def test_tar_gz_job_conflicts_cancel_and_unknown_jobs(setup, gateway):
 
 
 def test_gateway_killed_mid_job_resumes_it(setup, tmp_path):
-    points = read_scan(shared_path("data", "semantickitti-scan", "000000.bin"))
+    points = read_scan(data_path("semantickitti-scan", "000000.bin"))
     root = setup["roots"] / "long"
     for i in range(16):
         write_scan(velodyne_dir(root, "42") / f"{i:06d}.bin", points[i % 7 :: 40 + i])

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import shared_path
+from conftest import data_path
 
 from rangeret.labels import LabelConfig, semantickitti
 from rangeret.layout import discover, labels_dir, velodyne_dir
@@ -649,8 +649,8 @@ def test_ray_train_with_two_cpu_workers(sim_root, tmp_path):
 def test_overfitting_the_real_scan(tmp_path):
     """The thesis network at 32 x 512 learns the real scan's range image to >= 95 % pixel accuracy
     in well under 3 minutes (on one thread): labels, projection, losses and optimiser line up."""
-    scan = shared_path("data", "semantickitti-scan", "000000.bin")
-    labels = shared_path("data", "semantickitti-scan", "000000.label")
+    scan = data_path("semantickitti-scan", "000000.bin")
+    labels = data_path("semantickitti-scan", "000000.label")
     # One epoch of 150 steps: the scan under 150 names (links), so the run saves only once.
     steps = 150
     root = tmp_path / "data"

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from conftest import shared_path
+from conftest import data_path, load_vectors
 
 from rangeret.io import read_labels, read_scan, write_labels, write_scan
 from rangeret.layout import labels_dir, velodyne_dir
@@ -23,7 +23,7 @@ from rangeret.layout import labels_dir, velodyne_dir
 
 def small_weights(folder: Path) -> Path:
     """The small published-layout state_dict (32 x 256, 2 blocks), saved alone like a release file."""
-    fixture = torch.load(shared_path("fixtures", "rangeret-cir-small.pt"), weights_only=False)
+    fixture = load_vectors("rangeret-cir-32x256-2block.pt")
     path = folder / "cir-small.pt"
     torch.save(fixture["state_dict"], path)
     return path
@@ -31,8 +31,8 @@ def small_weights(folder: Path) -> Path:
 
 def build_tree(root: Path, labelled: int = 3, unlabelled: int = 2, seq_test: str = "11") -> Path:
     """Subsampled variants of the real scan: `labelled` in sequence 08 (with labels), the rest in 11."""
-    points = read_scan(shared_path("data", "semantickitti-scan", "000000.bin"))
-    labels = read_labels(shared_path("data", "semantickitti-scan", "000000.label"))
+    points = read_scan(data_path("semantickitti-scan", "000000.bin"))
+    labels = read_labels(data_path("semantickitti-scan", "000000.label"))
     for i in range(labelled + unlabelled):
         seq = "08" if i < labelled else seq_test
         sel = slice(i % 5, None, 9 + i)
