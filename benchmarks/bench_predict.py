@@ -38,7 +38,7 @@ def stage_medians(
         t1 = time.perf_counter()
         proj = predictor.project(pts)
         t2 = time.perf_counter()
-        logits = predictor.network([proj])
+        logits = predictor.logits([proj])
         t3 = time.perf_counter()
         classes = predictor.refine(proj, logits[0])
         t4 = time.perf_counter()

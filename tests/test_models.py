@@ -17,10 +17,10 @@ from rangeret.models import (
     build_model,
     list_models,
     load_checkpoint,
-    mixing,
     save_checkpoint,
 )
 from rangeret.models import decay as decay_module
+from rangeret.models import token_mixing as mixing
 from rangeret.models.decay import (
     DECAYS,
     GridCache,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pickle
+
 import numpy as np
 import pytest
 import torch
@@ -59,7 +61,7 @@ def test_stages_compose_to_predict(small_weights, scan):
     pts = scan[::5]
     whole = predictor.predict(pts, with_probabilities=True)
     proj = predictor.project(pts)
-    logits = predictor.network([proj])
+    logits = predictor.logits([proj])
     assert logits.shape == (1, 20, 32, 256) and logits.dtype == torch.float32
     classes = predictor.refine(proj, logits[0])
     np.testing.assert_array_equal(predictor.to_raw(classes), whole.labels)
@@ -76,7 +78,7 @@ def test_without_knn_points_take_their_pixel_class_and_unprojected_get_zero(smal
     result = predictor.predict(pts)
     assert result.labels[:3].tolist() == [0, 0, 0]
     proj = predictor.project(pts)
-    pixel_classes = predictor.network([proj])[0].argmax(0).numpy()
+    pixel_classes = predictor.logits([proj])[0].argmax(0).numpy()
     np.testing.assert_array_equal(
         result.classes[3:], pixel_classes[proj.proj_y[3:], proj.proj_x[3:]]
     )
@@ -197,12 +199,11 @@ def test_knn_settings_defaults_are_the_release_ones():
 
 def test_each_run_reports_only_its_own_stage_times(tree, tmp_path, small_weights):
     from rangeret.predict import predict_tree
-    from rangeret.timing import StageTimes
 
     predictor = Predictor.from_checkpoint(small_weights, height=32, width=256, device="cpu")
     first = predict_tree(predictor, tree, ["08"], tmp_path / "a", progress=False)
     second = predict_tree(predictor, tree, ["08", "42"], tmp_path / "b", progress=False)
     assert first.times.scans["network"] == 3 and second.times.scans["network"] == 4
     assert second.times.scans["read"] == second.times.scans["write"] == 4
-    again = StageTimes.from_json(second.times.to_json())
+    again = pickle.loads(pickle.dumps(second.times))
     assert again.seconds == second.times.seconds and again.scans == second.times.scans

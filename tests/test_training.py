@@ -41,7 +41,7 @@ from rangeret.training.losses import (
     lovasz_softmax,
     weighted_cross_entropy,
 )
-from rangeret.training.mixing import (
+from rangeret.training.range_mixes import (
     MIXES,
     MixSettings,
     RangeImage,
