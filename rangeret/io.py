@@ -1,13 +1,17 @@
-"""Reading and writing SemanticKITTI scan (`.bin`) and label (`.label`) files, with validation.
+"""Reading and writing scan (`.bin`) and label (`.label`) files, with validation.
 
-A scan is little-endian float32 records (x, y, z, remission), 16 bytes per point. A label file is
-one little-endian uint32 per point: the low 16 bits are the raw semantic id, the high 16 bits the
-instance id. Every reader checks what it reads and raises `ScanFormatError` naming the file.
+A scan is little-endian float32 records, one per point: SemanticKITTI's hold (x, y, z, remission),
+16 bytes; other datasets' records are described by a `PointRecord` (PandaSet's add the laser id,
+20 bytes). A label file is one little-endian uint32 per point: the low 16 bits are the raw
+semantic id, the high 16 bits the instance id. Every reader checks what it reads and raises
+`ScanFormatError` naming the file.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +24,45 @@ SCAN_DTYPE = np.dtype("<f4")
 LABEL_DTYPE = np.dtype("<u4")
 
 
+@dataclass(frozen=True)
+class PointRecord:
+    """What one point of a scan file holds: float32 values named by `fields`, in order.
+
+    The first four are always x, y, z and the reflectance (remission or intensity); a fifth, where
+    a dataset has one, is kept for the projection (a laser id gives the point's row).
+    """
+
+    fields: tuple[str, ...] = ("x", "y", "z", "remission")
+
+    def __post_init__(self) -> None:
+        if len(self.fields) not in (4, 5):
+            raise ValueError(f"a point record holds 4 or 5 float32 values, got {len(self.fields)}")
+        if tuple(self.fields[:3]) != ("x", "y", "z"):
+            raise ValueError(
+                f"a point record starts with x, y, z, got {', '.join(self.fields[:3])}"
+            )
+        if len(set(self.fields)) != len(self.fields):
+            raise ValueError(f"a point record names each value once, got {', '.join(self.fields)}")
+
+    @property
+    def num_fields(self) -> int:
+        """float32 values per point."""
+        return len(self.fields)
+
+    @property
+    def point_bytes(self) -> int:
+        """Bytes per point."""
+        return 4 * len(self.fields)
+
+    def describe(self) -> str:
+        """'4 float32 per point: x, y, z, remission', for messages."""
+        return f"{self.num_fields} float32 per point: {', '.join(self.fields)}"
+
+
+#: SemanticKITTI's point record (x, y, z, remission).
+KITTI_RECORD = PointRecord()
+
+
 class ScanFormatError(ValueError):
     """A scan or label file (or buffer) that is not valid SemanticKITTI data."""
 
@@ -29,18 +72,20 @@ class ScanFormatError(ValueError):
         super().__init__(f"{self.source}: {problem}")
 
 
-def parse_scan(data: bytes | memoryview, source: str = "<scan>") -> np.ndarray:
-    """Decode the bytes of a `.bin` scan into a float32 (N, 4) array, validating them."""
+def parse_scan(
+    data: bytes | memoryview, source: str = "<scan>", record: PointRecord = KITTI_RECORD
+) -> np.ndarray:
+    """Decode the bytes of a `.bin` scan into a float32 (N, fields) array, validating them."""
     size = len(data)
     if size == 0:
         raise ScanFormatError(source, "the scan is empty (0 bytes)")
-    if size % POINT_BYTES:
+    if size % record.point_bytes:
         raise ScanFormatError(
             source,
-            f"size {size} bytes is not a multiple of {POINT_BYTES} "
-            f"(4 float32 per point: x, y, z, remission); the file is truncated or not a scan",
+            f"size {size} bytes is not a multiple of {record.point_bytes} "
+            f"({record.describe()}); the file is truncated or not a scan of this dataset",
         )
-    points = np.frombuffer(data, dtype=SCAN_DTYPE).reshape(-1, 4)
+    points = np.frombuffer(data, dtype=SCAN_DTYPE).reshape(-1, record.num_fields)
     finite = np.isfinite(points)
     if not finite.all():
         rows = np.flatnonzero(~finite.all(axis=1))
@@ -52,24 +97,27 @@ def parse_scan(data: bytes | memoryview, source: str = "<scan>") -> np.ndarray:
     return points.astype(np.float32, copy=False)
 
 
-def read_scan(path: str | os.PathLike[str]) -> np.ndarray:
-    """Read a `.bin` scan as a float32 (N, 4) array (x, y, z, remission).
+def read_scan(path: str | os.PathLike[str], record: PointRecord = KITTI_RECORD) -> np.ndarray:
+    """Read a `.bin` scan as a float32 (N, fields) array ((N, 4) x, y, z, remission by default).
 
-    Raises `ScanFormatError` when the file is empty, its size is not a multiple of 16 bytes or it
-    holds non-finite values, and `FileNotFoundError` when it does not exist.
+    Raises `ScanFormatError` when the file is empty, its size is not a whole number of records or
+    it holds non-finite values, and `FileNotFoundError` when it does not exist.
     """
     path = Path(path)
-    return parse_scan(path.read_bytes(), str(path)).copy()
+    return parse_scan(path.read_bytes(), str(path), record).copy()
 
 
-def scan_num_points(path: str | os.PathLike[str]) -> int:
+def scan_num_points(path: str | os.PathLike[str], record: PointRecord = KITTI_RECORD) -> int:
     """Number of points of a `.bin` scan from its size alone (no read), validating the size."""
     size = os.path.getsize(path)
     if size == 0:
         raise ScanFormatError(path, "the scan is empty (0 bytes)")
-    if size % POINT_BYTES:
-        raise ScanFormatError(path, f"size {size} bytes is not a multiple of {POINT_BYTES}")
-    return size // POINT_BYTES
+    if size % record.point_bytes:
+        raise ScanFormatError(
+            path,
+            f"size {size} bytes is not a multiple of {record.point_bytes} ({record.describe()})",
+        )
+    return size // record.point_bytes
 
 
 def read_labels(path: str | os.PathLike[str], num_points: int | None = None) -> np.ndarray:
@@ -100,9 +148,13 @@ def write_labels(path: str | os.PathLike[str], labels: np.ndarray) -> None:
     atomic_write_bytes(path, labels.astype(LABEL_DTYPE, copy=False).tobytes())
 
 
-def write_scan(path: str | os.PathLike[str], points: np.ndarray) -> None:
-    """Write float (N, 4) points atomically as a `.bin` scan."""
+def write_scan(
+    path: str | os.PathLike[str], points: np.ndarray, record: PointRecord = KITTI_RECORD
+) -> None:
+    """Write float (N, fields) points atomically as a `.bin` scan."""
     points = np.asarray(points)
-    if points.ndim != 2 or points.shape[1] != 4:
-        raise ValueError(f"{path}: points must have shape (N, 4), got {points.shape}")
+    if points.ndim != 2 or points.shape[1] != record.num_fields:
+        raise ValueError(
+            f"{path}: points must have shape (N, {record.num_fields}), got {points.shape}"
+        )
     atomic_write_bytes(path, points.astype(SCAN_DTYPE, copy=False).tobytes())

@@ -9,7 +9,9 @@ drops those farther than `cutoff`, and lets their classes vote.
 The behaviour is the published one, detail for detail: outside the image the window is
 zero-padded (range 0, class 0, not treated as empty); empty pixels (range < 0) are infinitely far;
 the vote is over classes 1..C-1 with ties going to the lowest class id; a point without any vote
-gets class 1. Which of several equal distances takes the k-th place is arbitrary in the published
+gets class 1. Datasets whose class 0 is a real class (PandaSet's car) vote over 0..C-1 instead
+(`votes_from=0`; a point without a vote then gets class 0), and points that have no pixel get the
+dataset's unlabeled class (`unprojected`). Which of several equal distances takes the k-th place is arbitrary in the published
 code; here the point's own pixel (distance 0) always takes one, and of the neighbours tied at the
 k-th place those that come first in the window (row-major) are kept.
 
@@ -76,22 +78,30 @@ def refine(
     cutoff: float = 1.0,
     num_classes: int = 20,
     *,
+    votes_from: int = 1,
+    unprojected: int = 0,
     chunk_size: int | None = None,
 ) -> ArrayLike:
     """Per-point classes from a per-pixel argmax by a kNN vote in range.
 
     proj_range: (H, W) range of each pixel, -1 where empty. unproj_range: (N,) range of each
     point. proj_argmax: (H, W) integer classes in [0, num_classes). proj_x, proj_y: (N,) column and
-    row of each point, proj_x == -1 for points that were not projected (they get class 0).
+    row of each point, proj_x == -1 for points that were not projected (they get `unprojected`).
     k neighbours among the search x search window; Gaussian weight `sigma`; neighbours farther than
     `cutoff` do not vote (no cutoff when it is <= 0). chunk_size bounds the points processed at
-    once (default: CPU_CHUNK_SIZE on the CPU, CUDA_CHUNK_SIZE elsewhere).
+    once (default: CPU_CHUNK_SIZE on the CPU, CUDA_CHUNK_SIZE elsewhere). Classes votes_from..C-1
+    vote; a point without a vote gets class `votes_from`.
 
     Returns (N,) int64 classes: a numpy array when every input is a numpy array, otherwise a
     torch tensor on the device of the tensor inputs (numpy inputs are moved there).
     Ranges are compared in float32, as the published code does.
     """
     _check_parameters(k, search, sigma, cutoff, num_classes, chunk_size)
+    for name, value in (("votes_from", votes_from), ("unprojected", unprojected)):
+        if isinstance(value, bool) or not isinstance(value, int | np.integer):
+            raise ValueError(f"{name} must be a class id, got {value!r}")
+        if not 0 <= value < num_classes:
+            raise ValueError(f"{name} must be a class id in 0..{num_classes - 1}, got {value}")
     as_numpy, device = _output_kind(proj_range, unproj_range, proj_argmax, proj_x, proj_y)
     image, ranges, classes, cols, rows = (
         _to_tensor(proj_range, "proj_range", device),
@@ -112,14 +122,16 @@ def refine(
         ranges, cols, rows = ranges[points], cols[points], rows[points]
     result = torch.empty(ranges.shape[0], dtype=torch.int64, device=device)
     if ranges.shape[0]:
-        window = _Window(image, classes, search, sigma, num_classes)
+        window = _Window(image, classes, search, sigma, num_classes, votes_from)
         for start in range(0, ranges.shape[0], chunk_size):
             stop = start + chunk_size
             result[start:stop] = window.vote(
                 ranges[start:stop], cols[start:stop], rows[start:stop], k, cutoff
             )
     if not everything:
-        result = torch.zeros(total, dtype=torch.int64, device=device).index_copy_(0, points, result)
+        result = torch.full((total,), unprojected, dtype=torch.int64, device=device).index_copy_(
+            0, points, result
+        )
     return result.cpu().numpy() if as_numpy else result
 
 
@@ -138,6 +150,7 @@ class _Window:
         search: int,
         sigma: float,
         num_classes: int,
+        votes_from: int,
     ) -> None:
         height, width = image.shape
         pad = search // 2
@@ -145,6 +158,7 @@ class _Window:
         self.width = width
         self.pixels = height * width
         self.num_classes = num_classes
+        self.votes_from = votes_from
 
         offsets = [
             (dy, dx) for dy in range(search) for dx in range(search) if (dy, dx) != (pad, pad)
@@ -161,16 +175,19 @@ class _Window:
 
         # Compaction keys: j for neighbour j when selected, size + j when it is tied at the
         # threshold, `empty` when it is not selected. Rows of `codes` follow the keys; a code is
-        # C - class, 0 for class 0, for the padding and for `empty` (see `_majority`).
+        # C + 1 - class for a class that votes, 0 for one that does not and for `empty`; the
+        # padding holds class 0's code (see `_majority`).
         self.empty = 2 * self.size
         self.key_dtype = _small_int_dtype(self.empty)
         self.positions = torch.arange(self.size, device=device, dtype=self.key_dtype)[:, None]
         self.to_empty = self.empty - self.positions
-        inverted = torch.where(classes > 0, num_classes - classes, 0).to(
-            _small_int_dtype(num_classes)
-        )
+        code_dtype = _small_int_dtype(num_classes + 1)
+        inverted = torch.where(classes >= votes_from, num_classes + 1 - classes, 0).to(code_dtype)
         self.centre_codes = inverted.reshape(-1)
-        neighbours = _shifted(F.pad(inverted, (pad, pad, pad, pad)), offsets, height, width)
+        padding = num_classes + 1 if votes_from == 0 else 0
+        neighbours = _shifted(
+            F.pad(inverted, (pad, pad, pad, pad), value=padding), offsets, height, width
+        )
         self.codes = torch.cat(
             [neighbours, neighbours, neighbours.new_zeros(1, self.pixels)]
         ).reshape(-1)
@@ -191,7 +208,7 @@ class _Window:
             slots = keys if wanted >= self.size else _smallest(keys, wanted, self.empty)
             index = slots.to(self.index_dtype).mul_(self.pixels).add_(pixels.to(self.index_dtype))
             voters.append(self.codes.index_select(0, index.reshape(-1)).reshape(slots.shape))
-        return _majority(torch.cat(voters), self.num_classes)
+        return _majority(torch.cat(voters), self.num_classes, self.votes_from)
 
     def _keys(self, dist: torch.Tensor, wanted: int, cutoff: float) -> torch.Tensor:
         """(size, n) compaction keys: which neighbours are among the `wanted` nearest and valid."""
@@ -266,24 +283,25 @@ def _smallest(values: torch.Tensor, count: int, fill: float | int) -> torch.Tens
     return current[1:]
 
 
-def _majority(codes: torch.Tensor, num_classes: int) -> torch.Tensor:
-    """Most frequent class of each column of (k, n) voter `codes` among classes 1..C-1.
+def _majority(codes: torch.Tensor, num_classes: int, votes_from: int) -> torch.Tensor:
+    """Most frequent class of each column of (k, n) voter `codes` among classes votes_from..C-1.
 
-    A code is C - class, and 0 for class 0, which abstains. Ties go to the lowest class id (the
-    highest code); a column without a vote gets class 1. Each voter scores
-    count * (C + 1) + code (0 when it abstains): the largest score is the most votes, then the
+    A code is C + 1 - class, and 0 for a voter that abstains. Ties go to the lowest class id (the
+    highest code); a column without a vote gets class `votes_from`. Each voter scores
+    count * (C + 2) + code (0 when it abstains): the largest score is the most votes, then the
     lowest class, and a lookup table turns it back into a class.
     """
     k = codes.shape[0]
-    top = k * (num_classes + 1) + num_classes
+    base = num_classes + 2
+    top = k * base + num_classes + 1
     dtype = _small_int_dtype(top)
     codes = codes.to(dtype)
     counts = torch.zeros_like(codes)
     for row in codes:
         counts += codes == row
-    best = torch.add(codes, counts, alpha=num_classes + 1).masked_fill_(codes == 0, 0).amax(0)
+    best = torch.add(codes, counts, alpha=base).masked_fill_(codes == 0, 0).amax(0)
     scores = torch.arange(top + 1, device=codes.device)
-    classes = torch.where(scores == 0, 1, num_classes - scores % (num_classes + 1))
+    classes = torch.where(scores == 0, votes_from, num_classes + 1 - scores % base)
     return classes.index_select(0, best.to(torch.int32 if top < 2**31 else torch.int64))
 
 

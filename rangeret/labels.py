@@ -30,6 +30,7 @@ class LabelConfig:
     raw_bgr: dict[int, tuple[int, int, int]]
     raw_frequency: dict[int, float]
     splits: dict[str, tuple[str, ...]]
+    unlabeled_class: int | None = None
     _lut: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -39,7 +40,14 @@ class LabelConfig:
             raise ValueError(
                 "label configuration: classes, raw ids and ignore flags differ in length"
             )
-        lut = np.zeros(SEMANTIC_MASK + 1, dtype=np.uint8)
+        if self.unlabeled_class is None:
+            default = self.raw_to_class.get(0, self.ignored.index(True) if any(self.ignored) else 0)
+            object.__setattr__(self, "unlabeled_class", default)
+        if not 0 <= self.unlabeled_class < self.num_classes:
+            raise ValueError(
+                f"label configuration: the unlabeled class {self.unlabeled_class} is not a class"
+            )
+        lut = np.full(SEMANTIC_MASK + 1, self.unlabeled_class, dtype=np.uint8)
         for raw, cls in self.raw_to_class.items():
             if not 0 <= raw <= SEMANTIC_MASK:
                 raise ValueError(f"label configuration: raw id {raw} does not fit in 16 bits")
@@ -50,7 +58,7 @@ class LabelConfig:
 
     @property
     def num_classes(self) -> int:
-        """Number of training classes, the ignored class 0 included (20 for SemanticKITTI)."""
+        """Number of training classes, the ignored ones included (20 for SemanticKITTI)."""
         return len(self.class_names)
 
     @property
@@ -60,7 +68,8 @@ class LabelConfig:
 
     @property
     def raw_lut(self) -> np.ndarray:
-        """(65536,) uint8 table from a 16-bit raw id to its training class; unknown ids give 0."""
+        """(65536,) uint8 table from a 16-bit raw id to its training class; unknown ids give the
+        unlabeled class (0 for SemanticKITTI, the class raw id 0 maps to in general)."""
         return self._lut
 
     @property
@@ -74,7 +83,8 @@ class LabelConfig:
         return frozenset(self.class_raw_ids)
 
     def to_class(self, raw: np.ndarray) -> np.ndarray:
-        """Training classes (uint8) of raw labels; instance bits are dropped, unknown ids give 0."""
+        """Training classes (uint8) of raw labels; instance bits are dropped, unknown ids give the
+        unlabeled class."""
         raw = np.asarray(raw)
         return self._lut[raw.astype(np.int64, copy=False) & SEMANTIC_MASK]
 
@@ -117,6 +127,7 @@ class LabelConfig:
             "raw_bgr": {str(k): list(v) for k, v in self.raw_bgr.items()},
             "raw_frequency": {str(k): v for k, v in self.raw_frequency.items()},
             "splits": {k: list(v) for k, v in self.splits.items()},
+            "unlabeled_class": self.unlabeled_class,
         }
 
     @classmethod
@@ -131,6 +142,7 @@ class LabelConfig:
             raw_bgr={int(k): tuple(v) for k, v in data.get("raw_bgr", {}).items()},
             raw_frequency={int(k): float(v) for k, v in data.get("raw_frequency", {}).items()},
             splits={k: tuple(v) for k, v in data.get("splits", {}).items()},
+            unlabeled_class=data.get("unlabeled_class"),
         )
 
     @classmethod
@@ -165,7 +177,7 @@ class LabelConfig:
         names = data["labels"]
         ignore = data.get("learning_ignore", {0: True})
         return cls(
-            class_names=tuple("unlabeled" if c == 0 else names[inv[c]] for c in range(n)),
+            class_names=tuple(names.get(inv[c], f"class-{c}") for c in range(n)),
             class_raw_ids=tuple(inv[c] for c in range(n)),
             ignored=tuple(bool(ignore.get(c, False)) for c in range(n)),
             raw_names={int(k): v for k, v in names.items()},

@@ -1,8 +1,8 @@
-"""The SemanticKITTI folder layout: finding sequences, scans, labels and predictions.
+"""Dataset folder layouts: finding sequences, scans, labels and predictions.
 
-    ROOT/sequences/XX/velodyne/NNNNNN.bin      scans
-    ROOT/sequences/XX/labels/NNNNNN.label      ground truth (optional)
-    PRED/sequences/XX/predictions/NNNNNN.label predictions
+    ROOT/sequences/XX/velodyne/NNNNNN.bin      scans (SemanticKITTI; `SequenceLayout` says where
+    ROOT/sequences/XX/labels/NNNNNN.label      sequence folders sit for other datasets)
+    PRED/sequences/XX/predictions/NNNNNN.label predictions, for every dataset
 
 Scans are listed in sorted order and matched to labels by file stem; anything unmatched is
 reported by name rather than silently skipped.
@@ -20,6 +20,47 @@ from rangeret.labels import LabelConfig, semantickitti
 
 class DatasetLayoutError(ValueError):
     """A dataset or predictions tree that does not have the expected layout or is missing files."""
+
+
+@dataclass(frozen=True)
+class SequenceLayout:
+    """Where a dataset's sequence folders sit under its ROOT, and how their ids are written.
+
+    `sequence_folders` are tried in order and the first that exists holds the sequences ("." is
+    ROOT itself); `id_digits` pads numeric ids (8 -> "08" with 2 digits, "008" with 3).
+    """
+
+    sequence_folders: tuple[str, ...] = ("sequences",)
+    id_digits: int = 2
+
+    def __post_init__(self) -> None:
+        if not self.sequence_folders:
+            raise ValueError("a layout needs at least one sequence folder")
+        if not 1 <= self.id_digits <= 8:
+            raise ValueError(f"id_digits must be 1 to 8, got {self.id_digits}")
+
+    def sequences_root(self, root: Path | str) -> Path:
+        """The folder that holds the sequence folders: the first candidate that exists."""
+        root = Path(root)
+        for folder in self.sequence_folders:
+            candidate = root if folder in ("", ".") else root / folder
+            if candidate.is_dir():
+                return candidate
+        first = self.sequence_folders[0]
+        return root if first in ("", ".") else root / first
+
+    def normalise(self, name: str | int) -> str:
+        """The id as written on disk: numeric ids padded to `id_digits`, others kept as given."""
+        text = str(name).strip()
+        return f"{int(text):0{self.id_digits}d}" if text.isdigit() else text
+
+    def to_dict(self) -> dict:
+        """Plain-data form."""
+        return {"sequence_folders": list(self.sequence_folders), "id_digits": self.id_digits}
+
+
+#: SemanticKITTI's layout: ROOT/sequences/XX.
+KITTI_LAYOUT = SequenceLayout()
 
 
 @dataclass(frozen=True)
@@ -54,14 +95,19 @@ class Discovery:
         return groups
 
 
-def velodyne_dir(root: Path | str, sequence: str) -> Path:
+def sequence_dir(root: Path | str, sequence: str, layout: SequenceLayout = KITTI_LAYOUT) -> Path:
+    """Folder of one sequence of a dataset."""
+    return layout.sequences_root(root) / sequence
+
+
+def velodyne_dir(root: Path | str, sequence: str, layout: SequenceLayout = KITTI_LAYOUT) -> Path:
     """Folder of a sequence's scans."""
-    return Path(root) / "sequences" / sequence / "velodyne"
+    return sequence_dir(root, sequence, layout) / "velodyne"
 
 
-def labels_dir(root: Path | str, sequence: str) -> Path:
+def labels_dir(root: Path | str, sequence: str, layout: SequenceLayout = KITTI_LAYOUT) -> Path:
     """Folder of a sequence's ground-truth labels."""
-    return Path(root) / "sequences" / sequence / "labels"
+    return sequence_dir(root, sequence, layout) / "labels"
 
 
 def predictions_dir(root: Path | str, sequence: str) -> Path:
@@ -74,26 +120,24 @@ def prediction_path(pred_root: Path | str, sequence: str, name: str) -> Path:
     return predictions_dir(pred_root, sequence) / f"{name}.label"
 
 
-def list_sequences(root: Path | str) -> list[str]:
-    """Sorted names of the sequence folders under `ROOT/sequences`."""
-    base = Path(root) / "sequences"
+def list_sequences(root: Path | str, layout: SequenceLayout = KITTI_LAYOUT) -> list[str]:
+    """Sorted names of the sequence folders of a dataset (those holding a velodyne folder)."""
+    base = layout.sequences_root(root)
     if not base.is_dir():
-        raise DatasetLayoutError(
-            f"{base} does not exist: expected ROOT/sequences/XX/velodyne/*.bin"
-        )
-    return sorted(p.name for p in base.iterdir() if p.is_dir())
+        raise DatasetLayoutError(f"{base} does not exist: expected its sequence folders there")
+    return sorted(p.name for p in base.iterdir() if (p / "velodyne").is_dir())
 
 
-def normalise_sequence(name: str | int) -> str:
-    """Two-digit form of a numeric sequence name (8 -> "08"); other names are kept as given."""
-    text = str(name).strip()
-    return f"{int(text):02d}" if text.isdigit() else text
+def normalise_sequence(name: str | int, layout: SequenceLayout = KITTI_LAYOUT) -> str:
+    """The on-disk form of a sequence id (8 -> "08" for SemanticKITTI, "008" for 3-digit ids)."""
+    return layout.normalise(name)
 
 
 def resolve_sequences(
     split: str | None = None,
     sequences: Iterable[str | int] | None = None,
     config: LabelConfig | None = None,
+    layout: SequenceLayout = KITTI_LAYOUT,
 ) -> list[str]:
     """The sequences a command works on: those named, or those of a split of the label config.
 
@@ -103,7 +147,7 @@ def resolve_sequences(
     if (split is None) == (sequences is None):
         raise ValueError("give either a split or a list of sequences, not both and not neither")
     if sequences is not None:
-        names = [normalise_sequence(s) for s in sequences]
+        names = [layout.normalise(s) for s in sequences]
         if not names:
             raise ValueError("the list of sequences is empty")
         return sorted(dict.fromkeys(names))
@@ -127,16 +171,18 @@ def discover(
     sequences: Sequence[str],
     with_labels: bool = False,
     missing_ok: bool = False,
+    layout: SequenceLayout = KITTI_LAYOUT,
 ) -> Discovery:
     """List the scans of `sequences` under `root`, sorted, matched to their labels by name.
 
     Label files found are always attached; with `with_labels` they are required, and a scan
-    without a label file and a label file without a scan are problems. A missing or empty sequence folder is a problem unless `missing_ok` (partial copies).
+    without a label file and a label file without a scan are problems. A missing or empty
+    sequence folder is a problem unless `missing_ok` (partial copies).
     """
     root = Path(root)
     result = Discovery(root=root, sequences=[])
     for seq in sequences:
-        vdir = velodyne_dir(root, seq)
+        vdir = velodyne_dir(root, seq, layout)
         if not vdir.is_dir():
             if not missing_ok:
                 result.problems.append(f"{vdir} does not exist (sequence {seq} is missing)")
@@ -145,11 +191,12 @@ def discover(
         scans = _stems(vdir, ".bin")
         if not scans and not missing_ok:
             result.problems.append(f"{vdir} holds no .bin scan")
-        labels = _stems(labels_dir(root, seq), ".label")
+        ldir = labels_dir(root, seq, layout)
+        labels = _stems(ldir, ".label")
         if with_labels:
             for stem in sorted(scans.keys() - labels.keys()):
                 result.problems.append(
-                    f"{labels_dir(root, seq) / (stem + '.label')} is missing "
+                    f"{ldir / (stem + '.label')} is missing "
                     f"(scan {seq}/{stem} has no ground truth)"
                 )
             for stem in sorted(labels.keys() - scans.keys()):

@@ -3,6 +3,8 @@
 The convention is the one the published checkpoints were trained with (RangeNet++'s):
 yaw = -atan2(y, x), pitch = asin(z / |p|), u = floor(0.5 (yaw / pi + 1) W),
 v = floor((1 - (pitch + |fov_down|) / fov) H), both clamped into the image, computed in float32.
+Sensors that give each point its laser (PandaSet's Pandar64) take the row from that id instead
+(`row="laser_id"`: v = the point's fifth value as an integer, which must be a row of the image).
 Where several points fall on one pixel the closest wins (equal depths: the lower point index).
 Each point keeps its (u, v), so per-pixel predictions go back to every point losslessly.
 """
@@ -17,10 +19,14 @@ import numpy as np
 CHANNEL_MEANS = (12.12, 10.88, 0.23, -1.04, 0.21)
 CHANNEL_STDS = (12.32, 11.47, 6.91, 0.86, 0.16)
 
+#: Where a point's row comes from: its pitch, or its laser id (the fifth value of its record).
+ROW_SOURCES = ("pitch", "laser_id")
+
 
 @dataclass(frozen=True)
 class ProjectionConfig:
-    """Resolution, vertical field of view (degrees) and channel normalisation of a range image."""
+    """Resolution, vertical field of view (degrees), channel normalisation and row source of a
+    range image."""
 
     height: int = 64
     width: int = 1024
@@ -28,6 +34,7 @@ class ProjectionConfig:
     fov_down: float = -25.0
     means: tuple[float, ...] = CHANNEL_MEANS
     stds: tuple[float, ...] = CHANNEL_STDS
+    row: str = "pitch"
 
     def __post_init__(self) -> None:
         if self.height < 1 or self.width < 1:
@@ -36,6 +43,10 @@ class ProjectionConfig:
             raise ValueError("the vertical field of view is empty (fov_up and fov_down are 0)")
         if len(self.means) != 5 or len(self.stds) != 5:
             raise ValueError("means and stds need one value per channel (5)")
+        if any(not s > 0 for s in self.stds):
+            raise ValueError(f"stds must be positive, got {list(self.stds)}")
+        if self.row not in ROW_SOURCES:
+            raise ValueError(f"row must be one of {', '.join(ROW_SOURCES)}, got {self.row!r}")
 
     def to_dict(self) -> dict:
         """Plain-data form, for checkpoints and reports."""
@@ -88,6 +99,19 @@ class Projection:
         return out
 
 
+def _laser_rows(lasers: np.ndarray, idx: np.ndarray, height: int) -> np.ndarray:
+    """Rows of the projected points `idx` from their laser ids; ValueError for an id off the image."""
+    rows = lasers[idx].astype(np.int32).astype(np.int64)
+    bad = np.flatnonzero((rows < 0) | (rows >= height))
+    if bad.size:
+        first = int(idx[bad[0]])
+        raise ValueError(
+            f"{bad.size} point(s) have a laser id outside the image's rows 0..{height - 1}, "
+            f"the first at point index {first} (laser id {lasers[first]:g})"
+        )
+    return rows
+
+
 def project(
     points: np.ndarray,
     height: int = 64,
@@ -106,10 +130,16 @@ def project(
 
 
 def project_with(points: np.ndarray, config: ProjectionConfig) -> Projection:
-    """`project` with its parameters gathered in a `ProjectionConfig`."""
+    """`project` with its parameters gathered in a `ProjectionConfig`.
+
+    With `row="laser_id"` the points are (N, 5) and a laser id outside the image's rows (for a
+    projected point) is a ValueError naming the first such point.
+    """
     pts = np.asarray(points)
-    if pts.ndim != 2 or pts.shape[1] < 4:
-        raise ValueError(f"points must have shape (N, 4), got {pts.shape}")
+    columns = 5 if config.row == "laser_id" else 4
+    if pts.ndim != 2 or pts.shape[1] < columns:
+        raise ValueError(f"points must have shape (N, {columns}), got {pts.shape}")
+    lasers = pts[:, 4] if config.row == "laser_id" else None
     pts = pts[:, :4].astype(np.float32, copy=False)
     h, w = config.height, config.width
     n = pts.shape[0]
@@ -136,6 +166,8 @@ def project_with(points: np.ndarray, config: ProjectionConfig) -> Projection:
     v = (np.float32(1.0) - (pitch + np.float32(fov_down)) / fov) * np.float32(h)
     u = np.clip(np.floor(u), 0, w - 1).astype(np.int64)
     v = np.clip(np.floor(v), 0, h - 1).astype(np.int64)
+    if lasers is not None:
+        v = _laser_rows(lasers, idx, h)
 
     # Closest point wins, among equal depths the lower index: two scatter-minimum passes, first
     # over depths, then over the indices of the points that reach their pixel's minimum.
