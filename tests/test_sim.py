@@ -1,4 +1,5 @@
-"""Tests of the LiDAR simulator: the SemanticKITTI tree it writes and the plausibility of its scans."""
+"""Tests of the LiDAR simulator: the trees it writes (SemanticKITTI's and each profile's) and the
+plausibility of its scans."""
 
 from __future__ import annotations
 
@@ -10,8 +11,9 @@ import pytest
 
 from rangeret.io import read_labels, read_scan
 from rangeret.labels import semantickitti
-from rangeret.layout import labels_dir, velodyne_dir
-from rangeret.projection import project
+from rangeret.layout import discover, labels_dir, velodyne_dir
+from rangeret.profiles import BUILTIN_PROFILES, DatasetProfile, load_profile
+from rangeret.projection import project, project_with
 from rangeret.sim import (
     Boxes,
     Cylinders,
@@ -23,6 +25,7 @@ from rangeret.sim import (
     simulate_dataset,
     simulate_scan,
 )
+from rangeret.sim.classes import CLASS_TABLES, raw_label_map
 
 SMALL = SensorConfig(beams=32, azimuth_steps=256)
 SENSOR_1024 = SensorConfig(azimuth_steps=1024)
@@ -284,3 +287,150 @@ def test_ego_moves_forward_and_traffic_moves(scene: Scene) -> None:
                 centroids.setdefault(int(label), []).append(world[mine, 0].mean())
     shifts = [abs(b - a) for a, b in (c for c in centroids.values() if len(c) == 2)]
     assert shifts and max(shifts) > 0.3
+
+
+# --- dataset profiles --------------------------------------------------------------------------
+
+
+def custom_profile(tmp_path: Path, base: str, **changes: object) -> DatasetProfile:
+    """A profile file copied from the built-in `base`, named "campus", with `changes` applied
+    to its top-level sections (a dict merges into the section)."""
+    data = load_profile(base).to_dict()
+    data["name"] = "campus"
+    for key, value in changes.items():
+        data[key] = {**data[key], **value} if isinstance(value, dict) else value
+    path = tmp_path / "campus.yaml"
+    path.write_text(DatasetProfile.from_dict(data).to_yaml())
+    return load_profile(path)
+
+
+@pytest.mark.parametrize("name", BUILTIN_PROFILES)
+def test_sensor_for_profile(name: str) -> None:
+    p = load_profile(name).projection
+    sensor = SensorConfig.for_profile(load_profile(name))
+    assert (sensor.beams, sensor.azimuth_steps) == (p.height, 2 * p.width)
+    row = (p.fov_up - p.fov_down) / p.height
+    assert sensor.fov_up == pytest.approx(p.fov_up - row / 2)
+    assert sensor.fov_down == pytest.approx(p.fov_down + row / 2)
+    assert SensorConfig.for_profile(load_profile(name), azimuth_steps=300).azimuth_steps == 300
+
+
+@pytest.mark.parametrize("name", BUILTIN_PROFILES)
+def test_laser_ids_are_the_pitch_rows(scene: Scene, name: str) -> None:
+    profile = load_profile(name)
+    sensor = SensorConfig.for_profile(profile, azimuth_steps=512)
+    points, labels, lasers = simulate_scan(
+        scene, 80.0, sensor, np.random.default_rng(4), lasers=True
+    )
+    plain_points, plain_labels = simulate_scan(scene, 80.0, sensor, np.random.default_rng(4))
+    np.testing.assert_array_equal(points, plain_points)
+    np.testing.assert_array_equal(labels, plain_labels)
+    assert lasers.shape == (len(points),)
+    assert lasers.min() >= 0 and lasers.max() <= profile.projection.height - 1
+    assert len(np.unique(lasers)) > profile.projection.height // 2
+    pitch = project_with(points, dataclasses.replace(profile.projection, row="pitch"))
+    assert (pitch.proj_y == lasers).mean() > 0.99
+
+
+@pytest.mark.parametrize("name", BUILTIN_PROFILES)
+def test_profile_dataset(tmp_path: Path, name: str) -> None:
+    profile = load_profile(name)
+    sensor = SensorConfig.for_profile(profile, azimuth_steps=256)
+    assert simulate_dataset(tmp_path, {"5": 2}, sensor=sensor, seed=2, profile=profile) == 2
+    seq = profile.layout.normalise(5)
+    found = discover(tmp_path, [seq], with_labels=True, layout=profile.layout)
+    assert found.problems == [] and [e.name for e in found.scans] == ["000000", "000001"]
+    config = profile.labels
+    classes: set[int] = set()
+    for entry in found.scans:
+        assert entry.scan_path.parent == velodyne_dir(tmp_path, seq, profile.layout)
+        assert entry.scan_path.stat().st_size % profile.points.point_bytes == 0
+        points = read_scan(entry.scan_path, profile.points)
+        assert points.shape[1] == profile.points.num_fields and len(points) > 1000
+        assert entry.label_path is not None
+        labels = read_labels(entry.label_path, len(points))
+        assert set(np.unique(labels & 0xFFFF).tolist()) <= set(config.raw_to_class)
+        classes |= set(np.unique(config.to_class(labels)).tolist()) - {config.unlabeled_class}
+        proj = project_with(points, profile.projection)
+        assert proj.valid.all()
+        if profile.projection.row == "laser_id":
+            np.testing.assert_array_equal(proj.proj_y, points[:, 4].astype(np.int64))
+    assert len(classes) >= 8, [config.class_names[c] for c in sorted(classes)]
+
+
+def test_builtin_profiles_landing_places(tmp_path: Path) -> None:
+    for name, scan in (
+        ("semantickitti", "sequences/08/velodyne/000000.bin"),
+        ("semantic-poss", "dataset/sequences/08/velodyne/000000.bin"),
+        ("pandaset", "008/velodyne/000000.bin"),
+    ):
+        sensor = SensorConfig(beams=4, azimuth_steps=64, fov_up=-5.0, fov_down=-20.0)
+        simulate_dataset(tmp_path / name, {"8": 1}, sensor=sensor, profile=load_profile(name))
+        assert (tmp_path / name / scan).is_file()
+
+
+def test_semantickitti_profile_writes_the_same_bytes(tmp_path: Path) -> None:
+    simulate_dataset(tmp_path / "a", {"00": 2}, labelled=True, sensor=SMALL, seed=5)
+    simulate_dataset(
+        tmp_path / "b", {"00": 2}, sensor=SMALL, seed=5, profile=load_profile("semantickitti")
+    )
+    assert tree_bytes(tmp_path / "a") == tree_bytes(tmp_path / "b")
+    ids = np.array(sorted(semantickitti().raw_to_class))
+    np.testing.assert_array_equal(raw_label_map(load_profile("semantickitti"))[ids], ids)
+
+
+def test_class_tables_are_classes_of_their_profiles() -> None:
+    kitti = set(semantickitti().class_names)
+    assert set(CLASS_TABLES) <= set(BUILTIN_PROFILES)
+    for name, table in CLASS_TABLES.items():
+        assert set(table) <= kitti
+        assert set(table.values()) <= set(load_profile(name).labels.class_names)
+
+
+def test_labels_of_other_profiles() -> None:
+    poss, panda = (
+        raw_label_map(load_profile("semantic-poss")),
+        raw_label_map(load_profile("pandaset")),
+    )
+    # vegetation, terrain, moving car, bicyclist, lane marking, outlier
+    assert poss[[70, 72, 252, 31, 60, 1]].tolist() == [9, 22, 7, 6, 22, 0]
+    assert panda[[70, 72, 252, 31, 60, 1]].tolist() == [5, 6, 13, 0, 7, 0]
+
+
+def test_custom_profile_maps_equal_class_names(tmp_path: Path) -> None:
+    profile = custom_profile(tmp_path, "semantic-poss")
+    lut = raw_label_map(profile)
+    # car, pole, trunk keep their names; vegetation, terrain and bicycle have none in the file
+    assert lut[[10, 80, 71, 70, 72, 11]].tolist() == [7, 13, 8, 0, 0, 0]
+    sensor = SensorConfig.for_profile(profile, azimuth_steps=128)
+    simulate_dataset(tmp_path / "data", {"02": 1}, sensor=sensor, profile=profile)
+    labels = read_labels(labels_dir(tmp_path / "data", "02", profile.layout) / "000000.label")
+    assert set(np.unique(labels & 0xFFFF).tolist()) <= {0, 4, 7, 8, 10, 13, 15, 17}
+
+
+def test_sensor_defaults_to_the_profiles(tmp_path: Path) -> None:
+    profile = custom_profile(
+        tmp_path, "pandaset", sensor={"height": 8, "width": 64, "fov_up": 5.0, "fov_down": -20.0}
+    )
+    simulate_dataset(tmp_path / "data", {"1": 1}, profile=profile)
+    points = read_scan(
+        velodyne_dir(tmp_path / "data", "001", profile.layout) / "000000.bin", profile.points
+    )
+    assert set(np.unique(points[:, 4]).tolist()) <= set(range(8))
+    assert len(points) <= 8 * 128
+
+
+def test_profile_the_simulator_cannot_fill(tmp_path: Path) -> None:
+    timed = custom_profile(
+        tmp_path, "semantickitti", points={"fields": ["x", "y", "z", "remission", "time"]}
+    )
+    with pytest.raises(ValueError, match="'time'"):
+        simulate_dataset(tmp_path / "a", {"00": 1}, sensor=SMALL, profile=timed)
+    with pytest.raises(ValueError, match="128 beams"):
+        simulate_dataset(
+            tmp_path / "b",
+            {"00": 1},
+            sensor=SensorConfig(beams=128, azimuth_steps=64),
+            profile=load_profile("pandaset"),
+        )
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

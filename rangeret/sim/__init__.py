@@ -1,11 +1,13 @@
-"""Synthetic SemanticKITTI data: a ray-casting simulator of a spinning LiDAR in street scenes.
+"""Synthetic LiDAR data: a ray-casting simulator of a spinning LiDAR in street scenes.
 
 - `scene`: the street (labelled boxes, cylinders and ellipsoids over a classified ground plane)
   and its random generation, `make_scene`;
-- `raycast`: the sensor, `SensorConfig`, and `simulate_scan`, which casts its beams against a
-  scene into points, labels and remissions;
-- `dataset`: `simulate_dataset`, which writes sequences of scans in the SemanticKITTI layout,
-  reproducible byte for byte from its seed.
+- `raycast`: the sensor, `SensorConfig` (`for_profile` gives a dataset profile's), and
+  `simulate_scan`, which casts its beams against a scene into points, labels, remissions and
+  laser ids;
+- `classes`: from the scenes' SemanticKITTI labels to another profile's raw ids;
+- `dataset`: `simulate_dataset`, which writes sequences of scans in the SemanticKITTI layout or a
+  profile's, reproducible byte for byte from its seed.
 """
 
 from rangeret.sim.dataset import simulate_dataset

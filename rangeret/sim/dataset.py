@@ -1,7 +1,8 @@
-"""The dataset writer: sequences of simulated scans in the SemanticKITTI layout.
+"""The dataset writer: sequences of simulated scans in the SemanticKITTI layout, or a profile's.
 
 Each sequence gets its own street, along which the sensor drives one scan period per scan.
-`simulate_dataset` writes the tree, reproducible byte for byte from its seed.
+`simulate_dataset` writes the tree, reproducible byte for byte from its seed; with a dataset
+profile, in that profile's layout, point record and raw label ids.
 """
 
 from __future__ import annotations
@@ -13,7 +14,10 @@ import numpy as np
 
 from rangeret.atomic import atomic_write_bytes
 from rangeret.io import write_labels, write_scan
-from rangeret.layout import labels_dir, normalise_sequence, velodyne_dir
+from rangeret.labels import SEMANTIC_MASK
+from rangeret.layout import labels_dir, velodyne_dir
+from rangeret.profiles import DatasetProfile, load_profile
+from rangeret.sim.classes import raw_label_map
 from rangeret.sim.raycast import SensorConfig, simulate_scan
 from rangeret.sim.scene import make_scene
 
@@ -31,6 +35,22 @@ def _matrix_line(values: Iterable[float]) -> str:
     return " ".join(f"{v:.12e}" for v in values)
 
 
+def _check_profile(profile: DatasetProfile, sensor: SensorConfig) -> None:
+    """ValueError when the simulator cannot fill the profile's point record with this sensor."""
+    fields = profile.points.fields
+    if fields[4:] not in ((), ("laser_id",)):
+        raise ValueError(
+            f"profile {profile.name}: the simulator fills x, y, z, the reflectance and laser_id, "
+            f"not the point field {fields[4]!r}"
+        )
+    height = profile.projection.height
+    if profile.projection.row == "laser_id" and sensor.beams > height:
+        raise ValueError(
+            f"profile {profile.name} takes rows from laser ids 0..{height - 1}, "
+            f"but the sensor has {sensor.beams} beams"
+        )
+
+
 def simulate_dataset(
     root: str | os.PathLike[str],
     sequences: Mapping[str, int],
@@ -38,23 +58,36 @@ def simulate_dataset(
     sensor: SensorConfig | None = None,
     seed: int = 0,
     progress: bool = False,
+    profile: DatasetProfile | None = None,
 ) -> int:
-    """Write a simulated SemanticKITTI tree under `root` and return the number of scans written.
+    """Write a simulated dataset tree under `root` and return the number of scans written.
 
     `sequences` maps a sequence name to its number of scans. Each sequence gets its own street
     and writes `sequences/XX/velodyne/NNNNNN.bin`, `labels/NNNNNN.label` when it is labelled
     (`labelled`: True for all, False for none, or the names of the labelled ones), and
     `poses.txt`, `times.txt` and `calib.txt` (the LiDAR is the reference frame: `Tr` is the
     identity and the poses are the sensor's). The same seed writes the same bytes.
+
+    With a `profile`, the sequence folders, ids, point records and raw label ids are the
+    profile's (a laser id, where its record has one, is the beam index), and the sensor defaults
+    to `SensorConfig.for_profile(profile)`; without one, the tree is SemanticKITTI's and the
+    sensor `SensorConfig()`.
     """
-    sensor = sensor or SensorConfig()
-    counts = {normalise_sequence(name): int(n) for name, n in sequences.items()}
+    if profile is None:
+        profile = load_profile(None)
+        sensor = sensor or SensorConfig()
+    else:
+        sensor = sensor or SensorConfig.for_profile(profile)
+    _check_profile(profile, sensor)
+    layout, record = profile.layout, profile.points
+    label_map = raw_label_map(profile)
+    counts = {layout.normalise(name): int(n) for name, n in sequences.items()}
     if any(n < 0 for n in counts.values()):
         raise ValueError(f"numbers of scans must be >= 0, got {counts}")
     if isinstance(labelled, bool):
         with_labels = set(counts) if labelled else set()
     else:
-        with_labels = {normalise_sequence(name) for name in labelled}
+        with_labels = {layout.normalise(name) for name in labelled}
         unknown = sorted(with_labels - set(counts))
         if unknown:
             raise ValueError(f"labelled sequences {unknown} are not among the sequences")
@@ -70,16 +103,19 @@ def simulate_dataset(
             seeds = _sequence_seed(seed, name).spawn(n + 1)
             scene = make_scene(np.random.default_rng(seeds[0]), max(200.0, 1.25 * n))
             step = scene.ego_speed * SCAN_PERIOD
-            seq_dir = velodyne_dir(root, name).parent
+            seq_dir = velodyne_dir(root, name, layout).parent
             seq_dir.mkdir(parents=True, exist_ok=True)
             poses, times = [], []
             for k in range(n):
-                points, labels = simulate_scan(
-                    scene, k * step, sensor, np.random.default_rng(seeds[k + 1])
+                points, labels, lasers = simulate_scan(
+                    scene, k * step, sensor, np.random.default_rng(seeds[k + 1]), lasers=True
                 )
-                write_scan(velodyne_dir(root, name) / f"{k:06d}.bin", points)
+                if record.num_fields == 5:
+                    points = np.column_stack([points, lasers.astype(np.float32)])
+                write_scan(velodyne_dir(root, name, layout) / f"{k:06d}.bin", points, record)
                 if name in with_labels:
-                    write_labels(labels_dir(root, name) / f"{k:06d}.label", labels)
+                    raw = label_map[labels & SEMANTIC_MASK] | (labels & ~np.uint32(SEMANTIC_MASK))
+                    write_labels(labels_dir(root, name, layout) / f"{k:06d}.label", raw)
                 poses.append(_matrix_line([1, 0, 0, k * step, 0, 1, 0, 0, 0, 0, 1, 0]))
                 times.append(f"{k * SCAN_PERIOD:.6e}")
                 written += 1

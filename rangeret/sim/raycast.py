@@ -1,7 +1,8 @@
 """The sensor and its scans: a spinning multi-beam LiDAR cast against a scene.
 
-The sensor is modelled on the Velodyne HDL-64E (evenly spread beams, 360 degrees of azimuth). A
-scan tests all its (ray, primitive) pairs at once, vectorised: the pairs are those whose ray
+The sensor is modelled on the Velodyne HDL-64E (evenly spread beams, 360 degrees of azimuth);
+`SensorConfig.for_profile` gives the sensor of a dataset profile instead (one beam per image row,
+as PandaSet's Pandar64 or SemanticPOSS's 40-beam sensor). A scan tests all its (ray, primitive) pairs at once, vectorised: the pairs are those whose ray
 lies in the primitive's angular bounding window, so the work grows with what the sensor sees
 rather than with rays x primitives. The nearest hit of each ray wins; range noise, dropout,
 remission noise and spurious returns are added to the hits.
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import TYPE_CHECKING, Literal, overload
 
 import numpy as np
 
@@ -24,6 +26,9 @@ from rangeret.sim.scene import (
     ground_labels,
 )
 
+if TYPE_CHECKING:
+    from rangeret.profiles import DatasetProfile
+
 #: Per-point remission noise, and the share of returns that are spurious (dust, multipath).
 REMISSION_NOISE = 0.04
 OUTLIER_RATE = 0.0005
@@ -36,8 +41,8 @@ for _raw, _value in REMISSION.items():
 
 @dataclass
 class SensorConfig:
-    """A spinning multi-beam LiDAR: beams evenly spread from `fov_up` to `fov_down` (degrees),
-    `azimuth_steps` columns over 360 degrees, mounted `height` m above the ground, returns up to
+    """A spinning multi-beam LiDAR: beams evenly spread from `fov_up` to `fov_down` (degrees), the
+    top beam (laser id 0) first, `azimuth_steps` columns over 360 degrees, mounted `height` m above the ground, returns up to
     `max_range` m with gaussian range noise (m) and a share `dropout` of returns lost."""
 
     beams: int = 64
@@ -62,6 +67,20 @@ class SensorConfig:
             raise ValueError("height and max_range must be positive")
         if self.range_noise < 0 or not 0 <= self.dropout < 1:
             raise ValueError("range_noise must be >= 0 and dropout in [0, 1)")
+
+    @classmethod
+    def for_profile(cls, profile: DatasetProfile, azimuth_steps: int | None = None) -> SensorConfig:
+        """The sensor of a profile's range image: one beam per row, aimed at the row's centre so a
+        pitch projection puts beam i on row i, and 2 x width azimuth steps unless given."""
+        p = profile.projection
+        top, bottom = abs(p.fov_up), -abs(p.fov_down)
+        half_row = (top - bottom) / p.height / 2
+        return cls(
+            beams=p.height,
+            azimuth_steps=2 * p.width if azimuth_steps is None else azimuth_steps,
+            fov_up=top - half_row,
+            fov_down=bottom + half_row,
+        )
 
 
 @lru_cache(maxsize=8)
@@ -198,13 +217,41 @@ def _box_centres(scene: Scene, time: float) -> np.ndarray:
     return centre
 
 
+@overload
 def simulate_scan(
-    scene: Scene, pose_x: float, sensor: SensorConfig, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray]:
+    scene: Scene,
+    pose_x: float,
+    sensor: SensorConfig,
+    rng: np.random.Generator,
+    *,
+    lasers: Literal[False] = False,
+) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+@overload
+def simulate_scan(
+    scene: Scene,
+    pose_x: float,
+    sensor: SensorConfig,
+    rng: np.random.Generator,
+    *,
+    lasers: Literal[True],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+
+def simulate_scan(
+    scene: Scene,
+    pose_x: float,
+    sensor: SensorConfig,
+    rng: np.random.Generator,
+    *,
+    lasers: bool = False,
+) -> tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One scan of `scene` by `sensor` at (pose_x, scene.ego_y), facing +x.
 
     Returns float32 (N, 4) points (x, y, z, remission) in the sensor frame (the ground at
-    z = -height) and uint32 (N,) labels (raw id | instance << 16). Rays that hit nothing within
+    z = -height) and uint32 (N,) labels (raw id | instance << 16); with `lasers`, also each
+    point's int64 beam index (laser id, 0 = the top beam). Rays that hit nothing within
     `max_range`, and a random share `dropout` of the others, give no point.
     """
     dirs = _ray_grid(sensor.beams, sensor.azimuth_steps, sensor.fov_up, sensor.fov_down)
@@ -280,4 +327,6 @@ def simulate_scan(
     points = np.empty((int(keep.sum()), 4), dtype=np.float32)
     points[:, :3] = d[keep] * dist[keep, None]
     points[:, 3] = np.clip(remission[keep], 0.0, 1.0)
+    if lasers:
+        return points, labels[keep], idx[keep] // sensor.azimuth_steps
     return points, labels[keep]
