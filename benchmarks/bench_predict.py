@@ -22,7 +22,7 @@ from rangeret.io import read_scan, write_labels, write_scan
 from rangeret.layout import velodyne_dir
 from rangeret.models import build_model
 from rangeret.predict import predict_tree
-from rangeret.projection import ProjectionConfig
+from rangeret.profiles import load_profile
 
 
 def stage_medians(
@@ -64,7 +64,7 @@ def main() -> None:
         tmp = Path(tmp)
         torch.save(release, tmp / "cir.pt")
         cir = Predictor.from_checkpoint(tmp / "cir.pt", device=args.device)
-        thesis = Predictor(build_model("rangeret-thesis"), ProjectionConfig(), device=args.device)
+        thesis = Predictor(build_model("rangeret-thesis"), load_profile(), device=args.device)
         print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, device {cir.device}")
         print(f"one scan of {len(points):,} points at 64 x 1024, median of {args.repeat} (ms):")
         print(

@@ -19,10 +19,10 @@ from pathlib import Path
 import torch
 from _common import REAL_SCAN, require_real_scan, small_state_dict
 
-from rangeret.inference import PredictorSpec, projection_for
+from rangeret.inference import PredictorSpec, checkpoint_profile
 from rangeret.io import read_scan, write_scan
 from rangeret.layout import velodyne_dir
-from rangeret.models import build_model, load_checkpoint
+from rangeret.models import build_model
 from rangeret.predict import list_scans, predict_tree
 from rangeret.timing import StageTimes
 from workers.pipeline import PipelineOptions, run_pipeline
@@ -60,8 +60,7 @@ def main() -> None:
         entries = list_scans(tmp / "data", ["08"])
 
         ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-        info = load_checkpoint(spec.checkpoint, height=h, width=w).checkpoint_info
-        projection = projection_for(info)
+        _, profile = checkpoint_profile(spec)
         print(
             f"{args.scans} scans at {h} x {w}, {torch.get_num_threads()} torch threads, {args.rounds} rounds"
         )
@@ -82,7 +81,7 @@ def main() -> None:
                     actors=actors, actor_cpus=actor_cpus
                 )  # 2 x 0.75 is the default here
                 start = time.perf_counter()
-                result = run_pipeline(spec, projection, entries, tmp / f"ray{actors}-{r}", options)
+                result = run_pipeline(spec, profile, entries, tmp / f"ray{actors}-{r}", options)
                 rate = result.written / (time.perf_counter() - start)
                 name = f"{actors} actor(s) x {actor_cpus:g} CPU"
                 rates.setdefault(name, []).append(rate)

@@ -16,17 +16,20 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from rangeret.errors import CommandError, run_command
-from rangeret.labels import load_label_config
 from rangeret.options import (
     add_label_config,
     add_network_options,
     add_output_options,
+    add_profile_option,
     add_selection,
     label_config_from_args,
+    profile_from_args,
+    requested_profile,
     selected_sequences,
     spec_from_args,
 )
 from rangeret.plugins import COMMANDS_GROUP, Subcommand, load_plugins
+from rangeret.profiles import DEFAULT_PROFILE, builtin_profiles, load_profile
 
 if TYPE_CHECKING:
     from rangeret.inference import Predictor
@@ -39,10 +42,11 @@ def predictor_from_args(args: argparse.Namespace) -> Predictor:
     predictor = spec_from_args(args).build()
     info = predictor.describe()
     log.info(
-        "%s from %s (sha256 %s) at %dx%d on %s",
+        "%s from %s (sha256 %s), %s profile, at %dx%d on %s",
         info["model"],
         info["checkpoint"],
         (info["checkpoint_sha256"] or "")[:12],
+        predictor.profile.name,
         predictor.projection_config.height,
         predictor.projection_config.width,
         predictor.device,
@@ -54,8 +58,8 @@ def cmd_predict(args: argparse.Namespace) -> int:
     """Predict every scan of a split or of chosen sequences into a predictions tree."""
     from rangeret.predict import predict_tree
 
-    sequences = selected_sequences(args, load_label_config(None))
     predictor = predictor_from_args(args)
+    sequences = selected_sequences(args, predictor.profile)
     summary = predict_tree(
         predictor,
         args.dataset,
@@ -78,10 +82,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     """Evaluate a predictions tree against ground truth with the official semantics."""
     from rangeret.evaluation import evaluate_predictions
 
-    config = label_config_from_args(args)
-    sequences = selected_sequences(args, config)
+    profile = profile_from_args(args)
+    sequences = selected_sequences(args, profile)
     report = evaluate_predictions(
-        args.dataset, args.predictions, sequences, config=config, progress=not args.quiet
+        args.dataset, args.predictions, sequences, progress=not args.quiet, profile=profile
     )
     print(report.table())
     for note in report.notes:
@@ -101,6 +105,7 @@ def cmd_submission(args: argparse.Namespace) -> int:
     """Write and validate the CodaLab/Codabench zip of a predictions tree."""
     from rangeret.submission import write_submission
 
+    _benchmark_profile_only(args)
     check = write_submission(
         args.predictions,
         args.dataset,
@@ -122,6 +127,7 @@ def cmd_validate_submission(args: argparse.Namespace) -> int:
     """Validate a submission zip against the dataset and the official test split."""
     from rangeret.submission import validate_submission
 
+    _benchmark_profile_only(args)
     check = validate_submission(
         args.archive,
         args.dataset,
@@ -139,8 +145,18 @@ def cmd_validate_submission(args: argparse.Namespace) -> int:
     return 0
 
 
+def _benchmark_profile_only(args: argparse.Namespace) -> None:
+    """Submission archives are the SemanticKITTI benchmark's format: other profiles are refused."""
+    profile = profile_from_args(args)
+    if profile.name != DEFAULT_PROFILE:
+        raise CommandError(
+            f"submission archives are the SemanticKITTI benchmark's format; the {profile.name} "
+            "profile has no such archive (use `rangeret evaluate` on its predictions instead)"
+        )
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
-    """Write a simulated dataset in the SemanticKITTI layout."""
+    """Write a simulated dataset in a profile's layout, point record and labels."""
     from rangeret.sim import SensorConfig, simulate_dataset
 
     counts: dict[str, int] = {}
@@ -150,9 +166,24 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             raise CommandError(f"--sequences takes NAME:SCANS items such as 08:10, got {item!r}")
         counts[name] = int(number)
     labelled = [s for s in counts if s not in set(args.unlabelled)]
-    sensor = SensorConfig(beams=args.beams, azimuth_steps=args.azimuth_steps)
+    profile = requested_profile(args)
+    if profile is None:
+        sensor = SensorConfig(beams=args.beams or 64, azimuth_steps=args.azimuth_steps or 2048)
+    else:
+        if args.beams is not None and args.beams != profile.projection.height:
+            raise CommandError(
+                f"--beams {args.beams} contradicts the {profile.name} profile's "
+                f"{profile.projection.height} rows; leave --beams out with --profile"
+            )
+        sensor = SensorConfig.for_profile(profile, azimuth_steps=args.azimuth_steps)
     n = simulate_dataset(
-        args.out, counts, labelled=labelled, sensor=sensor, seed=args.seed, progress=not args.quiet
+        args.out,
+        counts,
+        labelled=labelled,
+        sensor=sensor,
+        seed=args.seed,
+        progress=not args.quiet,
+        profile=profile,
     )
     print(f"{n} simulated scans in {args.out} ({', '.join(labelled) or 'none'} labelled)")
     return 0
@@ -180,6 +211,7 @@ def _evaluate_arguments(p: argparse.ArgumentParser) -> None:
     add_selection(p)
     p.add_argument("--json", type=Path, metavar="FILE", help="write the JSON report here")
     p.add_argument("--plots", type=Path, metavar="DIR", help="write confusion.png and iou.png here")
+    add_profile_option(p)
     add_label_config(p)
 
 
@@ -197,6 +229,7 @@ def _submission_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, required=True, metavar="FILE.zip")
     _allow_partial_option(p)
     p.add_argument("--description", metavar="TEXT", help="text of description.txt in the archive")
+    add_profile_option(p)
     add_label_config(p)
 
 
@@ -204,6 +237,7 @@ def _validate_submission_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("archive", type=Path, metavar="FILE.zip")
     p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
     _allow_partial_option(p)
+    add_profile_option(p)
     add_label_config(p)
 
 
@@ -221,9 +255,34 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--unlabelled", nargs="*", default=[], metavar="XX", help="sequences written without labels"
     )
-    p.add_argument("--beams", type=int, default=64)
-    p.add_argument("--azimuth-steps", type=int, default=2048)
+    p.add_argument("--beams", type=int, help="rows of the sensor (default 64, or the profile's)")
+    p.add_argument(
+        "--azimuth-steps", type=int, help="columns cast per turn (default 2048, or the profile's)"
+    )
     p.add_argument("--seed", type=int, default=0)
+    add_profile_option(p)
+
+
+def cmd_profile(args: argparse.Namespace) -> int:
+    """List the built-in dataset profiles, or print one as the YAML that --profile FILE takes."""
+    if args.action == "list":
+        for name in builtin_profiles():
+            profile = load_profile(name)
+            p = profile.projection
+            print(
+                f"{name:15s} {p.height} x {p.width}, {profile.num_classes} classes, "
+                f"{profile.points.num_fields} floats per point, rows from {p.row}"
+            )
+        return 0
+    print(load_profile(args.name).to_yaml(), end="")
+    return 0
+
+
+def _profile_arguments(p: argparse.ArgumentParser) -> None:
+    actions = p.add_subparsers(dest="action", required=True, metavar="ACTION")
+    actions.add_parser("list", help="the built-in profiles")
+    show = actions.add_parser("show", help="a profile as YAML (a file to start a new one from)")
+    show.add_argument("name", metavar="NAME|FILE")
 
 
 #: The library's own subcommands, in the order `rangeret --help` lists them.
@@ -260,6 +319,12 @@ BUILTIN_COMMANDS = (
         "write a simulated dataset (street scenes)",
         _simulate_arguments,
         cmd_simulate,
+    ),
+    Subcommand(
+        "profile",
+        "dataset profiles: list the built-in ones, show one as YAML",
+        _profile_arguments,
+        cmd_profile,
     ),
 )
 

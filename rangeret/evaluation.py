@@ -14,9 +14,10 @@ from pathlib import Path
 from tqdm import tqdm
 
 from rangeret.io import ScanFormatError, read_labels, scan_num_points
-from rangeret.labels import LabelConfig, semantickitti
+from rangeret.labels import LabelConfig
 from rangeret.layout import discover, prediction_path
 from rangeret.metrics import EvaluationReport, RawLabelEvaluator
+from rangeret.profiles import DatasetProfile, load_profile
 
 log = logging.getLogger(__name__)
 
@@ -38,14 +39,17 @@ def evaluate_predictions(
     config: LabelConfig | None = None,
     checkpoint_sha256: str | None = None,
     progress: bool = False,
+    profile: DatasetProfile | None = None,
 ) -> EvaluationReport:
-    """Evaluate `PRED/sequences/XX/predictions` against `ROOT/sequences/XX/labels`.
+    """Evaluate `PRED/sequences/XX/predictions` against the dataset's labels.
 
-    Raises `EvaluationError` listing every missing label or prediction file and every file whose
-    length does not match its scan.
+    The profile (default semantickitti) gives the dataset's layout, point record and labels;
+    `config` replaces its labels. Raises `EvaluationError` listing every missing label or
+    prediction file and every file whose length does not match its scan.
     """
-    config = config or semantickitti()
-    found = discover(dataset, sequences, with_labels=True)
+    profile = profile or load_profile(None)
+    config = config or profile.labels
+    found = discover(dataset, sequences, with_labels=True, layout=profile.layout)
     problems = list(found.problems)
     pairs = []
     for entry in found.scans:
@@ -62,7 +66,7 @@ def evaluate_predictions(
     evaluator = RawLabelEvaluator(config)
     for entry, pred in tqdm(pairs, desc="evaluate", unit="scan", disable=not progress):
         try:
-            n = scan_num_points(entry.scan_path)
+            n = scan_num_points(entry.scan_path, profile.points)
             gt_raw = read_labels(entry.label_path, num_points=n)
             pred_raw = read_labels(pred, num_points=n)
         except ScanFormatError as exc:
@@ -72,6 +76,7 @@ def evaluate_predictions(
     if problems:
         raise EvaluationError(problems)
     report = evaluator.report(found.sequences, checkpoint_sha256)
+    report.profile = profile.name
     log.info(
         "evaluated %d scans (%d points): mIoU %.4f",
         report.num_scans,

@@ -13,16 +13,17 @@ from __future__ import annotations
 import hashlib
 import logging
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from rangeret.labels import LabelConfig, semantickitti
+from rangeret.labels import LabelConfig
 from rangeret.loading import LoadedScan
-from rangeret.models import load_checkpoint
+from rangeret.models import CheckpointError, CheckpointInfo, load_checkpoint
 from rangeret.point_labels import DEFAULT_KNN, KnnSettings, point_classes
+from rangeret.profiles import DatasetProfile, load_profile, profile_of_record
 from rangeret.projection import Projection, ProjectionConfig, project_with
 from rangeret.timing import StageTimes
 
@@ -74,6 +75,7 @@ class PredictorSpec:
 
     checkpoint: str
     model: str | None = None
+    profile: DatasetProfile | None = None
     height: int | None = None
     width: int | None = None
     fov_up: float | None = None
@@ -87,6 +89,7 @@ class PredictorSpec:
         return Predictor.from_checkpoint(
             self.checkpoint,
             model=self.model,
+            profile=self.profile,
             height=self.height,
             width=self.width,
             fov_up=self.fov_up,
@@ -102,6 +105,7 @@ def describe_network(
     model: str,
     checkpoint: str | None,
     sha256: str | None,
+    profile: str,
     projection: ProjectionConfig,
     knn: KnnSettings | None,
     tta: TtaSettings | None,
@@ -114,6 +118,7 @@ def describe_network(
         "checkpoint": checkpoint,
         "checkpoint_sha256": sha256,
         "demo_weights": is_demo_checkpoint(sha256),
+        "profile": profile,
         "projection": projection.to_dict(),
         "knn": asdict(knn) if knn else None,
         "tta": asdict(tta) if tta else None,
@@ -141,33 +146,53 @@ class ScanPrediction:
 
 
 class Predictor:
-    """A loaded network plus the projection, refinement and label map of a run."""
+    """A loaded network plus the dataset profile (projection, refinement rule, label map) it runs
+    with."""
 
     def __init__(
         self,
         network: torch.nn.Module,
-        projection: ProjectionConfig,
-        label_config: LabelConfig | None = None,
+        profile: DatasetProfile,
         device: str | torch.device = "auto",
         knn: KnnSettings | None = DEFAULT_KNN,
         tta: TtaSettings | None = None,
         checkpoint_sha256: str | None = None,
     ) -> None:
+        classes = _network_classes(network)
+        if classes is not None and classes != profile.num_classes:
+            raise CheckpointError(
+                f"the network predicts {classes} classes but the {profile.name} profile has "
+                f"{profile.num_classes}: it was not made for this dataset"
+            )
         self.device = select_device(device)
         self.network = network.to(self.device).eval()
-        self.projection_config = projection
-        self.label_config = label_config or semantickitti()
+        self.profile = profile
         self.knn = knn
         self.tta = tta
         self.checkpoint_sha256 = checkpoint_sha256
         self.times = StageTimes()  # where stages record unless the caller passes its own record
-        self.num_classes = self.label_config.num_classes
+
+    @property
+    def projection_config(self) -> ProjectionConfig:
+        """The projection of the profile, at the network's resolution."""
+        return self.profile.projection
+
+    @property
+    def label_config(self) -> LabelConfig:
+        """The profile's label configuration."""
+        return self.profile.labels
+
+    @property
+    def num_classes(self) -> int:
+        """Classes the network predicts (the profile's)."""
+        return self.profile.num_classes
 
     @classmethod
     def from_checkpoint(
         cls,
         path: str | Path,
         model: str | None = None,
+        profile: DatasetProfile | None = None,
         height: int | None = None,
         width: int | None = None,
         fov_up: float | None = None,
@@ -178,14 +203,20 @@ class Predictor:
     ) -> Predictor:
         """A predictor for a checkpoint file: the project's own (self-describing) or a published one.
 
-        Published files record no resolution or field of view: they come from the arguments
-        (default 64 x 1024, fov 3 / -25 degrees, the HDL-64E's).
+        The project's own files run with the profile they record (asking for another one is an
+        error). Published files record none: they run with `profile` (default `semantickitti`),
+        which gives their resolution and field of view unless height, width or fov are given.
         """
-        network = load_checkpoint(path, model=model, height=height, width=width)
+        network = load_checkpoint(
+            path,
+            model=model,
+            height=height,
+            width=width,
+            default_resolution=_resolution(profile),
+        )
         info = network.checkpoint_info
-        projection = projection_for(info, fov_up, fov_down)
-        labels = _label_config_from(info.label_config)
-        return cls(network, projection, labels, device, knn, tta, checkpoint_sha256=info.sha256)
+        resolved = profile_for_checkpoint(info, profile, fov_up, fov_down)
+        return cls(network, resolved, device, knn, tta, checkpoint_sha256=info.sha256)
 
     def describe(self) -> dict:
         """Plain-data description of the run's settings, for logs, reports and `run.json`."""
@@ -194,6 +225,7 @@ class Predictor:
             model=getattr(info, "name", type(self.network).__name__),
             checkpoint=getattr(info, "path", None),
             sha256=self.checkpoint_sha256,
+            profile=self.profile.name,
             projection=self.projection_config,
             knn=self.knn,
             tta=self.tta,
@@ -232,6 +264,8 @@ class Predictor:
                 torch.from_numpy(projection.unproj_range),
                 self.knn,
                 self.num_classes,
+                votes_from=self.profile.knn.votes_from,
+                unlabeled=self.label_config.unlabeled_class,
             )
             return classes.cpu().numpy()
 
@@ -362,23 +396,85 @@ def _transform(
     return out
 
 
-def projection_for(
-    info, fov_up: float | None = None, fov_down: float | None = None
-) -> ProjectionConfig:
-    """The projection a checkpoint's network expects: its stored parameters (the project's own
-    files) or the HDL-64E defaults (published files), at the network's resolution."""
-    stored = dict(info.projection or {})
-    stored.update(height=info.config["height"], width=info.config["width"])
-    if fov_up is not None:
-        stored["fov_up"] = fov_up
-    if fov_down is not None:
-        stored["fov_down"] = fov_down
+def checkpoint_profile(spec: PredictorSpec) -> tuple[CheckpointInfo, DatasetProfile]:
+    """Load `spec`'s checkpoint once (on the CPU) to check it and resolve the profile it runs
+    with, for drivers that build predictors elsewhere (the Ray job, the gateway)."""
+    network = load_checkpoint(
+        spec.checkpoint,
+        model=spec.model,
+        height=spec.height,
+        width=spec.width,
+        default_resolution=_resolution(spec.profile),
+    )
+    info = network.checkpoint_info
+    return info, profile_for_checkpoint(info, spec.profile, spec.fov_up, spec.fov_down)
+
+
+def profile_for_checkpoint(
+    info: CheckpointInfo,
+    requested: DatasetProfile | None = None,
+    fov_up: float | None = None,
+    fov_down: float | None = None,
+) -> DatasetProfile:
+    """The profile a loaded network runs with, its projection at the network's resolution.
+
+    The project's own files give their recorded profile (files from before profiles: the
+    `semantickitti` profile with the stored projection and labels); a `requested` profile of
+    another name is a CheckpointError naming both. Published files take `requested` or the
+    default. A class count that differs from the profile's is a CheckpointError naming both.
+    """
+    if info.published:
+        profile = requested or load_profile(None)
+        projection = profile.projection
+    else:
+        profile = _recorded_profile(info)
+        if requested is not None and requested.name != profile.name:
+            raise CheckpointError(
+                f"{info.path} was trained for the {profile.name} profile and cannot run with the "
+                f"{requested.name} profile; leave --profile out or pass --profile {profile.name}"
+            )
+        projection = _stored_projection(info.projection) or profile.projection
+    projection = replace(projection, height=info.config["height"], width=info.config["width"])
+    profile = replace(profile, projection=projection).with_overrides(
+        fov_up=fov_up, fov_down=fov_down
+    )
+    classes = int(info.config["num_classes"])
+    if classes != profile.num_classes:
+        raise CheckpointError(
+            f"{info.path} predicts {classes} classes but the {profile.name} profile has "
+            f"{profile.num_classes}: the network was not made for this dataset "
+            "(choose its profile with --profile)"
+        )
+    return profile
+
+
+def _recorded_profile(info: CheckpointInfo) -> DatasetProfile:
+    """The profile a project checkpoint records; SemanticKITTI's for files from before profiles,
+    with the label configuration they stored."""
+    if info.profile:
+        return profile_of_record(info.profile, info.path)
+    profile = load_profile(None)
+    if info.label_config:
+        profile = replace(profile, labels=LabelConfig.from_dict(info.label_config))
+    return profile
+
+
+def _stored_projection(record: dict | None) -> ProjectionConfig | None:
+    """The projection stored in a project checkpoint, if any."""
+    if not record:
+        return None
+    stored = dict(record)
     for key in ("means", "stds"):
         if key in stored:
             stored[key] = tuple(stored[key])
     return ProjectionConfig(**stored)
 
 
-def _label_config_from(record: dict | None) -> LabelConfig:
-    """The label configuration stored in a checkpoint, or SemanticKITTI's for published files."""
-    return LabelConfig.from_dict(record) if record else semantickitti()
+def _resolution(profile: DatasetProfile | None) -> tuple[int, int]:
+    base = (profile or load_profile(None)).projection
+    return base.height, base.width
+
+
+def _network_classes(network: torch.nn.Module) -> int | None:
+    config = getattr(network, "config", None)
+    return getattr(config, "num_classes", None)

@@ -10,7 +10,6 @@ semantic id, the high 16 bits the instance id. Every reader checks what it reads
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 

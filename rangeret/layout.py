@@ -196,8 +196,7 @@ def discover(
         if with_labels:
             for stem in sorted(scans.keys() - labels.keys()):
                 result.problems.append(
-                    f"{ldir / (stem + '.label')} is missing "
-                    f"(scan {seq}/{stem} has no ground truth)"
+                    f"{ldir / (stem + '.label')} is missing (scan {seq}/{stem} has no ground truth)"
                 )
             for stem in sorted(labels.keys() - scans.keys()):
                 result.problems.append(

@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from rangeret.io import ScanFormatError, read_scan
+from rangeret.io import KITTI_RECORD, PointRecord, ScanFormatError, read_scan
 from rangeret.layout import ScanEntry
 from rangeret.projection import Projection, ProjectionConfig, project_with
 from rangeret.timing import StageTimes
@@ -25,17 +25,29 @@ class LoadedScan:
 
 
 def load_batch(
-    entries: Sequence[ScanEntry], config: ProjectionConfig, times: StageTimes
+    entries: Sequence[ScanEntry],
+    config: ProjectionConfig,
+    times: StageTimes,
+    record: PointRecord = KITTI_RECORD,
 ) -> list[LoadedScan]:
-    """Read and project every scan of `entries`, in order; times go to `times` (read, project)."""
+    """Read and project every scan of `entries`, in order; times go to `times` (read, project).
+
+    A file that is not whole records of `record`, or whose points cannot be projected (a laser id
+    off the image), becomes a failure naming the file.
+    """
     loaded = []
     for entry in entries:
         try:
             with times.stage("read"):
-                points = read_scan(entry.scan_path)
+                points = read_scan(entry.scan_path, record)
         except (ScanFormatError, OSError) as exc:
             loaded.append(LoadedScan(entry, error=str(exc)))
             continue
-        with times.stage("project"):
-            loaded.append(LoadedScan(entry, projection=project_with(points, config)))
+        try:
+            with times.stage("project"):
+                projection = project_with(points, config)
+        except ValueError as exc:
+            loaded.append(LoadedScan(entry, error=str(ScanFormatError(entry.scan_path, str(exc)))))
+            continue
+        loaded.append(LoadedScan(entry, projection=projection))
     return loaded

@@ -129,6 +129,7 @@ class EvaluationReport:
     unknown_prediction_ids: int = 0
     checkpoint_sha256: str | None = None
     notes: list[str] = field(default_factory=list)
+    profile: str | None = None
 
     @property
     def miou(self) -> float:
@@ -158,6 +159,8 @@ class EvaluationReport:
         }
         if self.checkpoint_sha256:
             out["checkpoint_sha256"] = self.checkpoint_sha256
+        if self.profile:
+            out["profile"] = self.profile
         if self.notes:
             out["notes"] = list(self.notes)
         return out
@@ -183,6 +186,7 @@ class EvaluationReport:
             unknown_prediction_ids=int(data.get("unknown_prediction_ids", 0)),
             checkpoint_sha256=data.get("checkpoint_sha256"),
             notes=list(data.get("notes", [])),
+            profile=data.get("profile"),
         )
 
     def table(self) -> str:
@@ -207,15 +211,15 @@ class RawLabelEvaluator:
     """Accumulates raw-id label arrays (as read from `.label` files) into a confusion matrix.
 
     Both arrays are masked to their low 16 bits and mapped through the learning map; ids the map
-    does not know count as class 0, as in the official evaluator, and unknown predicted ids are
-    counted so a report can say so.
+    does not know count as the unlabeled class (0 for SemanticKITTI, as in the official
+    evaluator), and unknown predicted ids are counted so a report can say so.
     """
 
     def __init__(self, config: LabelConfig | None = None) -> None:
         self.config = config or semantickitti()
         n = self.config.num_classes
         self._n = n
-        # Unknown ids map to the extra class n, folded into class 0 when the matrix is read.
+        # Unknown ids map to the extra class n, folded into the unlabeled class when read.
         lut = np.full(1 << 16, n, dtype=np.uint8)
         for raw, cls in self.config.raw_to_class.items():
             lut[raw] = cls
@@ -247,11 +251,11 @@ class RawLabelEvaluator:
         return int(self._counts.reshape(n + 1, n + 1)[n].sum())
 
     def confusion(self) -> ConfusionMatrix:
-        """The confusion matrix, unknown ids counted as class 0."""
-        n = self._n
+        """The confusion matrix, unknown ids counted as the unlabeled class."""
+        n, u = self._n, self.config.unlabeled_class
         full = self._counts.reshape(n + 1, n + 1).copy()
-        full[0] += full[n]
-        full[:, 0] += full[:, n]
+        full[u] += full[n]
+        full[:, u] += full[:, n]
         cm = ConfusionMatrix.for_config(self.config)
         cm.merge(full[:n, :n])
         return cm

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 from rangeret.errors import CommandError
 from rangeret.labels import LabelConfig, load_label_config
 from rangeret.layout import resolve_sequences
+from rangeret.profiles import BUILTIN_PROFILES, DatasetProfile, load_profile
 
 if TYPE_CHECKING:
     from rangeret.inference import PredictorSpec
@@ -43,9 +44,37 @@ def add_selection(parser: argparse.ArgumentParser, splits: Sequence[str] = SPLIT
     )
 
 
-def selected_sequences(args: argparse.Namespace, config: LabelConfig) -> list[str]:
-    """The sequences chosen by --split or --sequences."""
-    return resolve_sequences(split=args.split, sequences=args.sequences, config=config)
+def selected_sequences(args: argparse.Namespace, profile: DatasetProfile) -> list[str]:
+    """The sequences chosen by --split or --sequences, as the profile writes their ids on disk
+    (`--sequences 1` is "01" for SemanticKITTI, "001" for PandaSet)."""
+    return resolve_sequences(
+        split=args.split, sequences=args.sequences, config=profile.labels, layout=profile.layout
+    )
+
+
+def add_profile_option(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """--profile NAME|FILE: the dataset profile (sensor, point record, labels, layout, splits)."""
+    parser.add_argument(
+        "--profile",
+        metavar="NAME|FILE",
+        help=f"dataset profile: {', '.join(BUILTIN_PROFILES)} or a YAML file "
+        "(`rangeret profile show NAME` prints one to start from); default: the checkpoint's, "
+        "else semantickitti",
+    )
+
+
+def requested_profile(args: argparse.Namespace) -> DatasetProfile | None:
+    """The profile of --profile, or None when it was not given (a checkpoint may then choose)."""
+    name = getattr(args, "profile", None)
+    return load_profile(name) if name else None
+
+
+def profile_from_args(args: argparse.Namespace) -> DatasetProfile:
+    """The profile of --profile (default semantickitti) with --label-config in its labels' place."""
+    profile = requested_profile(args) or load_profile(None)
+    if getattr(args, "label_config", None):
+        profile = profile.with_overrides(labels=label_config_from_args(args))
+    return profile
 
 
 def add_label_config(parser: argparse.ArgumentParser) -> None:
@@ -72,6 +101,7 @@ def label_config_from_args(args: argparse.Namespace) -> LabelConfig:
 def add_network_options(parser: argparse.ArgumentParser) -> None:
     """The options shared by every command that runs a network (predict, serve, the Ray job)."""
     g = parser.add_argument_group("network")
+    add_profile_option(g)
     g.add_argument(
         "--model",
         choices=["rangeret-thesis", "rangeret-cir"],
@@ -84,13 +114,16 @@ def add_network_options(parser: argparse.ArgumentParser) -> None:
         help="weights: the project's own checkpoint or a published .pt file "
         "(default: the bundled demo weights, trained on simulated scenes only)",
     )
-    g.add_argument("--height", type=int, help="range image rows (published files: default 64)")
+    g.add_argument("--height", type=int, help="range image rows (published files: the profile's)")
     g.add_argument("--width", type=int, help="range image columns (published files: default 1024)")
     g.add_argument(
-        "--fov-up", type=float, metavar="DEG", help="upper vertical field of view (default 3)"
+        "--fov-up", type=float, metavar="DEG", help="upper vertical field of view (the profile's)"
     )
     g.add_argument(
-        "--fov-down", type=float, metavar="DEG", help="lower vertical field of view (default -25)"
+        "--fov-down",
+        type=float,
+        metavar="DEG",
+        help="lower vertical field of view (the profile's)",
     )
     g.add_argument(
         "--batch-size",
@@ -138,6 +171,7 @@ def spec_from_args(args: argparse.Namespace) -> PredictorSpec:
     return PredictorSpec(
         checkpoint=str(resolve_checkpoint(args.checkpoint)),
         model=args.model,
+        profile=requested_profile(args),
         height=args.height,
         width=args.width,
         fov_up=args.fov_up,

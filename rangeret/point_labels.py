@@ -37,17 +37,20 @@ def point_classes(
     unproj_range: torch.Tensor,
     knn: KnnSettings | None,
     num_classes: int,
+    votes_from: int = 1,
+    unlabeled: int = 0,
 ) -> torch.Tensor:
     """(N,) int64 classes on argmax's device from an (H, W) argmax and the scan's projection.
 
-    Without `knn` each point takes its pixel's class; with it, the kNN vote in range decides.
-    Points without a pixel (proj_x == -1) get class 0 either way.
+    Without `knn` each point takes its pixel's class; with it, the kNN vote in range decides
+    among classes votes_from..C-1 (the dataset profile's rule). Points without a pixel
+    (proj_x == -1) get the `unlabeled` class either way.
     """
     device = argmax.device
     proj_x, proj_y = proj_x.to(device), proj_y.to(device)
     if knn is None:
         valid = proj_x >= 0
-        classes = torch.zeros(proj_x.shape[0], dtype=torch.int64, device=device)
+        classes = torch.full((proj_x.shape[0],), unlabeled, dtype=torch.int64, device=device)
         classes[valid] = argmax[proj_y[valid], proj_x[valid]].to(torch.int64)
         return classes
     with single_thread_on_cpu(device):
@@ -62,6 +65,8 @@ def point_classes(
             sigma=knn.sigma,
             cutoff=knn.cutoff,
             num_classes=num_classes,
+            votes_from=votes_from,
+            unprojected=unlabeled,
         )
 
 

@@ -19,8 +19,22 @@ from pathlib import Path
 from tqdm import tqdm
 
 from rangeret.inference import Predictor
-from rangeret.io import LABEL_BYTES, ScanFormatError, scan_num_points, write_labels
-from rangeret.layout import DatasetLayoutError, ScanEntry, discover, prediction_path
+from rangeret.io import (
+    KITTI_RECORD,
+    LABEL_BYTES,
+    PointRecord,
+    ScanFormatError,
+    scan_num_points,
+    write_labels,
+)
+from rangeret.layout import (
+    KITTI_LAYOUT,
+    DatasetLayoutError,
+    ScanEntry,
+    SequenceLayout,
+    discover,
+    prediction_path,
+)
 from rangeret.loading import load_batch
 from rangeret.run_info import write_run_info
 from rangeret.timing import StageTimes
@@ -60,21 +74,24 @@ class PredictSummary:
         return "\n".join(lines)
 
 
-def is_complete(entry: ScanEntry, out: Path) -> bool:
+def is_complete(entry: ScanEntry, out: Path, record: PointRecord = KITTI_RECORD) -> bool:
     """Whether the scan's prediction exists with one label per point (a finished earlier run)."""
     pred = prediction_path(out, entry.sequence, entry.name)
     try:
-        return pred.stat().st_size == scan_num_points(entry.scan_path) * LABEL_BYTES
+        return pred.stat().st_size == scan_num_points(entry.scan_path, record) * LABEL_BYTES
     except (OSError, ScanFormatError):
         return False
 
 
 def list_scans(
-    dataset: Path | str, sequences: Sequence[str], missing_ok: bool = False
+    dataset: Path | str,
+    sequences: Sequence[str],
+    missing_ok: bool = False,
+    layout: SequenceLayout = KITTI_LAYOUT,
 ) -> list[ScanEntry]:
     """The scans of `sequences`, in order; a missing or empty sequence is an error naming it
     unless `missing_ok` (a partial local copy, logged)."""
-    found = discover(dataset, sequences, missing_ok=missing_ok)
+    found = discover(dataset, sequences, missing_ok=missing_ok, layout=layout)
     if found.problems:
         raise DatasetLayoutError("; ".join(found.problems))
     absent = sorted(set(sequences) - set(found.sequences))
@@ -106,9 +123,10 @@ def predict_tree(
     if batch_size < 1:
         raise ValueError(f"--batch-size must be at least 1, got {batch_size}")
     out = Path(out)
-    entries = list_scans(dataset, sequences)
+    profile = predictor.profile
+    entries = list_scans(dataset, sequences, layout=profile.layout)
     summary = PredictSummary(total=len(entries))
-    pending = [e for e in entries if not is_complete(e, out)]
+    pending = [e for e in entries if not is_complete(e, out, profile.points)]
     summary.skipped = len(entries) - len(pending)
     if summary.skipped:
         log.info(
@@ -129,12 +147,12 @@ def predict_tree(
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="rangeret-read") as pool:
         batches = _batches(pending, batch_size)
         config = predictor.projection_config
-        future = pool.submit(load_batch, next(batches, []), config, times)
+        future = pool.submit(load_batch, next(batches, []), config, times, profile.points)
         while True:
             loaded = future.result()
             if not loaded or (cancel is not None and cancel.is_set()):
                 break
-            future = pool.submit(load_batch, next(batches, []), config, times)
+            future = pool.submit(load_batch, next(batches, []), config, times, profile.points)
             for scan, (labels, error) in zip(
                 loaded, predictor.label_loaded(loaded, times), strict=True
             ):

@@ -9,15 +9,15 @@ from __future__ import annotations
 
 import argparse
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from pydantic import ValidationError
 
 from rangeret.errors import CommandError
-from rangeret.inference import PredictorSpec, projection_for
-from rangeret.labels import LabelConfig, semantickitti
+from rangeret.inference import PredictorSpec, checkpoint_profile
+from rangeret.labels import LabelConfig
 from rangeret.options import add_network_options, spec_from_args
-from rangeret.projection import ProjectionConfig
+from rangeret.profiles import DatasetProfile
 from service.errors import validation_sentence
 from service.settings import Settings
 
@@ -76,23 +76,20 @@ def settings_from_args(args: argparse.Namespace) -> Settings:
 class CheckpointFacts:
     """What the gateway needs to know about the weights without running them."""
 
-    label_config: LabelConfig
-    projection: ProjectionConfig
+    profile: DatasetProfile
     sha256: str
     model: str
 
+    @property
+    def label_config(self) -> LabelConfig:
+        """The profile's label configuration."""
+        return self.profile.labels
+
 
 def checkpoint_facts(spec: PredictorSpec) -> CheckpointFacts:
-    """Load the checkpoint once to check it and read its label map, projection and hash."""
-    from rangeret.models import load_checkpoint
-
-    info = load_checkpoint(
-        spec.checkpoint, model=spec.model, height=spec.height, width=spec.width
-    ).checkpoint_info
-    labels = LabelConfig.from_dict(info.label_config) if info.label_config else semantickitti()
-    return CheckpointFacts(
-        labels, projection_for(info, spec.fov_up, spec.fov_down), info.sha256, info.name
-    )
+    """Load the checkpoint once to check it and resolve the profile it runs with, and its hash."""
+    info, profile = checkpoint_profile(spec)
+    return CheckpointFacts(profile, info.sha256, info.name)
 
 
 def build_backend(settings: Settings, spec: PredictorSpec, facts: CheckpointFacts):
@@ -108,7 +105,10 @@ def build_backend(settings: Settings, spec: PredictorSpec, facts: CheckpointFact
         use_gpu = None if spec.device == "auto" else spec.device == "cuda"
         pool = ScanPool(spec, actors=settings.actors, use_gpu=use_gpu)
         executor = RayExecutor(
-            spec, facts.projection, settings.batch_size, settings.actors, facts.label_config
+            replace(spec, profile=facts.profile),
+            facts.profile,
+            settings.batch_size,
+            settings.actors,
         )
         return pool, executor, len(pool.actors)
     return LocalScanPool(spec), LocalExecutor(spec, settings.batch_size), 1

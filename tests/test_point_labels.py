@@ -63,21 +63,20 @@ def test_predictor_labels_go_through_this_step(monkeypatch, real_scan_path):
     from rangeret import inference
     from rangeret.io import read_scan
     from rangeret.models import build_model
-    from rangeret.projection import ProjectionConfig
+    from rangeret.profiles import load_profile
 
     calls = []
 
-    def recording(*args):
+    def recording(*args, **kwargs):
         calls.append(args[-2])
-        return point_classes(*args)
+        return point_classes(*args, **kwargs)
 
     monkeypatch.setattr(inference, "point_classes", recording)
     torch.manual_seed(0)
     network = build_model("rangeret-cir", 32, 256, layers=1)
     for knn in (None, DEFAULT_KNN):
-        predictor = inference.Predictor(
-            network, ProjectionConfig(height=32, width=256), device="cpu", knn=knn
-        )
+        profile = load_profile().with_overrides(height=32, width=256)
+        predictor = inference.Predictor(network, profile, device="cpu", knn=knn)
         result = predictor.predict(read_scan(real_scan_path))
         assert result.classes.shape == (123_389,)
     assert calls == [None, DEFAULT_KNN]

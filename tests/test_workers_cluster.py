@@ -7,9 +7,8 @@ import pytest
 from workers_helpers import build_tree, small_weights, tree_bytes
 
 from rangeret.cli import main as rangeret_main
-from rangeret.inference import PredictorSpec, projection_for
+from rangeret.inference import PredictorSpec, checkpoint_profile
 from rangeret.layout import discover
-from rangeret.models import load_checkpoint
 from workers.pipeline import PipelineOptions, run_pipeline
 
 pytestmark = pytest.mark.slow
@@ -33,10 +32,10 @@ def cluster():
 
 def _job(weights, data, out):
     spec = PredictorSpec(checkpoint=str(weights), height=32, width=256, device="auto")
-    info = load_checkpoint(weights, height=32, width=256).checkpoint_info
+    _, profile = checkpoint_profile(spec)
     entries = discover(data, ["08", "11"]).scans
     return run_pipeline(
-        spec, projection_for(info), entries, out, PipelineOptions(read_cpus=0.25, write_cpus=0.1)
+        spec, profile, entries, out, PipelineOptions(read_cpus=0.25, write_cpus=0.1)
     )
 
 
@@ -103,14 +102,14 @@ def test_more_gpu_actors_than_gpus_is_a_named_error_not_a_hang(cluster, tmp_path
     weights = small_weights(tmp_path)
     data = build_tree(tmp_path / "data", labelled=1, unlabelled=1)
     spec = PredictorSpec(checkpoint=str(weights), height=32, width=256, device="auto")
-    info = load_checkpoint(weights, height=32, width=256).checkpoint_info
+    _, profile = checkpoint_profile(spec)
     options = PipelineOptions(actors=3, read_cpus=0.25, write_cpus=0.1, actor_start_timeout=10)
     with pytest.raises(
         ClusterCapacityError, match=r"3 model actor.*did not start within 10 s.*1 GPU"
     ):
         run_pipeline(
             spec,
-            projection_for(info),
+            profile,
             discover(data, ["08", "11"]).scans,
             tmp_path / "out",
             options,

@@ -21,14 +21,13 @@ from rangeret.inference import (
     DEMO_CHECKPOINT,
     DEMO_WARNING,
     PredictorSpec,
-    projection_for,
+    checkpoint_profile,
     resolve_checkpoint,
 )
 from rangeret.io import read_labels, read_scan
-from rangeret.labels import semantickitti
 from rangeret.layout import discover, prediction_path
-from rangeret.models import load_checkpoint
 from rangeret.plots import plot_range_image, write_plots
+from rangeret.profiles import DatasetProfile
 from rangeret.projection import project_with
 from rangeret.sim import SensorConfig, simulate_dataset
 from rangeret.submission import TEST_SEQUENCES, validate_submission, write_submission
@@ -52,8 +51,8 @@ def run_demo(
     out.mkdir(parents=True, exist_ok=True)
     dataset, preds = out / "dataset", out / "predictions"
     weights = resolve_checkpoint(checkpoint)
-    info = load_checkpoint(weights).checkpoint_info
-    projection = projection_for(info)
+    spec = PredictorSpec(checkpoint=str(weights), device="auto")
+    info, profile = checkpoint_profile(spec)
 
     sequences = {"08": valid_scans, **{s: test_scans for s in TEST_SEQUENCES}}
     n = simulate_dataset(
@@ -70,10 +69,9 @@ def run_demo(
     if own_ray:
         ray.init(num_cpus=os.cpu_count() or 2, include_dashboard=False, log_to_driver=False)
     try:
-        spec = PredictorSpec(checkpoint=str(weights), device="auto")
         entries = discover(dataset, list(sequences)).scans
         result = run_pipeline(
-            spec, projection, entries, preds, PipelineOptions(read_cpus=0.25, write_cpus=0.1)
+            spec, profile, entries, preds, PipelineOptions(read_cpus=0.25, write_cpus=0.1)
         )
     finally:
         if own_ray:
@@ -86,7 +84,7 @@ def run_demo(
         report.notes.append(DEMO_WARNING)
     report.write_json(out / "report.json")
     plots = write_plots(report, out / "plots")
-    plots.append(_range_image_png(dataset, preds, projection, out / "plots" / "range-image.png"))
+    plots.append(_range_image_png(dataset, preds, profile, out / "plots" / "range-image.png"))
 
     archive = out / "submission.zip"
     write_submission(
@@ -103,7 +101,7 @@ def run_demo(
     print(report.table())
     print(
         f"\nDone in {time.perf_counter() - started:.0f} s with {info.name} at "
-        f"{projection.height}x{projection.width} on {', '.join(result.devices)}. Results in {out}/:"
+        f"{profile.projection.height}x{profile.projection.width} on {', '.join(result.devices)}. Results in {out}/:"
     )
     print(f"  dataset (simulated, SemanticKITTI layout): {dataset}")
     print(f"  predictions tree:                         {preds}")
@@ -127,11 +125,11 @@ def run_demo(
     return out
 
 
-def _range_image_png(dataset: Path, preds: Path, projection, path: Path) -> Path:
+def _range_image_png(dataset: Path, preds: Path, profile: DatasetProfile, path: Path) -> Path:
     """The first validation scan's range image, ground truth and prediction as one PNG."""
-    config = semantickitti()
-    entry = discover(dataset, ["08"], with_labels=True).scans[0]
-    proj = project_with(read_scan(entry.scan_path), projection)
+    config = profile.labels
+    entry = discover(dataset, ["08"], with_labels=True, layout=profile.layout).scans[0]
+    proj = project_with(read_scan(entry.scan_path, profile.points), profile.projection)
     gt = config.to_class(read_labels(entry.label_path)).astype(np.int64)
     pred = config.to_class(read_labels(prediction_path(preds, entry.sequence, entry.name))).astype(
         np.int64

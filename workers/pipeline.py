@@ -31,15 +31,15 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from rangeret.inference import PredictorSpec
 from rangeret.io import read_labels
-from rangeret.labels import LabelConfig, semantickitti
+from rangeret.labels import LabelConfig
 from rangeret.layout import ScanEntry, prediction_path
 from rangeret.metrics import RawLabelEvaluator
-from rangeret.projection import ProjectionConfig
+from rangeret.profiles import DatasetProfile
 from rangeret.timing import StageTimes
 from workers.stages import ROW_COLUMN, BatchRecord, Reader, Writer
 
@@ -127,24 +127,24 @@ def cluster_gpus() -> int:
 
 def run_pipeline(
     spec: PredictorSpec,
-    projection: ProjectionConfig,
+    profile: DatasetProfile,
     entries: Sequence[ScanEntry],
     out: Path | str,
     options: PipelineOptions = PipelineOptions(),
-    label_config: LabelConfig | None = None,
     progress: Callable[[int, int, int], None] | None = None,
     cancel: threading.Event | None = None,
 ) -> PipelineResult:
     """Predict `entries` into the tree at `out` on the connected Ray cluster.
 
-    `projection` must be the one `spec`'s predictor uses (`rangeret.inference.projection_for`).
+    `profile` must be the one `spec`'s predictor runs with
+    (`rangeret.inference.profile_for_checkpoint`): the readers take its point record and
+    projection, the writers its labels.
     `progress(done, failed, total)` is called after every batch; setting `cancel` stops the run
     after the batch in flight (files already written stay complete).
     """
     import ray
     import ray.data
 
-    label_config = label_config or semantickitti()
     out = str(out)
     gpus = cluster_gpus()
     use_gpu = gpus > 0 if options.use_gpu is None else options.use_gpu
@@ -154,7 +154,7 @@ def run_pipeline(
         actors, actor_cpus = options.actors or gpus, options.actor_cpus or GPU_ACTOR_CPUS
     else:
         actors, actor_cpus = _cpu_layout(options)
-    result = PipelineResult(actors=actors)
+    result = PipelineResult(actors=actors, evaluator=RawLabelEvaluator(profile.labels))
     if not entries:
         return result
 
@@ -176,12 +176,14 @@ def run_pipeline(
     actor_resources = (
         {"num_gpus": 1, "num_cpus": actor_cpus} if use_gpu else {"num_cpus": actor_cpus}
     )
-    worker_spec = spec if use_gpu or spec.device != "auto" else _cpu_spec(spec)
+    worker_spec = replace(spec, profile=profile)
+    if not use_gpu and spec.device == "auto":
+        worker_spec = replace(worker_spec, device="cpu")
     ds = ray.data.from_items(batches, override_num_blocks=len(batches))
     readers = ray.data.ActorPoolStrategy(min_size=1, max_size=max(2, actors))
     ds = ds.map(
         Reader,
-        fn_constructor_kwargs={"projection": projection},
+        fn_constructor_kwargs={"projection": profile.projection, "record": profile.points},
         compute=readers,
         num_cpus=options.read_cpus,
     )
@@ -195,7 +197,7 @@ def run_pipeline(
     writers = ray.data.ActorPoolStrategy(min_size=1, max_size=max(2, actors))
     ds = ds.map(
         Writer,
-        fn_constructor_kwargs={"out": out, "label_config": label_config},
+        fn_constructor_kwargs={"out": out, "label_config": profile.labels},
         compute=writers,
         num_cpus=options.write_cpus,
     )
@@ -260,13 +262,6 @@ def _cpu_layout(options: PipelineOptions) -> tuple[int, float]:
     actors = options.actors or max(1, round(spare))
     cpus = options.actor_cpus or max(0.25, int(spare / actors * 4) / 4)
     return actors, cpus
-
-
-def _cpu_spec(spec: PredictorSpec) -> PredictorSpec:
-    """The spec pinned to the CPU, for CPU actors on clusters whose nodes may still see GPUs."""
-    from dataclasses import replace
-
-    return replace(spec, device="cpu")
 
 
 def count_labels(

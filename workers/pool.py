@@ -38,8 +38,7 @@ class ScanWorker:
         knn = self.spec_predictor.knn
         self.without_knn = Predictor(
             self.spec_predictor.network,
-            self.spec_predictor.projection_config,
-            self.spec_predictor.label_config,
+            self.spec_predictor.profile,
             self.spec_predictor.device,
             knn=None,
             tta=self.spec_predictor.tta,

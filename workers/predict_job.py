@@ -24,15 +24,14 @@ from rangeret.errors import CommandError, run_command
 from rangeret.inference import (
     DEMO_WARNING,
     PredictorSpec,
+    checkpoint_profile,
     describe_network,
     is_demo_checkpoint,
-    projection_for,
 )
-from rangeret.labels import LabelConfig, load_label_config
 from rangeret.models.checkpoint_info import CheckpointInfo
 from rangeret.options import add_network_options, add_selection, selected_sequences, spec_from_args
 from rangeret.predict import PredictSummary, is_complete, list_scans
-from rangeret.projection import ProjectionConfig
+from rangeret.profiles import DEFAULT_PROFILE, DatasetProfile
 from rangeret.run_info import write_run_info
 from workers.pipeline import PipelineOptions, count_labels, run_pipeline
 
@@ -103,22 +102,19 @@ def connect(address: str | None) -> None:
     )
 
 
-def run(args: argparse.Namespace, label_config: LabelConfig | None = None) -> int:
+def run(args: argparse.Namespace) -> int:
     """Run the job for parsed arguments; returns the exit code."""
-    from rangeret.models import load_checkpoint
-
-    label_config = label_config or load_label_config(None)
     spec = spec_from_args(args)
     if args.actors is not None and args.actors < 1:
         raise CommandError(f"--actors must be at least 1, got {args.actors}")
-    info = load_checkpoint(
-        spec.checkpoint, model=spec.model, height=spec.height, width=spec.width
-    ).checkpoint_info
-    projection = projection_for(info, spec.fov_up, spec.fov_down)
-    sequences = selected_sequences(args, label_config)
-    entries = list_scans(args.dataset, sequences, missing_ok=args.allow_partial)
-    done = [e for e in entries if is_complete(e, args.out)]
-    pending = [e for e in entries if not is_complete(e, args.out)]
+    info, profile = checkpoint_profile(spec)
+    label_config = profile.labels
+    sequences = selected_sequences(args, profile)
+    entries = list_scans(
+        args.dataset, sequences, missing_ok=args.allow_partial, layout=profile.layout
+    )
+    done = [e for e in entries if is_complete(e, args.out, profile.points)]
+    pending = [e for e in entries if not is_complete(e, args.out, profile.points)]
     log.info(
         "%d scans in %s: %d to predict, %d already done",
         len(entries),
@@ -127,7 +123,7 @@ def run(args: argparse.Namespace, label_config: LabelConfig | None = None) -> in
         len(done),
     )
     demo = is_demo_checkpoint(info.sha256)
-    _write_run_info(args, spec, info, projection, sequences)
+    _write_run_info(args, spec, info, profile, sequences)
 
     connect(None)
     options = PipelineOptions(
@@ -137,7 +133,7 @@ def run(args: argparse.Namespace, label_config: LabelConfig | None = None) -> in
         actor_cpus=args.actor_cpus,
         use_gpu=None if args.device == "auto" else args.device == "cuda",
     )
-    result = run_pipeline(spec, projection, pending, args.out, options, label_config)
+    result = run_pipeline(spec, profile, pending, args.out, options)
     log.info("model actors: %s", ", ".join(result.devices) or "none needed")
 
     summary = PredictSummary(
@@ -155,6 +151,7 @@ def run(args: argparse.Namespace, label_config: LabelConfig | None = None) -> in
     evaluator.merge(count_labels(done, args.out, label_config))
     if evaluator.num_scans and not result.failed:
         report = evaluator.report(sequences, info.sha256)
+        report.profile = profile.name
         if demo:
             report.notes.append(DEMO_WARNING)
         print(report.table())
@@ -172,6 +169,11 @@ def run(args: argparse.Namespace, label_config: LabelConfig | None = None) -> in
             f"{len(result.failed)} of {len(entries)} scans could not be predicted "
             f"(every other scan was written to {args.out})",
             [f"{k}: {v}" for k, v in result.failed.items()],
+        )
+    if args.submission and profile.name != DEFAULT_PROFILE:
+        raise CommandError(
+            f"submission archives are the SemanticKITTI benchmark's format; the {profile.name} "
+            "profile has no such archive (every prediction was written)"
         )
     if args.submission:
         from rangeret.submission import write_submission
@@ -204,14 +206,15 @@ def _write_run_info(
     args: argparse.Namespace,
     spec: PredictorSpec,
     info: CheckpointInfo,
-    projection: ProjectionConfig,
+    profile: DatasetProfile,
     sequences: Sequence[str],
 ) -> None:
     network = describe_network(
         model=info.name,
         checkpoint=spec.checkpoint,
         sha256=info.sha256,
-        projection=projection,
+        profile=profile.name,
+        projection=profile.projection,
         knn=spec.knn,
         tta=spec.tta,
         device=spec.device,

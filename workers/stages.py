@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rangeret.io import ScanFormatError, read_labels, write_labels
+from rangeret.io import KITTI_RECORD, PointRecord, ScanFormatError, read_labels, write_labels
 from rangeret.labels import LabelConfig
 from rangeret.layout import ScanEntry, prediction_path
 from rangeret.loading import LoadedScan, load_batch
@@ -57,9 +57,11 @@ class BatchRecord:
         return record
 
 
-def read_and_project(record: BatchRecord, projection: ProjectionConfig) -> BatchRecord:
+def read_and_project(
+    record: BatchRecord, projection: ProjectionConfig, points: PointRecord = KITTI_RECORD
+) -> BatchRecord:
     """Stage 1: read and project every scan of a batch; unreadable scans become named failures."""
-    record.loaded = load_batch(record.entries, projection, record.times)
+    record.loaded = load_batch(record.entries, projection, record.times, points)
     return record
 
 
@@ -88,11 +90,12 @@ def write_results(record: BatchRecord, out: str, label_config: LabelConfig) -> B
 class Reader:
     """`read_and_project` as a long-lived Ray Data actor: no worker process start per batch."""
 
-    def __init__(self, projection: ProjectionConfig) -> None:
+    def __init__(self, projection: ProjectionConfig, record: PointRecord) -> None:
         self.projection = projection
+        self.record = record
 
     def __call__(self, row: dict) -> dict:
-        return read_and_project(BatchRecord.decode(row), self.projection).encode()
+        return read_and_project(BatchRecord.decode(row), self.projection, self.record).encode()
 
 
 class Writer:

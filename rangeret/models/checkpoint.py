@@ -9,7 +9,8 @@ Two kinds of file load:
   it comes from the caller (64 x 1024 by default).
 - the project's own, written by `save_checkpoint`: a dict of plain python values and tensors
   (`format`, `format_version`, `model`, `config`, `state_dict`, `label_config`, `projection`,
-  `metadata`) that `load_checkpoint(path)` rebuilds with nothing else.
+  `metadata`, and since profiles exist `profile`) that `load_checkpoint(path)` rebuilds with
+  nothing else.
 
 Every file is read with `torch.load(weights_only=True)` and loaded strictly: missing, unexpected
 or mis-shaped keys raise `CheckpointError` naming them. The returned module is in eval mode and
@@ -37,7 +38,7 @@ from rangeret.models.rangeret import RangeRet
 
 FORMAT = "rangeret-checkpoint"
 FORMAT_VERSION = 1
-DEFAULT_RESOLUTION = (64, 1024)
+
 _LISTED = 8
 
 
@@ -52,11 +53,12 @@ def save_checkpoint(
     label_config: Any = None,
     projection: Any = None,
     metadata: Any = None,
+    profile: Any = None,
 ) -> str:
     """Write `model` with its configuration and the given plain-data records; return the SHA-256.
 
-    label_config, projection and metadata are dicts (or dataclasses, or objects with `to_dict()`)
-    of plain values; the file is written atomically and loads with `weights_only=True`.
+    label_config, projection, metadata and profile are dicts (or dataclasses, or objects with
+    `to_dict()`) of plain values; the file is written atomically and loads with `weights_only=True`.
     """
     if not isinstance(model, RangeRet):
         raise TypeError(f"save_checkpoint takes a RangeRet network, got {type(model).__name__}")
@@ -69,6 +71,7 @@ def save_checkpoint(
         "label_config": _plain_record(label_config, "label_config"),
         "projection": _plain_record(projection, "projection"),
         "metadata": _plain_record(metadata, "metadata"),
+        "profile": _plain_record(profile, "profile"),
     }
     buffer = io.BytesIO()
     torch.save(payload, buffer)
@@ -82,12 +85,14 @@ def load_checkpoint(
     model: str | None = None,
     height: int | None = None,
     width: int | None = None,
+    *,
+    default_resolution: tuple[int, int] = (64, 1024),
     **overrides: Any,
 ) -> RangeRet:
     """The network stored in `path`, in eval mode, with `checkpoint_info` attached.
 
     For published files `model` overrides the recognised name, height/width give the resolution
-    (default 64 x 1024) and overrides the switches. For the project's own files everything comes
+    (default `default_resolution`, a dataset profile's) and overrides the switches. For the project's own files everything comes
     from the file; arguments that contradict it raise CheckpointError.
     """
     path = Path(path)
@@ -103,12 +108,13 @@ def load_checkpoint(
 
     if isinstance(content, Mapping) and content.get("format") == FORMAT:
         config, state = _own_config(path, content, model, height, width, overrides)
-        records = {k: content.get(k) for k in ("label_config", "projection", "metadata")}
+        records = {k: content.get(k) for k in ("label_config", "projection", "metadata", "profile")}
         published = False
     else:
         state = _published_state(path, content)
-        config = _published_config(path, state, model, height, width, overrides)
-        records = {"label_config": None, "projection": None, "metadata": None}
+        resolution = (height or default_resolution[0], width or default_resolution[1])
+        config = _published_config(path, state, model, resolution, overrides)
+        records = {"label_config": None, "projection": None, "metadata": None, "profile": None}
         published = True
 
     network = RangeRet(config)
@@ -232,8 +238,7 @@ def _published_config(
     path: Path,
     state: Mapping[str, torch.Tensor],
     model: str | None,
-    height: int | None,
-    width: int | None,
+    resolution: tuple[int, int],
     overrides: Mapping[str, Any],
 ) -> ModelConfig:
     """The configuration a published state_dict is loaded into."""
@@ -252,7 +257,6 @@ def _published_config(
     if name != found["model"]:
         inferred = {k: v for k, v in inferred.items() if k == "layers"}
     classes = found["num_classes"] or 20
-    resolution = (height or DEFAULT_RESOLUTION[0], width or DEFAULT_RESOLUTION[1])
     try:
         return resolve_config(
             name, resolution[0], resolution[1], classes, **{**inferred, **overrides}

@@ -11,7 +11,9 @@ class CheckpointInfo:
     """Where a loaded network's weights came from and what was stored with them.
 
     `config` is the network's full configuration (`ModelConfig.to_dict()`); `published` is True for
-    files without the project's metadata (label_config, projection and metadata are then None).
+    files without the project's metadata (label_config, projection, metadata and profile are then
+    None). `profile` is the dataset profile the network was trained for (`DatasetProfile.to_dict()`),
+    None in files written before profiles existed, which were all SemanticKITTI's.
     """
 
     path: str
@@ -22,3 +24,4 @@ class CheckpointInfo:
     label_config: dict[str, Any] | None
     projection: dict[str, Any] | None
     metadata: dict[str, Any] | None
+    profile: dict[str, Any] | None = None

@@ -14,10 +14,9 @@ from typing import Protocol
 
 from rangeret.atomic import atomic_path
 from rangeret.inference import Predictor, PredictorSpec
-from rangeret.labels import LabelConfig
 from rangeret.layout import ScanEntry, prediction_path
 from rangeret.predict import is_complete, predict_tree
-from rangeret.projection import ProjectionConfig
+from rangeret.profiles import DatasetProfile
 from rangeret.submission import TEST_SEQUENCES, required_directories
 from rangeret.zipfiles import ReproducibleZip
 
@@ -85,16 +84,14 @@ class RayExecutor:
     def __init__(
         self,
         spec: PredictorSpec,
-        projection: ProjectionConfig,
+        profile: DatasetProfile,
         batch_size: int = 1,
         actors: int | None = None,
-        label_config: LabelConfig | None = None,
     ) -> None:
         self.spec = spec
-        self.projection = projection
+        self.profile = profile
         self.batch_size = batch_size
         self.actors = actors
-        self.label_config = label_config
 
     def predict(
         self,
@@ -108,17 +105,10 @@ class RayExecutor:
         """Send the scans without a finished prediction through the pipeline."""
         from workers.pipeline import PipelineOptions, run_pipeline
 
-        pending = [e for e in entries if not is_complete(e, out)]
+        pending = [e for e in entries if not is_complete(e, out, self.profile.points)]
         options = PipelineOptions(batch_size=self.batch_size, actors=self.actors)
         result = run_pipeline(
-            self.spec,
-            self.projection,
-            pending,
-            out,
-            options,
-            self.label_config,
-            progress=progress,
-            cancel=cancel,
+            self.spec, self.profile, pending, out, options, progress=progress, cancel=cancel
         )
         return result.failed
 
