@@ -66,9 +66,12 @@ def reference(
     sigma: float,
     cutoff: float,
     num_classes: int,
+    votes_from: int = 1,
+    unprojected: int = 0,
 ) -> np.ndarray:
-    """The refinement rule point by point; ties at the k-th place in window order."""
-    out = np.zeros(len(scan["unproj_range"]), dtype=np.int64)
+    """The refinement rule point by point; ties at the k-th place in window order; classes
+    votes_from..C-1 vote (the zero padding is class 0)."""
+    out = np.full(len(scan["unproj_range"]), unprojected, dtype=np.int64)
     centre = search * search // 2
     for point in np.flatnonzero(scan["proj_x"] >= 0):
         dist, classes = window_distances(scan, point, search, sigma)
@@ -77,8 +80,9 @@ def reference(
         nearest = np.argsort(rank, kind="stable")[:k]
         if cutoff > 0:
             nearest = nearest[dist[nearest] <= cutoff]
-        votes = np.bincount(classes[nearest], minlength=num_classes)[1:]
-        out[point] = votes.argmax() + 1  # first maximum: the lowest class; no vote: class 1
+        votes = np.bincount(classes[nearest], minlength=num_classes)[votes_from:]
+        # first maximum: the lowest class; no vote at all: class `votes_from`
+        out[point] = votes.argmax() + votes_from
     return out
 
 
@@ -256,6 +260,46 @@ def test_matches_the_rule_on_random_images(k, search, sigma, cutoff, num_classes
         expected = reference(data, k, search, sigma, cutoff, num_classes)
         result = refine(*inputs(data), k, search, sigma, cutoff, num_classes, chunk_size=37)
         assert np.array_equal(result, expected), f"seed {seed}"
+
+
+@pytest.mark.parametrize(
+    ("k", "search", "cutoff", "num_classes", "unprojected"),
+    [
+        (1, 1, 1.0, 5, 4),
+        (3, 3, 1.0, 5, 4),
+        (7, 7, 1.0, 15, 14),
+        (9, 3, 0.0, 15, 14),
+        (7, 7, 1.0, 3, 2),
+    ],
+)
+def test_every_class_may_win_where_class_0_is_real(k, search, cutoff, num_classes, unprojected):
+    """PandaSet's rule: class 0 (car) votes, a point without a vote gets class 0, and points
+    without a pixel get the unlabeled class (the last one)."""
+    for seed in range(3):
+        data = random_scan(seed, num_classes=num_classes)
+        expected = reference(data, k, search, 1.0, cutoff, num_classes, 0, unprojected)
+        result = refine(
+            *inputs(data),
+            k,
+            search,
+            1.0,
+            cutoff,
+            num_classes,
+            votes_from=0,
+            unprojected=unprojected,
+            chunk_size=37,
+        )
+        assert np.array_equal(result, expected), f"seed {seed}"
+        assert (result[data["proj_x"] < 0] == unprojected).all()
+
+
+def test_class_0_wins_only_where_it_may():
+    # Neighbours of class 0 outvote the centre's class 2 under PandaSet's rule, not SemanticKITTI's.
+    image = np.full((3, 3), 5.0, dtype=np.float32)
+    classes = np.array([[0, 0, 0], [0, 2, 0], [3, 3, 3]])
+    args = (image, np.array([5.0], dtype=np.float32), classes, np.array([1]), np.array([1]))
+    assert refine(*args, k=9, search=3, num_classes=4).tolist() == [3]
+    assert refine(*args, k=9, search=3, num_classes=4, votes_from=0).tolist() == [0]
 
 
 def test_bad_arguments_are_named():

@@ -9,6 +9,7 @@ import time
 
 import numpy as np
 import pytest
+import torch
 from workers_helpers import build_tree, kill_actor_when, small_weights, tree_bytes
 
 from rangeret.cli import main as rangeret_main
@@ -266,3 +267,31 @@ def test_cpu_layout_defaults_to_one_single_threaded_actor_per_free_cpu(ray_local
     assert _cpu_layout(PipelineOptions(actors=1)) == (1, 1.5)
     assert _cpu_layout(PipelineOptions(actors=3, actor_cpus=0.5)) == (3, 0.5)
     assert _cpu_layout(PipelineOptions(read_cpus=0.5, write_cpus=0.5)) == (1, 1.0)
+
+
+def test_pandaset_scans_go_through_the_ray_job(ray_local, tmp_path, capsys):
+    """5-float records, rows from laser ids, ROOT/NNN, class 0 car: the job equals rangeret
+    predict, and its report ignores class 14."""
+    from rangeret.models import build_model
+    from rangeret.profiles import load_profile
+    from rangeret.sim import SensorConfig, simulate_dataset
+
+    profile = load_profile("pandaset")
+    sensor = SensorConfig.for_profile(profile, azimuth_steps=256)
+    data = tmp_path / "data"
+    simulate_dataset(data, {"3": 2, "40": 1}, labelled=["3"], sensor=sensor, profile=profile)
+    torch.manual_seed(0)
+    network = build_model("rangeret-cir", 64, 128, num_classes=15, layers=1)
+    torch.save(network.state_dict(), tmp_path / "w.pt")
+    net = ["--checkpoint", str(tmp_path / "w.pt"), "--width", "128", "--profile", "pandaset"]
+    args = ["-q", "--dataset", str(data), "--sequences", "3", "40", *net, "--device", "cpu"]
+    assert rangeret_main(["predict", *args, "--out", str(tmp_path / "single")]) == 0
+    report = tmp_path / "report.json"
+    assert job_main([*args, "--out", str(tmp_path / "ray"), "--report", str(report)]) == 0
+    single, distributed = tree_bytes(tmp_path / "single"), tree_bytes(tmp_path / "ray")
+    assert len(single) == 3 and single == distributed
+    assert sorted(p.name for p in (tmp_path / "ray" / "sequences").iterdir()) == ["003", "040"]
+    result = json.loads(report.read_text())
+    assert result["profile"] == "pandaset" and "unlabeled" not in result["iou"]
+    assert len(result["iou"]) == 14
+    capsys.readouterr()
