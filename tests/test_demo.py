@@ -34,3 +34,43 @@ def test_demo_end_to_end(tmp_path, capsys):
         assert "not a real submission" in zf.read("description.txt").decode()
     assert not (out / "dataset" / "sequences" / "11" / "labels").exists()
     assert "rangeret-kitti-657.pt" in printed
+
+
+def test_demo_on_another_profile_needs_its_network(tmp_path, capsys):
+    from rangeret.cli import main
+
+    assert main(["demo", "-q", "--out", str(tmp_path / "d"), "--profile", "pandaset"]) == 1
+    err = capsys.readouterr().err
+    assert "demo weights are SemanticKITTI's" in err and "--checkpoint" in err
+    assert not (tmp_path / "d").exists()
+
+
+def test_demo_on_pandaset_with_a_pandaset_network(tmp_path, capsys):
+    pytest.importorskip("ray")
+    import torch
+
+    from rangeret.models import build_model
+    from rangeret.profiles import load_profile
+    from workers.demo import run_demo
+
+    torch.manual_seed(0)
+    torch.save(
+        build_model("rangeret-cir", 64, 1024, num_classes=15, layers=1).state_dict(),
+        tmp_path / "w.pt",
+    )
+    profile = load_profile("pandaset")
+    out = run_demo(
+        tmp_path / "demo",
+        valid_scans=1,
+        test_scans=1,
+        checkpoint=tmp_path / "w.pt",
+        progress=False,
+        profile=profile,
+    )
+    report = json.loads((out / "report.json").read_text())
+    assert report["profile"] == "pandaset" and report["sequences"] == ["005"]
+    assert "unlabeled" not in report["iou"] and len(report["iou"]) == 14
+    assert (out / "dataset" / "005" / "velodyne").is_dir() and not (out / "submission.zip").exists()
+    assert len(list((out / "predictions").rglob("*.label"))) == 2
+    assert (out / "plots" / "range-image.png").read_bytes()[:4] == b"\x89PNG"
+    capsys.readouterr()

@@ -10,6 +10,7 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from rangeret.options import add_profile_option, requested_profile
 from rangeret.plugins import Subcommand, TrainBackend
 from workers.train_options import add_ray_options
 
@@ -27,12 +28,18 @@ def _demo_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="other weights (default: the bundled demo weights)",
     )
+    add_profile_option(parser)
 
 
 def _run_demo(args: argparse.Namespace) -> int:
     from workers.demo import run_demo
 
-    run_demo(args.out, checkpoint=args.checkpoint, progress=not args.quiet)
+    run_demo(
+        args.out,
+        checkpoint=args.checkpoint,
+        progress=not args.quiet,
+        profile=requested_profile(args),
+    )
     return 0
 
 

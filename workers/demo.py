@@ -27,7 +27,7 @@ from rangeret.inference import (
 from rangeret.io import read_labels, read_scan
 from rangeret.layout import discover, prediction_path
 from rangeret.plots import plot_range_image, write_plots
-from rangeret.profiles import DatasetProfile
+from rangeret.profiles import DEFAULT_PROFILE, DatasetProfile
 from rangeret.projection import project_with
 from rangeret.sim import SensorConfig, simulate_dataset
 from rangeret.submission import TEST_SEQUENCES, validate_submission, write_submission
@@ -42,26 +42,47 @@ def run_demo(
     test_scans: int = 1,
     checkpoint: Path | str | None = None,
     progress: bool = True,
+    profile: DatasetProfile | None = None,
 ) -> Path:
-    """Run the demo into `out` (default: a new timestamped folder) and return the folder."""
+    """Run the demo into `out` (default: a new timestamped folder) and return the folder.
+
+    With a `profile` other than SemanticKITTI's the scans are that dataset's (layout, point
+    record, labels), the checkpoint must be a network for it (the demo weights are SemanticKITTI's)
+    and there is no submission archive (the benchmark's format is SemanticKITTI's).
+    """
     import ray
 
+    if profile is not None and profile.name != DEFAULT_PROFILE and checkpoint is None:
+        raise ValueError(
+            f"the bundled demo weights are SemanticKITTI's: rangeret demo --profile {profile.name} "
+            "needs --checkpoint with a network for that profile"
+        )
     started = time.perf_counter()
     out = Path(out) if out else Path(f"rangeret-demo-{time.strftime('%Y%m%d-%H%M%S')}")
     out.mkdir(parents=True, exist_ok=True)
     dataset, preds = out / "dataset", out / "predictions"
     weights = resolve_checkpoint(checkpoint)
-    spec = PredictorSpec(checkpoint=str(weights), device="auto")
+    spec = PredictorSpec(checkpoint=str(weights), profile=profile, device="auto")
     info, profile = checkpoint_profile(spec)
+    benchmark = profile.name == DEFAULT_PROFILE
 
-    sequences = {"08": valid_scans, **{s: test_scans for s in TEST_SEQUENCES}}
+    if benchmark:
+        valid = "08"
+        sequences = {valid: valid_scans, **{s: test_scans for s in TEST_SEQUENCES}}
+        sensor = SensorConfig(beams=64, azimuth_steps=2048)
+    else:
+        valid = profile.splits["valid"][0]
+        tests = [s for s in profile.splits.get("test", ()) if s != valid][:1]
+        sequences = {valid: valid_scans, **{s: test_scans for s in tests}}
+        sensor = SensorConfig.for_profile(profile)
     n = simulate_dataset(
         dataset,
         sequences,
-        labelled=["08"],
-        sensor=SensorConfig(beams=64, azimuth_steps=2048),
+        labelled=[valid],
+        sensor=sensor,
         seed=2026,
         progress=progress,
+        profile=None if benchmark else profile,
     )
     log.info("simulated %d scans into %s", n, dataset)
 
@@ -69,7 +90,7 @@ def run_demo(
     if own_ray:
         ray.init(num_cpus=os.cpu_count() or 2, include_dashboard=False, log_to_driver=False)
     try:
-        entries = discover(dataset, list(sequences)).scans
+        entries = discover(dataset, list(sequences), layout=profile.layout).scans
         result = run_pipeline(
             spec, profile, entries, preds, PipelineOptions(read_cpus=0.25, write_cpus=0.1)
         )
@@ -79,37 +100,44 @@ def run_demo(
     if result.failed:
         raise RuntimeError(f"the demo could not predict {sorted(result.failed)}")
 
-    report = evaluate_predictions(dataset, preds, ["08"], checkpoint_sha256=info.sha256)
+    report = evaluate_predictions(
+        dataset, preds, [valid], checkpoint_sha256=info.sha256, profile=profile
+    )
     if weights.resolve() == DEMO_CHECKPOINT.resolve():
         report.notes.append(DEMO_WARNING)
     report.write_json(out / "report.json")
     plots = write_plots(report, out / "plots")
-    plots.append(_range_image_png(dataset, preds, profile, out / "plots" / "range-image.png"))
+    plots.append(
+        _range_image_png(dataset, preds, profile, valid, out / "plots" / "range-image.png")
+    )
 
     archive = out / "submission.zip"
-    write_submission(
-        preds,
-        dataset,
-        archive,
-        allow_partial=True,
-        progress=progress,
-        description=f"rangeret demo: simulated scans, demo weights (sha256 {info.sha256}); "
-        "not a real submission",
-    )
-    validate_submission(archive, dataset, allow_partial=True).raise_for_problems()
+    if benchmark:
+        write_submission(
+            preds,
+            dataset,
+            archive,
+            allow_partial=True,
+            progress=progress,
+            description=f"rangeret demo: simulated scans, demo weights (sha256 {info.sha256}); "
+            "not a real submission",
+        )
+        validate_submission(archive, dataset, allow_partial=True).raise_for_problems()
 
     print(report.table())
     print(
         f"\nDone in {time.perf_counter() - started:.0f} s with {info.name} at "
         f"{profile.projection.height}x{profile.projection.width} on {', '.join(result.devices)}. Results in {out}/:"
     )
-    print(f"  dataset (simulated, SemanticKITTI layout): {dataset}")
+    print(f"  dataset (simulated, {profile.name} layout):".ljust(43) + f"{dataset}")
     print(f"  predictions tree:                         {preds}")
     print(f"  evaluation report:                        {out / 'report.json'}")
     for p in plots:
         print(f"  plot:                                     {p}")
-    print(f"  submission archive (partial, for tests):  {archive}")
-    print(f"\nNote: {DEMO_WARNING}.")
+    if benchmark:
+        print(f"  submission archive (partial, for tests):  {archive}")
+    if weights.resolve() == DEMO_CHECKPOINT.resolve():
+        print(f"\nNote: {DEMO_WARNING}.")
     print("\nOn real SemanticKITTI data with a published checkpoint:")
     print(
         "  rangeret predict --dataset ROOT --split valid --out PRED --checkpoint rangeret-kitti-657.pt"
@@ -125,10 +153,12 @@ def run_demo(
     return out
 
 
-def _range_image_png(dataset: Path, preds: Path, profile: DatasetProfile, path: Path) -> Path:
+def _range_image_png(
+    dataset: Path, preds: Path, profile: DatasetProfile, sequence: str, path: Path
+) -> Path:
     """The first validation scan's range image, ground truth and prediction as one PNG."""
     config = profile.labels
-    entry = discover(dataset, ["08"], with_labels=True, layout=profile.layout).scans[0]
+    entry = discover(dataset, [sequence], with_labels=True, layout=profile.layout).scans[0]
     proj = project_with(read_scan(entry.scan_path, profile.points), profile.projection)
     gt = config.to_class(read_labels(entry.label_path)).astype(np.int64)
     pred = config.to_class(read_labels(prediction_path(preds, entry.sequence, entry.name))).astype(
