@@ -1,6 +1,6 @@
 """Training: augmentations and mixes, the losses against hand-computed values and their
-definitions, schedules, exact resume, `run_train` end to end, the Ray Train path, and over-fitting
-the real scan."""
+definitions, schedules, exact resume, `run_train` end to end, training on other dataset profiles
+(PandaSet, SemanticPOSS), the Ray Train path, and over-fitting the real scan."""
 
 from __future__ import annotations
 
@@ -17,12 +17,21 @@ import pytest
 import torch
 from conftest import data_path
 
+from rangeret.inference import Predictor
+from rangeret.io import read_scan
 from rangeret.labels import LabelConfig, semantickitti
 from rangeret.layout import discover, labels_dir, velodyne_dir
-from rangeret.models import build_model, load_checkpoint
+from rangeret.models import CheckpointError, build_model, load_checkpoint
+from rangeret.profiles import load_profile
 from rangeret.projection import CHANNEL_MEANS, CHANNEL_STDS, ProjectionConfig
 from rangeret.sim import SensorConfig, simulate_dataset
-from rangeret.training import TrainConfig, Trainer, add_train_arguments, run_train
+from rangeret.training import (
+    TrainConfig,
+    Trainer,
+    add_train_arguments,
+    config_from_args,
+    run_train,
+)
 from rangeret.training.augment import (
     JITTER_RATE,
     augment_points,
@@ -52,7 +61,7 @@ from rangeret.training.range_mixes import (
     rare_classes,
 )
 from rangeret.training.schedule import build_optimizer, build_scheduler
-from rangeret.training.trainer import STATE, unused_parameters
+from rangeret.training.trainer import STATE, find_scans, unused_parameters
 
 SMALL = {"height": 16, "width": 256}
 
@@ -615,6 +624,138 @@ def test_missing_labels_are_reported(tmp_path):
     assert (velodyne_dir(root, "00") / "000001.bin").exists()
     with pytest.raises(ValueError, match=r"000001\.label is missing"):
         Trainer(small_config(root, tmp_path / "out", val_sequences=()))
+
+
+# Dataset profiles ------------------------------------------------------------------------------
+
+#: Each profile's tiny tree: (training sequences, validation sequences) as given on the command
+#: line (ids the profile's layout pads), and the scans written per sequence on disk.
+PROFILE_RUNS = {
+    "pandaset": (["1"], ["5"], {"001": 2, "005": 1}),
+    "semantic-poss": (["0"], ["2"], {"00": 2, "02": 1}),
+}
+#: The resolution of the profile runs (PandaSet: 16 lasers, ids 0..15).
+TINY = {"height": 16, "width": 128}
+
+
+def train_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser()
+    add_train_arguments(parser)
+    return parser
+
+
+@pytest.fixture(scope="module")
+def profile_roots(tmp_path_factory) -> dict[str, Path]:
+    """Each profile's tiny simulated tree, in its layout, point record and raw ids (16 x 128)."""
+    roots = {}
+    for name, (_, _, counts) in PROFILE_RUNS.items():
+        profile = load_profile(name)
+        sensor = SensorConfig.for_profile(profile.with_overrides(**TINY), azimuth_steps=128)
+        root = tmp_path_factory.mktemp(name)
+        simulate_dataset(
+            root, counts, labelled=list(counts), sensor=sensor, seed=4, profile=profile
+        )
+        roots[name] = root
+    return roots
+
+
+def test_train_options_take_a_profile_and_leave_the_rest_to_it(tmp_path, monkeypatch):
+    parser = train_parser()
+    required = ["--dataset", "d", "--out", "o", "--model", "rangeret-thesis"]
+    plain = config_from_args(parser.parse_args(required))
+    assert plain.profile == "semantickitti"
+    assert (plain.height, plain.width, plain.fov_up, plain.fov_down) == (None,) * 4
+    assert plain.dataset_profile() == load_profile("semantickitti")
+    file = tmp_path / "campus.yaml"
+    file.write_text(load_profile("pandaset").to_yaml())
+    monkeypatch.chdir(tmp_path)
+    argv = [*required, "--profile", "campus.yaml"]
+    config = config_from_args(parser.parse_args([*argv, "--height", "16", "--fov-up", "10"]))
+    assert config.profile == str(file) and Path(config.profile).is_absolute()
+    assert TrainConfig.from_dict(config.to_dict()) == config
+    profile = config.dataset_profile()
+    assert profile.name == "pandaset" and profile.projection.row == "laser_id"
+    assert (profile.projection.height, profile.projection.width) == (16, 1024)
+    assert (profile.projection.fov_up, profile.projection.fov_down) == (10.0, -25.0)
+    named = config_from_args(parser.parse_args([*required, "--profile", "semantic-poss"]))
+    assert named.profile == "semantic-poss" and named.dataset_profile().num_classes == 14
+    resolved = named.with_projection(named.dataset_profile().projection)
+    assert (resolved.height, resolved.width, resolved.fov_up) == (40, 2048, 7.0)
+
+
+def test_pandaset_samples_keep_laser_rows_and_the_unlabeled_class(profile_roots):
+    profile = load_profile("pandaset").with_overrides(**TINY)
+    scans = find_scans(profile_roots["pandaset"], ["1"], "train", profile)
+    assert [s.key for s in scans] == ["001/000000", "001/000001"]
+    ds = RangeDataset(
+        scans,
+        profile.projection,
+        profile.labels,
+        augment=True,
+        with_points=True,
+        points=profile.points,
+    )
+    points, classes = ds.points_and_classes(0)
+    assert points.shape[1] == 5 and classes.max() < profile.num_classes
+    moved = augment_points(points, np.random.default_rng(3))
+    assert np.array_equal(moved[:, 2:], points[:, 2:])
+    assert not np.allclose(moved[:, :2], points[:, :2])
+    sample = ds[(1, 0)]
+    # Augmented or not, a point's row is its laser id; empty pixels hold the unlabeled class 14.
+    px = sample["proj_x"]
+    valid = px >= 0
+    assert np.array_equal(sample["proj_y"][valid], points[valid, 4].astype(np.int64))
+    assert np.all(sample["label"][~sample["mask"]] == 14) and (~sample["mask"]).any()
+    assert np.isin(0, sample["label"][sample["mask"]])
+
+
+@pytest.mark.parametrize("name", sorted(PROFILE_RUNS))
+def test_training_on_a_profile_records_it(name, profile_roots, tmp_path):
+    """`rangeret train --profile NAME` on the profile's tree: the checkpoints record the profile,
+    the predictor runs with it and refuses another, and a resume with another profile fails."""
+    train, valid, _ = PROFILE_RUNS[name]
+    out = tmp_path / "run"
+    argv = [
+        "--dataset", str(profile_roots[name]), "--profile", name,
+        "--model", "rangeret-thesis", "--out", str(out),
+        "--height", str(TINY["height"]), "--width", str(TINY["width"]),
+        "--train-sequences", *train, "--val-sequences", *valid,
+        "--epochs", "1", "--max-steps", "2", "--loader-workers", "0",
+        "--override", "layers=1", "--override", "dim=16", "--override", "heads=2",
+    ]  # fmt: skip
+    args = train_parser().parse_args(argv)
+    args.quiet = True
+    assert run_train(args) == 0
+    profile = load_profile(name)
+    best = out / "best.pt"
+    info = load_checkpoint(best).checkpoint_info
+    assert info.config["num_classes"] == profile.num_classes
+    assert info.profile["name"] == name
+    assert (info.profile["sensor"]["height"], info.profile["sensor"]["width"]) == (16, 128)
+    assert info.profile["sensor"]["row"] == profile.projection.row
+    assert info.profile["labels"] == profile.to_dict()["labels"]
+    assert info.metadata["train_config"]["profile"] == name
+    assert info.metadata["metrics"]["val_miou_knn"] >= 0
+
+    predictor = Predictor.from_checkpoint(best, device="cpu")
+    assert predictor.profile.name == name and predictor.num_classes == profile.num_classes
+    assert predictor.projection_config == profile.with_overrides(**TINY).projection
+    scan = discover(
+        profile_roots[name], [profile.layout.normalise(valid[0])], layout=profile.layout
+    )
+    points = read_scan(scan.scans[0].scan_path, profile.points)
+    labels = predictor.predict(points).labels
+    assert len(labels) == len(points) and set(np.unique(labels)) <= set(
+        profile.labels.class_raw_ids
+    )
+    other = "semantickitti"
+    with pytest.raises(CheckpointError, match=f"{name} profile.*{other} profile"):
+        Predictor.from_checkpoint(best, profile=load_profile(other), device="cpu")
+
+    args.profile = "pandaset" if name != "pandaset" else "semantic-poss"
+    args.resume = True
+    with pytest.raises(ValueError, match=f"started with the {name} profile.*{args.profile}"):
+        run_train(args)
 
 
 @pytest.mark.slow

@@ -1,7 +1,9 @@
 """`python -m workers.train_job` (or `rangeret train --ray`): data-parallel training on Ray Train.
 
     ray job submit --working-dir . -- python -m workers.train_job --dataset ROOT \\
-        --model rangeret-thesis --out DIR --workers 4
+        --profile pandaset --model rangeret-thesis --out DIR --workers 4
+
+ROOT is a tree in the layout of the dataset profile (`--profile`, SemanticKITTI by default).
 
 Ray Train's TorchTrainer starts `--workers` training workers (one GPU each when the cluster has
 GPUs, gloo on CPU workers, nccl on GPUs) and each runs `rangeret.training.Trainer` as one rank of
@@ -25,10 +27,10 @@ from pathlib import Path
 from typing import Any
 
 from rangeret.errors import run_command
-from rangeret.labels import load_label_config
 from rangeret.training import TrainConfig, Trainer, config_from_args
 from rangeret.training.command import add_training_options
-from rangeret.training.trainer import STATE, find_scans
+from rangeret.training.config import profile_reference
+from rangeret.training.trainer import STATE, find_scans, read_state, training_profile
 from workers.predict_job import connect
 from workers.train_options import add_ray_options
 
@@ -67,8 +69,9 @@ def use_gpus(device: str, workers: int) -> bool:
 def run_ray(config: TrainConfig, workers: int = 2, max_failures: int = 0) -> Path:
     """Train `config` on `workers` Ray Train workers; returns the output folder.
 
-    The inputs are checked here first (a run already in DIR without resume, missing scans or
-    labels), so that bad input fails with its own message instead of inside the workers.
+    The inputs are checked here first (a run already in DIR without resume, the profile, a saved
+    run with other settings, missing scans or labels), so that bad input fails with its own
+    message instead of inside the workers.
     """
     from ray.train import FailureConfig, RunConfig, ScalingConfig
     from ray.train.torch import TorchConfig, TorchTrainer
@@ -76,7 +79,12 @@ def run_ray(config: TrainConfig, workers: int = 2, max_failures: int = 0) -> Pat
     if workers < 1:
         raise ValueError(f"the number of workers must be at least 1, got {workers}")
     out = Path(config.out).resolve()
-    config = dataclasses.replace(config, out=str(out), dataset=str(Path(config.dataset).resolve()))
+    config = dataclasses.replace(
+        config,
+        out=str(out),
+        dataset=str(Path(config.dataset).resolve()),
+        profile=profile_reference(config.profile),
+    )
     state = out / STATE
     if config.resume and not state.exists():
         raise FileNotFoundError(f"cannot resume: {state} does not exist")
@@ -84,10 +92,12 @@ def run_ray(config: TrainConfig, workers: int = 2, max_failures: int = 0) -> Pat
         raise ValueError(
             f"{out} already holds a training run ({STATE}): pass --resume to continue it, or choose another folder"
         )
-    labels = load_label_config(config.label_config)
-    if not find_scans(config.dataset, config.train_sequences, "train", labels):
+    profile = training_profile(config)
+    if config.resume:
+        read_state(state, config, profile)
+    if not find_scans(config.dataset, config.train_sequences, "train", profile):
         raise ValueError(f"no labelled training scan under {config.dataset}")
-    find_scans(config.dataset, config.val_sequences, "valid", labels)
+    find_scans(config.dataset, config.val_sequences, "valid", profile)
 
     connect(None)
     gpu = use_gpus(config.device, workers)
@@ -102,7 +112,13 @@ def run_ray(config: TrainConfig, workers: int = 2, max_failures: int = 0) -> Pat
             failure_config=FailureConfig(max_failures=max_failures),
         ),
     )
-    log.info("training %s on %d Ray workers (%s)", config.model, workers, "GPU" if gpu else "CPU")
+    log.info(
+        "training %s (%s profile) on %d Ray workers (%s)",
+        config.model,
+        profile.name,
+        workers,
+        "GPU" if gpu else "CPU",
+    )
     trainer.fit()
     return out
 

@@ -1,6 +1,8 @@
 """Training RangeRet networks with the thesis's recipe (chapters 3.4 and 4).
 
-- `dataset`: SemanticKITTI scans as range images with per-pixel training classes, seeded per
+- `config`: `TrainConfig`, the run as plain data, with its dataset profile (SemanticKITTI by
+  default; any profile's layout, point record, projection, labels and kNN rule).
+- `dataset`: a profile's scans as range images with per-pixel training classes, seeded per
   (epoch, scan) so runs and resumes are reproducible.
 - `augment`: the thesis's point augmentations (scale, rotation, shift, flip of x and y).
 - `range_mixes`: RangeFormer's range-image mixes (RangeMix, RangeUnion, RangePaste, RangeShift).

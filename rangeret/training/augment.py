@@ -3,8 +3,8 @@
 In this order: random scale of x and y by one factor drawn from [0.95, 1.05]; rotation about z by
 an angle drawn from [0, 360) degrees; one (x, y) shift per scan drawn from N(0, 0.3 m) and clipped
 to +-0.3 m ("jitter" in the thesis); a flip of x, y, both or neither (each with probability 1/4).
-z and remission are never changed, no point is added, dropped or reordered, so a point's label
-(same index) goes wherever the point goes. Points that the projection leaves out (at the origin
+z, the reflectance and any further value (a laser id) are never changed, no point is added,
+dropped or reordered, so a point's label (same index) goes wherever the point goes. Points that the projection leaves out (at the origin
 or not finite) are left as they are, so that they stay out.
 """
 
@@ -45,7 +45,8 @@ def random_flip(xy: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 
 def augment_points(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """A copy of (N, 4) points with the four augmentations applied to x and y, in the thesis's order.
+    """A copy of (N, 4) or (N, 5) points with the four augmentations applied to x and y, in the
+    thesis's order.
 
     The arithmetic runs in float64 and the result keeps the input's dtype.
     """

@@ -13,8 +13,9 @@ from typing import Any
 
 from rangeret.models import list_models
 from rangeret.models.configs import OVERRIDES
+from rangeret.options import add_profile_option
 from rangeret.plugins import TRAIN_BACKENDS_GROUP, TrainBackend, load_plugins
-from rangeret.training.config import TrainConfig
+from rangeret.training.config import TrainConfig, profile_reference
 from rangeret.training.losses import LOSSES, WEIGHTINGS
 from rangeret.training.range_mixes import MIXES
 from rangeret.training.schedule import SCHEDULES
@@ -43,13 +44,14 @@ def add_training_options(parser: argparse.ArgumentParser) -> None:
         type=Path,
         required=True,
         metavar="ROOT",
-        help="SemanticKITTI tree: ROOT/sequences/XX/{velodyne,labels}",
+        help="dataset tree in the profile's layout (SemanticKITTI: ROOT/sequences/XX/{velodyne,labels})",
     )
+    add_profile_option(data)
     data.add_argument(
         "--train-sequences",
         nargs="+",
         metavar="XX",
-        help="training sequences (default: the label configuration's train split)",
+        help="training sequences (default: the profile's train split)",
     )
     data.add_argument(
         "--val-sequences",
@@ -61,19 +63,22 @@ def add_training_options(parser: argparse.ArgumentParser) -> None:
         "--label-config",
         type=Path,
         metavar="FILE",
-        help="label configuration (.json of this project or an official .yaml); default SemanticKITTI",
+        help="label configuration (.json of this project or an official .yaml) in place of the "
+        "profile's",
+    )
+    data.add_argument("--height", type=int, help="range image rows (default: the profile's)")
+    data.add_argument("--width", type=int, help="range image columns (default: the profile's)")
+    data.add_argument(
+        "--fov-up",
+        type=float,
+        metavar="DEG",
+        help="upper vertical field of view (default: the profile's)",
     )
     data.add_argument(
-        "--height", type=int, default=defaults.height, help="range image rows (default 64)"
-    )
-    data.add_argument(
-        "--width", type=int, default=defaults.width, help="range image columns (default 1024)"
-    )
-    data.add_argument(
-        "--fov-up", type=float, default=defaults.fov_up, metavar="DEG", help="default 3"
-    )
-    data.add_argument(
-        "--fov-down", type=float, default=defaults.fov_down, metavar="DEG", help="default -25"
+        "--fov-down",
+        type=float,
+        metavar="DEG",
+        help="lower vertical field of view (default: the profile's)",
     )
     data.add_argument(
         "--no-augment",
@@ -236,6 +241,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         dataset=str(Path(args.dataset).resolve()),
         out=str(Path(args.out).resolve()),
         model=args.model,
+        profile=profile_reference(getattr(args, "profile", None)),
         height=args.height,
         width=args.width,
         fov_up=args.fov_up,

@@ -2,7 +2,8 @@
 
 It travels to Ray workers as a dict, is stored in every checkpoint's metadata and in the resume
 state, and a resumed run must agree with it on every field that changes the arithmetic
-(`RUNTIME_FIELDS` are the ones that may differ).
+(`RUNTIME_FIELDS` are the ones that may differ). The dataset profile is held by name (a built-in)
+or by absolute file path; `dataset_profile()` resolves it with the explicit options in its place.
 """
 
 from __future__ import annotations
@@ -10,8 +11,12 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
+from rangeret.labels import LabelConfig, load_label_config
+from rangeret.profiles import BUILTIN_PROFILES, DEFAULT_PROFILE, DatasetProfile, load_profile
+from rangeret.projection import ProjectionConfig
 from rangeret.training.losses import LOSSES, WEIGHTINGS
 from rangeret.training.range_mixes import MIXES
 from rangeret.training.schedule import SCHEDULES
@@ -32,8 +37,9 @@ RUNTIME_FIELDS = (
 class TrainConfig:
     """A training run: data, network, optimisation, augmentation and bookkeeping.
 
-    `train_sequences` / `val_sequences` of None mean the label configuration's "train" / "valid"
-    splits; an empty `val_sequences` means no validation (best.pt then follows the training loss).
+    `profile` names the dataset profile (layout, point record, projection, labels, kNN rule);
+    `height`, `width`, `fov_up`, `fov_down` and `label_config` of None take the profile's values.
+    `train_sequences` / `val_sequences` of None mean the profile's "train" / "valid" splits; an empty `val_sequences` means no validation (best.pt then follows the training loss).
     `max_steps` caps the run, and the schedule then spans min(epochs x steps per epoch, max_steps)
     steps. `model_overrides` are the ablation switches of `build_model`.
     """
@@ -41,10 +47,11 @@ class TrainConfig:
     dataset: str
     out: str
     model: str = "rangeret-thesis"
-    height: int = 64
-    width: int = 1024
-    fov_up: float = 3.0
-    fov_down: float = -25.0
+    profile: str = DEFAULT_PROFILE
+    height: int | None = None
+    width: int | None = None
+    fov_up: float | None = None
+    fov_down: float | None = None
     label_config: str | None = None
     train_sequences: tuple[str, ...] | None = None
     val_sequences: tuple[str, ...] | None = None
@@ -122,6 +129,29 @@ class TrainConfig:
             if not ok:
                 raise ValueError(message)
 
+    def dataset_profile(self, labels: LabelConfig | None = None) -> DatasetProfile:
+        """The profile this run trains with: `profile` with the explicit projection options and
+        label configuration (`labels`, else the `label_config` file) in place of its own."""
+        if labels is None and self.label_config is not None:
+            labels = load_label_config(self.label_config)
+        return load_profile(self.profile).with_overrides(
+            height=self.height,
+            width=self.width,
+            fov_up=self.fov_up,
+            fov_down=self.fov_down,
+            labels=labels,
+        )
+
+    def with_projection(self, projection: ProjectionConfig) -> TrainConfig:
+        """The config with `projection`'s values for the projection options left to the profile,
+        so that runs are compared on the values they actually use."""
+        values = {
+            name: getattr(projection, name)
+            for name in ("height", "width", "fov_up", "fov_down")
+            if getattr(self, name) is None
+        }
+        return dataclasses.replace(self, **values)
+
     @property
     def overrides(self) -> dict[str, Any]:
         """The model overrides as keyword arguments."""
@@ -166,3 +196,12 @@ class TrainConfig:
             for name in mine
             if name not in RUNTIME_FIELDS and mine[name] != theirs[name]
         ]
+
+
+def profile_reference(name_or_path: str | Path | None) -> str:
+    """How a config holds a profile: a built-in's name as given, a file as its absolute path
+    (workers in other folders and resumed runs read the same file); None is the default."""
+    if name_or_path is None:
+        return DEFAULT_PROFILE
+    text = str(name_or_path)
+    return text if text in BUILTIN_PROFILES else str(Path(text).resolve())

@@ -1,9 +1,11 @@
-"""Range-image samples from a SemanticKITTI tree, for training and validation.
+"""Range-image samples from a dataset tree, for training and validation.
 
-A sample is one scan: its points (augmented when training), projected with the run's
-`ProjectionConfig`; its raw labels mapped through the learning map to training classes; and the
-(H, W) label image, where each pixel takes the class of the point that won it (the closest).
-Pixels without a point are class 0, which the losses and metrics ignore.
+A sample is one scan, read with the dataset profile's point record: its points (augmented when
+training), projected with the run's `ProjectionConfig` (rows from pitch or laser id); its raw
+labels mapped through the label configuration to training classes (unknown ids give the unlabeled
+class); and the (H, W) label image, where each pixel takes the class of the point that won it
+(the closest). Pixels without a point hold the unlabeled class (0 for SemanticKITTI, 14 for
+PandaSet), which the losses ignore.
 
 Randomness is a function of (seed, epoch, scan index) only: the sampler hands the dataset
 `(epoch, index)` keys, and every draw for that sample (augmentation, mix partner, mix parameters)
@@ -21,7 +23,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset, Sampler
 
-from rangeret.io import read_labels, read_scan
+from rangeret.io import KITTI_RECORD, PointRecord, read_labels, read_scan
 from rangeret.labels import LabelConfig
 from rangeret.layout import ScanEntry
 from rangeret.projection import ProjectionConfig, project_with
@@ -33,9 +35,9 @@ POINT_KEYS = ("proj_x", "proj_y", "unproj_range", "point_labels")
 
 
 class RangeDataset(Dataset):
-    """Scans of a SemanticKITTI tree as range images with per-pixel training classes.
+    """Scans of a dataset tree as range images with per-pixel training classes.
 
-    `augment` applies the thesis's point augmentations, `mixing` RangeFormer's image mixes (both
+    `points` is the scan files' point record (SemanticKITTI's 4 floats by default). `augment` applies the thesis's point augmentations, `mixing` RangeFormer's image mixes (both
     for training). With `with_points` a sample also carries what point-level validation needs:
     every point's pixel and range, its class, and the (H, W) range image.
     """
@@ -50,6 +52,7 @@ class RangeDataset(Dataset):
         mixing: MixSettings | None = None,
         seed: int = 0,
         with_points: bool = False,
+        points: PointRecord = KITTI_RECORD,
     ) -> None:
         missing = [s.key for s in scans if s.label_path is None]
         if missing:
@@ -57,6 +60,7 @@ class RangeDataset(Dataset):
         self.scans = list(scans)
         self.projection = projection
         self.label_config = label_config
+        self.record = points
         self.augment = augment
         self.mixing = mixing
         self.seed = seed
@@ -70,9 +74,9 @@ class RangeDataset(Dataset):
         return np.random.default_rng([self.seed, epoch, index])
 
     def points_and_classes(self, index: int) -> tuple[np.ndarray, np.ndarray]:
-        """(N, 4) float32 points and (N,) int64 training classes of scan `index`."""
+        """(N, fields) float32 points and (N,) int64 training classes of scan `index`."""
         entry = self.scans[index]
-        points = read_scan(entry.scan_path)
+        points = read_scan(entry.scan_path, self.record)
         raw = read_labels(entry.label_path, num_points=len(points))
         return points, self.label_config.to_class(raw).astype(np.int64)
 
@@ -91,7 +95,8 @@ class RangeDataset(Dataset):
         if rng is not None:
             points = augment_points(points, rng)
         proj = project_with(points, self.projection)
-        sample = RangeImage(proj.image, proj.to_image(classes, fill=0), proj.mask)
+        empty = self.label_config.unlabeled_class
+        sample = RangeImage(proj.image, proj.to_image(classes, fill=empty), proj.mask)
         extra: dict[str, Any] = {}
         if self.with_points:
             extra = {

@@ -16,8 +16,9 @@
   labelled pixels, with gamma = 2 and alpha_c the class weights scaled to a largest value of 1,
   so alpha_t lies in [0, 1] as in Eq. 4.9 and rare classes keep their full weight.
 
-The thesis's default is the equally weighted sum of the three. Pixels of the ignored class 0
-(unlabelled points and empty pixels) take no part in any of them.
+The thesis's default is the equally weighted sum of the three. Pixels of the ignored unlabeled
+class (`ignore_index`: unlabelled points and empty pixels; 0 for SemanticKITTI, the profile's
+unlabeled class in general) take no part in any of them.
 """
 
 from __future__ import annotations

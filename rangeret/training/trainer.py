@@ -1,10 +1,11 @@
 """The training loop: one process, or one rank of a data-parallel group (torch.distributed).
 
-`Trainer(config).fit()` trains a RangeRet network on a SemanticKITTI tree and writes, in
-`config.out`:
+`Trainer(config).fit()` trains a RangeRet network on a tree of the config's dataset profile
+(its layout, point record, projection, labels and kNN rule) and writes, in `config.out`:
 
 - `last.pt` and `best.pt`: the project's self-describing checkpoints (`rangeret.models.
-  save_checkpoint`), loadable with `load_checkpoint(path)` alone. Their metadata records the epoch,
+  save_checkpoint`), loadable with `load_checkpoint(path)` alone. They record the profile with the
+  projection actually used, so `rangeret predict` runs them with it. Their metadata records the epoch,
   the step, the epoch's metrics, the optimiser, schedule and losses, and the whole `TrainConfig`.
   best.pt is the epoch with the highest point mIoU after kNN on the validation scans (the
   benchmark's number), or the lowest training loss when there is no validation set.
@@ -15,7 +16,8 @@
 
 Every epoch ends with validation: the loss, and mIoU / accuracy on the range image (labelled
 pixels), on the points (each point takes its pixel's class) and on the points after kNN refinement
-(`rangeret.knn.refine`), with the official semantics of `rangeret.metrics`.
+with the profile's voting rule (`rangeret.point_labels.point_classes`), with the official
+semantics of `rangeret.metrics`.
 
 When torch.distributed is initialised (by Ray Train's TorchTrainer or torchrun) the network is
 wrapped in DistributedDataParallel, each rank trains on its share of every epoch, validation
@@ -44,12 +46,12 @@ from tqdm import tqdm
 
 from rangeret.atomic import atomic_path
 from rangeret.inference import select_device
-from rangeret.labels import LabelConfig, load_label_config
+from rangeret.labels import LabelConfig
 from rangeret.layout import DatasetLayoutError, ScanEntry, discover, resolve_sequences
 from rangeret.metrics import ConfusionMatrix
 from rangeret.models import RangeRet, build_model, save_checkpoint
 from rangeret.point_labels import KnnSettings, point_classes
-from rangeret.projection import ProjectionConfig
+from rangeret.profiles import DatasetProfile, ProfileError, profile_of_record
 from rangeret.training.config import TrainConfig
 from rangeret.training.dataset import EpochSampler, RangeDataset, collate, steps_per_epoch
 from rangeret.training.logs import CsvLog, plot_curves
@@ -180,22 +182,39 @@ def save_atomic(payload: Any, path: Path) -> None:
         torch.save(payload, tmp)
 
 
+def training_profile(
+    config: TrainConfig, label_config: LabelConfig | None = None
+) -> DatasetProfile:
+    """The profile `config` trains with (`label_config` in place of its labels when given),
+    checked to read back from the plain data that the checkpoints will record."""
+    profile = config.dataset_profile(label_config)
+    try:
+        profile_of_record(profile.to_dict(), profile.name)
+    except ProfileError as exc:
+        raise ProfileError(
+            f"the {profile.name} profile with these options cannot be recorded in a checkpoint: {exc}"
+        ) from exc
+    return profile
+
+
 def find_scans(
-    root: Path | str, sequences: Sequence[str] | None, split: str, label_config: LabelConfig
+    root: Path | str, sequences: Sequence[str] | None, split: str, profile: DatasetProfile
 ) -> list[ScanEntry]:
-    """The labelled scans of `sequences` (or of the label configuration's `split`) under `root`.
+    """The labelled scans of `sequences` (or of the profile's `split`) under `root`, in the
+    profile's layout (ids normalised by it: "1" is "001" for PandaSet).
 
     Every missing folder, scan or label is reported in one DatasetLayoutError: training never runs
     on a silent subset.
     """
     if sequences is not None and len(sequences) == 0:
         return []
+    layout = profile.layout
     names = (
-        resolve_sequences(sequences=sequences, config=label_config)
+        resolve_sequences(sequences=sequences, config=profile.labels, layout=layout)
         if sequences is not None
-        else resolve_sequences(split=split, config=label_config)
+        else [layout.normalise(s) for s in resolve_sequences(split=split, config=profile.labels)]
     )
-    found = discover(root, names, with_labels=True)
+    found = discover(root, names, with_labels=True, layout=layout)
     if found.problems:
         hint = (
             ""
@@ -210,11 +229,44 @@ def find_scans(
     return found.scans
 
 
+def read_state(path: Path, config: TrainConfig, profile: DatasetProfile) -> dict[str, Any]:
+    """The resume state at `path`, checked against the run that continues it: same profile
+    (states from before profiles were SemanticKITTI's) and same settings but `RUNTIME_FIELDS`."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:
+        raise ValueError(f"{path} cannot be read as a training state: {exc}") from exc
+    if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
+        raise ValueError(f"{path} is not a training state written by rangeret.training")
+    if state.get("format_version") != STATE_VERSION:
+        raise ValueError(
+            f"{path} has state version {state.get('format_version')!r}; this code reads {STATE_VERSION}"
+        )
+    stored = TrainConfig.from_dict(state["config"])
+    recorded = profile_of_record(state.get("profile"), str(path))
+    if recorded.name != profile.name:
+        raise ValueError(
+            f"cannot resume {path}: the run was started with the {recorded.name} profile and "
+            f"cannot continue with the {profile.name} profile (pass --profile {stored.profile})"
+        )
+    changed = stored.with_projection(recorded.projection).differences(
+        config.with_projection(profile.projection)
+    )
+    if not changed and "profile" in state and recorded.to_dict() != profile.to_dict():
+        changed = [f"the {recorded.name} profile's contents changed"]
+    if changed:
+        raise ValueError(
+            f"cannot resume {path}: the run was started with other settings ({'; '.join(changed)})"
+        )
+    return state
+
+
 class Trainer:
     """Trains one network as `config` says; see the module docstring for what it writes.
 
-    `device` overrides `config.device` (a data-parallel worker passes its own); `on_epoch_end` is
-    called on every rank with each epoch's metrics (Ray Train reports them through it).
+    `label_config` replaces the profile's labels; `device` overrides `config.device` (a
+    data-parallel worker passes its own); `on_epoch_end` is called on every rank with each epoch's
+    metrics (Ray Train reports them through it).
     """
 
     def __init__(
@@ -232,11 +284,11 @@ class Trainer:
             self.device = torch.device("cuda", torch.cuda.current_device())
         self.ranks = Ranks.detect(self.device)
         self.on_epoch_end = on_epoch_end
-        self.label_config = label_config or load_label_config(config.label_config)
-        self.projection = ProjectionConfig(
-            config.height, config.width, config.fov_up, config.fov_down
-        )
-        self.num_classes = self.label_config.num_classes
+        self.profile = training_profile(config, label_config)
+        self.label_config = self.profile.labels
+        self.projection = self.profile.projection
+        self.num_classes = self.profile.num_classes
+        self.unlabeled = self.label_config.unlabeled_class
         self.ignored = [c for c in range(self.num_classes) if self.label_config.ignored[c]]
         self.knn = KnnSettings()
 
@@ -247,10 +299,11 @@ class Trainer:
             raise ValueError(
                 f"{self.out} already holds a training run ({STATE}): pass --resume to continue it, or choose another folder"
             )
+        state = read_state(state_path, config, self.profile) if config.resume else None
 
         seed_everything(config.seed)
-        train_scans = find_scans(config.dataset, config.train_sequences, "train", self.label_config)
-        val_scans = find_scans(config.dataset, config.val_sequences, "valid", self.label_config)
+        train_scans = find_scans(config.dataset, config.train_sequences, "train", self.profile)
+        val_scans = find_scans(config.dataset, config.val_sequences, "valid", self.profile)
         if not train_scans:
             raise DatasetLayoutError(f"no labelled training scan under {config.dataset}")
         self.frequencies = self._frequencies(train_scans)
@@ -262,17 +315,22 @@ class Trainer:
             "projection": self.projection,
             "label_config": self.label_config,
             "seed": config.seed,
+            "points": self.profile.points,
         }
         self.train_set = RangeDataset(train_scans, augment=config.augment, mixing=mixing, **common)
         self.val_set = RangeDataset(val_scans, with_points=True, **common)
 
         self.model: RangeRet = build_model(
-            config.model, config.height, config.width, self.num_classes, **config.overrides
+            config.model,
+            self.projection.height,
+            self.projection.width,
+            self.num_classes,
+            **config.overrides,
         ).to(self.device)
         weights = class_weights(self.frequencies, self.label_config.ignored, config.class_weighting)
-        self.criterion = SegmentationLoss(config.losses, weights, config.focal_gamma).to(
-            self.device
-        )
+        self.criterion = SegmentationLoss(
+            config.losses, weights, config.focal_gamma, ignore_index=self.unlabeled
+        ).to(self.device)
         self.optimizer = build_optimizer(self.model.parameters(), config.lr, config.weight_decay)
         self.steps_per_epoch = steps_per_epoch(
             len(self.train_set), config.batch_size, self.ranks.world_size
@@ -289,8 +347,8 @@ class Trainer:
         self.step = 0
         self.best: dict[str, Any] | None = None
         self._reset_epoch_totals()
-        if config.resume:
-            self._load_state(state_path)
+        if state is not None:
+            self._restore(state_path, state)
 
         self.network: torch.nn.Module = self.model
         if self.ranks.world_size > 1:
@@ -335,7 +393,9 @@ class Trainer:
         if freq[evaluated].sum() > 0:
             return freq
         log.info("the label configuration has no class frequencies: counting the training labels")
-        counts = RangeDataset(scans, self.projection, self.label_config).class_counts()
+        counts = RangeDataset(
+            scans, self.projection, self.label_config, points=self.profile.points
+        ).class_counts()
         return counts / max(counts.sum(), 1)
 
     def _reset_epoch_totals(self) -> None:
@@ -357,11 +417,12 @@ class Trainer:
         self.ranks.barrier()
         stop = self.total_steps if until_step is None else min(until_step, self.total_steps)
         log.info(
-            "%s at %dx%d: %d training and %d validation scans, %d steps per epoch, %d steps "
-            "(%d epochs) on %s x %d%s",
+            "%s (%s profile) at %dx%d: %d training and %d validation scans, %d steps per epoch, "
+            "%d steps (%d epochs) on %s x %d%s",
             self.config.model,
-            self.config.height,
-            self.config.width,
+            self.profile.name,
+            self.projection.height,
+            self.projection.width,
             len(self.train_set),
             len(self.val_set),
             self.steps_per_epoch,
@@ -551,8 +612,9 @@ class Trainer:
                     batch["proj_range"][i],
                     batch["unproj_range"][i],
                 )
-                points = point_classes(argmax[i], *projection, None, c)
-                refined = point_classes(argmax[i], *projection, self.knn, c)
+                rule = {"votes_from": self.profile.knn.votes_from, "unlabeled": self.unlabeled}
+                points = point_classes(argmax[i], *projection, None, c, **rule)
+                refined = point_classes(argmax[i], *projection, self.knn, c, **rule)
                 counts[1] += torch.bincount(points * c + truth, minlength=c * c).cpu()
                 counts[2] += torch.bincount(
                     refined.to(truth.dtype) * c + truth, minlength=c * c
@@ -625,6 +687,7 @@ class Trainer:
                 "format": STATE_FORMAT,
                 "format_version": STATE_VERSION,
                 "config": self.config.to_dict(),
+                "profile": self.profile.to_dict(),
                 "model": {k: v.detach().cpu() for k, v in self.model.state_dict().items()},
                 "optimizer": self.optimizer.state_dict(),
                 "scheduler": self.scheduler.state_dict(),
@@ -639,6 +702,7 @@ class Trainer:
                 "label_config": self.label_config.to_dict(),
                 "projection": self.projection.to_dict(),
                 "metadata": self._metadata(epoch, complete, metrics),
+                "profile": self.profile.to_dict(),
             }
             save_checkpoint(self.out / LAST, self.model, **records)
             if improved:
@@ -663,24 +727,8 @@ class Trainer:
             "seconds": self.epoch_seconds,
         }
 
-    def _load_state(self, path: Path) -> None:
-        """Restore everything `_save` wrote; the stored configuration must match this run's."""
-        try:
-            state = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:
-            raise ValueError(f"{path} cannot be read as a training state: {exc}") from exc
-        if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
-            raise ValueError(f"{path} is not a training state written by rangeret.training")
-        if state.get("format_version") != STATE_VERSION:
-            raise ValueError(
-                f"{path} has state version {state.get('format_version')!r}; this code reads {STATE_VERSION}"
-            )
-        stored = TrainConfig.from_dict(state["config"])
-        changed = stored.differences(self.config)
-        if changed:
-            raise ValueError(
-                f"cannot resume {path}: the run was started with other settings ({'; '.join(changed)})"
-            )
+    def _restore(self, path: Path, state: Mapping[str, Any]) -> None:
+        """Restore everything `_save` wrote, from the state `read_state` checked."""
         self.model.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
