@@ -1,11 +1,11 @@
 """The FastAPI app of the gateway: `create_app`, its lifespan and its OpenAPI document.
 
-`create_app` takes the settings, a started worker pool and a job executor and builds the
-`Gateway` (`service.gateway`) that owns the request batcher, the job store and runner, and the
-metrics. The endpoints are in `service.routes` (one module per resource), the error answers in
-`service.error_handlers`: every error is `{"detail": "<one sentence>"}`. With RANGERET_API_TOKEN
-set, every /v1 request needs `Authorization: Bearer TOKEN` (/healthz, /metrics and the API
-description do not).
+`create_app` takes the settings, a started worker pool, a job executor and the dataset profile of
+the served network, and builds the `Gateway` (`service.gateway`) that owns the request batcher,
+the job store and runner, and the metrics. The endpoints are in `service.routes` (one module per
+resource), the error answers in `service.error_handlers`: every error is
+`{"detail": "<one sentence>"}`. With RANGERET_API_TOKEN set, every /v1 request needs
+`Authorization: Bearer TOKEN` (/healthz, /metrics and the API description do not).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from typing import Any
 from fastapi import Depends, FastAPI
 from fastapi.openapi.utils import get_openapi
 
-from rangeret.labels import LabelConfig, semantickitti
+from rangeret.profiles import DatasetProfile, load_profile
 from service.dependencies import require_token
 from service.error_handlers import install_error_handlers
 from service.errors import error_responses
@@ -64,11 +64,12 @@ def create_app(
     settings: Settings,
     pool: WorkerPool,
     executor: JobExecutor,
-    label_config: LabelConfig | None = None,
+    profile: DatasetProfile | None = None,
     checkpoint_sha256: str | None = None,
     dispatchers: int = 1,
 ) -> FastAPI:
-    """The gateway app over a ready worker pool.
+    """The gateway app over a ready worker pool whose network runs with `profile` (default
+    semantickitti): its point record, labels, layout and splits are the gateway's.
 
     Refuses (ValueError) a non-loopback host without a token and a job database newer than this code.
     """
@@ -77,7 +78,7 @@ def create_app(
         raise ValueError(problem)
     check_schema_version(settings.database_path)
     gateway = Gateway(
-        settings, pool, executor, label_config or semantickitti(), checkpoint_sha256, dispatchers
+        settings, pool, executor, profile or load_profile(None), checkpoint_sha256, dispatchers
     )
 
     @asynccontextmanager
@@ -94,7 +95,10 @@ def create_app(
         description=(
             "LiDAR semantic segmentation with RangeRet over HTTP: label single scans, or run jobs over "
             "whole sequences (uploaded archives or datasets under the data roots) and download the "
-            'predictions and the per-class IoU. Errors are `{"detail": "<one sentence>"}`.'
+            'predictions and the per-class IoU. Errors are `{"detail": "<one sentence>"}`. '
+            f"This gateway serves the `{gateway.profile.name}` dataset profile: scans are "
+            f"{gateway.profile.points.point_bytes} bytes per point "
+            f"({gateway.profile.points.describe()}), labels its raw ids."
         ),
         lifespan=lifespan,
     )

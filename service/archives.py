@@ -2,9 +2,10 @@
 
 Every member is checked before anything is written: no absolute path, no `..`, no link, device
 or pipe, nothing but `sequences/XX/velodyne/NNNNNN.bin` and `sequences/XX/labels/NNNNNN.label`
-(and their folders); at most `max_members` members and `max_bytes` bytes in all. Then each file
-is read (never more than its declared size), checked as a scan or label file, and written under
-the destination with names built from the checked parts only.
+(and their folders), whatever the dataset profile; at most `max_members` members and `max_bytes`
+bytes in all. Then each file is read (never more than its declared size), checked as a scan of
+the profile's point record or a label file, and written under the destination in the profile's
+folder layout, with names built from the checked parts only.
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
-from rangeret.io import LABEL_BYTES, POINT_BYTES, ScanFormatError, parse_scan
+from rangeret.io import KITTI_RECORD, LABEL_BYTES, PointRecord, ScanFormatError, parse_scan
+from rangeret.layout import KITTI_LAYOUT, SequenceLayout, sequence_dir
 
 _DIRECTORY = re.compile(r"^sequences(/[A-Za-z0-9_-]{1,64}(/(velodyne|labels))?)?/?$")
 _FILE = re.compile(
@@ -163,17 +165,24 @@ def _read_limited(stream: IO[bytes], size: int, name: str) -> bytes:
     return data
 
 
-def extract_archive(archive: Path, dest: Path, limits: ArchiveLimits) -> ExtractedDataset:
-    """Check every member of `archive`, then write its scans and labels under `dest`."""
+def extract_archive(
+    archive: Path,
+    dest: Path,
+    limits: ArchiveLimits,
+    record: PointRecord = KITTI_RECORD,
+    layout: SequenceLayout = KITTI_LAYOUT,
+) -> ExtractedDataset:
+    """Check every member of `archive` (scans as `record`s), then write its scans and labels
+    under `dest` in `layout`, so the dataset there reads like any other of its profile."""
     kind = archive_kind(archive)
     try:
         if kind == "zip":
             with zipfile.ZipFile(archive) as zf:
-                members = _listing(_zip_members(zf), limits)
-                return _extract(members, dest, limits, lambda m: zf.open(m.handle))
+                members = _listing(_zip_members(zf), limits, record)
+                return _extract(members, dest, record, layout, lambda m: zf.open(m.handle))
         with tarfile.open(archive, "r:gz" if kind == "tar.gz" else "r:") as tf:
-            members = _listing(_tar_members(tf), limits)
-            return _extract(members, dest, limits, lambda m: tf.extractfile(m.handle))
+            members = _listing(_tar_members(tf), limits, record)
+            return _extract(members, dest, record, layout, lambda m: tf.extractfile(m.handle))
     except (
         zipfile.BadZipFile,
         tarfile.TarError,
@@ -187,7 +196,7 @@ def extract_archive(archive: Path, dest: Path, limits: ArchiveLimits) -> Extract
         ) from exc
 
 
-def _listing(found: Iterator[_Member], limits: ArchiveLimits) -> list[_Member]:
+def _listing(found: Iterator[_Member], limits: ArchiveLimits, record: PointRecord) -> list[_Member]:
     """Every member, checked for names, kinds, duplicates and the limits, before any write."""
     members: list[_Member] = []
     names: set[str] = set()
@@ -206,7 +215,7 @@ def _listing(found: Iterator[_Member], limits: ArchiveLimits) -> list[_Member]:
             raise ArchiveTooLarge(
                 f"The archive's files add up to more than {limits.max_bytes:,} bytes."
             )
-        per_point = POINT_BYTES if name.endswith(".bin") else LABEL_BYTES
+        per_point = record.point_bytes if name.endswith(".bin") else LABEL_BYTES
         if member.size > limits.max_points * per_point:
             raise ArchiveTooLarge(
                 f"Archive member {name!r} holds more than {limits.max_points:,} points."
@@ -215,8 +224,11 @@ def _listing(found: Iterator[_Member], limits: ArchiveLimits) -> list[_Member]:
     return members
 
 
-def _extract(members: list[_Member], dest: Path, limits: ArchiveLimits, opener) -> ExtractedDataset:
-    """Read, check and write each file member; then check scans and labels match up."""
+def _extract(
+    members: list[_Member], dest: Path, record: PointRecord, layout: SequenceLayout, opener
+) -> ExtractedDataset:
+    """Read, check and write each file member into `layout`; then check scans and labels match
+    up."""
     scans: dict[str, dict[str, int]] = {}
     labels: dict[str, dict[str, int]] = {}
     dest.mkdir(parents=True, exist_ok=True)
@@ -230,7 +242,7 @@ def _extract(members: list[_Member], dest: Path, limits: ArchiveLimits, opener) 
             data = _read_limited(stream, member.size, member.name)
         if folder == "velodyne":
             try:
-                points = parse_scan(data, member.name)
+                points = parse_scan(data, member.name, record)
             except ScanFormatError as exc:
                 raise ArchiveError(f"Archive member {exc.source}: {exc.problem}.") from exc
             scans.setdefault(seq, {})[stem] = len(points)
@@ -240,7 +252,7 @@ def _extract(members: list[_Member], dest: Path, limits: ArchiveLimits, opener) 
                     f"Archive member {member.name!r} is {len(data)} bytes, not a whole number of uint32 labels."
                 )
             labels.setdefault(seq, {})[stem] = len(data) // LABEL_BYTES
-        target = root / "sequences" / seq / folder / f"{stem}.{_SUFFIX[folder]}"
+        target = sequence_dir(root, seq, layout) / folder / f"{stem}.{_SUFFIX[folder]}"
         if not target.resolve().is_relative_to(root):
             raise ArchiveError(f"Archive member {member.name!r} would escape the job folder.")
         target.parent.mkdir(parents=True, exist_ok=True)

@@ -27,8 +27,8 @@ class ScanBackend(Protocol):
 
     async def predict_async(
         self, scans: Sequence[np.ndarray], knn: bool = True
-    ) -> list[np.ndarray]:
-        """Raw labels for a batch of scans."""
+    ) -> list[np.ndarray | str]:
+        """Raw labels for each scan of a batch, or the reason a scan cannot be labelled."""
         ...
 
     def queue_depth(self) -> int:
@@ -38,6 +38,10 @@ class ScanBackend(Protocol):
 
 class BackendError(RuntimeError):
     """The worker backend failed on a batch (not the request's fault)."""
+
+
+class ScanRejected(ValueError):
+    """The workers cannot label this scan because of what it holds (a laser id off the image)."""
 
 
 @dataclass
@@ -93,7 +97,8 @@ class ScanBatcher:
                 request.future.set_exception(BackendError("the gateway is shutting down"))
 
     async def label(self, points: np.ndarray, knn: bool = True) -> np.ndarray:
-        """Raw labels (uint32, one per point) of one (N, 4) scan, computed within a batch."""
+        """Raw labels (uint32, one per point) of one scan (the profile's point records), computed
+        within a batch; `ScanRejected` when the workers refuse the scan itself."""
         loop = asyncio.get_running_loop()
         request = _Request(points, knn, loop.time(), loop.create_future())
         self._queue.append(request)
@@ -171,5 +176,9 @@ class ScanBatcher:
         if self.on_batch is not None:
             self.on_batch(len(batch), asyncio.get_running_loop().time() - sent)
         for request, labels in zip(batch, results, strict=True):
-            if not request.future.done():
+            if request.future.done():
+                continue
+            if isinstance(labels, str):
+                request.future.set_exception(ScanRejected(labels))
+            else:
                 request.future.set_result(labels)

@@ -1,4 +1,5 @@
-"""The `Gateway`: what every endpoint uses (settings, worker pool, batcher, job manager, metrics).
+"""The `Gateway`: what every endpoint uses (settings, the served dataset profile, worker pool,
+batcher, job manager, metrics).
 
 `create_app` builds one per app and keeps it in `app.state.gateway`; the app's lifespan starts it
 (job store, runner, batcher) and stops it. Routes get it through `service.dependencies`.
@@ -10,7 +11,7 @@ import asyncio
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from rangeret.labels import LabelConfig
+from rangeret.profiles import DatasetProfile
 from service.batching import ScanBackend, ScanBatcher
 from service.errors import ApiError
 from service.jobs import JobExecutor, JobManager, JobStore
@@ -30,17 +31,23 @@ class WorkerPool(ScanBackend, Protocol):
 
 @dataclass
 class Gateway:
-    """Everything the endpoints use, built by `create_app` and started by its lifespan."""
+    """Everything the endpoints use, built by `create_app` and started by its lifespan.
+
+    One gateway serves one network, so one `profile`: its point record, labels, layout and splits.
+    """
 
     settings: Settings
     pool: WorkerPool
     executor: JobExecutor
-    label_config: LabelConfig
+    profile: DatasetProfile
     checkpoint_sha256: str | None
     dispatchers: int
-    metrics: GatewayMetrics = field(default_factory=GatewayMetrics)
+    metrics: GatewayMetrics = field(init=False)
     batcher: ScanBatcher | None = None
     jobs: JobManager | None = None
+
+    def __post_init__(self) -> None:
+        self.metrics = GatewayMetrics(self.profile.name)
 
     async def start(self) -> None:
         """Open the job store, recover and start the runner, start the batcher."""
@@ -52,7 +59,7 @@ class Gateway:
             self.executor,
             settings.jobs_folder,
             settings.retention.total_seconds(),
-            label_config=self.label_config,
+            profile=self.profile,
             checkpoint_sha256=self.checkpoint_sha256,
             on_scans=self.metrics.job_scans,
         )

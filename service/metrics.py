@@ -1,4 +1,5 @@
-"""Prometheus metrics of the gateway: requests, latency, scans labelled, batches and queue depth.
+"""Prometheus metrics of the gateway: what it serves, requests, latency, scans labelled, batches
+and queue depth.
 
 Each app has its own registry, so several gateways (tests) in one process do not collide. The
 request middleware labels by route template (`/v1/jobs/{job_id}`), never by raw path, so the
@@ -10,7 +11,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, Info, generate_latest
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -22,8 +23,14 @@ class GatewayMetrics:
 
     content_type = CONTENT_TYPE_LATEST
 
-    def __init__(self) -> None:
+    def __init__(self, profile: str) -> None:
         self.registry = CollectorRegistry()
+        self.info = Info(
+            "rangeret_gateway",
+            "What the gateway serves: the dataset profile of its network",
+            registry=self.registry,
+        )
+        self.info.info({"profile": profile})
         self.requests = Counter(
             "rangeret_http_requests",
             "HTTP requests answered, by method, route and status code",

@@ -17,7 +17,12 @@ BINARY_CONTENT: dict[str, Any] = {"schema": {"type": "string", "format": "binary
 class ErrorResponse(BaseModel):
     """Every error answer: one readable sentence."""
 
-    detail: str = Field(examples=["The scan's size, 17 bytes, is not a multiple of 16 bytes."])
+    detail: str = Field(
+        examples=[
+            "The scan is malformed: size 17 bytes is not a multiple of 16 (16 bytes per point: "
+            "x, y, z, remission, the point record of the semantickitti profile)."
+        ]
+    )
 
 
 class ScanLabels(BaseModel):
@@ -37,10 +42,11 @@ class ScanLabels(BaseModel):
 
     num_points: int = Field(ge=0, description="points in the scan, and labels in `labels`")
     labels: list[int] = Field(
-        description="raw SemanticKITTI id of every point, in the scan's point order"
+        description="raw id (of the served profile's label configuration) of every point, in the "
+        "scan's point order"
     )
     class_counts: dict[str, int] = Field(
-        description="points per class name, for the classes present"
+        description="points per class name of the served profile, for the classes present"
     )
 
 
@@ -53,6 +59,7 @@ class DatasetJobRequest(BaseModel):
             "examples": [
                 {"dataset": "/data/semantickitti", "split": "valid"},
                 {"dataset": "/data/semantickitti", "sequences": ["08"]},
+                {"dataset": "/data/pandaset", "sequences": ["1", "2"], "profile": "pandaset"},
             ]
         },
     )
@@ -60,17 +67,27 @@ class DatasetJobRequest(BaseModel):
     dataset: str = Field(
         min_length=1,
         max_length=4096,
-        description="dataset root holding sequences/XX/velodyne; a relative path is taken under the data roots",
+        description="dataset root in the served profile's layout (SemanticKITTI: "
+        "ROOT/sequences/XX, PandaSet: ROOT/NNN, SemanticPOSS: ROOT/dataset/sequences/NN); a "
+        "relative path is taken under the data roots",
     )
     split: Literal["train", "valid", "test"] | None = Field(
-        default=None, description="an official split of the label configuration"
+        default=None, description="an official split of the served profile"
     )
     sequences: list[str] | None = Field(
         default=None,
         min_length=1,
         max_length=1000,
-        description="sequence folder names, instead of a split",
+        description="sequence folder names, instead of a split; numeric ones are padded as the "
+        "served profile writes them (PandaSet: 1 is 001)",
         json_schema_extra={"items": {"type": "string", "pattern": SEQUENCE_PATTERN}},
+    )
+    profile: str | None = Field(
+        default=None,
+        min_length=1,
+        max_length=200,
+        description="the dataset profile the request is meant for; when given, it must be the "
+        "one the gateway serves",
     )
 
     @model_validator(mode="after")
@@ -123,7 +140,7 @@ class JobMetrics(BaseModel):
     miou: float = Field(ge=0, le=1)
     accuracy: float = Field(ge=0, le=1)
     iou: dict[str, float] = Field(
-        description="IoU (0..1) of each of the 19 evaluated classes, by name"
+        description="IoU (0..1) of each evaluated class of the served profile, by name"
     )
 
 
@@ -197,6 +214,8 @@ class Health(BaseModel):
                     "batch_size": 4,
                     "batch_wait_ms": 10.0,
                     "checkpoint_sha256": "9b1d...",
+                    "profile": "semantickitti",
+                    "point_fields": ["x", "y", "z", "remission"],
                 }
             ]
         }
@@ -204,6 +223,10 @@ class Health(BaseModel):
 
     status: Literal["ok", "unavailable"]
     backend: Literal["local", "ray"]
+    profile: str = Field(description="the dataset profile the gateway serves")
+    point_fields: list[str] = Field(
+        description="the float32 values of one point of a scan, in order (the profile's record)"
+    )
     workers: list[dict[str, Any]] = Field(description="one description per model worker")
     queue_depth: int = Field(ge=0, description="single-scan requests waiting or in the network")
     batch_size: int

@@ -3,6 +3,7 @@
 With a Ray address (`--ray-address` or RANGERET_RAY_ADDRESS) single scans go to the model actors of
 `workers.pool.ScanPool` and jobs to the Ray pipeline; without one, both run in this process
 (`LocalScanPool`, `predict_tree`). Options given on the command line win over RANGERET_* variables.
+The gateway serves one dataset profile: the checkpoint's, or the one given with `--profile`.
 """
 
 from __future__ import annotations
@@ -15,7 +16,6 @@ from pydantic import ValidationError
 
 from rangeret.errors import CommandError
 from rangeret.inference import PredictorSpec, checkpoint_profile
-from rangeret.labels import LabelConfig
 from rangeret.options import add_network_options, spec_from_args
 from rangeret.profiles import DatasetProfile
 from service.errors import validation_sentence
@@ -80,11 +80,6 @@ class CheckpointFacts:
     sha256: str
     model: str
 
-    @property
-    def label_config(self) -> LabelConfig:
-        """The profile's label configuration."""
-        return self.profile.labels
-
 
 def checkpoint_facts(spec: PredictorSpec) -> CheckpointFacts:
     """Load the checkpoint once to check it and resolve the profile it runs with, and its hash."""
@@ -93,25 +88,22 @@ def checkpoint_facts(spec: PredictorSpec) -> CheckpointFacts:
 
 
 def build_backend(settings: Settings, spec: PredictorSpec, facts: CheckpointFacts):
-    """The single-scan pool, the job executor and the number of batch dispatchers."""
+    """The single-scan pool, the job executor and the number of batch dispatchers, all running
+    the network with the served profile."""
     from service.jobs import LocalExecutor, RayExecutor
     from workers.pool import LocalScanPool, ScanPool
 
+    served = replace(spec, profile=facts.profile)
     if settings.ray_address:
         import ray
 
         if not ray.is_initialized():
             ray.init(address=settings.ray_address, log_to_driver=False)
         use_gpu = None if spec.device == "auto" else spec.device == "cuda"
-        pool = ScanPool(spec, actors=settings.actors, use_gpu=use_gpu)
-        executor = RayExecutor(
-            replace(spec, profile=facts.profile),
-            facts.profile,
-            settings.batch_size,
-            settings.actors,
-        )
+        pool = ScanPool(served, actors=settings.actors, use_gpu=use_gpu)
+        executor = RayExecutor(served, facts.profile, settings.batch_size, settings.actors)
         return pool, executor, len(pool.actors)
-    return LocalScanPool(spec), LocalExecutor(spec, settings.batch_size), 1
+    return LocalScanPool(served), LocalExecutor(served, settings.batch_size), 1
 
 
 def run_serve(args: argparse.Namespace) -> int:
@@ -134,15 +126,17 @@ def run_serve(args: argparse.Namespace) -> int:
     try:
         workers = pool.wait_ready()
         log.info(
-            "%s (sha256 %s) on %d %s worker(s); batches of up to %d scans, waiting up to %g ms",
+            "%s (sha256 %s, profile %s) on %d %s worker(s); batches of up to %d scans, "
+            "waiting up to %g ms",
             facts.model,
             facts.sha256[:12],
+            facts.profile.name,
             len(workers),
             pool.backend,
             settings.batch_size,
             settings.batch_wait_ms,
         )
-        app = create_app(settings, pool, executor, facts.label_config, facts.sha256, dispatchers)
+        app = create_app(settings, pool, executor, facts.profile, facts.sha256, dispatchers)
         uvicorn.run(
             app,
             host=settings.host,

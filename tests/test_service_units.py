@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import io
+import json
 import os
 import tarfile
 import threading
@@ -19,9 +20,11 @@ from conftest import make_tree
 from rangeret.io import write_labels
 from rangeret.layout import prediction_path
 from rangeret.predict import list_scans
+from rangeret.profiles import load_profile
+from rangeret.sim import simulate_dataset
 from rangeret.submission import required_directories
 from service.archives import ArchiveError, ArchiveLimits, ArchiveTooLarge, extract_archive
-from service.batching import BackendError, ScanBatcher
+from service.batching import BackendError, ScanBatcher, ScanRejected
 from service.errors import validation_sentence
 from service.jobs import JobManager, JobStore, write_predictions_zip
 from service.routes.scans import wants_json
@@ -30,6 +33,7 @@ from service.settings import Settings, is_loopback
 
 LIMITS = ArchiveLimits(max_bytes=1 << 20, max_members=20, max_points=1000)
 SCAN = np.arange(40, dtype=np.float32).reshape(10, 4).tobytes()
+PANDASET = load_profile("pandaset")
 
 
 # Archives --------------------------------------------------------------------------------------
@@ -138,6 +142,39 @@ def test_tar_duplicates_and_special_members_are_refused(tmp_path):
         extract_archive(_write(tmp_path, b"junk" * 200), tmp_path / "d", LIMITS)
 
 
+def test_archive_of_another_profile_is_checked_with_its_record_and_laid_out_as_its_datasets(
+    tmp_path,
+):
+    record, layout = PANDASET.points, PANDASET.layout
+    scan5 = np.arange(50, dtype=np.float32).reshape(10, 5).tobytes()
+    archive = _zip(
+        tmp_path,
+        {
+            "sequences/001/velodyne/000000.bin": scan5,
+            "sequences/001/labels/000000.label": np.full(10, 13, dtype=np.uint32).tobytes(),
+        },
+    )
+    found = extract_archive(archive, tmp_path / "data", LIMITS, record=record, layout=layout)
+    assert found.sequences == ["001"] and found.labelled == ["001"]
+    assert (tmp_path / "data" / "001" / "velodyne" / "000000.bin").read_bytes() == scan5
+    assert len(list_scans(found.root, found.sequences, layout=layout)) == 1
+    with pytest.raises(ArchiveError, match=r"multiple of 20 \(5 float32 per point: .*laser_id"):
+        extract_archive(
+            _zip(tmp_path, {"sequences/001/velodyne/000000.bin": SCAN[:144]}),  # 9 x 16 bytes
+            tmp_path / "four",
+            LIMITS,
+            record=record,
+            layout=layout,
+        )
+    big = {"sequences/001/velodyne/000000.bin": b"\0" * 20 * 1001}
+    with pytest.raises(ArchiveTooLarge, match="1,000 points"):
+        extract_archive(_zip(tmp_path, big), tmp_path / "big", LIMITS, record=record, layout=layout)
+    fits = {"sequences/001/velodyne/000000.bin": b"\0" * 20 * 1000}
+    assert (
+        extract_archive(_zip(tmp_path, fits), tmp_path / "fits", LIMITS, record=record).scans == 1
+    )
+
+
 def _write(tmp_path: Path, data: bytes) -> Path:
     path = tmp_path / "junk"
     path.write_bytes(data)
@@ -225,6 +262,35 @@ def test_batcher_reports_backend_failures_and_keeps_serving():
     assert asyncio.run(run()).tolist() == [2, 2]
 
 
+class RejectingPool(FakePool):
+    """Refuses every scan of 3 points, as a worker refuses a scan it cannot project."""
+
+    async def predict_async(self, scans, knn=True):
+        labels = await super().predict_async(scans, knn)
+        return [
+            "a laser id is off the image" if len(s) == 3 else out
+            for s, out in zip(scans, labels, strict=True)
+        ]
+
+
+def test_batcher_refuses_one_scan_and_labels_the_rest_of_its_batch():
+    async def run():
+        pool = RejectingPool(delay=0.01)
+        batcher = ScanBatcher(pool, batch_size=4, max_wait=0.05)
+        await batcher.start()
+        try:
+            return pool, await asyncio.gather(
+                *(batcher.label(_scan(n)) for n in (2, 3, 4)), return_exceptions=True
+            )
+        finally:
+            await batcher.stop()
+
+    pool, (two, three, four) = asyncio.run(run())
+    assert pool.batches == [(3, True)]
+    assert isinstance(three, ScanRejected) and "laser id" in str(three)
+    assert two.tolist() == [2, 2] and four.tolist() == [4] * 4
+
+
 # Jobs ------------------------------------------------------------------------------------------
 
 
@@ -233,7 +299,8 @@ class FakeExecutor:
 
     backend = "fake"
 
-    def __init__(self) -> None:
+    def __init__(self, point_bytes: int = 16) -> None:
+        self.point_bytes = point_bytes
         self.release = threading.Event()
         self.release.set()
         self.started = threading.Event()
@@ -244,7 +311,7 @@ class FakeExecutor:
         for i, entry in enumerate(entries):
             if cancel.is_set():
                 break
-            n = os.path.getsize(entry.scan_path) // 16
+            n = os.path.getsize(entry.scan_path) // self.point_bytes
             write_labels(
                 prediction_path(out, entry.sequence, entry.name), np.zeros(n, dtype=np.uint32)
             )
@@ -252,9 +319,13 @@ class FakeExecutor:
         return {}
 
 
-def _manager(tmp_path: Path, executor=None, retention: float = 3600) -> JobManager:
+def _manager(tmp_path: Path, executor=None, retention: float = 3600, profile=None) -> JobManager:
     return JobManager(
-        JobStore(tmp_path / "jobs.sqlite"), executor or FakeExecutor(), tmp_path / "jobs", retention
+        JobStore(tmp_path / "jobs.sqlite"),
+        executor or FakeExecutor(),
+        tmp_path / "jobs",
+        retention,
+        profile=profile,
     )
 
 
@@ -287,6 +358,49 @@ def test_job_runs_to_success_with_predictions_and_report(tmp_path):
     assert (record.total, record.done, record.failed) == (2, 2, 0)
     assert Path(record.predictions).is_file() and Path(record.report).is_file()
     assert set(record.metrics) == {"miou", "accuracy", "iou"}
+
+
+def test_a_job_reads_evaluates_and_zips_in_the_profile_of_the_gateway(tmp_path):
+    data = tmp_path / "data"
+    profile = PANDASET.with_overrides(height=8, width=32)
+    simulate_dataset(data, {"1": 2, "2": 1}, labelled=["1"], profile=profile)
+    manager = _manager(tmp_path, FakeExecutor(PANDASET.points.point_bytes), profile=PANDASET)
+    manager.start()
+    try:
+        job_id, folder = manager.new_job()
+        manager.submit(job_id, "dataset", data, ["001", "002"])
+        assert (
+            _wait_state(manager, job_id, JobState.succeeded, JobState.failed) is JobState.succeeded
+        ), manager.store.get(job_id).reason
+    finally:
+        manager.stop()
+    record = manager.store.get(job_id)
+    assert (record.total, record.done, record.failed) == (3, 3, 0)
+    assert set(record.metrics["iou"]) <= set(PANDASET.labels.class_names)
+    report = json.loads(Path(record.report).read_text())
+    assert report["profile"] == "pandaset" and report["sequences"] == ["001"]
+    with zipfile.ZipFile(record.predictions) as zf:
+        assert "sequences/002/predictions/000000.label" in zf.namelist()
+        assert "profile: pandaset" in zf.read("description.txt").decode()
+    assert (folder / "profile.txt").read_text().strip() == "pandaset"
+
+
+def test_a_job_accepted_for_another_profile_fails_naming_both(tmp_path):
+    data = tmp_path / "data"
+    make_tree(data, {"08": [30]}, labelled=False)
+    first = _manager(tmp_path)
+    job_id, folder = first.new_job()
+    first.submit(job_id, "dataset", data, ["08"])
+    first.store.close()
+    second = _manager(tmp_path, profile=PANDASET)
+    second.start()
+    try:
+        assert _wait_state(second, job_id, JobState.failed, JobState.succeeded) is JobState.failed
+    finally:
+        second.stop()
+    reason = second.store.get(job_id).reason
+    assert "semantickitti" in reason and "pandaset" in reason, reason
+    assert not (folder / "predictions").exists()
 
 
 def test_cancel_a_running_job_removes_its_files(tmp_path):

@@ -18,6 +18,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from rangeret.inference import Predictor, PredictorSpec
+from rangeret.projection import Projection
 from workers.pipeline import GPU_ACTOR_CPUS
 
 log = logging.getLogger(__name__)
@@ -51,10 +52,22 @@ class ScanWorker:
         """Who this worker is: process, device and model, for health checks."""
         return {"pid": os.getpid(), **self.spec_predictor.describe()}
 
-    def predict(self, scans: Sequence[np.ndarray], knn: bool = True) -> list[np.ndarray]:
-        """Raw labels (uint32, one per point) for a batch of (N, 4) scans."""
+    def predict(self, scans: Sequence[np.ndarray], knn: bool = True) -> list[np.ndarray | str]:
+        """Raw labels (uint32, one per point) for each scan of a batch of the profile's point
+        records; a scan that cannot be projected (a laser id off the image) gets the reason
+        instead, so it never fails the other scans of its batch."""
         predictor = self.spec_predictor if knn else self.without_knn
-        return [r.labels for r in predictor.predict_batch(list(scans))]
+        projections: list[Projection] = []
+        rejected: dict[int, str] = {}
+        for i, scan in enumerate(scans):
+            try:
+                projections.append(predictor.project(scan))
+            except ValueError as exc:
+                rejected[i] = str(exc)
+        labels = iter(
+            [r.labels for r in predictor.finish_batch(projections)] if projections else []
+        )
+        return [rejected[i] if i in rejected else next(labels) for i in range(len(scans))]
 
 
 class ScanPool:
@@ -101,8 +114,9 @@ class ScanPool:
 
     async def predict_async(
         self, scans: Sequence[np.ndarray], knn: bool = True
-    ) -> list[np.ndarray]:
-        """Labels for a batch of scans from the least busy actor, awaited without blocking the loop."""
+    ) -> list[np.ndarray | str]:
+        """Labels (or the reason a scan is refused) for a batch of scans from the least busy
+        actor, awaited without blocking the loop."""
         index = self._pick()
         try:
             return await self.actors[index].predict.remote(list(scans), knn)
@@ -145,13 +159,13 @@ class LocalScanPool:
     def wait_ready(self, timeout: float | None = None) -> list[dict]:
         return [self.worker.info()]
 
-    def predict(self, scans: Sequence[np.ndarray], knn: bool = True) -> list[np.ndarray]:
+    def predict(self, scans: Sequence[np.ndarray], knn: bool = True) -> list[np.ndarray | str]:
         with self._lock:
             return self.worker.predict(scans, knn)
 
     async def predict_async(
         self, scans: Sequence[np.ndarray], knn: bool = True
-    ) -> list[np.ndarray]:
+    ) -> list[np.ndarray | str]:
         self._waiting += 1
         try:
             return await asyncio.to_thread(self.predict, scans, knn)

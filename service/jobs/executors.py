@@ -1,8 +1,9 @@
 """Running a job's scans through the network, and zipping the predictions it wrote.
 
 `LocalExecutor` runs `predict_tree` in this process; `RayExecutor` sends the scans through the Ray
-pipeline of the connected cluster. Both skip the scans whose prediction is already written, so an
-interrupted job resumes where it stopped.
+pipeline of the connected cluster. Both read the scans with the served profile's layout and point
+record, and skip the scans whose prediction is already written, so an interrupted job resumes
+where it stopped.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from rangeret.atomic import atomic_path
 from rangeret.inference import Predictor, PredictorSpec
 from rangeret.layout import ScanEntry, prediction_path
 from rangeret.predict import is_complete, predict_tree
-from rangeret.profiles import DatasetProfile
+from rangeret.profiles import DEFAULT_PROFILE, DatasetProfile, load_profile
 from rangeret.submission import TEST_SEQUENCES, required_directories
 from rangeret.zipfiles import ReproducibleZip
 
@@ -42,7 +43,8 @@ class JobExecutor(Protocol):
 
 
 class LocalExecutor:
-    """`predict_tree` in this process, with its own predictor (built on first use)."""
+    """`predict_tree` in this process, with its own predictor (built on first use), which reads
+    the dataset in the layout and point record of the profile the spec's network runs with."""
 
     backend = "local"
 
@@ -119,14 +121,18 @@ def write_predictions_zip(
     sequences: Sequence[str],
     path: Path,
     description: str,
+    profile: DatasetProfile | None = None,
 ) -> None:
-    """The job's predictions as a reproducible zip with explicit directory entries.
+    """The job's predictions as a reproducible zip with explicit directory entries, as
+    `sequences/<id as on disk>/predictions/NNNNNN.label` for every profile (default semantickitti).
 
-    When all its sequences are test sequences, the archive holds the directory entries of every
-    test sequence, as the benchmark server wants, so it passes the submission validator.
+    When the profile is SemanticKITTI's and all the sequences are its test sequences, the archive
+    holds the directory entries of every test sequence, as the benchmark server wants, so it
+    passes the submission validator.
     """
     names = list(dict.fromkeys(sequences))
-    if all(s in TEST_SEQUENCES for s in names):
+    benchmark = (profile or load_profile(None)).name == DEFAULT_PROFILE
+    if benchmark and all(s in TEST_SEQUENCES for s in names):
         directories = list(required_directories())
     else:
         directories = ["sequences/"]

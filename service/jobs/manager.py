@@ -1,10 +1,12 @@
 """The job runner: queue, one background thread, cancellation, recovery and retention.
 
 A job predicts every scan of its sequences into `JOBS/<id>/predictions` with its executor, then
-writes the predictions zip and, for sequences with ground truth, the evaluation report. A restarted
-gateway queues a job that was running again, and it resumes (finished predictions are skipped), or
-marks it failed with the reason when it cannot. Finished jobs' files and records are removed after
-the retention time.
+writes the predictions zip and, for sequences with ground truth, the evaluation report. Everything
+is read with the gateway's dataset profile (layout, point record, labels); each job's folder
+records the profile it was accepted for, and a gateway serving another one fails it rather than
+read it wrongly. A restarted gateway queues a job that was running again, and it resumes (finished
+predictions are skipped), or marks it failed with the reason when it cannot. Finished jobs' files
+and records are removed after the retention time.
 """
 
 from __future__ import annotations
@@ -18,9 +20,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from rangeret.evaluation import evaluate_predictions
-from rangeret.labels import LabelConfig, semantickitti
-from rangeret.layout import discover
+from rangeret.layout import KITTI_LAYOUT, SequenceLayout, discover
 from rangeret.predict import is_complete, list_scans
+from rangeret.profiles import DatasetProfile, load_profile
 from service.jobs.executors import JobExecutor, write_predictions_zip
 from service.jobs.store import JobRecord, JobStore
 from service.schemas import JobState
@@ -31,11 +33,15 @@ log = logging.getLogger(__name__)
 MAX_ATTEMPTS = 3
 PREDICTIONS_ZIP = "predictions.zip"
 REPORT_JSON = "report.json"
+#: The file in a job's folder that names the profile the job was accepted for.
+PROFILE_FILE = "profile.txt"
 
 
-def labelled_sequences(dataset: Path, sequences: Sequence[str]) -> list[str]:
+def labelled_sequences(
+    dataset: Path, sequences: Sequence[str], layout: SequenceLayout = KITTI_LAYOUT
+) -> list[str]:
     """The sequences every scan of which has a ground-truth label file."""
-    found = discover(dataset, sequences, missing_ok=True).by_sequence()
+    found = discover(dataset, sequences, missing_ok=True, layout=layout).by_sequence()
     return [s for s, scans in found.items() if scans and all(e.label_path for e in scans)]
 
 
@@ -48,7 +54,7 @@ class JobManager:
         executor: JobExecutor,
         jobs_dir: Path,
         retention_s: float,
-        label_config: LabelConfig | None = None,
+        profile: DatasetProfile | None = None,
         checkpoint_sha256: str | None = None,
         on_scans: Callable[[int], None] | None = None,
     ) -> None:
@@ -56,7 +62,7 @@ class JobManager:
         self.executor = executor
         self.jobs_dir = jobs_dir
         self.retention_s = retention_s
-        self.label_config = label_config or semantickitti()
+        self.profile = profile or load_profile(None)
         self.checkpoint_sha256 = checkpoint_sha256
         self.on_scans = on_scans
         self._wake = threading.Event()
@@ -85,7 +91,9 @@ class JobManager:
     # Life cycle -----------------------------------------------------------------------------
 
     def submit(self, job_id: str, kind: str, dataset: Path, sequences: Sequence[str]) -> JobRecord:
-        """Queue a job whose folder is ready and wake the runner."""
+        """Queue a job whose folder is ready, noting the profile it is accepted for, and wake the
+        runner."""
+        (self.job_dir(job_id) / PROFILE_FILE).write_text(self.profile.name + "\n")
         record = self.store.create(job_id, kind, dataset, sequences)
         self._wake.set()
         return record
@@ -215,8 +223,18 @@ class JobManager:
         dataset = Path(job.dataset)
         folder = self.job_dir(job.id)
         out = folder / "predictions"
-        entries = list_scans(dataset, job.sequences)
-        skipped = sum(is_complete(e, out) for e in entries)
+        accepted = _accepted_profile(folder)
+        if accepted is not None and accepted != self.profile.name:
+            self.store.finish(
+                job.id,
+                JobState.failed,
+                reason=f"the job was accepted for the {accepted} profile, and the gateway now "
+                f"serves the {self.profile.name} profile",
+            )
+            return
+        layout, record = self.profile.layout, self.profile.points
+        entries = list_scans(dataset, job.sequences, layout=layout)
+        skipped = sum(is_complete(e, out, record) for e in entries)
         self.store.progress(job.id, len(entries), skipped, 0)
         counted = [0]
 
@@ -244,16 +262,18 @@ class JobManager:
             return
         self.store.progress(job.id, len(entries), len(entries), 0)
         zip_path = folder / PREDICTIONS_ZIP
-        write_predictions_zip(out, entries, job.sequences, zip_path, self._description())
+        write_predictions_zip(
+            out, entries, job.sequences, zip_path, self._description(), self.profile
+        )
         metrics = report_path = None
-        labelled = labelled_sequences(dataset, job.sequences)
+        labelled = labelled_sequences(dataset, job.sequences, layout)
         if labelled:
             report = evaluate_predictions(
                 dataset,
                 out,
                 labelled,
-                config=self.label_config,
                 checkpoint_sha256=self.checkpoint_sha256,
+                profile=self.profile,
             )
             report_path = folder / REPORT_JSON
             report.write_json(report_path)
@@ -269,8 +289,17 @@ class JobManager:
     def _description(self) -> str:
         return (
             "RangeRet predictions written by the rangeret gateway\n"
+            f"profile: {self.profile.name}\n"
             f"checkpoint sha256: {self.checkpoint_sha256 or 'unknown'}\n"
         )
+
+
+def _accepted_profile(folder: Path) -> str | None:
+    """The profile name a job's folder records; None for a job from before it was recorded."""
+    try:
+        return (folder / PROFILE_FILE).read_text().strip() or None
+    except FileNotFoundError:
+        return None
 
 
 def _sentence(exc: BaseException) -> str:

@@ -28,6 +28,8 @@ async def healthz(gw: GatewayDep) -> JSONResponse:
     body = Health(
         status="ok" if ok else "unavailable",
         backend=state.get("backend", gw.pool.backend),
+        profile=gw.profile.name,
+        point_fields=list(gw.profile.points.fields),
         workers=state.get("actors", []),
         queue_depth=gw.batcher.depth() if gw.batcher else 0,
         batch_size=gw.settings.batch_size,

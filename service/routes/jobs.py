@@ -1,7 +1,9 @@
 """/v1/jobs: start a job over whole sequences, list and follow jobs, fetch results, cancel.
 
 A job comes from an uploaded archive (multipart field `archive`) or names a dataset under the data
-roots (JSON). The job store is only ever called through a worker thread, never on the event loop.
+roots (JSON). Both are read with the served profile: an archive's scans are its point records, a
+dataset lies in its layout. The job store is only ever called through a worker thread, never on
+the event loop.
 """
 
 from __future__ import annotations
@@ -47,7 +49,8 @@ _JOB_BODY = {
                         "type": "string",
                         "format": "binary",
                         "description": ".zip, .tar or .tar.gz with sequences/XX/velodyne/*.bin "
-                        "and optional sequences/XX/labels/*.label",
+                        "(the served profile's point records) and optional "
+                        "sequences/XX/labels/*.label, whatever the profile",
                     }
                 },
                 "required": ["archive"],
@@ -112,8 +115,10 @@ def resolve_dataset(text: str, roots: Sequence[Path]) -> Path:
     summary="Start a job over sequences",
     description=(
         "Either upload an archive (multipart field `archive`) laid out as sequences/XX/velodyne/*.bin "
-        "with optional sequences/XX/labels/*.label, or name a dataset under the configured data roots "
-        "in JSON. The job predicts every scan; with labels it also evaluates them."
+        "with optional sequences/XX/labels/*.label (for every profile; the scans hold the served "
+        "profile's point records), or name a dataset in the served profile's layout under the "
+        "configured data roots in JSON. The job predicts every scan; with labels it also evaluates "
+        "them."
     ),
     status_code=202,
     response_model=JobCreated,
@@ -241,7 +246,14 @@ async def _archive_job(request: Request, gw: Gateway, jobs: JobManager) -> JobRe
             settings.max_archive_bytes, settings.max_archive_members, settings.max_points
         )
         try:
-            found = await asyncio.to_thread(extract_archive, upload, folder / "data", limits)
+            found = await asyncio.to_thread(
+                extract_archive,
+                upload,
+                folder / "data",
+                limits,
+                record=gw.profile.points,
+                layout=gw.profile.layout,
+            )
         except ArchiveError as exc:
             raise ApiError(exc.status_code, str(exc)) from exc
         finally:
@@ -253,7 +265,8 @@ async def _archive_job(request: Request, gw: Gateway, jobs: JobManager) -> JobRe
 
 
 async def _dataset_job(request: Request, gw: Gateway, jobs: JobManager) -> JobRecord:
-    """Check a dataset job request (roots, sequences, layout) and queue the job."""
+    """Check a dataset job request (profile, roots, sequences in the profile's layout) and queue
+    the job."""
     body = await read_body(request, gw.settings.max_body_bytes)
     try:
         data = json.loads(body)
@@ -263,10 +276,17 @@ async def _dataset_job(request: Request, gw: Gateway, jobs: JobManager) -> JobRe
         job = DatasetJobRequest.model_validate(data)
     except ValidationError as exc:
         raise ApiError(400, validation_sentence(exc.errors(), "body")) from exc
+    profile = gw.profile
+    if job.profile is not None and job.profile != profile.name:
+        raise ApiError(
+            400,
+            f"The request is for the {job.profile[:64]!r} profile but this gateway serves the "
+            f"{profile.name!r} profile: one gateway serves one network.",
+        )
     root = resolve_dataset(job.dataset, gw.settings.data_roots)
     try:
-        sequences = resolve_sequences(job.split, job.sequences, gw.label_config)
-        await asyncio.to_thread(list_scans, root, sequences)
+        sequences = resolve_sequences(job.split, job.sequences, profile.labels, profile.layout)
+        await asyncio.to_thread(list_scans, root, sequences, layout=profile.layout)
     except (DatasetLayoutError, ValueError) as exc:
         raise ApiError(400, f"The dataset cannot be used: {str(exc)[:400]}") from exc
     job_id, _ = await asyncio.to_thread(jobs.new_job)

@@ -1,4 +1,8 @@
-"""POST /v1/scans: label one scan, answered as raw `.label` bytes or, when asked for, as JSON."""
+"""POST /v1/scans: label one scan, answered as raw `.label` bytes or, when asked for, as JSON.
+
+The body holds the served profile's point records (SemanticKITTI: x, y, z, remission, 16 bytes per
+point; PandaSet adds the laser id, 20 bytes); the labels are raw ids of its label configuration.
+"""
 
 from __future__ import annotations
 
@@ -8,9 +12,9 @@ import numpy as np
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, Response
 
-from rangeret.io import POINT_BYTES, ScanFormatError, parse_scan
+from rangeret.io import ScanFormatError, parse_scan
 from rangeret.labels import LabelConfig
-from service.batching import BackendError
+from service.batching import BackendError, ScanRejected
 from service.dependencies import GatewayDep
 from service.errors import ApiError, error_responses
 from service.schemas import BINARY_CONTENT, ScanLabels
@@ -53,10 +57,12 @@ def _class_counts(labels: np.ndarray, config: LabelConfig) -> dict[str, int]:
     "/scans",
     summary="Label one scan",
     description=(
-        "The body is the raw bytes of one `.bin` scan (float32 x, y, z, remission per point). "
-        "The answer is the raw `.label` bytes (uint32 raw SemanticKITTI ids, one per point), or "
-        "with `Accept: application/json` the labels with their class counts. Concurrent requests "
-        "are labelled together in batches."
+        "The body is the raw bytes of one `.bin` scan in the served profile's point record "
+        "(`/healthz` names the profile and its point fields: SemanticKITTI's are float32 x, y, z, "
+        "remission, PandaSet's add laser_id). The answer is the raw `.label` bytes (uint32 raw "
+        "ids of the profile's label configuration, one per point), or with "
+        "`Accept: application/json` the labels with their class counts. Concurrent requests are "
+        "labelled together in batches."
     ),
     response_class=Response,
     responses={
@@ -84,19 +90,30 @@ async def label_scan(
             f"Send the scan as {OCTET}, not {media_type(request) or 'without a Content-Type'}.",
         )
     body = await read_body(request, limits.max_body_bytes)
-    if len(body) // POINT_BYTES > limits.max_points:
+    record = gw.profile.points
+    if len(body) // record.point_bytes > limits.max_points:
         raise ApiError(
             413,
-            f"The scan has {len(body) // POINT_BYTES:,} points, over the limit of {limits.max_points:,}.",
+            f"The scan has {len(body) // record.point_bytes:,} points, over the limit of "
+            f"{limits.max_points:,}.",
+        )
+    if len(body) % record.point_bytes:
+        raise ApiError(
+            400,
+            f"The scan is malformed: size {len(body)} bytes is not a multiple of "
+            f"{record.point_bytes} ({record.point_bytes} bytes per point: "
+            f"{', '.join(record.fields)}, the point record of the {gw.profile.name} profile).",
         )
     try:
-        points = await asyncio.to_thread(parse_scan, body, "the scan")
+        points = await asyncio.to_thread(parse_scan, body, "the scan", record)
     except ScanFormatError as exc:
         raise ApiError(400, f"The scan is malformed: {exc.problem}.") from exc
     if gw.batcher is None:
         raise ApiError(503, "The gateway is starting; try again in a moment.")
     try:
         labels = await gw.batcher.label(points, knn)
+    except ScanRejected as exc:
+        raise ApiError(400, f"The scan cannot be projected: {exc}.") from exc
     except BackendError as exc:
         raise ApiError(503, str(exc)) from exc
     gw.metrics.scans.labels(source="request").inc()
@@ -106,7 +123,7 @@ async def label_scan(
         body = ScanLabels(
             num_points=len(raw),
             labels=raw.tolist(),
-            class_counts=_class_counts(raw, gw.label_config),
+            class_counts=_class_counts(raw, gw.profile.labels),
         )
         return JSONResponse(body.model_dump())
     return Response(raw.tobytes(), media_type=OCTET)
