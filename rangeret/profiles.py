@@ -145,7 +145,15 @@ class DatasetProfile:
         means, stds = sensor.numbers("means", 5), sensor.numbers("stds", 5)
         if any(not s > 0 for s in stds):
             sensor.fail("stds", f"must all be positive, got {list(stds)}")
-        if abs(fov_up) + abs(fov_down) <= 0:
+        if fov_up < 0:
+            sensor.fail(
+                "fov_up", f"must be 0 or more (degrees above the horizontal), got {fov_up:g}"
+            )
+        if fov_down > 0:
+            sensor.fail(
+                "fov_down", f"must be 0 or less (degrees below the horizontal), got {fov_down:g}"
+            )
+        if fov_up - fov_down <= 0:
             sensor.fail("fov_up", "and fov_down leave an empty field of view")
         projection = ProjectionConfig(height, width, fov_up, fov_down, means, stds, row)
 
@@ -331,12 +339,12 @@ class _Fields:
 
     def finish(self, keys: Sequence[str]) -> None:
         """Every expected field is there, and no other."""
-        missing = [k for k in keys if k not in self.data]
-        if missing:
-            self.fail(missing[0], "is missing")
         extra = sorted(str(k) for k in self.data if k not in keys)
         if extra:
             self.fail(extra[0], f"is not a profile field (expected: {', '.join(keys)})")
+        missing = [k for k in keys if k not in self.data]
+        if missing:
+            self.fail(missing[0], "is missing")
 
     def get(self, key: str, kind: type) -> Any:
         if key not in self.data:

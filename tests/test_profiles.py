@@ -216,6 +216,8 @@ def _drop(data: dict[str, Any], dotted: str) -> None:
         ("points.fields", ["x", "y", "z"]),
         ("layout.id_digits", 0),
         ("labels.unlabeled_class", 20),
+        ("sensor.fov_up", -2.0),
+        ("sensor.fov_down", 5.0),
     ],
 )
 def test_a_wrong_field_is_named(field: str, edit: Any, tmp_path: Path) -> None:
@@ -248,6 +250,15 @@ def test_a_wrong_list_item_is_named(tmp_path: Path) -> None:
     with pytest.raises(
         ProfileError, match=re.escape(f"{path}: labels.raw_labels[3].bgr: is missing")
     ):
+        load_profile(path)
+
+
+def test_a_misspelt_field_is_named_by_its_own_name(tmp_path: Path) -> None:
+    data = load_profile("semantickitti").to_dict()
+    data["sensor"]["widht"] = data["sensor"].pop("width")
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(ProfileError, match=re.escape(f"{path}: sensor.widht: is not a profile")):
         load_profile(path)
 
 
