@@ -104,7 +104,7 @@ class LabelConfig:
         """(num_classes,) share of points in each training class, summed over its raw ids."""
         freq = np.zeros(self.num_classes, dtype=np.float64)
         for raw, share in self.raw_frequency.items():
-            freq[self.raw_to_class.get(raw, 0)] += share
+            freq[self.raw_to_class.get(raw, self.unlabeled_class)] += share
         return freq
 
     def split(self, name: str) -> tuple[str, ...]:
