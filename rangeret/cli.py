@@ -96,7 +96,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.plots:
         from rangeret.plots import write_plots
 
-        for path in write_plots(report, args.plots):
+        for path in write_plots(report, args.plots, profile.labels):
             print(f"plot: {path}")
     return 0
 

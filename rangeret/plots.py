@@ -53,7 +53,8 @@ def plot_confusion(report: EvaluationReport, path: Path | str) -> Path:
 
 
 def plot_iou(report: EvaluationReport, path: Path | str, config: LabelConfig | None = None) -> Path:
-    """Bar chart of per-class IoU in the classes' SemanticKITTI colours, with the mIoU line."""
+    """Bar chart of per-class IoU in the classes' colours (the label configuration's; default
+    SemanticKITTI's), with the mIoU line."""
     plt = _pyplot()
     config = config or semantickitti()
     include = report.confusion.include
@@ -82,10 +83,15 @@ def plot_iou(report: EvaluationReport, path: Path | str, config: LabelConfig | N
     return _save(fig, path)
 
 
-def write_plots(report: EvaluationReport, folder: Path | str) -> list[Path]:
-    """Write `confusion.png` and `iou.png` into `folder`."""
+def write_plots(
+    report: EvaluationReport, folder: Path | str, config: LabelConfig | None = None
+) -> list[Path]:
+    """Write `confusion.png` and `iou.png` into `folder`, in the label configuration's colours."""
     folder = Path(folder)
-    return [plot_confusion(report, folder / "confusion.png"), plot_iou(report, folder / "iou.png")]
+    return [
+        plot_confusion(report, folder / "confusion.png"),
+        plot_iou(report, folder / "iou.png", config),
+    ]
 
 
 def _save(fig, path: Path | str) -> Path:
@@ -107,8 +113,8 @@ def plot_range_image(
     config: LabelConfig | None = None,
     title: str = "",
 ) -> Path:
-    """Stacked PNG of one scan's range image, its ground truth and the prediction (training classes,
-    SemanticKITTI colours; empty pixels black)."""
+    """Stacked PNG of one scan's range image, its ground truth and the prediction (training classes
+    in the label configuration's colours, default SemanticKITTI's; empty pixels black)."""
     plt = _pyplot()
     config = config or semantickitti()
     palette = config.class_rgb()

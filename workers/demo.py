@@ -106,7 +106,7 @@ def run_demo(
     if weights.resolve() == DEMO_CHECKPOINT.resolve():
         report.notes.append(DEMO_WARNING)
     report.write_json(out / "report.json")
-    plots = write_plots(report, out / "plots")
+    plots = write_plots(report, out / "plots", profile.labels)
     plots.append(
         _range_image_png(dataset, preds, profile, valid, out / "plots" / "range-image.png")
     )

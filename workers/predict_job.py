@@ -159,7 +159,9 @@ def run(args: argparse.Namespace) -> int:
             from rangeret.plots import write_plots
 
             report.write_json(args.report)
-            plots = write_plots(report, args.report.with_name(args.report.stem + "-plots"))
+            plots = write_plots(
+                report, args.report.with_name(args.report.stem + "-plots"), label_config
+            )
             print(f"report: {args.report}; plots: {', '.join(map(str, plots))}")
     elif args.report and not evaluator.num_scans:
         log.warning("no scan of %s has ground truth: no evaluation report", ", ".join(sequences))
