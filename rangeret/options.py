@@ -98,6 +98,25 @@ def label_config_from_args(args: argparse.Namespace) -> LabelConfig:
         ) from exc
 
 
+def add_projection_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """--height, --width, --fov-up, --fov-down: explicit values in place of the profile's (the
+    project's own checkpoints fix their resolution)."""
+    parser.add_argument("--height", type=int, help="range image rows (default: the profile's)")
+    parser.add_argument("--width", type=int, help="range image columns (default: the profile's)")
+    parser.add_argument(
+        "--fov-up",
+        type=float,
+        metavar="DEG",
+        help="upper vertical field of view (default: the profile's)",
+    )
+    parser.add_argument(
+        "--fov-down",
+        type=float,
+        metavar="DEG",
+        help="lower vertical field of view (default: the profile's)",
+    )
+
+
 def add_network_options(parser: argparse.ArgumentParser) -> None:
     """The options shared by every command that runs a network (predict, serve, the Ray job)."""
     g = parser.add_argument_group("network")
@@ -114,17 +133,7 @@ def add_network_options(parser: argparse.ArgumentParser) -> None:
         help="weights: the project's own checkpoint or a published .pt file "
         "(default: the bundled demo weights, trained on simulated scenes only)",
     )
-    g.add_argument("--height", type=int, help="range image rows (published files: the profile's)")
-    g.add_argument("--width", type=int, help="range image columns (published files: default 1024)")
-    g.add_argument(
-        "--fov-up", type=float, metavar="DEG", help="upper vertical field of view (the profile's)"
-    )
-    g.add_argument(
-        "--fov-down",
-        type=float,
-        metavar="DEG",
-        help="lower vertical field of view (the profile's)",
-    )
+    add_projection_options(g)
     g.add_argument(
         "--batch-size",
         type=int,

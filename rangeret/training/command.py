@@ -13,7 +13,7 @@ from typing import Any
 
 from rangeret.models import list_models
 from rangeret.models.configs import OVERRIDES
-from rangeret.options import add_profile_option
+from rangeret.options import add_profile_option, add_projection_options
 from rangeret.plugins import TRAIN_BACKENDS_GROUP, TrainBackend, load_plugins
 from rangeret.training.config import TrainConfig, profile_reference
 from rangeret.training.losses import LOSSES, WEIGHTINGS
@@ -66,20 +66,7 @@ def add_training_options(parser: argparse.ArgumentParser) -> None:
         help="label configuration (.json of this project or an official .yaml) in place of the "
         "profile's",
     )
-    data.add_argument("--height", type=int, help="range image rows (default: the profile's)")
-    data.add_argument("--width", type=int, help="range image columns (default: the profile's)")
-    data.add_argument(
-        "--fov-up",
-        type=float,
-        metavar="DEG",
-        help="upper vertical field of view (default: the profile's)",
-    )
-    data.add_argument(
-        "--fov-down",
-        type=float,
-        metavar="DEG",
-        help="lower vertical field of view (default: the profile's)",
-    )
+    add_projection_options(data)
     data.add_argument(
         "--no-augment",
         action="store_true",
