@@ -363,3 +363,17 @@ def test_submission_archives_are_semantickitti_only(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 1 and "SemanticKITTI benchmark's format" in err
     assert not (tmp_path / "s.zip").exists()
+
+
+def test_simulate_writes_a_profiles_layout_and_refuses_a_contradicting_sensor(tmp_path, capsys):
+    base = ["simulate", "-q", "--out", str(tmp_path / "d"), "--sequences", "2:1", "5:1"]
+    assert (
+        main([*base, "--unlabelled", "5", "--azimuth-steps", "128", "--profile", "pandaset"]) == 0
+    )
+    assert (tmp_path / "d" / "002" / "labels").is_dir() and not (
+        tmp_path / "d" / "005" / "labels"
+    ).exists()
+    scan = next((tmp_path / "d" / "005" / "velodyne").glob("*.bin"))
+    assert scan.stat().st_size % 20 == 0
+    assert main([*base, "--beams", "32", "--profile", "semantic-poss"]) == 1
+    assert "contradicts the semantic-poss profile's 40 rows" in capsys.readouterr().err
