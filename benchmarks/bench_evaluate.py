@@ -6,6 +6,7 @@ of the points shuffled. Prints medians and ratios; run by hand (`python benchmar
 
 from __future__ import annotations
 
+import argparse
 import tempfile
 from pathlib import Path
 
@@ -46,6 +47,7 @@ def official_end_to_end(root: Path, table: np.ndarray) -> np.ndarray:
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
     require_real_scan()
     cfg = semantickitti()
     gt_raw = read_labels(REAL_LABELS)

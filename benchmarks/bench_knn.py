@@ -8,6 +8,7 @@ thread, and on CUDA when there is one, with points/s and the ratio to the publis
 
 from __future__ import annotations
 
+import argparse
 import sys
 
 import numpy as np
@@ -24,6 +25,7 @@ PARAMETERS = [(7, 7), (5, 5)]
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
     if not FIXTURE.exists():
         sys.exit(f"{FIXTURE} is missing: the repository carries it in tests/data")
     with np.load(FIXTURE) as data:

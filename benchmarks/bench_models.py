@@ -15,7 +15,7 @@ import torch
 from _common import median_time
 from torch.utils.flop_counter import FlopCounterMode
 
-from rangeret.models import build_model, mixing
+from rangeret.models import build_model, token_mixing
 from rangeret.models.decay import GridCache
 
 MODELS = ("rangeret-thesis", "rangeret-cir")
@@ -60,10 +60,10 @@ def time_mixing(repeat: int) -> None:
     table_d = cache.get("decay_table", grid, cpu, torch.float32)
     norm = cache.get("decay_norm", grid, cpu, torch.float32)
     cases = {
-        "softmax + bias, plain": lambda: mixing.softmax_plain(q, k, v, bias),
-        "softmax + bias, tiled": lambda: mixing.softmax_tiled(q, k, v, table_b, grid),
-        "retention, plain": lambda: mixing.retention_plain(q, k, v, decay),
-        "retention, tiled": lambda: mixing.retention_tiled(q, k, v, table_d, norm, grid),
+        "softmax + bias, plain": lambda: token_mixing.softmax_plain(q, k, v, bias),
+        "softmax + bias, tiled": lambda: token_mixing.softmax_tiled(q, k, v, table_b, grid),
+        "retention, plain": lambda: token_mixing.retention_plain(q, k, v, decay),
+        "retention, tiled": lambda: token_mixing.retention_tiled(q, k, v, table_d, norm, grid),
     }
     print("token mixing of one layer at 64x1024, CPU fp32:")
     for label, fn in cases.items():

@@ -5,6 +5,8 @@ Run by hand: `python benchmarks/bench_projection.py`. Prints medians; not a test
 
 from __future__ import annotations
 
+import argparse
+
 from _common import REAL_SCAN, median_time, require_real_scan
 
 from rangeret.io import read_scan
@@ -14,6 +16,7 @@ TARGET_MS = 20.0
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
     require_real_scan()
     points = read_scan(REAL_SCAN)
     print(f"projection of one scan ({len(points):,} points), median of 31 runs:")

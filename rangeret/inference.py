@@ -23,6 +23,7 @@ from rangeret.labels import LabelConfig
 from rangeret.loading import LoadedScan
 from rangeret.models import CheckpointError, CheckpointInfo, load_checkpoint
 from rangeret.point_labels import DEFAULT_KNN, KnnSettings, point_classes
+from rangeret.precision import forward_precision, resolve_precision
 from rangeret.profiles import DatasetProfile, load_profile, profile_of_record
 from rangeret.projection import Projection, ProjectionConfig, project_with
 from rangeret.timing import StageTimes
@@ -81,6 +82,7 @@ class PredictorSpec:
     fov_up: float | None = None
     fov_down: float | None = None
     device: str = "auto"
+    precision: str = "auto"
     knn: KnnSettings | None = DEFAULT_KNN
     tta: TtaSettings | None = None
 
@@ -95,6 +97,7 @@ class PredictorSpec:
             fov_up=self.fov_up,
             fov_down=self.fov_down,
             device=self.device,
+            precision=self.precision,
             knn=self.knn,
             tta=self.tta,
         )
@@ -110,9 +113,11 @@ def describe_network(
     knn: KnnSettings | None,
     tta: TtaSettings | None,
     device: str,
+    precision: str,
 ) -> dict:
     """The description of a network and its options that logs, reports and `run.json` carry;
-    `device` is the device used, or the one asked for where the network runs elsewhere."""
+    `device` and `precision` are those used, or those asked for where the network runs
+    elsewhere."""
     return {
         "model": model,
         "checkpoint": checkpoint,
@@ -123,6 +128,7 @@ def describe_network(
         "knn": asdict(knn) if knn else None,
         "tta": asdict(tta) if tta else None,
         "device": device,
+        "precision": precision,
     }
 
 
@@ -157,6 +163,7 @@ class Predictor:
         knn: KnnSettings | None = DEFAULT_KNN,
         tta: TtaSettings | None = None,
         checkpoint_sha256: str | None = None,
+        precision: str = "auto",
     ) -> None:
         classes = _network_classes(network)
         if classes is not None and classes != profile.num_classes:
@@ -165,6 +172,7 @@ class Predictor:
                 f"{profile.num_classes}: it was not made for this dataset"
             )
         self.device = select_device(device)
+        self.precision = resolve_precision(precision, self.device)
         self.network = network.to(self.device).eval()
         self.profile = profile
         self.knn = knn
@@ -200,6 +208,7 @@ class Predictor:
         device: str | torch.device = "auto",
         knn: KnnSettings | None = DEFAULT_KNN,
         tta: TtaSettings | None = None,
+        precision: str = "auto",
     ) -> Predictor:
         """A predictor for a checkpoint file: the project's own (self-describing) or a published one.
 
@@ -216,7 +225,9 @@ class Predictor:
         )
         info = network.checkpoint_info
         resolved = profile_for_checkpoint(info, profile, fov_up, fov_down)
-        return cls(network, resolved, device, knn, tta, checkpoint_sha256=info.sha256)
+        return cls(
+            network, resolved, device, knn, tta, checkpoint_sha256=info.sha256, precision=precision
+        )
 
     def describe(self) -> dict:
         """Plain-data description of the run's settings, for logs, reports and `run.json`."""
@@ -230,6 +241,7 @@ class Predictor:
             knn=self.knn,
             tta=self.tta,
             device=str(self.device),
+            precision=self.precision,
         )
 
     # Stages -------------------------------------------------------------------------------
@@ -342,10 +354,8 @@ class Predictor:
         return self.times if times is None else times
 
     def _forward(self, batch: torch.Tensor) -> torch.Tensor:
-        if self.device.type == "cuda":
-            with torch.autocast("cuda", dtype=torch.float16):
-                return self.network(batch).float()
-        return self.network(batch).float()
+        with forward_precision(self.precision, self.device):
+            return self.network(batch).float()
 
     def _forward_tta(self, batch: torch.Tensor) -> torch.Tensor:
         """Mean logits over mirrored and azimuth-rotated views, each mapped back to the original."""

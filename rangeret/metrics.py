@@ -130,6 +130,7 @@ class EvaluationReport:
     checkpoint_sha256: str | None = None
     notes: list[str] = field(default_factory=list)
     profile: str | None = None
+    precision: str | None = None
 
     @property
     def miou(self) -> float:
@@ -161,6 +162,8 @@ class EvaluationReport:
             out["checkpoint_sha256"] = self.checkpoint_sha256
         if self.profile:
             out["profile"] = self.profile
+        if self.precision:
+            out["precision"] = self.precision
         if self.notes:
             out["notes"] = list(self.notes)
         return out
@@ -187,6 +190,7 @@ class EvaluationReport:
             checkpoint_sha256=data.get("checkpoint_sha256"),
             notes=list(data.get("notes", [])),
             profile=data.get("profile"),
+            precision=data.get("precision"),
         )
 
     def table(self) -> str:

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 from rangeret.errors import CommandError
 from rangeret.labels import LabelConfig, load_label_config
 from rangeret.layout import resolve_sequences
+from rangeret.precision import PRECISIONS
 from rangeret.profiles import BUILTIN_PROFILES, DatasetProfile, load_profile
 
 if TYPE_CHECKING:
@@ -117,6 +118,16 @@ def add_projection_options(parser: argparse.ArgumentParser | argparse._ArgumentG
     )
 
 
+def add_precision_option(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """--precision auto|fp32|fp16|bf16: the forward pass's precision."""
+    parser.add_argument(
+        "--precision",
+        default="auto",
+        choices=list(PRECISIONS),
+        help="forward pass precision; auto is fp16 on CUDA and fp32 on the CPU (default)",
+    )
+
+
 def add_network_options(parser: argparse.ArgumentParser) -> None:
     """The options shared by every command that runs a network (predict, serve, the Ray job)."""
     g = parser.add_argument_group("network")
@@ -152,6 +163,7 @@ def add_network_options(parser: argparse.ArgumentParser) -> None:
         choices=["auto", "cpu", "cuda"],
         help="auto picks CUDA when present (default)",
     )
+    add_precision_option(g)
     g.add_argument(
         "--tta-flip", action="store_true", help="test-time augmentation: add the mirrored view"
     )
@@ -186,6 +198,7 @@ def spec_from_args(args: argparse.Namespace) -> PredictorSpec:
         fov_up=args.fov_up,
         fov_down=args.fov_down,
         device=args.device,
+        precision=args.precision,
         knn=None if args.no_knn else KnnSettings(),
         tta=tta,
     )

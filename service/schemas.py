@@ -210,6 +210,7 @@ class Health(BaseModel):
                     "status": "ok",
                     "backend": "local",
                     "workers": [{"pid": 4242, "model": "rangeret-cir", "device": "cpu"}],
+                    "precision": "fp32",
                     "queue_depth": 0,
                     "batch_size": 4,
                     "batch_wait_ms": 10.0,
@@ -228,6 +229,9 @@ class Health(BaseModel):
         description="the float32 values of one point of a scan, in order (the profile's record)"
     )
     workers: list[dict[str, Any]] = Field(description="one description per model worker")
+    precision: str | None = Field(
+        None, description="the forward pass precision of the workers (fp32, fp16 or bf16)"
+    )
     queue_depth: int = Field(ge=0, description="single-scan requests waiting or in the network")
     batch_size: int
     batch_wait_ms: float

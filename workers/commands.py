@@ -10,7 +10,7 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from rangeret.options import add_profile_option, requested_profile
+from rangeret.options import add_precision_option, add_profile_option, requested_profile
 from rangeret.plugins import Subcommand, TrainBackend
 from workers.train_options import add_ray_options
 
@@ -29,6 +29,7 @@ def _demo_arguments(parser: argparse.ArgumentParser) -> None:
         help="other weights (default: the bundled demo weights)",
     )
     add_profile_option(parser)
+    add_precision_option(parser)
 
 
 def _run_demo(args: argparse.Namespace) -> int:
@@ -39,6 +40,7 @@ def _run_demo(args: argparse.Namespace) -> int:
         checkpoint=args.checkpoint,
         progress=not args.quiet,
         profile=requested_profile(args),
+        precision=args.precision,
     )
     return 0
 

@@ -43,6 +43,7 @@ def run_demo(
     checkpoint: Path | str | None = None,
     progress: bool = True,
     profile: DatasetProfile | None = None,
+    precision: str = "auto",
 ) -> Path:
     """Run the demo into `out` (default: a new timestamped folder) and return the folder.
 
@@ -62,7 +63,9 @@ def run_demo(
     out.mkdir(parents=True, exist_ok=True)
     dataset, preds = out / "dataset", out / "predictions"
     weights = resolve_checkpoint(checkpoint)
-    spec = PredictorSpec(checkpoint=str(weights), profile=profile, device="auto")
+    spec = PredictorSpec(
+        checkpoint=str(weights), profile=profile, device="auto", precision=precision
+    )
     info, profile = checkpoint_profile(spec)
     benchmark = profile.name == DEFAULT_PROFILE
 

@@ -152,6 +152,7 @@ def run(args: argparse.Namespace) -> int:
     if evaluator.num_scans and not result.failed:
         report = evaluator.report(sequences, info.sha256)
         report.profile = profile.name
+        report.precision = spec.precision
         if demo:
             report.notes.append(DEMO_WARNING)
         print(report.table())
@@ -220,6 +221,7 @@ def _write_run_info(
         knn=spec.knn,
         tta=spec.tta,
         device=spec.device,
+        precision=spec.precision,
     )
     write_run_info(
         args.out,

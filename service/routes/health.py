@@ -25,12 +25,15 @@ router = APIRouter()
 async def healthz(gw: GatewayDep) -> JSONResponse:
     state = await asyncio.to_thread(gw.pool.health)
     ok = bool(state.get("ok"))
+    workers = state.get("actors", [])
+    precisions = sorted({w["precision"] for w in workers if w.get("precision")})
     body = Health(
         status="ok" if ok else "unavailable",
         backend=state.get("backend", gw.pool.backend),
         profile=gw.profile.name,
         point_fields=list(gw.profile.points.fields),
-        workers=state.get("actors", []),
+        workers=workers,
+        precision=", ".join(precisions) or None,
         queue_depth=gw.batcher.depth() if gw.batcher else 0,
         batch_size=gw.settings.batch_size,
         batch_wait_ms=gw.settings.batch_wait_ms,
