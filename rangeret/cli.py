@@ -106,6 +106,8 @@ def cmd_submission(args: argparse.Namespace) -> int:
     from rangeret.submission import write_submission
 
     _benchmark_profile_only(args)
+    if args.workers is not None and args.workers < 1:
+        raise CommandError(f"--workers must be at least 1, got {args.workers}")
     check = write_submission(
         args.predictions,
         args.dataset,
@@ -114,6 +116,7 @@ def cmd_submission(args: argparse.Namespace) -> int:
         description=args.description,
         config=label_config_from_args(args),
         progress=not args.quiet,
+        workers=args.workers,
     )
     print(check.summary())
     if check.partial:
@@ -229,6 +232,13 @@ def _submission_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, required=True, metavar="FILE.zip")
     _allow_partial_option(p)
     p.add_argument("--description", metavar="TEXT", help="text of description.txt in the archive")
+    p.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="threads reading and compressing the labels (default: every CPU this process may "
+        "use); the archive is the same for any N",
+    )
     add_profile_option(p)
     add_label_config(p)
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import re
 import stat
+import threading
 import zipfile
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -27,7 +28,7 @@ from rangeret.atomic import atomic_path
 from rangeret.io import LABEL_BYTES, ScanFormatError, scan_num_points
 from rangeret.labels import LabelConfig, semantickitti
 from rangeret.layout import ScanEntry, discover, prediction_path
-from rangeret.zipfiles import ReproducibleZip
+from rangeret.zipfiles import DeflatedFile, ReproducibleZip, deflate_file, map_ahead
 
 #: Scans per sequence of the official SemanticKITTI test split (20,351 in all).
 TEST_SCAN_COUNTS: dict[str, int] = {
@@ -140,6 +141,24 @@ def required_directories() -> Iterator[str]:
         yield f"sequences/{seq}/predictions/"
 
 
+def _read_prediction(
+    entry: ScanEntry, predictions: Path, valid: np.ndarray, failed: threading.Event
+) -> tuple[str | None, DeflatedFile | None]:
+    """Why a scan's prediction is wrong, or its deflated entry (None once `failed` is set)."""
+    try:
+        num_points = scan_num_points(entry.scan_path)
+    except ScanFormatError as exc:
+        return str(exc), None
+    pred = prediction_path(predictions, entry.sequence, entry.name)
+    if not pred.is_file():
+        return f"{pred} is missing (no prediction for test scan {entry.key})", None
+    data = pred.read_bytes()
+    problem = _label_problem(data, str(pred), num_points, valid)
+    if problem or failed.is_set():
+        return problem, None
+    return None, deflate_file(_entry_name(entry), data)
+
+
 def write_submission(
     predictions: Path | str,
     dataset: Path | str,
@@ -148,12 +167,15 @@ def write_submission(
     description: str | None = None,
     config: LabelConfig | None = None,
     progress: bool = False,
+    workers: int | None = None,
 ) -> SubmissionCheck:
     """Build the submission zip of a predictions tree for the test scans of `dataset`.
 
     Raises `SubmissionError` listing every missing or wrong prediction (and an incomplete local
     test set unless `allow_partial`); in that case no file is written. The archive is validated
-    before it is moved into place, and is byte-for-byte reproducible for the same inputs.
+    before it is moved into place, and is byte-for-byte reproducible for the same inputs whatever
+    the number of `workers`, the threads that read, check and deflate the predictions ahead
+    (default: every CPU this process may use).
     """
     predictions, dataset, out = Path(predictions), Path(dataset), Path(out)
     config = config or semantickitti()
@@ -163,27 +185,27 @@ def write_submission(
     if not scans and not problems:
         problems.append(f"{dataset} holds no test scan (sequences 11 to 21)")
     valid = _valid_id_table(config)
+    # Once a problem is found nothing more is written, so the workers stop deflating.
+    failed = threading.Event()
+    if problems:
+        failed.set()
+
+    def read(entry: ScanEntry) -> tuple[str | None, DeflatedFile | None]:
+        return _read_prediction(entry, predictions, valid, failed)
 
     with atomic_path(out, suffix=".zip") as tmp:
         with ReproducibleZip(tmp) as zf:
             for name in required_directories():
                 zf.add_directory(name)
-            for entry in tqdm(scans, desc="submission", unit="scan", disable=not progress):
-                pred = prediction_path(predictions, entry.sequence, entry.name)
-                try:
-                    num_points = scan_num_points(entry.scan_path)
-                except ScanFormatError as exc:
-                    problems.append(str(exc))
-                    continue
-                if not pred.is_file():
-                    problems.append(f"{pred} is missing (no prediction for test scan {entry.key})")
-                    continue
-                data = pred.read_bytes()
-                problem = _label_problem(data, str(pred), num_points, valid)
+            outcomes = map_ahead(read, scans, workers)
+            for problem, file in tqdm(
+                outcomes, total=len(scans), desc="submission", unit="scan", disable=not progress
+            ):
                 if problem:
                     problems.append(problem)
-                elif not problems:
-                    zf.add_file(_entry_name(entry), data)
+                    failed.set()
+                elif file is not None and not problems:
+                    zf.add_deflated(file)
             if description and not problems:
                 zf.add_file(DESCRIPTION_NAME, description.rstrip("\n") + "\n")
         if problems:

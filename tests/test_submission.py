@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from conftest import make_tree
 
+from rangeret.cli import main
 from rangeret.io import write_labels, write_scan
 from rangeret.labels import semantickitti
 from rangeret.layout import discover, prediction_path, velodyne_dir
@@ -22,6 +23,7 @@ from rangeret.submission import (
     validate_submission,
     write_submission,
 )
+from rangeret.zipfiles import deflate_file
 
 
 def official_checks(archive: Path, dataset: Path) -> None:
@@ -86,6 +88,60 @@ def test_archive_is_reproducible(small_test_set, tmp_path):
     a = write_submission(preds, data, tmp_path / "a.zip", allow_partial=True).path
     b = write_submission(preds, data, tmp_path / "b.zip", allow_partial=True).path
     assert a.read_bytes() == b.read_bytes()
+
+
+@pytest.mark.parametrize("workers", [2, 8])
+def test_archive_is_the_same_for_any_number_of_workers(small_test_set, tmp_path, workers):
+    data, preds = small_test_set
+    one = write_submission(preds, data, tmp_path / "one.zip", allow_partial=True, workers=1)
+    many = write_submission(preds, data, tmp_path / "many.zip", allow_partial=True, workers=workers)
+    assert many.ok and many.scans == one.scans == 6
+    assert many.path.read_bytes() == one.path.read_bytes()
+    with zipfile.ZipFile(many.path) as zf:
+        assert zf.testzip() is None
+
+
+def test_cli_workers_option(small_test_set, tmp_path):
+    data, preds = small_test_set
+    base = ["submission", "-q", "--predictions", str(preds), "--dataset", str(data)]
+    base += ["--allow-partial"]
+    assert main([*base, "--out", str(tmp_path / "a.zip"), "--workers", "2"]) == 0
+    write_submission(preds, data, tmp_path / "b.zip", allow_partial=True, workers=1)
+    assert (tmp_path / "a.zip").read_bytes() == (tmp_path / "b.zip").read_bytes()
+    assert main([*base, "--out", str(tmp_path / "c.zip"), "--workers", "0"]) != 0
+    assert not (tmp_path / "c.zip").exists()
+
+
+def test_a_failing_compression_leaves_no_archive(small_test_set, tmp_path, monkeypatch):
+    data, preds = small_test_set
+    out = tmp_path / "s.zip"
+    out.write_bytes(b"previous")
+
+    def deflate(name, content):
+        if name.endswith("12/predictions/000000.label"):
+            raise MemoryError("no memory for this one")
+        return deflate_file(name, content)
+
+    monkeypatch.setattr("rangeret.submission.deflate_file", deflate)
+    with pytest.raises(MemoryError):
+        write_submission(preds, data, out, allow_partial=True, workers=2)
+    assert out.read_bytes() == b"previous"
+    assert sorted(p.name for p in tmp_path.glob("*.zip*")) == ["s.zip"]
+
+
+def test_nothing_is_compressed_after_a_problem(small_test_set, tmp_path, monkeypatch):
+    data, preds = small_test_set
+    prediction_path(preds, "11", "000000").unlink()
+    deflated = []
+
+    def deflate(name, content):
+        deflated.append(name)
+        return deflate_file(name, content)
+
+    monkeypatch.setattr("rangeret.submission.deflate_file", deflate)
+    with pytest.raises(SubmissionError, match="is missing"):
+        write_submission(preds, data, tmp_path / "s.zip", allow_partial=True, workers=1)
+    assert deflated == []
 
 
 def test_without_partial_an_incomplete_test_set_is_refused(small_test_set, tmp_path):
