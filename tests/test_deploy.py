@@ -98,6 +98,157 @@ def test_cluster_launcher_config():
     )
 
 
+# Ray's object store defaults to this share of a node's memory, and lives in /dev/shm.
+OBJECT_STORE_SHARE = 0.3
+# Ray caps its default object store at 95 % of /dev/shm, but not below this many bytes
+# (ray_constants.REQUIRE_SHM_SIZE_THRESHOLD); past it, a store that does not fit goes to /tmp.
+RAY_SHM_THRESHOLD = 10**10
+
+_UNITS = {"": 1, "k": 10**3, "M": 10**6, "G": 10**9, "T": 10**12}
+_UNITS.update({"Ki": 2**10, "Mi": 2**20, "Gi": 2**30, "Ti": 2**40})
+
+
+def _quantity(text: str) -> int:
+    """Bytes in a Kubernetes quantity: 5Gi, 512Mi, 10G, 1000."""
+    number, unit = re.fullmatch(r"(\d+(?:\.\d+)?)([kMGT]i?)?", str(text)).groups()
+    return int(float(number) * _UNITS[unit or ""])
+
+
+def _docker_size(text: str) -> int:
+    """Bytes in a `docker run --shm-size` value: 12g, 512m, 1024 (units are binary)."""
+    number, unit = re.fullmatch(r"(\d+)([bkmg]?)", text.lower()).groups()
+    return int(number) * {"": 1, "b": 1, "k": 2**10, "m": 2**20, "g": 2**30}[unit]
+
+
+def _ray_pod_templates(doc: dict) -> list[tuple[str, dict]]:
+    """(group name, pod spec) of every Ray pod a manifest defines: a RayCluster's, a RayJob's
+    rayClusterSpec and a RayService's rayClusterConfig, head and worker groups."""
+    spec = doc.get("spec", {})
+    cluster = {
+        "RayCluster": spec,
+        "RayJob": spec.get("rayClusterSpec"),
+        "RayService": spec.get("rayClusterConfig"),
+    }.get(doc["kind"])
+    if not cluster:
+        return []
+    groups = [("head", cluster["headGroupSpec"])]
+    groups += [(g["groupName"], g) for g in cluster.get("workerGroupSpecs", [])]
+    return [(name, group["template"]["spec"]) for name, group in groups]
+
+
+def test_every_ray_container_mounts_a_memory_backed_dev_shm_for_the_object_store():
+    checked = []
+    for path in sorted((DEPLOY / "kuberay").glob("*.yaml")):
+        for doc in _docs(path):
+            if doc["kind"] == "RayJob":
+                assert doc["spec"].get("clusterSelector") or doc["spec"].get("rayClusterSpec")
+            for group, pod in _ray_pod_templates(doc):
+                volumes = {v["name"]: v for v in pod["volumes"]}
+                for container in pod["containers"]:
+                    where = f"{path.name} {group} {container['name']}"
+                    mounts = [m for m in container["volumeMounts"] if m["mountPath"] == "/dev/shm"]
+                    assert len(mounts) == 1, f"{where}: no /dev/shm"
+                    empty_dir = volumes[mounts[0]["name"]]["emptyDir"]
+                    assert empty_dir["medium"] == "Memory", where
+                    shm = _quantity(empty_dir["sizeLimit"])
+                    request, limit = (
+                        _quantity(container["resources"][kind]["memory"])
+                        for kind in ("requests", "limits")
+                    )
+                    # The object store fits, and the pod is scheduled with memory for it.
+                    assert OBJECT_STORE_SHARE * limit <= shm < request <= limit, where
+                    checked.append(where)
+    assert checked == [
+        "raycluster.yaml head ray-head",
+        "raycluster.yaml gpu ray-worker",
+    ]
+    # The gateway is a Ray Client: no object store or DataLoader workers in its pod.
+    gateway = _docs(DEPLOY / "kuberay" / "gateway.yaml")[0]["spec"]["template"]["spec"]
+    env = {e["name"]: e.get("value") for e in gateway["containers"][0]["env"]}
+    assert env["RANGERET_RAY_ADDRESS"].startswith("ray://")
+
+
+def test_cluster_launcher_gives_dev_shm_room_for_the_object_store():
+    from ray.autoscaler._private.util import prepare_config, validate_config
+
+    config = yaml.safe_load((DEPLOY / "ray-cluster.yaml").read_text())
+    validate_config(prepare_config(config))  # the launcher's own schema, docker options included
+    docker = config["docker"]
+    assert docker["image"] == "rangeret:0.1.0"
+    cluster = _docs(DEPLOY / "kuberay" / "raycluster.yaml")[0]
+    pod_memory = [
+        _quantity(pod["containers"][0]["resources"]["limits"]["memory"])
+        for _, pod in _ray_pod_templates(cluster)
+    ]
+    for role in ("head", "worker"):
+        options = docker.get("run_options", []) + docker.get(f"{role}_run_options", [])
+        sizes = [_docker_size(o.split("=", 1)[1]) for o in options if o.startswith("--shm-size=")]
+        assert len(sizes) == 1, role
+        # Ray's default object store stays in /dev/shm whatever the machine's memory: past the
+        # threshold Ray caps it at 95 % of /dev/shm...
+        assert 0.95 * sizes[0] >= RAY_SHM_THRESHOLD, role
+        # ...and on machines sized like the KubeRay pods it is not capped at all.
+        assert sizes[0] >= OBJECT_STORE_SHARE * max(pod_memory), role
+        # The shared mount that holds the token, the dataset and the results.
+        assert "--volume=/mnt/shared:/mnt/shared" in options
+
+
+# Published torch builds, from PyTorch's CUDA support matrix and the wheels on PyPI: CUDA
+# major.minor and CPython versions per torch minor release. Add the release before pinning it.
+TORCH_CUDA_BUILDS = {"2.13": {"12.6", "13.0", "13.2"}}
+TORCH_PYTHONS = {"2.13": {"3.10", "3.11", "3.12", "3.13", "3.14"}}
+# The python3 of each Ubuntu release the NVIDIA CUDA images are built on.
+UBUNTU_PYTHON = {"22.04": "3.10", "24.04": "3.12"}
+
+
+def test_image_base_cuda_and_torch_wheel_match():
+    dockerfile = (DEPLOY / "Dockerfile").read_text()
+    before_from = dockerfile.split("\nFROM ", 1)[0]
+    args = dict(re.findall(r"^ARG (\w+)=(\S+)$", before_from, flags=re.M))
+    base = re.search(r"^FROM (\S+)$", dockerfile, flags=re.M).group(1)
+    base = re.sub(r"\$\{(\w+)\}", lambda m: args[m.group(1)], base)
+    match = re.fullmatch(r"nvidia/cuda:((\d+)\.(\d+)\.\d+)-cudnn-runtime-ubuntu(\d+\.\d+)", base)
+    assert match, base
+    cuda_version, major, minor, ubuntu = match.groups()
+
+    # torch: the project's pin (the Makefile's default TORCH_SPEC), set only in constraints.txt.
+    makefile = (REPO / "Makefile").read_text()
+    torch_spec = re.search(r"^TORCH_SPEC \?= (\S+)$", makefile, flags=re.M).group(1)
+    constraints = (DEPLOY / "constraints.txt").read_text()
+    assert re.search(r"^torch==\S+$", constraints, flags=re.M).group(0) == torch_spec
+    torch = torch_spec.split("==")[1]
+    assert set(re.findall(r"torch==(\d[\w.]*\d)", dockerfile)) <= {torch}
+    assert re.search(r"-c deploy/constraints\.txt torch\b", dockerfile)
+
+    # The wheel index is derived from the CUDA_VERSION the base image sets (its tag's version).
+    cuda_expr = re.search(r'cuda="(\$\{CUDA_VERSION[^"]*\})"', dockerfile).group(1)
+    index = re.search(r'--extra-index-url "(https://download\.pytorch\.org/whl/[^"]+)"', dockerfile)
+    derived = subprocess.run(
+        ["sh", "-c", f'cuda="{cuda_expr}"; printf %s "{index.group(1)}"'],
+        env={"CUDA_VERSION": cuda_version},
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    assert derived == f"https://download.pytorch.org/whl/cu{major}{minor}"
+    assert "torch.version.cuda == '$cuda'" in dockerfile  # the build checks the wheel's CUDA
+    release = ".".join(torch.split(".")[:2])
+    assert f"{major}.{minor}" in TORCH_CUDA_BUILDS[release]
+
+    # The base image's Python, the one the venv is made with, has torch wheels (cp3XX).
+    python = UBUNTU_PYTHON[ubuntu]
+    assert set(re.findall(r"python3\.\d+", dockerfile)) == {f"python{python}"}
+    assert python in TORCH_PYTHONS[release]
+
+    # The documented build commands name the same pin.
+    for doc in (DEPLOY / "README.md", REPO / "docs" / "deploy.md", DEPLOY / "Dockerfile"):
+        builds = re.findall(
+            r"docker build -f deploy/Dockerfile --build-arg CUDA_VERSION=(\S+) -t \S+ \.",
+            doc.read_text(),
+        )
+        assert builds == [cuda_version], doc.name
+
+
 @pytest.mark.slow
 def test_two_nodes_run_a_simulated_split_through_ray_job_submit(tmp_path):
     """`ray job submit` to a head started with `ray start --head` (token authentication) that a
