@@ -59,7 +59,7 @@ def main() -> None:
         spec = PredictorSpec(checkpoint=str(tmp / "w.pt"), height=h, width=w, device="cpu")
         entries = list_scans(tmp / "data", ["08"])
 
-        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
         _, profile = checkpoint_profile(spec)
         print(
             f"{args.scans} scans at {h} x {w}, {torch.get_num_threads()} torch threads, {args.rounds} rounds"

@@ -91,7 +91,12 @@ def run_demo(
 
     own_ray = not ray.is_initialized()
     if own_ray:
-        ray.init(num_cpus=os.cpu_count() or 2, include_dashboard=False, log_to_driver=False)
+        ray.init(
+            address="local",
+            num_cpus=os.cpu_count() or 2,
+            include_dashboard=False,
+            log_to_driver=False,
+        )
     try:
         entries = discover(dataset, list(sequences), layout=profile.layout).scans
         result = run_pipeline(
