@@ -89,7 +89,8 @@ def checkpoint_facts(spec: PredictorSpec) -> CheckpointFacts:
 
 def build_backend(settings: Settings, spec: PredictorSpec, facts: CheckpointFacts):
     """The single-scan pool, the job executor and the number of batch dispatchers, all running
-    the network with the served profile."""
+    the network with the served profile. On a GPU cluster the pool's actors (one per GPU unless
+    `actors` says otherwise) also run the jobs, so a job never waits for a GPU the pool holds."""
     from service.jobs import LocalExecutor, RayExecutor
     from workers.pool import LocalScanPool, ScanPool
 
@@ -101,7 +102,9 @@ def build_backend(settings: Settings, spec: PredictorSpec, facts: CheckpointFact
             ray.init(address=settings.ray_address, log_to_driver=False)
         use_gpu = None if spec.device == "auto" else spec.device == "cuda"
         pool = ScanPool(served, actors=settings.actors, use_gpu=use_gpu)
-        executor = RayExecutor(served, facts.profile, settings.batch_size, settings.actors)
+        executor = RayExecutor(
+            served, facts.profile, settings.batch_size, settings.actors, pool=pool
+        )
         return pool, executor, len(pool.actors)
     return LocalScanPool(served), LocalExecutor(served, settings.batch_size), 1
 

@@ -100,6 +100,7 @@ def small_config(root: Path, out: Path, **changes) -> TrainConfig:
         "epochs": 2,
         "loader_workers": 0,
         "progress": False,
+        "device": "cpu",
         **SMALL,
         **changes,
     }
@@ -580,6 +581,8 @@ def test_run_train_end_to_end(sim_root, tmp_path, capsys):
         "rangeshift",
         "--override",
         "layers=2",
+        "--device",
+        "cpu",
     ]
     args = parser.parse_args(argv)
     args.quiet = True
@@ -722,6 +725,7 @@ def test_training_on_a_profile_records_it(name, profile_roots, tmp_path):
         "--train-sequences", *train, "--val-sequences", *valid,
         "--epochs", "1", "--max-steps", "2", "--loader-workers", "0",
         "--override", "layers=1", "--override", "dim=16", "--override", "heads=2",
+        "--device", "cpu",
     ]  # fmt: skip
     args = train_parser().parse_args(argv)
     args.quiet = True
@@ -770,7 +774,7 @@ def test_ray_train_with_two_cpu_workers(sim_root, tmp_path):
         epochs=1,
         model_overrides=(("layers", 2),),
     )
-    ray.init(num_cpus=2, include_dashboard=False)
+    ray.init(num_cpus=2, num_gpus=0, include_dashboard=False)
     try:
         out = run_ray(config, workers=2)
     finally:

@@ -25,7 +25,7 @@ NET = ["--checkpoint", "{w}", "--height", "32", "--width", "256", "--device", "c
 @pytest.fixture(scope="module")
 def ray_local():
     ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    ray.init(address="local", num_cpus=2, num_gpus=0, include_dashboard=False, log_to_driver=False)
     yield ray
     ray.shutdown()
 
@@ -258,7 +258,7 @@ def test_a_job_runs_beside_the_gateways_pool_actors(ray_local, setup, tmp_path, 
 
 
 def test_cpu_layout_defaults_to_one_single_threaded_actor_per_free_cpu(ray_local):
-    from workers.pipeline import PipelineOptions, _cpu_layout
+    from workers.pipeline import Layout, PipelineOptions, _cpu_layout, plan_layout
 
     deadline = time.monotonic() + 60  # actors of earlier tests give their CPUs back asynchronously
     while ray_local.available_resources().get("CPU", 0) < 2 and time.monotonic() < deadline:
@@ -267,6 +267,56 @@ def test_cpu_layout_defaults_to_one_single_threaded_actor_per_free_cpu(ray_local
     assert _cpu_layout(PipelineOptions(actors=1)) == (1, 1.5)
     assert _cpu_layout(PipelineOptions(actors=3, actor_cpus=0.5)) == (3, 0.5)
     assert _cpu_layout(PipelineOptions(read_cpus=0.5, write_cpus=0.5)) == (1, 1.0)
+    assert plan_layout(PipelineOptions()) == Layout("cpu", 2, 0.75, 2, 2)
+    assert plan_layout(PipelineOptions(actors=3, actor_cpus=0.5)).readers == 3
+
+
+def test_readers_and_writers_beside_gpu_actors_grow_with_the_free_cores():
+    """A reader reads and projects a scan in about 20 ms of a core: a 16-core node with one GPU
+    actor gets 13 of them (about 650 scans/s), a cluster of 4 such 8-core pods and a 4-core head
+    29; small clusters keep 2 of each."""
+    from workers.pipeline import gpu_feeders
+
+    assert gpu_feeders(16, 0.5) == (13, 2)
+    assert gpu_feeders(36, 4 * 0.5) == (29, 5)
+    assert gpu_feeders(3, 1.0) == (2, 2)
+    assert gpu_feeders(0.5, 1.0) == (2, 2)
+
+
+def test_model_actors_warm_up_before_their_first_batch(setup):
+    """The pipeline's and the pool's model actors run the network once when they are built: a
+    real batch then finds every decay table made and builds none."""
+    from rangeret.inference import checkpoint_profile
+    from rangeret.layout import discover
+    from rangeret.models.decay import GridCache
+    from workers.pipeline import ModelWorker
+    from workers.pool import ScanWorker
+    from workers.stages import ROW_COLUMN, BatchRecord, read_and_project
+
+    data, weights = setup
+    spec = PredictorSpec(checkpoint=str(weights), height=32, width=256, device="cpu")
+    _, profile = checkpoint_profile(spec)
+    record = BatchRecord(0, discover(data, ["08"]).scans[:2])
+    row = read_and_project(record, profile.projection, profile.points).encode()[ROW_COLUMN]
+    threads = torch.get_num_threads()
+    try:
+        model_worker, scan_worker = ModelWorker(spec, 1.0), ScanWorker(spec)
+    finally:
+        torch.set_num_threads(threads)
+    runs = [
+        (model_worker.predictor, lambda: model_worker({ROW_COLUMN: [row]})[ROW_COLUMN][0]),
+        (scan_worker.spec_predictor, lambda: scan_worker.label_batch(row)),
+    ]
+    for predictor, run in runs:
+        caches = [m for m in predictor.network.modules() if isinstance(m, GridCache)]
+        built = [c.entries() for c in caches]
+        assert caches and all(any(key[0] != "rotary" for key in b) for b in built), built
+        labelled = BatchRecord.decode({ROW_COLUMN: run()})
+        assert [error for _, error in labelled.results] == [None, None]
+        after = [c.entries() for c in caches]
+        assert [b.keys() for b in built] == [a.keys() for a in after]
+        assert all(a[k] is b[k] for a, b in zip(after, built, strict=True) for k in b)
+    assert model_worker.warm_up_seconds > 0 and scan_worker.warm_up_seconds > 0
 
 
 def test_pandaset_scans_go_through_the_ray_job(ray_local, tmp_path, capsys):

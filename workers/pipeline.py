@@ -3,18 +3,19 @@
 Scans are grouped into batches on the driver, in the same order and with the same composition as
 `rangeret predict` uses, so both give bit-identical labels. Each batch flows through three stages:
 
-- `stages.Reader` (`read_and_project`; small CPU actors, a fraction of a core each, one to
-  max(2, model actors) of them): reads the scans and projects them; a scan that cannot be read
-  travels on as a named failure.
+- `stages.Reader` (`read_and_project`; small CPU actors, a fraction of a core each): reads the
+  scans and projects them; a scan that cannot be read travels on as a named failure.
 - `ModelWorker` (an actor pool: one GPU each when the cluster has GPUs, CPU actors otherwise): the
-  network on the batch, then kNN refinement and raw ids on the actor's device.
+  network on the batch, then kNN refinement and raw ids on the actor's device. A run can instead
+  send its batches to model actors that run already (`SharedModel`: the gateway's).
 - `stages.Writer` (`write_results`; small CPU actors like the readers): atomic writes of the label
   files and, for labelled scans, per-scan confusion matrices, summed per batch.
 
-The CPU stages are long-lived actors rather than tasks because Ray stops idle task workers once a
-node holds more worker processes than CPUs, which model actors cause on small nodes; every batch
-then paid a worker start-up (1-2 s of CPU). Measured on 2 cores, that churn cost more than the
-network's own time per scan (`benchmarks/bench_workers.py`).
+How many actors each stage gets is `plan_layout`'s (see `PipelineOptions`). The CPU stages are
+long-lived actors rather than tasks because Ray stops idle task workers once a node holds more
+worker processes than CPUs, which model actors cause on small nodes; every batch then paid a
+worker start-up (1-2 s of CPU). Measured on 2 cores, that churn cost more than the network's own
+time per scan (`benchmarks/bench_workers.py`).
 
 The driver sums the matrices (reduction by addition) and logs progress. Ray Data restarts dead
 actors, on other nodes when theirs is gone, and retries their batches, so a crash costs no scan;
@@ -33,8 +34,10 @@ import warnings
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-from rangeret.inference import PredictorSpec
+import numpy as np
+
 from rangeret.io import read_labels
 from rangeret.labels import LabelConfig
 from rangeret.layout import ScanEntry, prediction_path
@@ -43,6 +46,9 @@ from rangeret.profiles import DatasetProfile
 from rangeret.timing import StageTimes
 from workers.stages import ROW_COLUMN, BatchRecord, Reader, Writer
 
+if TYPE_CHECKING:  # torch stays out of the processes that only forward batches (`SharedModel`)
+    from rangeret.inference import Predictor, PredictorSpec
+
 log = logging.getLogger(__name__)
 
 
@@ -50,6 +56,30 @@ GPU_ACTOR_CPUS = 0.5
 """CPUs a GPU model actor reserves (unpickling, host-device copies). Left unset, Ray would ask for
 a whole CPU while the actor starts, which a GPU node whose CPUs readers hold cannot give: the
 actor then never starts."""
+
+GPU_TASKS_IN_FLIGHT = 4
+"""Batches sent to each GPU model actor at once: one on the GPU and three whose rows Ray pulls to
+the actor's node meanwhile, so a slow transfer or a reader's pause does not leave the GPU idle.
+More would only hold more projected scans (about 5 MB each) in the object store."""
+
+CPU_TASKS_IN_FLIGHT = 2
+"""Batches sent to each CPU model actor at once: one running, one arriving. A batch takes a CPU
+actor seconds, so a deeper queue only leaves the last batches behind one actor while others idle."""
+
+SHARED_TASKS_IN_FLIGHT = 2
+"""Batches a run sends at once to each model actor it shares (the gateway's): one running, one
+queued, so the GPU stays busy while a single-scan request waits behind at most two batches."""
+
+SHARED_CPUS = 0.1
+"""CPUs of the one `SharedModel` actor, which only forwards batches and waits for their labels."""
+
+FREE_GPU_WAIT_S = 10.0
+"""How long a run that finds no free GPU waits for one before it fails: actors that are ending
+(those of a job that has just finished) give their GPUs back within seconds."""
+
+CORES_PER_GPU_WRITER = 8
+"""Free CPU cores per writer beside GPU model actors: writing a scan takes about 1 ms, reading
+and projecting it about 20 ms, so one writer keeps up with several readers."""
 
 
 class ClusterCapacityError(ValueError):
@@ -60,16 +90,29 @@ class ClusterCapacityError(ValueError):
 class PipelineOptions:
     """How the pipeline runs: batch size, model actors and the CPU share of each stage.
 
-    Model actors default to one per GPU. On CPU clusters they default to one per CPU that a reader
-    and a writer leave free on the largest node, each with one torch thread: on 2 cores, two
-    one-thread actors ran about 1.25x faster than one two-thread actor (`benchmarks/bench_workers.py`),
-    as intra-op threads scale below linearly and stall whenever another process takes their core.
-    Given `actors`, `actor_cpus` defaults to that free share split between them; the network runs
-    on ceil(actor_cpus) threads. GPU actors reserve `actor_cpus` or `GPU_ACTOR_CPUS`.
+    GPU clusters: model actors default to one per GPU free when the run starts
+    (`ray.available_resources()`: a gateway's actors may hold some GPUs), each reserving
+    `actor_cpus` or `GPU_ACTOR_CPUS`. With no GPU free after `FREE_GPU_WAIT_S` seconds the run is a
+    `ClusterCapacityError` naming the numbers, unless an autoscaler can add GPUs (one actor then
+    waits for them). Readers: up to one per CPU core of the cluster that the model actors leave
+    free, less the writers, which get one per `CORES_PER_GPU_WRITER` such cores (at least 2 of
+    each). Reading and projecting a 120k-point scan takes about 20 ms of one core, so a 16-core node
+    with one GPU gets up to 13 readers (about 650 scans/s) and 2 writers. Each reader reserves
+    `read_cpus` and each writer `write_cpus`; Ray Data starts more of them while batches wait.
 
-    Batches flow once every model actor has started, so that each GPU works from the first batch
-    on; `actor_start_timeout` seconds without them (long enough for an autoscaler to bring GPU
-    nodes up) is a `ClusterCapacityError`.
+    CPU clusters: model actors default to one per CPU that a reader and a writer leave free on the
+    largest node, each with one torch thread: on 2 cores, two one-thread actors ran about 1.25x
+    faster than one two-thread actor (`benchmarks/bench_workers.py`), as intra-op threads scale
+    below linearly and stall whenever another process takes their core. Given `actors`,
+    `actor_cpus` defaults to that free share split between them; the network runs on
+    ceil(actor_cpus) threads. Readers and writers: up to max(2, model actors) of each, the layout
+    measured on 2 cores.
+
+    `actors`, `use_gpu` and `actor_cpus` shape the model actors a run starts; a run given actors
+    that run already (`run_pipeline`'s `model_actors`) uses those instead. Batches flow once every
+    model actor has started, so that each GPU works from the first batch on;
+    `actor_start_timeout` seconds without them (long enough for an autoscaler to bring GPU nodes
+    up) is a `ClusterCapacityError`.
     """
 
     batch_size: int = 1
@@ -80,6 +123,40 @@ class PipelineOptions:
     actor_start_timeout: float = 1800.0
     actor_cpus: float | None = None
     progress_interval: float = 10.0
+
+
+@dataclass(frozen=True)
+class Layout:
+    """The actors of each stage of a run: `model` is "gpu" or "cpu" for model actors the run
+    starts, "shared" for actors that run already; readers and writers are the most of each."""
+
+    model: str
+    actors: int
+    actor_cpus: float
+    readers: int
+    writers: int
+
+    @property
+    def in_flight(self) -> int:
+        """Batches sent to each model actor at once (see the *_TASKS_IN_FLIGHT constants)."""
+        return {
+            "gpu": GPU_TASKS_IN_FLIGHT,
+            "cpu": CPU_TASKS_IN_FLIGHT,
+            "shared": SHARED_TASKS_IN_FLIGHT,
+        }[self.model]
+
+    def describe(self, options: PipelineOptions) -> str:
+        """One line for the job's log."""
+        if self.model == "shared":
+            model = f"{self.actors} shared model actor(s)"
+        else:
+            gpu = "1 GPU + " if self.model == "gpu" else ""
+            model = f"{self.actors} model actor(s) ({gpu}{self.actor_cpus:g} CPU each)"
+        return (
+            f"{model}, {self.in_flight} batch(es) of {options.batch_size} scan(s) in flight "
+            f"each; up to {self.readers} readers ({options.read_cpus:g} CPU each) and "
+            f"{self.writers} writers ({options.write_cpus:g} CPU each)"
+        )
 
 
 @dataclass
@@ -93,29 +170,78 @@ class PipelineResult:
     times: StageTimes = field(default_factory=StageTimes)
     seconds: float = 0.0
     actors: int = 0
+    readers: int = 0
+    writers: int = 0
     devices: list[str] = field(default_factory=list)
 
 
+def warm_up(predictor: Predictor) -> float:
+    """Run the network once on an empty scan's range image (zeros of (1, 5, H, W)), so that the
+    decay tables and the device's kernels are built before the first real batch; the time it took
+    is logged and returned, and recorded in no stage."""
+    start = time.perf_counter()
+    empty = predictor.project(np.zeros((0, 5), np.float32), StageTimes())
+    predictor.logits([empty], StageTimes())
+    seconds = time.perf_counter() - start
+    config = predictor.projection_config
+    log.info(
+        "model actor %d warmed up on %s (%d x %d) in %.2f s",
+        os.getpid(),
+        predictor.device,
+        config.height,
+        config.width,
+        seconds,
+    )
+    return seconds
+
+
+def label_batch(predictor: Predictor, encoded: bytes) -> bytes:
+    """Stage 2 on one encoded `BatchRecord`: the network, kNN refinement and raw ids of its
+    scans; the record names the device and process that ran it."""
+    record = BatchRecord.decode({ROW_COLUMN: encoded})
+    record.results = predictor.label_loaded(record.loaded, record.times)
+    record.loaded = []
+    record.worker = f"{predictor.device}@{os.getpid()}"
+    return record.encode()[ROW_COLUMN]
+
+
 class ModelWorker:
-    """Stage 2 (an actor): the network on a batch, then kNN refinement and raw ids."""
+    """Stage 2 (an actor): the network on a batch, then kNN refinement and raw ids. It warms the
+    network up before it takes a batch, so the first batch's times are those of any other."""
 
     def __init__(self, spec: PredictorSpec, cpus: float) -> None:
         import torch
 
         torch.set_num_threads(max(1, math.ceil(cpus)))
         self.predictor = spec.build()
-        self.device = str(self.predictor.device)
-        log.info("model worker %d on %s", os.getpid(), self.device)
+        self.warm_up_seconds = warm_up(self.predictor)
 
     def __call__(self, batch: dict) -> dict:
-        records = []
-        for encoded in batch[ROW_COLUMN]:
-            record = BatchRecord.decode({ROW_COLUMN: encoded})
-            record.results = self.predictor.label_loaded(record.loaded, record.times)
-            record.loaded = []
-            record.worker = f"{self.device}@{os.getpid()}"
-            records.append(record.encode()[ROW_COLUMN])
-        return {ROW_COLUMN: records}
+        return {ROW_COLUMN: [label_batch(self.predictor, row) for row in batch[ROW_COLUMN]]}
+
+
+class SharedModel:
+    """Stage 2 on model actors that run already (the gateway's `workers.pool.ScanWorker`s, with a
+    `label_batch` method): each batch goes to the one with the fewest of the run's batches in
+    flight. One actor of this class forwards every batch, on one thread per batch in flight."""
+
+    def __init__(self, actors: Sequence[Any]) -> None:
+        self.actors = list(actors)
+        self._busy = [0] * len(self.actors)
+        self._lock = threading.Lock()
+
+    def __call__(self, row: dict) -> dict:
+        import ray
+
+        with self._lock:
+            index = min(range(len(self.actors)), key=self._busy.__getitem__)
+            self._busy[index] += 1
+        try:
+            labelled = ray.get(self.actors[index].label_batch.remote(row[ROW_COLUMN]))
+        finally:
+            with self._lock:
+                self._busy[index] -= 1
+        return {ROW_COLUMN: labelled}
 
 
 def cluster_gpus() -> int:
@@ -123,6 +249,35 @@ def cluster_gpus() -> int:
     import ray
 
     return int(ray.cluster_resources().get("GPU", 0))
+
+
+def gpu_feeders(free_cpus: float, model_cpus: float) -> tuple[int, int]:
+    """The most readers and writers beside GPU model actors that reserve `model_cpus` of the
+    cluster's `free_cpus`: see `PipelineOptions`."""
+    spare = max(0.0, free_cpus - model_cpus)
+    writers = max(2, math.ceil(spare / CORES_PER_GPU_WRITER))
+    return max(2, math.floor(spare) - writers), writers
+
+
+def plan_layout(options: PipelineOptions, shared: int = 0) -> Layout:
+    """The actors of each stage for a run on the connected cluster (see `PipelineOptions`);
+    `shared` is the number of model actors that run already and take the run's batches."""
+    import ray
+
+    if shared:
+        readers, writers = gpu_feeders(ray.available_resources().get("CPU", 0.0), 0.0)
+        return Layout("shared", shared, 0.0, readers, writers)
+    gpus = cluster_gpus()
+    use_gpu = gpus > 0 if options.use_gpu is None else options.use_gpu
+    if use_gpu and not gpus:
+        raise ValueError("GPU actors were asked for but the Ray cluster has no GPU")
+    if not use_gpu:
+        actors, actor_cpus = _cpu_layout(options)
+        return Layout("cpu", actors, actor_cpus, max(2, actors), max(2, actors))
+    actors = options.actors or _free_gpus(gpus)
+    actor_cpus = options.actor_cpus or GPU_ACTOR_CPUS
+    readers, writers = gpu_feeders(ray.available_resources().get("CPU", 0.0), actors * actor_cpus)
+    return Layout("gpu", actors, actor_cpus, readers, writers)
 
 
 def run_pipeline(
@@ -133,6 +288,7 @@ def run_pipeline(
     options: PipelineOptions = PipelineOptions(),
     progress: Callable[[int, int, int], None] | None = None,
     cancel: threading.Event | None = None,
+    model_actors: Sequence[Any] | None = None,
 ) -> PipelineResult:
     """Predict `entries` into the tree at `out` on the connected Ray cluster.
 
@@ -141,22 +297,20 @@ def run_pipeline(
     projection, the writers its labels.
     `progress(done, failed, total)` is called after every batch; setting `cancel` stops the run
     after the batch in flight (files already written stay complete).
+    `model_actors`, when given, are model actors that run already, built from the same spec and
+    profile (`workers.pool.ScanPool`'s): the batches go to them instead of to actors the run
+    starts, so a job runs beside a gateway that holds the GPUs.
     """
     import ray
     import ray.data
 
     out = str(out)
-    gpus = cluster_gpus()
-    use_gpu = gpus > 0 if options.use_gpu is None else options.use_gpu
-    if use_gpu and not gpus:
-        raise ValueError("GPU actors were asked for but the Ray cluster has no GPU")
-    if use_gpu:
-        actors, actor_cpus = options.actors or gpus, options.actor_cpus or GPU_ACTOR_CPUS
-    else:
-        actors, actor_cpus = _cpu_layout(options)
-    result = PipelineResult(actors=actors, evaluator=RawLabelEvaluator(profile.labels))
+    result = PipelineResult(evaluator=RawLabelEvaluator(profile.labels))
     if not entries:
         return result
+    layout = plan_layout(options, len(model_actors or ()))
+    result.actors, result.readers, result.writers = layout.actors, layout.readers, layout.writers
+    log.info("pipeline: %s", layout.describe(options))
 
     batches = [
         BatchRecord(i, list(entries[s : s + options.batch_size])).encode()
@@ -173,32 +327,44 @@ def run_pipeline(
         warnings.filterwarnings("ignore", message=".*actor_locality_enabled")
         ctx.execution_options.actor_locality_enabled = False
 
-    actor_resources = (
-        {"num_gpus": 1, "num_cpus": actor_cpus} if use_gpu else {"num_cpus": actor_cpus}
-    )
-    worker_spec = replace(spec, profile=profile)
-    if not use_gpu and spec.device == "auto":
-        worker_spec = replace(worker_spec, device="cpu")
     ds = ray.data.from_items(batches, override_num_blocks=len(batches))
-    readers = ray.data.ActorPoolStrategy(min_size=1, max_size=max(2, actors))
     ds = ds.map(
         Reader,
         fn_constructor_kwargs={"projection": profile.projection, "record": profile.points},
-        compute=readers,
+        compute=ray.data.ActorPoolStrategy(min_size=1, max_size=layout.readers),
         num_cpus=options.read_cpus,
     )
-    ds = ds.map_batches(
-        ModelWorker,
-        fn_constructor_kwargs={"spec": worker_spec, "cpus": actor_cpus},
-        compute=ray.data.ActorPoolStrategy(size=actors, max_tasks_in_flight_per_actor=2),
-        batch_size=1,
-        **actor_resources,
-    )
-    writers = ray.data.ActorPoolStrategy(min_size=1, max_size=max(2, actors))
+    if layout.model == "shared":
+        calls = layout.in_flight * layout.actors
+        ds = ds.map(
+            SharedModel,
+            fn_constructor_kwargs={"actors": list(model_actors or ())},
+            compute=ray.data.ActorPoolStrategy(
+                size=1,
+                max_tasks_in_flight_per_actor=calls,
+                max_concurrent_calls_per_actor=calls,
+                enable_true_multi_threading=True,
+            ),
+            num_cpus=SHARED_CPUS,
+        )
+    else:
+        worker_spec = replace(spec, profile=profile)
+        if layout.model == "cpu" and spec.device == "auto":
+            worker_spec = replace(worker_spec, device="cpu")
+        ds = ds.map_batches(
+            ModelWorker,
+            fn_constructor_kwargs={"spec": worker_spec, "cpus": layout.actor_cpus},
+            compute=ray.data.ActorPoolStrategy(
+                size=layout.actors, max_tasks_in_flight_per_actor=layout.in_flight
+            ),
+            batch_size=1,
+            num_cpus=layout.actor_cpus,
+            **({"num_gpus": 1} if layout.model == "gpu" else {}),
+        )
     ds = ds.map(
         Writer,
         fn_constructor_kwargs={"out": out, "label_config": profile.labels},
-        compute=writers,
+        compute=ray.data.ActorPoolStrategy(min_size=1, max_size=layout.writers),
         num_cpus=options.write_cpus,
     )
 
@@ -211,10 +377,11 @@ def run_pipeline(
         rows = iter(ds.iter_rows())
         first = next(rows, None)
     except ray.exceptions.GetTimeoutError as exc:
-        need = "1 GPU" if use_gpu else f"{actor_cpus:g} CPU"
+        need = {"gpu": "1 GPU", "cpu": f"{layout.actor_cpus:g} CPU", "shared": "their CPUs"}
         raise ClusterCapacityError(
-            f"the {actors} model actor(s) did not start within {options.actor_start_timeout:g} s: "
-            f"the Ray cluster does not offer {need} to each of them (see --actors)"
+            f"the pipeline's actors ({layout.describe(options)}) did not start within "
+            f"{options.actor_start_timeout:g} s: the Ray cluster does not offer "
+            f"{need[layout.model]} to each model actor (see --actors)"
         ) from exc
     for row in itertools.chain([first] if first is not None else [], rows):
         if cancel is not None and cancel.is_set():
@@ -249,6 +416,44 @@ def run_pipeline(
     result.seconds = time.perf_counter() - start
     result.devices = sorted(devices)
     return result
+
+
+def _free_gpus(gpus: int) -> int:
+    """GPU model actors for a run that names no count: one per GPU free now, waiting up to
+    `FREE_GPU_WAIT_S` for one; one when none is free but an autoscaler can add GPUs (it then waits
+    `actor_start_timeout` for them); otherwise a `ClusterCapacityError` naming the numbers."""
+    import ray
+
+    deadline = time.monotonic() + FREE_GPU_WAIT_S
+    while not (free := int(ray.available_resources().get("GPU", 0))):
+        if time.monotonic() >= deadline:
+            break
+        time.sleep(0.5)
+    if free:
+        return free
+    most = _autoscaler_gpus()
+    if most > gpus:
+        log.info("no GPU is free; the autoscaler can grow the cluster to %d GPUs: waiting", most)
+        return 1
+    raise ClusterCapacityError(
+        f"none of the Ray cluster's {gpus} GPU(s) is free (0 of {gpus} after "
+        f"{FREE_GPU_WAIT_S:g} s: other actors, such as a gateway's model actors, hold them) and "
+        "the cluster cannot grow: submit the job to the gateway, which runs it on its own actors, "
+        "or start the gateway with fewer --actors than GPUs"
+    )
+
+
+def _autoscaler_gpus() -> int:
+    """The most GPUs the autoscaler may grow the cluster to, as Ray Train reads it; 0 where no
+    autoscaler reports one (a fixed cluster) or the driver cannot ask (through Ray Client)."""
+    import ray
+    from ray._private.state import state
+
+    try:
+        most = state.get_max_resources_from_cluster_config() or {}
+    except ray.exceptions.RaySystemError:
+        return 0
+    return int(most.get("GPU", 0))
 
 
 def _cpu_layout(options: PipelineOptions) -> tuple[int, float]:

@@ -1,9 +1,11 @@
 """A long-lived pool of model actors that labels single scans, in batches, for the gateway.
 
-`ScanPool` keeps `actors` Ray actors with the network loaded (one GPU each when asked, CPU
-otherwise) and sends each batch to the least busy one; Ray restarts an actor that dies and
-retries its calls, so a crash costs a delay, not a request. `LocalScanPool` has the same interface
-and runs the network in this process, for a gateway without a cluster.
+`ScanPool` keeps `actors` Ray actors with the network loaded and warmed up (one GPU each when
+asked, CPU otherwise) and sends each batch to the least busy one; Ray restarts an actor that dies
+and retries its calls, so a crash costs a delay, not a request. On a GPU cluster the gateway's jobs
+run on these actors too (`service.jobs.RayExecutor`), so the pool may hold every GPU and jobs
+still run. `LocalScanPool` has the same interface and runs the network in this process, for a
+gateway without a cluster.
 """
 
 from __future__ import annotations
@@ -19,7 +21,8 @@ import numpy as np
 
 from rangeret.inference import Predictor, PredictorSpec
 from rangeret.projection import Projection
-from workers.pipeline import GPU_ACTOR_CPUS
+from workers.pipeline import GPU_ACTOR_CPUS, warm_up
+from workers.pipeline import label_batch as label_record
 
 log = logging.getLogger(__name__)
 
@@ -28,7 +31,7 @@ class ScanWorker:
     """The state of one model actor: its predictor as the spec builds it, and one without kNN.
 
     `spec_predictor` refines with kNN only when the spec asks for it; `knn=False` requests get
-    `without_knn`, which shares its network.
+    `without_knn`, which shares its network. The network is warmed up before the worker answers.
     """
 
     def __init__(self, spec: PredictorSpec, cpus: float = 1.0) -> None:
@@ -47,6 +50,7 @@ class ScanWorker:
         )
         if knn is None:
             self.spec_predictor = self.without_knn
+        self.warm_up_seconds = warm_up(self.spec_predictor)
 
     def info(self) -> dict:
         """Who this worker is: process, device and model, for health checks."""
@@ -69,9 +73,18 @@ class ScanWorker:
         )
         return [rejected[i] if i in rejected else next(labels) for i in range(len(scans))]
 
+    def label_batch(self, encoded: bytes) -> bytes:
+        """A job's batch (an encoded `workers.stages.BatchRecord`), labelled as the pipeline's
+        own model actors label it, with the spec's predictor."""
+        return label_record(self.spec_predictor, encoded)
+
 
 class ScanPool:
-    """Model actors on the connected Ray cluster, serving batches of scans."""
+    """Model actors on the connected Ray cluster, serving batches of scans.
+
+    By default one actor per GPU of the cluster (1 on CPU clusters). GPU actors reserve one GPU
+    each whatever device the spec names, so a spec with `device="cpu"` runs on logical GPUs.
+    """
 
     def __init__(
         self,
@@ -89,6 +102,7 @@ class ScanPool:
         count = actors or (gpus if use_gpu else 1)
         if use_gpu:
             actor_cpus = GPU_ACTOR_CPUS
+        self.use_gpu = use_gpu
         resources = {"num_gpus": 1, "num_cpus": actor_cpus} if use_gpu else {"num_cpus": actor_cpus}
         remote = ray.remote(max_restarts=-1, max_task_retries=-1, **resources)(ScanWorker)
         self.actors = [remote.remote(spec, actor_cpus) for _ in range(count)]

@@ -11,7 +11,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 from rangeret.atomic import atomic_path
 from rangeret.inference import Predictor, PredictorSpec
@@ -20,6 +20,9 @@ from rangeret.predict import is_complete, predict_tree
 from rangeret.profiles import DEFAULT_PROFILE, DatasetProfile, load_profile
 from rangeret.submission import TEST_SEQUENCES, required_directories
 from rangeret.zipfiles import ReproducibleZip
+
+if TYPE_CHECKING:
+    from workers.pool import ScanPool
 
 Progress = Callable[[int, int, int], None]
 
@@ -79,7 +82,13 @@ class LocalExecutor:
 
 
 class RayExecutor:
-    """`workers.pipeline.run_pipeline` on the connected Ray cluster."""
+    """`workers.pipeline.run_pipeline` on the connected Ray cluster.
+
+    Given the gateway's `pool` of GPU actors, jobs run on those actors (single-scan requests wait
+    behind at most two of a job's batches), since the pool holds one actor per GPU and a job would
+    find none free. Otherwise each job starts its own model actors (`actors`, or the pipeline's
+    default: one per free GPU, or per free CPU of a CPU cluster).
+    """
 
     backend = "ray"
 
@@ -89,11 +98,13 @@ class RayExecutor:
         profile: DatasetProfile,
         batch_size: int = 1,
         actors: int | None = None,
+        pool: ScanPool | None = None,
     ) -> None:
         self.spec = spec
         self.profile = profile
         self.batch_size = batch_size
         self.actors = actors
+        self.pool = pool
 
     def predict(
         self,
@@ -109,8 +120,16 @@ class RayExecutor:
 
         pending = [e for e in entries if not is_complete(e, out, self.profile.points)]
         options = PipelineOptions(batch_size=self.batch_size, actors=self.actors)
+        shared = self.pool.actors if self.pool is not None and self.pool.use_gpu else None
         result = run_pipeline(
-            self.spec, self.profile, pending, out, options, progress=progress, cancel=cancel
+            self.spec,
+            self.profile,
+            pending,
+            out,
+            options,
+            progress=progress,
+            cancel=cancel,
+            model_actors=shared,
         )
         return result.failed
 
