@@ -66,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--actors",
         type=int,
         metavar="N",
-        help="model actors (default: one per GPU; on CPU clusters one per free CPU of a node)",
+        help="model actors (default: one per free GPU; on CPU clusters one per free CPU of a node)",
     )
     p.add_argument(
         "--read-cpus", type=float, default=0.25, help="CPU share of each read + project actor"
