@@ -7,8 +7,10 @@ from __future__ import annotations
 import argparse
 import io
 import itertools
+import logging
 import math
 import time
+import warnings
 from fractions import Fraction
 from pathlib import Path
 
@@ -16,6 +18,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import data_path
+from torch.nn.parallel import DistributedDataParallel
 
 from rangeret.inference import Predictor
 from rangeret.io import read_scan
@@ -61,9 +64,11 @@ from rangeret.training.range_mixes import (
     rare_classes,
 )
 from rangeret.training.schedule import build_optimizer, build_scheduler
-from rangeret.training.trainer import STATE, find_scans, unused_parameters
+from rangeret.training.trainer import STATE, ddp_find_unused, find_scans, unused_parameters
 
 SMALL = {"height": 16, "width": 256}
+#: A one-block thesis network, for tests of the training step rather than of what it learns.
+TINY_NET = (("layers", 1), ("dim", 16), ("heads", 2))
 
 
 @pytest.fixture(autouse=True)
@@ -497,6 +502,40 @@ def test_unused_parameters_are_the_released_networks_gate():
     assert all(p.grad is None for p in cir.parameters())
 
 
+def test_ddp_looks_for_unused_parameters_only_for_the_released_network(caplog):
+    caplog.set_level(logging.INFO, logger="rangeret.training")
+    assert ddp_find_unused(build_model("rangeret-thesis", **SMALL)) is False
+    assert "without find_unused_parameters" in caplog.text
+    caplog.clear()
+    assert ddp_find_unused(build_model("rangeret-cir", **SMALL)) is True
+    assert all(f"backbone.retentions.{i}.g_proj.weight" in caplog.text for i in range(8))
+
+
+@pytest.mark.slow
+def test_ddp_in_a_one_process_group_runs_with_the_decided_flag(tmp_path):
+    """Two steps under DDP (gloo, one process) with `ddp_find_unused`'s flag work for both
+    networks; the released one fails without it, so the flag is needed there."""
+    dist = torch.distributed
+    dist.init_process_group(
+        "gloo", init_method=f"file://{tmp_path / 'group'}", rank=0, world_size=1
+    )
+    x = torch.randn(1, 5, *SMALL.values(), generator=torch.Generator().manual_seed(0))
+
+    def two_steps(model: torch.nn.Module, find_unused: bool) -> None:
+        network = DistributedDataParallel(model, find_unused_parameters=find_unused)
+        for _ in range(2):
+            network(x).square().mean().backward()
+
+    try:
+        for name in ("rangeret-thesis", "rangeret-cir"):
+            model = build_model(name, **SMALL, **dict(TINY_NET))
+            two_steps(model, ddp_find_unused(model))
+        with pytest.raises(RuntimeError, match="finished reduction in the prior iteration"):
+            two_steps(build_model("rangeret-cir", **SMALL, **dict(TINY_NET)), False)
+    finally:
+        dist.destroy_process_group()
+
+
 def test_train_config_round_trip_and_overrides():
     config = TrainConfig(
         dataset="d",
@@ -627,6 +666,162 @@ def test_missing_labels_are_reported(tmp_path):
     assert (velodyne_dir(root, "00") / "000001.bin").exists()
     with pytest.raises(ValueError, match=r"000001\.label is missing"):
         Trainer(small_config(root, tmp_path / "out", val_sequences=()))
+
+
+# Precision and host synchronisation ------------------------------------------------------------
+
+#: Host read-backs of a tensor: each waits for the device (and `.cpu()` copies it back).
+HOST_READS = (
+    "item",
+    "tolist",
+    "cpu",
+    "numpy",
+    "__array__",
+    "__float__",
+    "__int__",
+    "__index__",
+    "__bool__",
+    "__repr__",
+    "__format__",
+)
+
+
+def tiny_trainer(root: Path, out: Path, precision: str, **changes) -> Trainer:
+    """A one-epoch trainer of a one-block thesis network on the CPU, at `precision`."""
+    config = small_config(
+        root,
+        out,
+        precision=precision,
+        device="cpu",
+        val_sequences=(),
+        epochs=1,
+        model_overrides=TINY_NET,
+        **changes,
+    )
+    return Trainer(config)
+
+
+def test_precision_options_and_no_amp(tmp_path):
+    parser = train_parser()
+    required = ["--dataset", "d", "--out", "o", "--model", "rangeret-thesis"]
+    assert config_from_args(parser.parse_args(required)).precision == "auto"
+    fp32 = config_from_args(parser.parse_args([*required, "--precision", "fp32"]))
+    assert fp32.precision == "fp32"
+    assert config_from_args(parser.parse_args([*required, "--no-amp"])) == fp32
+    assert config_from_args(parser.parse_args([*required, "--no-amp", "--precision", "fp32"])) == (
+        fp32
+    )
+    for other in ("fp16", "bf16"):
+        args = parser.parse_args([*required, "--no-amp", "--precision", other])
+        with pytest.raises(ValueError, match=f"--no-amp .*--precision {other}"):
+            config_from_args(args)
+    with pytest.raises(ValueError, match="precision must be one of"):
+        TrainConfig(dataset="d", out="o", precision="fp8")
+    legacy = TrainConfig(dataset="d", out="o").to_dict()
+    del legacy["precision"]
+    assert TrainConfig.from_dict({**legacy, "amp": False}).precision == "fp32"
+    assert TrainConfig.from_dict({**legacy, "amp": True}).precision == "auto"
+    from workers.train_job import build_parser
+
+    job = build_parser().parse_args([*required, "--precision", "bf16"])
+    assert config_from_args(job).precision == "bf16"
+
+
+def test_bf16_and_fp32_training_steps_differ_on_the_cpu(sim_root, tmp_path):
+    """The same first step at bf16 and fp32: the network's layers see bf16 only in the first, and
+    losses and weights come out different; neither has a gradient scaler."""
+    results = {}
+    for precision in ("bf16", "fp32"):
+        trainer = tiny_trainer(sim_root, tmp_path / precision, precision)
+        assert trainer.precision == precision and not trainer.scaler.is_enabled()
+        dtypes = set()
+        for module in trainer.model.modules():
+            if isinstance(module, torch.nn.Linear):
+                module.register_forward_hook(lambda m, i, out, seen=dtypes: seen.add(out.dtype))
+        losses = trainer.train_step(collate([trainer.train_set[(0, 0)]]))
+        results[precision] = (dtypes, losses, trainer.model.state_dict())
+    bf16_dtypes, bf16_losses, bf16_weights = results["bf16"]
+    fp32_dtypes, fp32_losses, fp32_weights = results["fp32"]
+    assert bf16_dtypes == {torch.bfloat16} and fp32_dtypes == {torch.float32}
+    assert all(math.isfinite(v) for v in bf16_losses) and bf16_losses != fp32_losses
+    assert math.isclose(bf16_losses[0], fp32_losses[0], rel_tol=0.05)
+    assert any(not torch.equal(bf16_weights[k], fp32_weights[k]) for k in fp32_weights)
+    assert tiny_trainer(sim_root, tmp_path / "fp16", "fp16").scaler.is_enabled()
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16", "fp16"])
+def test_a_training_step_reads_the_device_back_once(precision, sim_root, tmp_path, monkeypatch):
+    """One `train_step` calls exactly one host read-back: `.tolist()` of its stacked losses.
+
+    Every method of HOST_READS is counted during the step (the second, after the one that fills
+    the network's caches). fp16 has the gradient scaler, whose overflow check stays on the device.
+    """
+    trainer = tiny_trainer(sim_root, tmp_path / "run", precision)
+    batch = collate([trainer.train_set[(0, 0)]])
+    trainer.train_step(batch)
+    calls = []
+    for name in HOST_READS:
+        original = getattr(torch.Tensor, name)
+
+        def counted(self, *args, _name=name, _original=original, **kwargs):
+            calls.append(_name)
+            return _original(self, *args, **kwargs)
+
+        monkeypatch.setattr(torch.Tensor, name, counted)
+    values = trainer.train_step(batch)
+    monkeypatch.undo()
+    assert calls == ["tolist"]
+    assert len(values) == 4 and all(isinstance(v, float) for v in values)
+    assert trainer.epoch_batches == 2 and trainer.epoch_confusion.sum() == 2 * 16 * 256
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("precision", ["fp32", "bf16", "fp16"])
+def test_a_cuda_training_step_synchronises_once(precision, sim_root, tmp_path):
+    """torch's sync debug mode reports every operation that waits for the GPU: one step (after a
+    warm-up step) has exactly one, the read-back of its losses."""
+    trainer = Trainer(
+        small_config(
+            sim_root,
+            tmp_path / "run",
+            precision=precision,
+            device="cuda",
+            val_sequences=(),
+            epochs=1,
+            model_overrides=TINY_NET,
+        )
+    )
+    batch = {k: v.pin_memory() for k, v in collate([trainer.train_set[(0, 0)]]).items()}
+    trainer.train_step(batch)
+    torch.cuda.synchronize()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            trainer.train_step(batch)
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    syncs = [w for w in caught if "synchroniz" in str(w.message)]
+    assert len(syncs) == 1, [str(w.message) for w in syncs]
+
+
+def test_the_precision_is_recorded_and_pinned_on_resume(sim_root, tmp_path, caplog):
+    caplog.set_level(logging.INFO, logger="rangeret.training")
+    out = tmp_path / "run"
+    tiny_trainer(sim_root, out, "bf16", max_steps=2).fit(until_step=1)
+    assert "in bf16" in caplog.text
+    meta = load_checkpoint(out / "last.pt").checkpoint_info.metadata
+    assert meta["precision"] == "bf16" and meta["train_config"]["precision"] == "bf16"
+    state = torch.load(out / STATE, weights_only=True)
+    assert state["config"]["precision"] == "bf16" and state["scaler"] == {}
+    for other in ("fp32", "auto", "fp16"):
+        with pytest.raises(ValueError, match=r"precision: 'bf16' -> '(fp32|fp16)'"):
+            tiny_trainer(sim_root, out, other, max_steps=2, resume=True)
+    resumed = tiny_trainer(sim_root, out, "bf16", max_steps=2, resume=True)
+    assert resumed.step == 1 and resumed.precision == "bf16"
+    auto = tiny_trainer(sim_root, tmp_path / "auto", "auto", max_steps=1)
+    assert auto.precision == "fp32" and auto.config.precision == "fp32"
 
 
 # Dataset profiles ------------------------------------------------------------------------------

@@ -26,7 +26,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from rangeret.errors import run_command
+from rangeret.precision import resolve_precision
 from rangeret.training import TrainConfig, Trainer, config_from_args
 from rangeret.training.command import add_training_options
 from rangeret.training.config import profile_reference
@@ -101,6 +104,7 @@ def run_ray(config: TrainConfig, workers: int = 2, max_failures: int = 0) -> Pat
 
     connect(None)
     gpu = use_gpus(config.device, workers)
+    precision = resolve_precision(config.precision, torch.device("cuda" if gpu else "cpu"))
     trainer = TorchTrainer(
         train_loop,
         train_loop_config=config.to_dict(),
@@ -113,11 +117,12 @@ def run_ray(config: TrainConfig, workers: int = 2, max_failures: int = 0) -> Pat
         ),
     )
     log.info(
-        "training %s (%s profile) on %d Ray workers (%s)",
+        "training %s (%s profile) on %d Ray workers (%s) in %s",
         config.model,
         profile.name,
         workers,
         "GPU" if gpu else "CPU",
+        precision,
     )
     trainer.fit()
     return out

@@ -13,7 +13,7 @@ from typing import Any
 
 from rangeret.models import list_models
 from rangeret.models.configs import OVERRIDES
-from rangeret.options import add_profile_option, add_projection_options
+from rangeret.options import add_precision_option, add_profile_option, add_projection_options
 from rangeret.plugins import TRAIN_BACKENDS_GROUP, TrainBackend, load_plugins
 from rangeret.training.config import TrainConfig, profile_reference
 from rangeret.training.losses import LOSSES, WEIGHTINGS
@@ -170,7 +170,12 @@ def add_training_options(parser: argparse.ArgumentParser) -> None:
         metavar="NORM",
         help="clip the gradient norm (default 1; 0 turns clipping off)",
     )
-    opt.add_argument("--no-amp", action="store_true", help="no fp16 mixed precision on CUDA")
+    add_precision_option(opt)
+    opt.add_argument(
+        "--no-amp",
+        action="store_true",
+        help="the same as --precision fp32 (no mixed precision), kept for older command lines",
+    )
     opt.add_argument(
         "--seed",
         type=int,
@@ -221,6 +226,19 @@ def parse_override(text: str) -> tuple[str, Any]:
     return name, value
 
 
+def precision_from_args(args: argparse.Namespace) -> str:
+    """--precision, with --no-amp read as fp32; a --precision that contradicts --no-amp is a
+    ValueError naming both."""
+    if not args.no_amp:
+        return args.precision
+    if args.precision not in ("auto", "fp32"):
+        raise ValueError(
+            f"--no-amp means --precision fp32 and contradicts --precision {args.precision}: "
+            "give one of them"
+        )
+    return "fp32"
+
+
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
     """The `TrainConfig` of parsed `rangeret train` options (ValueError on invalid values); paths
     are made absolute, so that workers in other folders and resumed runs read the same ones."""
@@ -249,7 +267,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         class_weighting=args.class_weights,
         focal_gamma=args.focal_gamma,
         clip_grad=args.clip_grad,
-        amp=not args.no_amp,
+        precision=precision_from_args(args),
         augment=not args.no_augment,
         mixes=tuple(args.mixes),
         mix_probability=args.mix_probability,

@@ -4,6 +4,8 @@ It travels to Ray workers as a dict, is stored in every checkpoint's metadata an
 state, and a resumed run must agree with it on every field that changes the arithmetic
 (`RUNTIME_FIELDS` are the ones that may differ). The dataset profile is held by name (a built-in)
 or by absolute file path; `dataset_profile()` resolves it with the explicit options in its place.
+`precision` is one of `rangeret.precision.PRECISIONS`; the trainer records the one it resolves to
+(`auto` is fp16 on CUDA, fp32 on the CPU), so a resumed run keeps the arithmetic it started with.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from rangeret.labels import LabelConfig, load_label_config
+from rangeret.precision import PRECISIONS
 from rangeret.profiles import BUILTIN_PROFILES, DEFAULT_PROFILE, DatasetProfile, load_profile
 from rangeret.projection import ProjectionConfig
 from rangeret.training.losses import LOSSES, WEIGHTINGS
@@ -68,7 +71,7 @@ class TrainConfig:
     class_weighting: str = "inverse-sqrt"
     focal_gamma: float = 2.0
     clip_grad: float = 1.0
-    amp: bool = True
+    precision: str = "auto"
     augment: bool = True
     mixes: tuple[str, ...] = ()
     mix_probability: float = 0.5
@@ -109,6 +112,10 @@ class TrainConfig:
             (
                 self.clip_grad >= 0,
                 f"clip_grad must not be negative (0 turns clipping off), got {self.clip_grad}",
+            ),
+            (
+                self.precision in PRECISIONS,
+                f"precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}",
             ),
             (set(self.mixes) <= set(MIXES), f"mixes must be chosen from {MIXES}, got {self.mixes}"),
             (
@@ -171,12 +178,15 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> TrainConfig:
-        """Inverse of `to_dict`; unknown fields raise ValueError."""
+        """Inverse of `to_dict`; unknown fields raise ValueError. The `amp` flag of runs saved
+        before `precision` existed reads as precision auto (amp on) or fp32 (amp off)."""
+        values = dict(data)
+        if "amp" in values and "precision" not in values:
+            values["precision"] = "auto" if values.pop("amp") else "fp32"
         names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - names)
+        unknown = sorted(set(values) - names)
         if unknown:
             raise ValueError(f"unknown training settings: {', '.join(unknown)}")
-        values = dict(data)
         for key in ("train_sequences", "val_sequences", "losses", "mixes"):
             if values.get(key) is not None:
                 values[key] = tuple(values[key])

@@ -63,10 +63,14 @@ def class_weights(
 def weighted_cross_entropy(
     logits: torch.Tensor, labels: torch.Tensor, weights: torch.Tensor, ignore_index: int = 0
 ) -> torch.Tensor:
-    """Eq. 4.4 over (B, C, H, W) logits and (B, H, W) labels, weighted mean over labelled pixels."""
-    if not (labels != ignore_index).any():
-        return logits.sum() * 0.0
-    return F.cross_entropy(logits, labels, weight=weights, ignore_index=ignore_index)
+    """Eq. 4.4 over (B, C, H, W) logits and (B, H, W) labels, weighted mean over labelled pixels
+    (torch's weighted mean; 0 when no pixel is labelled)."""
+    keep = labels != ignore_index
+    per_pixel = F.cross_entropy(
+        logits, labels, weight=weights, ignore_index=ignore_index, reduction="none"
+    )
+    total = weights.to(per_pixel.dtype)[torch.where(keep, labels, 0)] * keep
+    return per_pixel.sum() / total.sum().clamp_min(torch.finfo(per_pixel.dtype).tiny)
 
 
 def focal_loss(
@@ -79,13 +83,11 @@ def focal_loss(
     """Eq. 4.9: mean over labelled pixels of -alpha_t (1 - p_t)^gamma log p_t; `alpha` is (C,)."""
     log_p = F.log_softmax(logits, dim=1)
     keep = labels != ignore_index
-    if not keep.any():
-        return logits.sum() * 0.0
-    target = labels.clamp(min=0).unsqueeze(1)
-    log_pt = log_p.gather(1, target).squeeze(1)[keep]
+    target = torch.where(keep, labels, 0)
+    log_pt = log_p.gather(1, target.unsqueeze(1)).squeeze(1)
     pt = log_pt.exp()
-    alpha_t = alpha.to(logits.dtype)[labels[keep]]
-    return (-alpha_t * (1.0 - pt).pow(gamma) * log_pt).mean()
+    alpha_t = alpha.to(logits.dtype)[target] * keep
+    return (-alpha_t * (1.0 - pt).pow(gamma) * log_pt).sum() / keep.sum().clamp_min(1)
 
 
 def lovasz_gradient(sorted_truth: torch.Tensor) -> torch.Tensor:
@@ -108,21 +110,22 @@ def lovasz_softmax(
     """Eq. 4.7 over (B, C, H, W) probabilities (or (P, C)) and (B, H, W) (or (P,)) labels.
 
     Averaged over the classes present among the labelled pixels; 0 when no pixel is labelled.
+    Unlabelled pixels keep their place with error 0 and no class, so they sort after every error
+    that counts and change no term; with the classes masked rather than selected, no shape
+    depends on the data and the loss needs no host synchronisation.
     """
     if probabilities.dim() == 4:
         probabilities = probabilities.permute(0, 2, 3, 1).reshape(-1, probabilities.shape[1])
     labels = labels.reshape(-1)
-    keep = labels != ignore_index
-    probs, labels = probabilities[keep], labels[keep]
-    if labels.numel() == 0:
-        return probabilities.sum() * 0.0
-    present = torch.unique(labels)
-    truth = (labels[:, None] == present[None, :]).to(probs.dtype)
-    errors = (truth - probs[:, present]).abs()
+    keep = (labels != ignore_index).unsqueeze(1)
+    classes = torch.arange(probabilities.shape[1], device=labels.device)
+    truth = ((labels[:, None] == classes[None, :]) & keep).to(probabilities.dtype)
+    errors = (truth - probabilities).abs() * keep
     sorted_errors, order = torch.sort(errors, dim=0, descending=True)
     sorted_truth = truth.gather(0, order)
     per_class = (sorted_errors * lovasz_gradient(sorted_truth)).sum(dim=0)
-    return per_class.mean()
+    present = truth.sum(dim=0) > 0
+    return (per_class * present).sum() / present.sum().clamp_min(1)
 
 
 class SegmentationLoss(nn.Module):

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
+from typing import Any
 
 import torch
 
@@ -31,8 +32,22 @@ BETA1_RANGE = (0.95, 0.85)
 def build_optimizer(
     parameters: Iterable[torch.nn.Parameter], lr: float = 1e-3, weight_decay: float = 0.05
 ) -> torch.optim.AdamW:
-    """AdamW with the thesis's settings (betas 0.9/0.999, eps 1e-8 as in Algorithm 1)."""
-    return torch.optim.AdamW(parameters, lr=lr, weight_decay=weight_decay)
+    """AdamW with the thesis's settings (betas 0.9/0.999, eps 1e-8 as in Algorithm 1), fused:
+    its step counters stay on the device and it takes the fp16 gradient scaler's overflow check
+    there, so a step never waits for the device (torch < 2.4 has no fused CPU kernel)."""
+    params = list(parameters)
+    try:
+        return torch.optim.AdamW(params, lr=lr, weight_decay=weight_decay, fused=True)
+    except RuntimeError:
+        return torch.optim.AdamW(params, lr=lr, weight_decay=weight_decay)
+
+
+def load_optimizer_state(optimizer: torch.optim.Optimizer, state: dict[str, Any]) -> None:
+    """Load `state` into `optimizer`, keeping its own kernel choice (fused or not), so that a state
+    saved by another implementation (the unfused AdamW of earlier runs) continues fused."""
+    kernels = [{k: g[k] for k in ("fused", "foreach") if k in g} for g in optimizer.param_groups]
+    groups = [{**saved, **own} for saved, own in zip(state["param_groups"], kernels, strict=True)]
+    optimizer.load_state_dict({**state, "param_groups": groups})
 
 
 def _cosine_step(start: float, end: float, progress: float) -> float:

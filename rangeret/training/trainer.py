@@ -19,16 +19,26 @@ pixels), on the points (each point takes its pixel's class) and on the points af
 with the profile's voting rule (`rangeret.point_labels.point_classes`), with the official
 semantics of `rangeret.metrics`.
 
+The training step and the validation forward run at the config's `precision`
+(`rangeret.precision`; auto is fp16 on CUDA, fp32 on the CPU), with a gradient scaler for fp16
+only. The precision used is logged at the start, recorded in the checkpoints and the resume
+state, and a resume at another precision is refused. A step reads back from the device once: its
+losses, as one list (`Trainer.train_step`); confusion counts stay on the device until the epoch
+ends, and the fused AdamW takes the fp16 scaler's overflow check on the device.
+
 When torch.distributed is initialised (by Ray Train's TorchTrainer or torchrun) the network is
 wrapped in DistributedDataParallel, each rank trains on its share of every epoch, validation
 confusion matrices are summed across ranks, and rank 0 writes the files. Parameters that take no
-part in the loss (the released network's `g_proj`) are found by one small dry run and DDP is then
-told to expect them (`find_unused_parameters`).
+part in the loss (the released network's `g_proj`) are found by one small dry run and logged; DDP
+is told to look for unused parameters (`find_unused_parameters`, a graph walk every step) only
+when there are some (`ddp_find_unused`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
+import dataclasses
 import logging
 import random
 import time
@@ -51,13 +61,14 @@ from rangeret.layout import DatasetLayoutError, ScanEntry, discover, resolve_seq
 from rangeret.metrics import ConfusionMatrix
 from rangeret.models import RangeRet, build_model, save_checkpoint
 from rangeret.point_labels import KnnSettings, point_classes
+from rangeret.precision import forward_precision, resolve_precision
 from rangeret.profiles import DatasetProfile, ProfileError, profile_of_record
 from rangeret.training.config import TrainConfig
 from rangeret.training.dataset import EpochSampler, RangeDataset, collate, steps_per_epoch
 from rangeret.training.logs import CsvLog, plot_curves
 from rangeret.training.losses import SegmentationLoss, class_weights
 from rangeret.training.range_mixes import MixSettings, rare_classes
-from rangeret.training.schedule import build_optimizer, build_scheduler
+from rangeret.training.schedule import build_optimizer, build_scheduler, load_optimizer_state
 
 log = logging.getLogger("rangeret.training")
 
@@ -111,6 +122,14 @@ class Ranks:
         work = tensor.to(self.device, copy=True)
         dist.all_reduce(work, op=dist.ReduceOp.SUM)
         return work.to(tensor.device)
+
+    def mean_to_host(self, tensor: torch.Tensor) -> list[float]:
+        """`tensor` averaged over all ranks, read back to the host in one transfer."""
+        if self.world_size == 1:
+            return tensor.tolist()
+        work = tensor.to(self.device, copy=True)
+        dist.all_reduce(work, op=dist.ReduceOp.SUM)
+        return (work / self.world_size).tolist()
 
     def barrier(self) -> None:
         """Wait for every rank."""
@@ -176,6 +195,21 @@ def unused_parameters(model: torch.nn.Module) -> list[str]:
     return [name for name, p in probe.named_parameters() if p.requires_grad and p.grad is None]
 
 
+def ddp_find_unused(model: torch.nn.Module) -> bool:
+    """Whether DDP must look for unused parameters (`find_unused_parameters`): only when
+    `unused_parameters` finds some, since the search walks the autograd graph every step."""
+    unused = unused_parameters(model)
+    if unused:
+        log.info(
+            "%d parameters take no part in the loss, DDP will look for unused parameters: %s",
+            len(unused),
+            ", ".join(unused),
+        )
+    else:
+        log.info("every parameter takes part in the loss: DDP runs without find_unused_parameters")
+    return bool(unused)
+
+
 def save_atomic(payload: Any, path: Path) -> None:
     """torch.save `payload` to `path` atomically."""
     with atomic_path(path) as tmp:
@@ -231,7 +265,12 @@ def find_scans(
 
 def read_state(path: Path, config: TrainConfig, profile: DatasetProfile) -> dict[str, Any]:
     """The resume state at `path`, checked against the run that continues it: same profile
-    (states from before profiles were SemanticKITTI's) and same settings but `RUNTIME_FIELDS`."""
+    (states from before profiles were SemanticKITTI's) and same settings but `RUNTIME_FIELDS`.
+
+    The precision is compared as resolved (the trainer records fp16, fp32 or bf16); `auto` on
+    either side (a state from before precisions were recorded, or a launcher that does not know
+    its workers' device) is left to the check where both are known.
+    """
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:
@@ -249,6 +288,8 @@ def read_state(path: Path, config: TrainConfig, profile: DatasetProfile) -> dict
             f"cannot resume {path}: the run was started with the {recorded.name} profile and "
             f"cannot continue with the {profile.name} profile (pass --profile {stored.profile})"
         )
+    if "auto" in (stored.precision, config.precision):
+        config = dataclasses.replace(config, precision=stored.precision)
     changed = stored.with_projection(recorded.projection).differences(
         config.with_projection(profile.projection)
     )
@@ -277,11 +318,13 @@ class Trainer:
         device: str | torch.device | None = None,
         on_epoch_end: Callable[[dict[str, Any]], None] | None = None,
     ) -> None:
-        self.config = config
         self.out = Path(config.out)
         self.device = select_device(device if device is not None else config.device)
         if self.device.type == "cuda" and self.device.index is None:
             self.device = torch.device("cuda", torch.cuda.current_device())
+        self.precision = resolve_precision(config.precision, self.device)
+        config = dataclasses.replace(config, precision=self.precision)
+        self.config = config
         self.ranks = Ranks.detect(self.device)
         self.on_epoch_end = on_epoch_end
         self.profile = training_profile(config, label_config)
@@ -341,8 +384,7 @@ class Trainer:
         self.scheduler = build_scheduler(
             self.optimizer, config.schedule, self.total_steps, config.max_lr, config.warmup
         )
-        self.amp = config.amp and self.device.type == "cuda"
-        self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp)
+        self.scaler = torch.amp.GradScaler(self.device.type, enabled=self.precision == "fp16")
 
         self.step = 0
         self.best: dict[str, Any] | None = None
@@ -352,17 +394,10 @@ class Trainer:
 
         self.network: torch.nn.Module = self.model
         if self.ranks.world_size > 1:
-            unused = unused_parameters(self.model)
-            if unused:
-                log.info(
-                    "%d parameters take no part in the loss (%s, ...): DDP will expect them",
-                    len(unused),
-                    unused[0],
-                )
             self.network = DistributedDataParallel(
                 self.model,
                 device_ids=[self.device.index] if self.device.type == "cuda" else None,
-                find_unused_parameters=bool(unused),
+                find_unused_parameters=ddp_find_unused(self.model),
             )
         self.loss_names = ("loss", *self.criterion.losses)
         self.steps_log = CsvLog(self.out / STEPS_CSV, ["step", "epoch", *self.loss_names, "lr"])
@@ -401,7 +436,9 @@ class Trainer:
     def _reset_epoch_totals(self) -> None:
         self.epoch_loss = torch.zeros(1 + len(self.criterion.losses), dtype=torch.float64)
         self.epoch_batches = 0
-        self.epoch_confusion = torch.zeros(self.num_classes * self.num_classes, dtype=torch.int64)
+        self.epoch_confusion = torch.zeros(
+            self.num_classes * self.num_classes, dtype=torch.int64, device=self.device
+        )
         self.epoch_started = time.perf_counter()
         self.epoch_seconds = 0.0
 
@@ -418,7 +455,7 @@ class Trainer:
         stop = self.total_steps if until_step is None else min(until_step, self.total_steps)
         log.info(
             "%s (%s profile) at %dx%d: %d training and %d validation scans, %d steps per epoch, "
-            "%d steps (%d epochs) on %s x %d%s",
+            "%d steps (%d epochs) on %s x %d in %s%s",
             self.config.model,
             self.profile.name,
             self.projection.height,
@@ -430,6 +467,7 @@ class Trainer:
             self.num_epochs,
             self.device,
             self.ranks.world_size,
+            self.precision,
             f", resumed at step {self.step}" if self.step else "",
         )
         while self.step < stop:
@@ -494,15 +532,20 @@ class Trainer:
         self.epoch_seconds += time.perf_counter() - self.epoch_started
 
     def train_step(self, batch: Mapping[str, Any]) -> list[float]:
-        """One optimiser step on a batch; returns [total loss, *terms] averaged over ranks."""
+        """One optimiser step on a batch; returns [total loss, *terms] averaged over ranks.
+
+        That list is the step's one read-back from the device (`.tolist()` of the stacked terms);
+        nothing else in the step waits for the device.
+        """
         self.network.train()
         images = batch["image"].to(self.device, non_blocking=True)
         labels = batch["label"].to(self.device, non_blocking=True)
-        with torch.autocast(self.device.type, dtype=torch.float16, enabled=self.amp):
+        with forward_precision(self.precision, self.device):
             logits = self.network(images)
         loss, terms = self.criterion(logits, labels)
         self.optimizer.zero_grad(set_to_none=True)
-        self.scaler.scale(loss).backward()
+        with self._backward_precision():
+            self.scaler.scale(loss).backward()
         if self.config.clip_grad > 0:
             self.scaler.unscale_(self.optimizer)
             torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.clip_grad)
@@ -513,12 +556,19 @@ class Trainer:
         with torch.no_grad():
             pred = logits.detach().argmax(dim=1)
             cells = (pred * self.num_classes + labels).reshape(-1)
-            self.epoch_confusion += torch.bincount(cells, minlength=self.num_classes**2).cpu()
+            self.epoch_confusion.index_add_(0, cells, torch.ones_like(cells))
             values = torch.stack([loss.detach(), *(t.detach() for t in terms.values())]).double()
-            values = self.ranks.sum(values) / self.ranks.world_size
-        self.epoch_loss += values.cpu()
+        means = self.ranks.mean_to_host(values)
+        self.epoch_loss += torch.tensor(means, dtype=torch.float64)
         self.epoch_batches += 1
-        return values.tolist()
+        return means
+
+    def _backward_precision(self) -> contextlib.AbstractContextManager[None]:
+        """fp32's setting (TF32 off on CUDA) for the backward pass too; under autocast the
+        backward pass follows the forward pass's dtypes by itself."""
+        if self.precision == "fp32":
+            return forward_precision("fp32", self.device)
+        return contextlib.nullcontext()
 
     def _loader(self, dataset: RangeDataset, sampler: EpochSampler) -> DataLoader:
         """Batches of `sampler`'s keys. The loader's own generator (it seeds its worker processes)
@@ -586,8 +636,8 @@ class Trainer:
             shuffle=False,
             pad=False,
         )
-        counts = torch.zeros(3, c * c, dtype=torch.int64)
-        loss_sum = torch.zeros(2, dtype=torch.float64)
+        counts = torch.zeros(3, c * c, dtype=torch.int64, device=self.device)
+        loss_sum = torch.zeros(2, dtype=torch.float64, device=self.device)
         bar = tqdm(
             total=len(sampler),
             desc="validation",
@@ -598,12 +648,13 @@ class Trainer:
         for batch in self._loader(self.val_set, sampler):
             images = batch["image"].to(self.device)
             labels = batch["label"].to(self.device)
-            with torch.autocast(self.device.type, dtype=torch.float16, enabled=self.amp):
+            with forward_precision(self.precision, self.device):
                 logits = self.model(images)
             loss, _ = self.criterion(logits, labels)
-            loss_sum += torch.tensor([float(loss) * len(images), len(images)], dtype=torch.float64)
+            loss_sum[0] += loss.double() * len(images)
+            loss_sum[1] += len(images)
             argmax = logits.argmax(dim=1)
-            counts[0] += torch.bincount((argmax * c + labels).reshape(-1), minlength=c * c).cpu()
+            counts[0] += torch.bincount((argmax * c + labels).reshape(-1), minlength=c * c)
             for i in range(len(images)):
                 truth = batch["point_labels"][i].to(self.device)
                 projection = (
@@ -615,14 +666,12 @@ class Trainer:
                 rule = {"votes_from": self.profile.knn.votes_from, "unlabeled": self.unlabeled}
                 points = point_classes(argmax[i], *projection, None, c, **rule)
                 refined = point_classes(argmax[i], *projection, self.knn, c, **rule)
-                counts[1] += torch.bincount(points * c + truth, minlength=c * c).cpu()
-                counts[2] += torch.bincount(
-                    refined.to(truth.dtype) * c + truth, minlength=c * c
-                ).cpu()
+                counts[1] += torch.bincount(points * c + truth, minlength=c * c)
+                counts[2] += torch.bincount(refined.to(truth.dtype) * c + truth, minlength=c * c)
             bar.update(len(images))
         bar.close()
         counts = self.ranks.sum(counts)
-        loss_sum = self.ranks.sum(loss_sum)
+        loss_sum = self.ranks.sum(loss_sum).cpu()
         image, points, knn = (self._matrix(counts[i]) for i in range(3))
         return {
             "val_loss": float(loss_sum[0] / max(loss_sum[1], 1)),
@@ -671,6 +720,7 @@ class Trainer:
             },
             "losses": list(self.criterion.losses),
             "class_weighting": config.class_weighting,
+            "precision": self.precision,
             "world_size": self.ranks.world_size,
             "train_scans": len(self.train_set),
             "val_scans": len(self.val_set),
@@ -723,14 +773,14 @@ class Trainer:
         return {
             "loss": self.epoch_loss.clone(),
             "batches": self.epoch_batches,
-            "confusion": self.epoch_confusion.clone(),
+            "confusion": self.epoch_confusion.cpu().clone(),
             "seconds": self.epoch_seconds,
         }
 
     def _restore(self, path: Path, state: Mapping[str, Any]) -> None:
         """Restore everything `_save` wrote, from the state `read_state` checked."""
         self.model.load_state_dict(state["model"])
-        self.optimizer.load_state_dict(state["optimizer"])
+        load_optimizer_state(self.optimizer, state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
         if state["scaler"]:
             self.scaler.load_state_dict(state["scaler"])
@@ -740,7 +790,7 @@ class Trainer:
         if totals:
             self.epoch_loss = totals["loss"].clone()
             self.epoch_batches = int(totals["batches"])
-            self.epoch_confusion = totals["confusion"].clone()
+            self.epoch_confusion = totals["confusion"].to(self.device, copy=True)
             self.epoch_seconds = float(totals["seconds"])
         set_rng_state(state["rng"])
         log.info("resumed from %s at step %d", path, self.step)
