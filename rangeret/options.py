@@ -124,7 +124,7 @@ def add_precision_option(parser: argparse.ArgumentParser | argparse._ArgumentGro
         "--precision",
         default="auto",
         choices=list(PRECISIONS),
-        help="forward pass precision; auto is fp16 on CUDA and fp32 on the CPU (default)",
+        help="precision of the network's passes; auto is fp16 on CUDA and fp32 on the CPU (default)",
     )
 
 
