@@ -1,9 +1,9 @@
 """Network latency per scan: both RangeRet networks at 64x1024 and 64x2048, batch 1.
 
 Prints parameter counts, FLOPs per pass (torch's flop counter), the median forward time on the
-CPU (fp32, torch's thread count; 2 on the reference machine) and the achieved GFLOP/s against the
-reference machine's matmul peak of about 225 GFLOP/s; on CUDA also fp32 and fp16-autocast times.
-Run by hand: `python benchmarks/bench_models.py [--repeat N]`.
+CPU (fp32 and bf16 autocast, torch's thread count; 2 on the reference machine) and the fp32
+GFLOP/s against the reference machine's matmul peak of about 225 GFLOP/s; on CUDA also fp32 and
+fp16-autocast times. Run by hand: `python benchmarks/bench_models.py [--repeat N] [--size 64x1024]`.
 """
 
 from __future__ import annotations
@@ -23,6 +23,12 @@ RESOLUTIONS = ((64, 1024), (64, 2048))
 CPU_PEAK_GFLOPS = 225.0
 
 
+def parse_size(text: str) -> tuple[int, int]:
+    """(height, width) from HEIGHTxWIDTH."""
+    height, _, width = text.partition("x")
+    return int(height), int(width)
+
+
 def count_flops(model: torch.nn.Module, x: torch.Tensor) -> int:
     """FLOPs of one forward pass as torch's flop counter sees them (matmuls and convolutions)."""
     counter = FlopCounterMode(display=False)
@@ -32,11 +38,15 @@ def count_flops(model: torch.nn.Module, x: torch.Tensor) -> int:
 
 
 def time_forward(
-    model: torch.nn.Module, x: torch.Tensor, repeat: int, autocast: bool = False
+    model: torch.nn.Module, x: torch.Tensor, repeat: int, autocast: torch.dtype | None = None
 ) -> float:
-    """Median seconds of one forward pass (synchronised on CUDA)."""
+    """Median seconds of one forward pass, under autocast to `autocast` if given (synchronised on CUDA)."""
     cuda = x.device.type == "cuda"
-    amp = torch.autocast("cuda", dtype=torch.float16) if autocast else contextlib.nullcontext()
+    amp = (
+        torch.autocast(x.device.type, dtype=autocast)
+        if autocast is not None
+        else contextlib.nullcontext()
+    )
 
     def run() -> None:
         with torch.inference_mode(), amp:
@@ -77,16 +87,25 @@ def main() -> None:
     parser.add_argument(
         "--repeat", type=int, default=3, help="timed passes per case (median reported)"
     )
+    parser.add_argument(
+        "--size",
+        action="append",
+        type=parse_size,
+        help="HEIGHTxWIDTH to run, repeatable (default: 64x1024 and 64x2048)",
+    )
+    parser.add_argument(
+        "--no-mixing", action="store_true", help="skip the per-layer token-mixing timings"
+    )
     args = parser.parse_args()
     print(
         f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads, CUDA: {torch.cuda.is_available()}"
     )
     print(
         f"{'model':16} {'size':>8} {'params':>10} {'GFLOP':>7} {'cpu s':>7} {'GFLOP/s':>8} {'of peak':>8}"
-        + (f" {'cuda s':>7} {'fp16 s':>7}" if torch.cuda.is_available() else "")
+        f" {'bf16 s':>7}" + (f" {'cuda s':>7} {'fp16 s':>7}" if torch.cuda.is_available() else "")
     )
     for name in MODELS:
-        for height, width in RESOLUTIONS:
+        for height, width in args.size or RESOLUTIONS:
             model = build_model(name, height=height, width=width).eval()
             x = torch.randn(1, 5, height, width)
             params = sum(p.numel() for p in model.parameters())
@@ -95,14 +114,16 @@ def main() -> None:
             line = (
                 f"{name:16} {height}x{width:<5} {params:>10,} {gflop:>7.1f} {seconds:>7.2f} "
                 f"{gflop / seconds:>8.1f} {gflop / seconds / CPU_PEAK_GFLOPS:>8.0%}"
+                f" {time_forward(model, x, args.repeat, autocast=torch.bfloat16):>7.2f}"
             )
             if torch.cuda.is_available():
                 cuda = torch.device("cuda")
                 model.to(cuda)
                 xc = x.to(cuda)
-                line += f" {time_forward(model, xc, 10):>7.4f} {time_forward(model, xc, 10, autocast=True):>7.4f}"
+                line += f" {time_forward(model, xc, 10):>7.4f} {time_forward(model, xc, 10, autocast=torch.float16):>7.4f}"
             print(line, flush=True)
-    time_mixing(args.repeat)
+    if not args.no_mixing:
+        time_mixing(args.repeat)
 
 
 if __name__ == "__main__":

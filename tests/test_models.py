@@ -1,20 +1,25 @@
 """RangeRet networks: published fixtures, checkpoint loading and its errors, the thesis model and its
-ablations, the decay cache, and the fast token-mixing paths against the plain formulas."""
+ablations, the decay cache, the fast token-mixing paths against the plain formulas, and the choice
+among them."""
 
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
+import time
 from pathlib import Path
 
 import pytest
 import torch
 from conftest import load_vectors
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from rangeret.models import (
     CheckpointError,
     ModelConfig,
     build_model,
+    kernels,
     list_models,
     load_checkpoint,
     save_checkpoint,
@@ -542,3 +547,199 @@ def test_parallel_retention_equals_recurrent_with_unidirectional_decay():
     assert torch.allclose(parallel, recurrent, atol=1e-10)
     with pytest.raises(ValueError, match="unidirectional"):
         layer.forward_recurrent(x, grid, GridCache("circular", 2, 8))
+
+
+# --- compute dtype, aligned matrices and the choice among exact forms --------------------------
+
+#: Grids whose token count is not a multiple of 8, like 15 x 255 = 3825 at 64 x 1024.
+ODD_GRIDS = [(3, 7), (5, 13), (4, 11)]
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32, torch.float16, torch.bfloat16])
+def test_cached_matrices_are_aligned_views_in_the_asked_dtype(dtype):
+    grid, heads = (3, 7), 2
+    cache = GridCache("circular", heads, 4)
+    cpu = torch.device("cpu")
+    log_d = torch.log(decay_rates(heads))[:, None, None] * grid_distance("circular", *grid)
+    decay = torch.exp(log_d)
+    expected = {"bias_full": log_d, "decay_full": decay / decay.sum(-1, keepdim=True).sqrt()}
+    for kind, full in expected.items():
+        entry = cache.get(kind, grid, cpu, dtype)
+        assert entry.shape == (heads, 21, 21) and entry.dtype == dtype
+        assert entry.stride() == (21 * 24, 24, 1)
+        assert torch.allclose(entry.double(), full.to(dtype).double(), rtol=1e-12, atol=0)
+    for kind in ("bias_table", "decay_table", "decay_norm"):
+        assert cache.get(kind, grid, cpu, dtype).dtype == dtype
+
+
+def test_fused_attention_reads_the_aligned_bias_without_a_copy():
+    grid, heads = (3, 7), 2
+    q, k, v = random_heads(grid, heads, dk=8, dv=16, dtype=torch.float32)
+    bias = GridCache("circular", heads, 8).get("bias_full", grid, q.device, torch.float32)
+    seen = []
+
+    class Recorder(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            seen.append(func.__name__)
+            return func(*args, **(kwargs or {}))
+
+    with Recorder():
+        out = mixing.softmax_fused(q, k, v, bias)
+    assert not any(name.startswith(("constant_pad", "pad", "_to_copy", "clone")) for name in seen)
+    assert torch.allclose(out, mixing.softmax_plain(q, k, v, bias), atol=1e-5)
+
+
+@pytest.mark.parametrize("grid", ODD_GRIDS)
+@pytest.mark.parametrize("decay", DECAYS)
+def test_every_form_equals_plain_at_fp32_for_odd_token_counts(decay, grid):
+    heads = 3
+    q, k, v = random_heads(grid, heads, dk=4, dv=8, dtype=torch.float32, seed=2)
+    cache = GridCache(decay, heads, 4)
+    cpu = torch.device("cpu")
+    log_d = torch.log(decay_rates(heads))[:, None, None] * grid_distance(decay, *grid)
+    plain = mixing.retention_plain(q, k, v, torch.exp(log_d).float())
+    forms = {
+        "tiled": mixing.retention_tiled(
+            q,
+            k,
+            v,
+            cache.get("decay_table", grid, cpu, torch.float32),
+            cache.get("decay_norm", grid, cpu, torch.float32),
+            grid,
+            5,
+        ),
+        "full": mixing.retention_full(q, k, v, cache.get("decay_full", grid, cpu, torch.float32)),
+    }
+    for name, out in forms.items():
+        assert (out - plain).abs().max() < 1e-5, name
+    plain = mixing.softmax_plain(q, k, v, log_d.float())
+    forms = {
+        "tiled": mixing.softmax_tiled(
+            q, k, v, cache.get("bias_table", grid, cpu, torch.float32), grid, 5
+        ),
+        "fused": mixing.softmax_fused(q, k, v, cache.get("bias_full", grid, cpu, torch.float32)),
+    }
+    for name, out in forms.items():
+        assert (out - plain).abs().max() < 1e-5, name
+
+
+@pytest.mark.filterwarnings("ignore")
+@pytest.mark.parametrize("decay", DECAYS)
+def test_flex_score_mod_equals_the_bias(decay):
+    grid, heads = (5, 13), 3
+    q, k, v = random_heads(grid, heads, dk=4, dv=8, dtype=torch.float32, seed=3)
+    bias = torch.log(decay_rates(heads))[:, None, None] * grid_distance(decay, *grid)
+    score_mod = mixing.decay_score_mod(decay, grid, heads, torch.device("cpu"))
+    assert score_mod is mixing.decay_score_mod(decay, grid, heads, torch.device("cpu"))
+    out = mixing.softmax_flex(q, k, v, score_mod)
+    assert (out - mixing.softmax_plain(q, k, v, bias.float())).abs().max() < 1e-5
+
+
+class WideDispatch(TorchDispatchMode):
+    """Records the dtype of every op output with at least `numel` elements."""
+
+    def __init__(self, numel: int) -> None:
+        super().__init__()
+        self.numel = numel
+        self.dtypes: set[torch.dtype] = set()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        out = func(*args, **(kwargs or {}))
+        for t in out if isinstance(out, (tuple, list)) else (out,):
+            if isinstance(t, torch.Tensor) and t.numel() >= self.numel:
+                self.dtypes.add(t.dtype)
+        return out
+
+
+@pytest.mark.parametrize("name", ["rangeret-thesis", "rangeret-cir"])
+def test_bf16_passes_build_no_float32_token_matrices(name):
+    model = randomise(build_model(name, height=16, width=64, layers=1)).eval()
+    grid = model.config.grid
+    n = grid[0] * grid[1]
+    x = torch.randn(1, 5, 16, 64)
+    with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16):
+        model(x)  # builds the cache
+        wide = WideDispatch(model.config.heads * n * n)
+        with wide:
+            out = model(x)
+    assert torch.isfinite(out).all()
+    assert wide.dtypes <= {torch.bfloat16}
+    entries = model.backbone.cache.entries()
+    assert {key[3] for key in entries if key[0] != "rotary"} == {torch.bfloat16}
+    # the N x N forms that CUDA may choose keep to the compute dtype as well
+    cache = model.backbone.cache
+    q, k, v = random_heads(grid, 4, dk=32, dv=64, batch=1, dtype=torch.bfloat16)
+    cpu = torch.device("cpu")
+    with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16):
+        cache.get("decay_full" if "thesis" in name else "bias_full", grid, cpu, torch.bfloat16)
+        wide = WideDispatch(4 * n * n)
+        with wide:
+            if "thesis" in name:
+                decay = cache.get("decay_full", grid, cpu, torch.bfloat16)
+                mixing.retention_full(q, k, v, decay)
+            else:
+                mixing.softmax_fused(q, k, v, cache.get("bias_full", grid, cpu, torch.bfloat16))
+    assert wide.dtypes <= {torch.bfloat16}
+
+
+@pytest.fixture
+def measured_cpu(monkeypatch):
+    """Choose forms by measurement on the CPU too, from a clean slate."""
+    monkeypatch.setattr(kernels, "MEASURED", ("cpu",))
+    kernels.forget()
+    yield
+    kernels.forget()
+
+
+def test_choice_is_measured_once_checked_and_logged(measured_cpu, caplog):
+    q, _, v = random_heads((3, 7), 2, dtype=torch.float32)
+    reference = torch.ones(3)
+    calls = {"slow": 0, "fast": 0}
+
+    def slow():
+        calls["slow"] += 1
+        time.sleep(0.01)
+        return reference
+
+    def fast():
+        calls["fast"] += 1
+        return reference + 1e-7
+
+    def inexact():
+        return reference + 0.1
+
+    def broken():
+        raise RuntimeError("no kernel")
+
+    candidates = {"slow": slow, "inexact": inexact, "broken": broken, "fast": fast}
+    with caplog.at_level(logging.INFO, logger="rangeret.models.kernels"):
+        assert kernels.choose("op", candidates, "slow", q, v) == "fast"
+    assert "fast" in caplog.text and "inexact differs" in caplog.text
+    assert "broken failed: RuntimeError" in caplog.text
+    measured = dict(calls)
+    assert kernels.run("op", candidates, "slow", q, v) is not reference
+    assert calls == {"slow": measured["slow"], "fast": measured["fast"] + 1}
+    assert list(kernels.choices().values()) == ["fast"]
+    # without measurement the default runs
+    kernels.forget()
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(kernels, "MEASURED", ())
+        assert kernels.choose("op", candidates, "slow", q, v) == "slow"
+    assert kernels.choices() == {}
+
+
+@pytest.mark.filterwarnings("ignore")
+@pytest.mark.parametrize("name", ["rangeret-thesis", "rangeret-cir"])
+def test_measured_choice_keeps_the_logits(name, measured_cpu, monkeypatch):
+    monkeypatch.setattr(mixing, "flex_available", lambda device: True)
+    model = randomise(build_model(name, height=16, width=64, layers=2)).eval()
+    x = torch.randn(1, 5, 16, 64)
+    with torch.inference_mode():
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(kernels, "MEASURED", ())
+            expected = model(x)
+        out = model(x)
+    names = set(kernels.choices().values())
+    forms = {"full", "tiled"} if "thesis" in name else {"fused", "tiled", "flex"}
+    assert len(kernels.choices()) == 1 and names <= forms
+    assert (out - expected).abs().max() < 1e-4

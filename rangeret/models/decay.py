@@ -17,8 +17,10 @@ g(n, m) depends only on the row offset row_m - row_n and the two columns, so one
 (Wp, 2 Hp - 1, Wp) table holds every entry: the keys of query (r, c) are
 table[c, Hp - 1 - r : 2 Hp - 1 - r, :]. That is what the mixers read, block by block of queries,
 instead of an N x N matrix per head (N = 3825 at 64 x 1024). `GridCache` builds the tables once per
-grid shape, shares them across layers, keeps them out of the state_dict, and rebuilds them after
-the module moves.
+grid shape, device and compute dtype, shares them across layers, keeps them out of the state_dict,
+and rebuilds them after the module moves. Where a kernel needs the N x N matrix itself, the cache
+stores it with rows padded to a multiple of `ALIGN` and hands out the unpadded view, so that fused
+attention kernels take it as it is instead of padding a copy on every call.
 """
 
 from __future__ import annotations
@@ -32,6 +34,10 @@ from torch import nn
 from rangeret.models.position import rotary_angles
 
 DECAYS = ("unidirectional", "bidirectional", "manhattan", "exp-manhattan", "circular")
+
+#: Row stride, in elements, of the cached N x N matrices: fused attention kernels copy a bias
+#: whose strides are not multiples of 8 on every call.
+ALIGN = 8
 
 
 def decay_rates(heads: int) -> torch.Tensor:
@@ -75,6 +81,31 @@ def expand_table(table: torch.Tensor, hp: int) -> torch.Tensor:
     return full.flatten(-4, -3).flatten(-2, -1)
 
 
+def aligned_empty(heads: int, n: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    """(heads, N, N) view of a zeroed (heads, N, N rounded up to `ALIGN`) tensor."""
+    padded = -(-n // ALIGN) * ALIGN
+    return torch.zeros(heads, n, padded, device=device, dtype=dtype)[..., :n]
+
+
+def token_distance(
+    decay: str, grid: tuple[int, int], query: torch.Tensor, key: torch.Tensor
+) -> torch.Tensor:
+    """g(n, m) of `decay` from broadcastable integer token indices, in float32 (for kernels that
+    compute the decay from positions)."""
+    hp, wp = grid
+    row_offset = torch.div(key, wp, rounding_mode="floor") - torch.div(
+        query, wp, rounding_mode="floor"
+    )
+    return _distance(
+        decay,
+        hp,
+        wp,
+        row_offset.to(torch.float32),
+        torch.remainder(query, wp).to(torch.float32),
+        torch.remainder(key, wp).to(torch.float32),
+    )
+
+
 def _distance(
     decay: str, hp: int, wp: int, row_offset: torch.Tensor, col_n: torch.Tensor, col_m: torch.Tensor
 ) -> torch.Tensor:
@@ -108,9 +139,11 @@ class GridCache(nn.Module):
     Entries are keyed by (kind, (Hp, Wp), device, dtype) and built on first use: `rotary`
     (2, N, key_dim); `bias_table` log D as a (heads, Wp, 2 Hp - 1, Wp) row-offset table;
     `decay_table` D likewise; `decay_norm` (heads, N) 1 / sqrt(row sums of D); `bias_full` and
-    `decay_full` (heads, N, N), the latter already divided by the square root of its row sums.
-    Tables are built in float64 and stored in the dtype asked for. They are plain attributes, never
-    in the state_dict; moving or casting the module drops them, and they are rebuilt where it went.
+    `decay_full` (heads, N, N), the latter already divided by the square root of its row sums, both
+    views of rows padded to `ALIGN`. Decay entries are computed in float64 and rounded once to the
+    dtype asked for, which is the compute dtype of the pass (float16 or bfloat16 under autocast), so
+    no float32 matrix is built for a half-precision pass. Entries are plain attributes, never in the
+    state_dict; moving or casting the module drops them, and they are rebuilt where it went.
     """
 
     KINDS = ("rotary", "bias_table", "decay_table", "decay_norm", "bias_full", "decay_full")
@@ -129,7 +162,7 @@ class GridCache(nn.Module):
         key = (kind, grid, device, dtype)
         entry = self._entries.get(key)
         if entry is None:
-            entry = self._build(kind, grid, dtype).to(device=device, dtype=dtype)
+            entry = self._build(kind, grid, device, dtype)
             self._entries[key] = entry
         return entry
 
@@ -142,32 +175,53 @@ class GridCache(nn.Module):
         self._entries.clear()
         return super()._apply(fn, *args, **kwargs)
 
-    def _build(self, kind: str, grid: tuple[int, int], dtype: torch.dtype) -> torch.Tensor:
-        """Compute one entry on the CPU (float64 for decay, the asked precision for angles)."""
+    def _build(
+        self, kind: str, grid: tuple[int, int], device: torch.device, dtype: torch.dtype
+    ) -> torch.Tensor:
+        """Compute one entry on the CPU (float64 for decay, float32 or float64 for angles) and
+        place it on `device` in `dtype`."""
         hp, wp = grid
         if kind == "rotary":
             exact = torch.float64 if dtype == torch.float64 else torch.float32
-            return rotary_angles(hp * wp, self.key_dim, exact)
+            return rotary_angles(hp * wp, self.key_dim, exact).to(device=device, dtype=dtype)
+        if kind not in self.KINDS:
+            raise ValueError(f"unknown cache entry {kind!r}; known: {', '.join(self.KINDS)}")
         if self.decay is None:
             raise ValueError(f"{kind} asked of a cache without decay")
-        log_gamma = torch.log(decay_rates(self.heads))[:, None, None, None]
-        table = distance_table(self.decay, hp, wp)[None]
+        log_decay = torch.log(decay_rates(self.heads))[:, None, None, None] * distance_table(
+            self.decay, hp, wp
+        )
         if kind == "bias_table":
-            return log_gamma * table
+            return log_decay.to(device=device, dtype=dtype)
         if kind == "bias_full":
-            return expand_table(log_gamma * table, hp)
-        decay = torch.exp(log_gamma * table)
+            return self._full(log_decay, None, hp, device, dtype)
+        decay = torch.exp(log_decay)
         norm = self._row_norm(decay, hp)
         floor = exp_floor(dtype)
         if floor is not None:
-            decay = torch.where(log_gamma * table < floor, torch.zeros_like(decay), decay)
+            decay = torch.where(log_decay < floor, torch.zeros_like(decay), decay)
         if kind == "decay_table":
-            return decay
+            return decay.to(device=device, dtype=dtype)
         if kind == "decay_norm":
-            return norm
-        if kind == "decay_full":
-            return expand_table(decay, hp) * norm[:, :, None]
-        raise ValueError(f"unknown cache entry {kind!r}; known: {', '.join(self.KINDS)}")
+            return norm.to(device=device, dtype=dtype)
+        return self._full(decay, norm, hp, device, dtype)
+
+    @staticmethod
+    def _full(
+        table: torch.Tensor,
+        norm: torch.Tensor | None,
+        hp: int,
+        device: torch.device,
+        dtype: torch.dtype,
+    ) -> torch.Tensor:
+        """The aligned (heads, N, N) matrix of a float64 table, each row times `norm` if given;
+        expanded one head at a time to bound the float64 memory."""
+        heads, n = table.shape[0], hp * table.shape[1]
+        full = aligned_empty(heads, n, device, dtype)
+        for h in range(heads):
+            head = expand_table(table[h], hp)
+            full[h].copy_(head if norm is None else head * norm[h, :, None])
+        return full
 
     @staticmethod
     def _row_norm(decay: torch.Tensor, hp: int) -> torch.Tensor:

@@ -9,23 +9,27 @@
   released checkpoint but unused by the computation.
 
 Each mixer takes (B, N, dim) tokens, the (Hp, Wp) grid they come from and the backbone's
-`GridCache`, and returns (B, N, dim). On CUDA the full-matrix forms run (fused attention kernels
-where they apply); elsewhere the tiled forms of `token_mixing.py`.
+`GridCache`, and returns (B, N, dim). The decay forms of `token_mixing.py` run in the compute dtype
+of the pass (the queries' dtype, float16 or bfloat16 under autocast), with decay tables cached in
+that dtype; `kernels` picks among them: the tiled forms on the CPU, the fastest exact form on CUDA
+(N x N retention or tiled; fused attention with the aligned bias, FlexAttention or tiled).
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from rangeret.models import token_mixing
+from rangeret.models import kernels, token_mixing
 from rangeret.models.decay import GridCache, decay_rates
 from rangeret.models.position import rotate_pairs
 
 
-def _table_dtype(dtype: torch.dtype) -> torch.dtype:
-    """Precision of cached decay tables for activations of `dtype` (float64 stays float64)."""
+def _angle_dtype(dtype: torch.dtype) -> torch.dtype:
+    """Precision of the rotary angles for activations of `dtype` (float64 stays float64)."""
     return torch.float64 if dtype == torch.float64 else torch.float32
 
 
@@ -46,7 +50,7 @@ class _HeadProjections(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(B, heads, N, d) rotated queries, keys scaled by key_dim^-0.5 and rotated, and values."""
         b, n, _ = x.shape
-        angles = cache.get("rotary", grid, x.device, _table_dtype(x.dtype))
+        angles = cache.get("rotary", grid, x.device, _angle_dtype(x.dtype))
         q = self.q_proj(x).view(b, n, self.heads, self.key_dim).transpose(1, 2)
         k = (
             (self.k_proj(x) * self.key_dim**-0.5)
@@ -69,16 +73,20 @@ class MultiScaleRetention(_HeadProjections):
     def forward(self, x: torch.Tensor, grid: tuple[int, int], cache: GridCache) -> torch.Tensor:
         """(B, N, dim) -> (B, N, dim), parallel form."""
         q, k, v = self.project(x, grid, cache)
-        table_dtype = _table_dtype(q.dtype)
-        if q.device.type == "cuda":
-            mixed = token_mixing.retention_full(
-                q, k, v, cache.get("decay_full", grid, q.device, table_dtype)
-            )
-        else:
-            table = cache.get("decay_table", grid, q.device, table_dtype)
-            norm = cache.get("decay_norm", grid, q.device, table_dtype)
-            mixed = token_mixing.retention_tiled(q, k, v, table, norm, grid)
-        return self._output(x, mixed)
+        device, dtype = q.device, q.dtype
+
+        def full() -> torch.Tensor:
+            decay = cache.get("decay_full", grid, device, dtype)
+            return token_mixing.retention_full(q, k, v, decay)
+
+        def tiled() -> torch.Tensor:
+            table = cache.get("decay_table", grid, device, dtype)
+            norm = cache.get("decay_norm", grid, device, dtype)
+            return token_mixing.retention_tiled(q, k, v, table, norm, grid)
+
+        default = "full" if device.type == "cuda" else "tiled"
+        forms = {"full": full, "tiled": tiled}
+        return self._output(x, kernels.run("retention", forms, default, q, v))
 
     def forward_recurrent(
         self, x: torch.Tensor, grid: tuple[int, int], cache: GridCache
@@ -129,14 +137,42 @@ class CircularRetention(_HeadProjections):
         """(B, N, dim) -> (B, N, dim)."""
         b, n, _ = x.shape
         q, k, v = self.project(x, grid, cache)
-        if not self.decayed:
-            mixed = token_mixing.softmax_fused(q, k, v, None)
-        elif q.device.type == "cuda":
-            mixed = token_mixing.softmax_fused(
-                q, k, v, cache.get("bias_full", grid, q.device, q.dtype)
-            )
-        else:
-            table = cache.get("bias_table", grid, q.device, _table_dtype(q.dtype))
-            mixed = token_mixing.softmax_tiled(q, k, v, table, grid)
+        default = "fused" if q.device.type == "cuda" else "tiled"
+        mixed = (
+            kernels.run("decayed softmax", self._forms(q, k, v, grid, cache), default, q, v)
+            if self.decayed
+            else token_mixing.softmax_fused(q, k, v, None)
+        )
         mixed = mixed * torch.rsqrt(mixed.pow(2).mean(-1, keepdim=True) + 1e-5)
         return self.out_proj(mixed.reshape(b, n, -1))
+
+    def _forms(
+        self,
+        q: torch.Tensor,
+        k: torch.Tensor,
+        v: torch.Tensor,
+        grid: tuple[int, int],
+        cache: GridCache,
+    ) -> dict[str, Callable[[], torch.Tensor]]:
+        """The exact forms of softmax with the decay bias, FlexAttention where it compiles."""
+        device, dtype = q.device, q.dtype
+        decay = cache.decay
+        if decay is None:
+            raise ValueError("a decayed mixer needs a cache with a decay")
+
+        def fused() -> torch.Tensor:
+            bias = cache.get("bias_full", grid, device, dtype)
+            return token_mixing.softmax_fused(q, k, v, bias)
+
+        def tiled() -> torch.Tensor:
+            table = cache.get("bias_table", grid, device, dtype)
+            return token_mixing.softmax_tiled(q, k, v, table, grid)
+
+        def flex() -> torch.Tensor:
+            score_mod = token_mixing.decay_score_mod(decay, grid, self.heads, device)
+            return token_mixing.softmax_flex(q, k, v, score_mod)
+
+        forms = {"fused": fused, "tiled": tiled}
+        if token_mixing.flex_available(device):
+            forms["flex"] = flex
+        return forms

@@ -9,15 +9,24 @@ networks is per query row, so a block of scores, its decay or bias (a view of th
 of `decay.py`, never an N x N matrix), its normalisation and its product with V are computed while
 the block is still in cache. On the CPU at 64 x 1024 this is several times faster than the plain
 form. The recurrent form is RetNet's O(1)-per-token recurrence, which equals the parallel form
-under the unidirectional decay.
+under the unidirectional decay. `softmax_flex` is the softmax form through FlexAttention, with the
+decay bias computed from token positions inside the kernel instead of read from a matrix.
 """
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+
 import torch
 import torch.nn.functional as F
 
-from rangeret.models.decay import exp_floor
+from rangeret.models.decay import decay_rates, exp_floor, token_distance
+
+#: FlexAttention's score modification: (score, batch, head, query index, key index) -> score.
+ScoreMod = Callable[
+    [torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor
+]
 
 #: Query tokens per tile: 4 heads x 128 x 3825 float32 scores (7.8 MB) stay in the large caches.
 TILE = 128
@@ -118,7 +127,11 @@ def softmax_plain(
 def softmax_fused(
     q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, bias: torch.Tensor | None
 ) -> torch.Tensor:
-    """`softmax_plain` through torch's fused attention kernels (flash / memory-efficient)."""
+    """`softmax_plain` through torch's fused attention kernels (flash / memory-efficient).
+
+    A bias in q's dtype whose row stride is a multiple of 8 (`GridCache`'s `bias_full`) is read in
+    place; any other is cast or padded by torch on every call.
+    """
     mask = None if bias is None else bias.to(q.dtype)
     return F.scaled_dot_product_attention(q, k, v, attn_mask=mask, scale=1.0).transpose(1, 2)
 
@@ -158,3 +171,56 @@ def softmax_tiled(
         weights = logits.exp_()
         blocks.append((weights @ v).div_(weights.sum(-1, keepdim=True)))
     return torch.cat(blocks, dim=2).transpose(1, 2)
+
+
+def flex_available(device: torch.device) -> bool:
+    """Whether FlexAttention can be compiled for `device`: CUDA with Triton and a torch that has it."""
+    if device.type != "cuda":
+        return False
+    try:
+        import torch.nn.attention.flex_attention  # noqa: F401
+        from torch.utils._triton import has_triton
+    except ImportError:
+        return False
+    return has_triton()
+
+
+@functools.cache
+def decay_score_mod(
+    decay: str, grid: tuple[int, int], heads: int, device: torch.device
+) -> ScoreMod:
+    """Score modification adding log D_h[n, m] = log(gamma_h) g(n, m), g from the token indices;
+    one function per arguments, so that the compiled kernel is reused rather than rebuilt."""
+    log_gamma = torch.log(decay_rates(heads)).to(device=device, dtype=torch.float32)
+
+    def score_mod(
+        score: torch.Tensor,
+        batch: torch.Tensor,
+        head: torch.Tensor,
+        query: torch.Tensor,
+        key: torch.Tensor,
+    ) -> torch.Tensor:
+        return score + log_gamma[head] * token_distance(decay, grid, query, key)
+
+    return score_mod
+
+
+def softmax_flex(
+    q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, score_mod: ScoreMod
+) -> torch.Tensor:
+    """`softmax_plain` through FlexAttention with the bias from `score_mod`, compiled on CUDA.
+
+    Elsewhere FlexAttention runs its eager reference, which materialises the scores; that serves to
+    check the score modification, not to run fast.
+    """
+    return _flex_kernel(q.device.type)(q, k, v, score_mod=score_mod, scale=1.0).transpose(1, 2)
+
+
+@functools.cache
+def _flex_kernel(device_type: str) -> Callable[..., torch.Tensor]:
+    """flex_attention, compiled once per process for CUDA."""
+    from torch.nn.attention.flex_attention import flex_attention
+
+    if device_type == "cuda":
+        return torch.compile(flex_attention, dynamic=False)
+    return flex_attention
