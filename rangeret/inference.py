@@ -22,7 +22,7 @@ import torch
 from rangeret.labels import LabelConfig
 from rangeret.loading import LoadedScan
 from rangeret.models import CheckpointError, CheckpointInfo, load_checkpoint
-from rangeret.point_labels import DEFAULT_KNN, KnnSettings, point_classes
+from rangeret.point_labels import DEFAULT_KNN, KnnSettings, point_classes_batch
 from rangeret.precision import forward_precision, resolve_precision
 from rangeret.profiles import DatasetProfile, load_profile, profile_of_record
 from rangeret.projection import Projection, ProjectionConfig, project_with
@@ -267,19 +267,30 @@ class Predictor:
         self, projection: Projection, logits: torch.Tensor, times: StageTimes | None = None
     ) -> np.ndarray:
         """Stage 3: per-point training classes from one scan's (C, H, W) logits."""
-        with self._record(times).stage("refine"):
-            classes = point_classes(
-                logits.argmax(dim=0),
-                torch.from_numpy(projection.proj_x),
-                torch.from_numpy(projection.proj_y),
-                torch.from_numpy(projection.proj_range),
-                torch.from_numpy(projection.unproj_range),
+        return self.refine_batch([projection], logits[None], times)[0]
+
+    def refine_batch(
+        self,
+        projections: Sequence[Projection],
+        logits: torch.Tensor,
+        times: StageTimes | None = None,
+    ) -> list[np.ndarray]:
+        """Stage 3 for a batch: each scan's per-point classes from (B, C, H, W) logits, refined in
+        one call so the device does not wait on the host scan by scan."""
+        with self._record(times).stage("refine", len(projections)):
+            classes = point_classes_batch(
+                logits.argmax(dim=1),
+                [p.proj_x for p in projections],
+                [p.proj_y for p in projections],
+                [p.proj_range for p in projections],
+                [p.unproj_range for p in projections],
                 self.knn,
                 self.num_classes,
                 votes_from=self.profile.knn.votes_from,
                 unlabeled=self.label_config.unlabeled_class,
             )
-            return classes.cpu().numpy()
+            ends = np.cumsum([p.num_points for p in projections])
+            return np.split(classes.cpu().numpy(), ends[:-1])
 
     def to_raw(self, classes: np.ndarray) -> np.ndarray:
         """Stage 4: raw SemanticKITTI ids (uint32) of training classes."""
@@ -315,9 +326,14 @@ class Predictor:
         """Stages 2 to 4 for a batch of projected scans: every runner's path from projection to
         raw labels (one process, the Ray model actors, the gateway's actors)."""
         logits = self.logits(projections, times)
+        classes = self.refine_batch(projections, logits, times)
         return [
-            self.finish(p, out, with_probabilities, times)
-            for p, out in zip(projections, logits, strict=True)
+            ScanPrediction(
+                labels=self.to_raw(c),
+                classes=c,
+                probabilities=self.probabilities(p, out) if with_probabilities else None,
+            )
+            for p, out, c in zip(projections, logits, classes, strict=True)
         ]
 
     def finish(

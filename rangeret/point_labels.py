@@ -1,18 +1,20 @@
 """From a range image's per-pixel classes to one class per point: pixel lookup or kNN refinement.
 
-Written once for every runner: `Predictor` and the trainer's validation both call
-`point_classes`, so the labels measured during training are the labels served.
+Written once for every runner: `Predictor` (`point_classes_batch`, one call per batch) and the
+trainer's validation (`point_classes`, one scan) share it, so the labels measured during
+training are the labels served.
 """
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
-from rangeret.knn import refine
+from rangeret.knn import pixel_classes, refine_batch
 
 
 @dataclass(frozen=True)
@@ -46,17 +48,48 @@ def point_classes(
     among classes votes_from..C-1 (the dataset profile's rule). Points without a pixel
     (proj_x == -1) get the `unlabeled` class either way.
     """
+    return point_classes_batch(
+        argmax[None],
+        [proj_x],
+        [proj_y],
+        [proj_range],
+        [unproj_range],
+        knn,
+        num_classes,
+        votes_from,
+        unlabeled,
+    )
+
+
+def point_classes_batch(
+    argmax: torch.Tensor,
+    proj_x: Sequence[np.ndarray | torch.Tensor],
+    proj_y: Sequence[np.ndarray | torch.Tensor],
+    proj_range: Sequence[np.ndarray | torch.Tensor],
+    unproj_range: Sequence[np.ndarray | torch.Tensor],
+    knn: KnnSettings | None,
+    num_classes: int,
+    votes_from: int = 1,
+    unlabeled: int = 0,
+) -> torch.Tensor:
+    """`point_classes` of B scans in one call: a (B, H, W) argmax and each scan's projection give
+    the classes of all their points, concatenated scan by scan, on argmax's device.
+
+    Projection arrays are best given as numpy arrays (CPU tensors are taken as such): they are
+    checked on the host and copied to the device in one go, so the batch costs the device a
+    fixed number of waits on the host, however many scans and points it holds.
+    """
     device = argmax.device
-    proj_x, proj_y = proj_x.to(device), proj_y.to(device)
+    proj_x, proj_y, proj_range, unproj_range = (
+        [_host_or_on(part, device) for part in parts]
+        for parts in (proj_x, proj_y, proj_range, unproj_range)
+    )
     if knn is None:
-        valid = proj_x >= 0
-        classes = torch.full((proj_x.shape[0],), unlabeled, dtype=torch.int64, device=device)
-        classes[valid] = argmax[proj_y[valid], proj_x[valid]].to(torch.int64)
-        return classes
+        return pixel_classes(argmax, proj_x, proj_y, num_classes, unprojected=unlabeled)
     with single_thread_on_cpu(device):
-        return refine(
-            proj_range.to(device),
-            unproj_range.to(device),
+        return refine_batch(
+            proj_range,
+            unproj_range,
             argmax,
             proj_x,
             proj_y,
@@ -68,6 +101,15 @@ def point_classes(
             votes_from=votes_from,
             unprojected=unlabeled,
         )
+
+
+def _host_or_on(
+    value: np.ndarray | torch.Tensor, device: torch.device
+) -> np.ndarray | torch.Tensor:
+    """A CPU tensor as the numpy array it holds, another tensor on `device`, an array as it is."""
+    if not isinstance(value, torch.Tensor):
+        return value
+    return value.numpy() if value.device.type == "cpu" else value.to(device)
 
 
 @contextlib.contextmanager

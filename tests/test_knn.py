@@ -2,17 +2,22 @@
 
 The published post-processing's output on a real scan (`tests/data/knn-semantickitti-scan.npz`)
 is the main check; a slow per-point version of the rule written directly from the rule checks
-everything else, ties included, on random images.
+everything else, ties included, on random images. A batch (`refine_batch`) must give each scan's
+`refine` result bit for bit, and wait on the host a fixed number of times whatever its size.
 """
 
 from __future__ import annotations
+
+import contextlib
+from collections import Counter
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
 import torch
 from conftest import data_path
 
-from rangeret.knn import gaussian_kernel, refine
+from rangeret.knn import gaussian_kernel, pixel_classes, refine, refine_batch, to_device
 
 FIXTURE = "knn-semantickitti-scan.npz"
 INPUTS = ("proj_range", "unproj_range", "proj_argmax", "proj_x", "proj_y")
@@ -373,3 +378,225 @@ def test_cuda_matches_cpu():
             )
             assert cuda.device.type == "cuda"
             assert torch.equal(cuda.cpu(), cpu)
+
+
+#: Tensor methods that make the host wait for a CUDA device (they read its data).
+SYNCING = ("item", "tolist", "cpu", "__bool__", "__int__", "__float__", "__index__")
+#: Host waits per batch refinement: one read of the deferred checks of tensor inputs, one copy of
+#: the result. However many scans, points and chunks.
+SYNCS_PER_BATCH = 2
+
+
+@contextlib.contextmanager
+def host_syncs() -> Iterator[Counter]:
+    """Count, by name, the calls in the body that would make the host wait for a CUDA device.
+
+    The reads of `SYNCING`, `nonzero` (its shape depends on the data) and indexing with a boolean
+    mask (which is a `nonzero`).
+    """
+    counts: Counter = Counter()
+
+    def counted(name, original):
+        def wrapper(*args, **kwargs):
+            counts[name] += 1
+            return original(*args, **kwargs)
+
+        return wrapper
+
+    def masked(name, original):
+        def wrapper(self, index, *args):
+            parts = index if isinstance(index, tuple) else (index,)
+            if any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in parts):
+                counts[name] += 1
+            return original(self, index, *args)
+
+        return wrapper
+
+    with pytest.MonkeyPatch.context() as patch:
+        for name in SYNCING:
+            patch.setattr(torch.Tensor, name, counted(name, getattr(torch.Tensor, name)))
+        patch.setattr(torch.Tensor, "nonzero", counted("nonzero", torch.Tensor.nonzero))
+        patch.setattr(torch, "nonzero", counted("nonzero", torch.nonzero))
+        for name in ("__getitem__", "__setitem__"):
+            patch.setattr(torch.Tensor, name, masked(name, getattr(torch.Tensor, name)))
+        yield counts
+
+
+def random_batch(seed: int, sizes: list[int], **kwargs) -> list[dict[str, np.ndarray]]:
+    """Random scans of one image size with `sizes` points each."""
+    return [random_scan(seed + i, points=n, **kwargs) for i, n in enumerate(sizes)]
+
+
+def batch_inputs(scans: list[dict[str, np.ndarray]]) -> list[list[np.ndarray]]:
+    """The five inputs of `refine_batch` as lists of the scans' arrays."""
+    return [[scan[name] for scan in scans] for name in INPUTS]
+
+
+def per_scan(scans, *args, **kwargs) -> np.ndarray:
+    """`refine` scan by scan, concatenated."""
+    return np.concatenate([refine(*inputs(scan), *args, **kwargs) for scan in scans])
+
+
+@pytest.mark.parametrize("votes_from", [0, 1])
+@pytest.mark.parametrize(
+    ("k", "search", "cutoff"), [(7, 7, 1.0), (5, 5, 1.0), (3, 3, 0.0), (9, 3, 1.0), (1, 1, 1.0)]
+)
+def test_a_batch_gives_each_scans_result(votes_from, k, search, cutoff):
+    scans = random_batch(10, [300, 1, 0, 57, 410])
+    rule = {"votes_from": votes_from, "unprojected": 4}
+    expected = per_scan(scans, k, search, 1.0, cutoff, 5, **rule)
+    for chunk_size in (37, 300, None):
+        result = refine_batch(
+            *batch_inputs(scans), k, search, 1.0, cutoff, 5, chunk_size=chunk_size, **rule
+        )
+        assert isinstance(result, np.ndarray) and result.dtype == np.int64
+        assert np.array_equal(result, expected), chunk_size
+    images = batch_inputs(scans)
+    images[0] = torch.from_numpy(np.stack(images[0]))
+    images[2] = torch.from_numpy(np.stack(images[2]))
+    as_tensors = refine_batch(*images, k, search, 1.0, cutoff, 5, chunk_size=64, **rule)
+    assert isinstance(as_tensors, torch.Tensor)
+    assert np.array_equal(as_tensors.numpy(), expected)
+
+
+@pytest.mark.parametrize("votes_from", [0, 1])
+def test_a_batch_with_the_real_scan_gives_each_scans_result(scan, refined, votes_from):
+    real = {name: scan[name] for name in INPUTS}
+    dropped = dict(real, proj_x=real["proj_x"].copy(), proj_y=real["proj_y"].copy())
+    dropped["proj_x"][::50] = dropped["proj_y"][::50] = -1
+    scans = [real, random_scan(3, 64, 1024, 20_000, 20), dropped]
+    rule = {"votes_from": votes_from, "unprojected": 19}
+    result = refine_batch(*batch_inputs(scans), chunk_size=50_000, **rule)
+    assert np.array_equal(result, per_scan(scans, **rule))
+    if votes_from == 1:
+        assert np.array_equal(result[: len(real["proj_x"])], refined[7, 7])
+
+
+def test_pixel_classes_take_each_points_pixel():
+    scans = random_batch(20, [300, 0, 120])
+    result = pixel_classes(
+        np.stack([s["proj_argmax"] for s in scans]),
+        [s["proj_x"] for s in scans],
+        [s["proj_y"] for s in scans],
+        5,
+        unprojected=3,
+    )
+    expected = [
+        np.where(s["proj_x"] >= 0, s["proj_argmax"][s["proj_y"], s["proj_x"]], 3) for s in scans
+    ]
+    assert np.array_equal(result, np.concatenate(expected))
+
+
+def test_bad_batches_are_named():
+    scans = random_batch(30, [300, 200])
+    args = batch_inputs(scans)
+    cases = [
+        (0, [args[0][0]], "proj_range"),
+        (2, np.stack(args[2])[0], "proj_argmax"),
+        (2, [args[2][0], args[2][1][:, :-1]], "proj_argmax"),
+        (1, args[1][:1], "unproj_range"),
+        (3, np.concatenate(args[3]), "proj_x"),
+        (4, [args[4][0], args[4][1][:-1]], "proj_y"),
+    ]
+    for position, value, name in cases:
+        broken = list(args)
+        broken[position] = value
+        with pytest.raises(ValueError, match=name):
+            refine_batch(*broken)
+    with pytest.raises(ValueError, match="at least one scan"):
+        refine_batch([], [], [], [], [])
+
+
+@pytest.mark.parametrize("kind", ["numpy", "tensor"])
+def test_bad_values_are_named_before_or_after_the_work(kind):
+    """Numpy inputs are checked before the copy, tensors on their device (clamped meanwhile)."""
+    scans = random_batch(40, [300, 200])
+    args = batch_inputs(scans)
+    convert = np.asarray if kind == "numpy" else torch.from_numpy
+    cases = [
+        (2, [args[2][0], args[2][1] + 20], "proj_argmax", r"\[0, 20\)"),
+        (2, [args[2][0] - 3, args[2][1]], "proj_argmax", r"\[-3,"),
+        (3, [args[3][0], np.where(args[3][1] == 0, 20, args[3][1])], "proj_x", "width 20"),
+        (3, [args[3][0] - 2, args[3][1]], "proj_x", "-1"),
+        (4, [args[4][0], np.where(args[3][1] >= 0, args[4][1] + 6, -1)], "proj_y", r"11\]"),
+    ]
+    for position, value, name, detail in cases:
+        broken = list(args)
+        broken[position] = [convert(part) for part in value]
+        with pytest.raises(ValueError, match=name) as raised:
+            refine_batch(*broken)
+        assert raised.match(detail)
+        if position != 4:
+            with pytest.raises(ValueError, match=name):
+                pixel_classes(broken[2], broken[3], broken[4], 20)
+
+
+@pytest.mark.parametrize("scans", [1, 5])
+def test_a_batch_waits_on_the_host_a_fixed_number_of_times(scans):
+    """As `Predictor` calls it: projections as numpy arrays, the argmax a tensor on the device.
+
+    On CUDA each counted call is a wait for the device; the count is the same for 1 or 5 scans
+    and with chunks of 37 points (tens of chunks).
+    """
+    batch = random_batch(50, [300, 120, 0, 411, 77][:scans])
+    args = batch_inputs(batch)
+    args[2] = torch.from_numpy(np.stack(args[2]))
+    expected = per_scan(batch)
+    with host_syncs() as counts:
+        result = refine_batch(*args, chunk_size=37).cpu()
+        looked_up = pixel_classes(args[2], args[3], args[4], 20).cpu()
+    assert counts == {"tolist": 2, "cpu": 2}
+    assert sum(counts.values()) == 2 * SYNCS_PER_BATCH
+    assert np.array_equal(result.numpy(), expected)
+    assert looked_up.shape == result.shape
+
+
+def test_tensor_inputs_are_read_once():
+    batch = random_batch(60, [300, 120])
+    args = [[torch.from_numpy(part) for part in parts] for parts in batch_inputs(batch)]
+    with host_syncs() as counts:
+        refine_batch(*args, chunk_size=37)
+    assert counts == {"tolist": 1}
+
+
+def test_to_device_concatenates_and_converts():
+    parts = [np.arange(6, dtype=np.int32).reshape(2, 3), np.full((1, 3), 7, dtype=np.uint8)]
+    moved = to_device(parts, torch.int64, torch.device("cpu"), pinned=False)
+    assert moved.dtype == torch.int64
+    assert moved.tolist() == [[0, 1, 2], [3, 4, 5], [7, 7, 7]]
+
+
+def test_to_device_pins_and_does_not_block_when_asked(monkeypatch):
+    """The CUDA branch, run on the CPU: page-locked staging, copy with non_blocking."""
+    asked = []
+    empty, to = torch.empty, torch.Tensor.to
+
+    def recording_empty(*args, pin_memory=False, **kwargs):
+        asked.append(("pin_memory", pin_memory))
+        return empty(*args, **kwargs)
+
+    def recording_to(self, *args, non_blocking=False, **kwargs):
+        asked.append(("non_blocking", non_blocking))
+        return to(self, *args, non_blocking=non_blocking, **kwargs)
+
+    monkeypatch.setattr(torch, "empty", recording_empty)
+    monkeypatch.setattr(torch.Tensor, "to", recording_to)
+    parts = [np.array([0.5, 1.5]), np.array([2.5], dtype=np.float32)]
+    moved = to_device(parts, torch.float32, torch.device("cpu"), pinned=True)
+    assert moved.tolist() == [0.5, 1.5, 2.5]
+    assert asked == [("pin_memory", True), ("non_blocking", True)]
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_batch_matches_cpu_and_waits_a_fixed_number_of_times():
+    with np.load(data_path(FIXTURE)) as fixture:
+        real = {name: fixture[name] for name in INPUTS}
+    batch = [real, random_scan(3, 64, 1024, 20_000, 20), real]
+    args = batch_inputs(batch)
+    expected = refine_batch(*args, chunk_size=40_000)
+    args[2] = torch.from_numpy(np.stack(args[2])).cuda()
+    with host_syncs() as counts:
+        result = refine_batch(*args, chunk_size=40_000).cpu()
+    assert sum(counts.values()) <= SYNCS_PER_BATCH
+    assert np.array_equal(result.numpy(), expected)

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import torch
 from conftest import data_path
+from test_knn import SYNCS_PER_BATCH, host_syncs
 
-from rangeret.point_labels import DEFAULT_KNN, KnnSettings, point_classes
+from rangeret.point_labels import DEFAULT_KNN, KnnSettings, point_classes, point_classes_batch
 
 
 @pytest.fixture(scope="module")
@@ -17,7 +18,7 @@ def scan() -> dict[str, torch.Tensor]:
         return {name: torch.from_numpy(data[name]) for name in data.files}
 
 
-def _classes(scan, knn):
+def _classes(scan, knn, **rule):
     return point_classes(
         scan["proj_argmax"],
         scan["proj_x"],
@@ -26,6 +27,7 @@ def _classes(scan, knn):
         scan["unproj_range"],
         knn,
         20,
+        **rule,
     )
 
 
@@ -59,24 +61,69 @@ def test_the_cpu_thread_count_is_restored(scan):
     assert torch.get_num_threads() == threads
 
 
+@pytest.mark.parametrize("knn", [None, DEFAULT_KNN])
+def test_a_batch_gives_each_scans_classes(scan, knn):
+    dropped = dict(scan, proj_x=scan["proj_x"].clone())
+    dropped["proj_x"][::30] = -1
+    flipped = dict(scan, proj_argmax=scan["proj_argmax"].flip(1))
+    scans = [scan, dropped, flipped]
+    fields = ("proj_x", "proj_y", "proj_range", "unproj_range")
+    for as_numpy in (True, False):
+        parts = [[s[f].numpy() if as_numpy else s[f] for s in scans] for f in fields]
+        argmax = torch.stack([s["proj_argmax"] for s in scans])
+        rule = {"votes_from": 0, "unlabeled": 19}
+        result = point_classes_batch(argmax, *parts, knn, 20, **rule)
+        expected = [_classes(s, knn, **rule) for s in scans]
+        assert result.dtype == torch.int64
+        assert torch.equal(result, torch.cat(expected))
+
+
+def _predictor(knn):
+    from rangeret import inference
+    from rangeret.models import build_model
+    from rangeret.profiles import load_profile
+
+    torch.manual_seed(0)
+    network = build_model("rangeret-cir", 32, 256, layers=1)
+    profile = load_profile().with_overrides(height=32, width=256)
+    return inference.Predictor(network, profile, device="cpu", knn=knn)
+
+
 def test_predictor_labels_go_through_this_step(monkeypatch, real_scan_path):
     from rangeret import inference
     from rangeret.io import read_scan
-    from rangeret.models import build_model
-    from rangeret.profiles import load_profile
 
     calls = []
 
     def recording(*args, **kwargs):
-        calls.append(args[-2])
-        return point_classes(*args, **kwargs)
+        calls.append((len(args[1]), args[-2]))
+        return point_classes_batch(*args, **kwargs)
 
-    monkeypatch.setattr(inference, "point_classes", recording)
-    torch.manual_seed(0)
-    network = build_model("rangeret-cir", 32, 256, layers=1)
+    monkeypatch.setattr(inference, "point_classes_batch", recording)
+    points = read_scan(real_scan_path)
     for knn in (None, DEFAULT_KNN):
-        profile = load_profile().with_overrides(height=32, width=256)
-        predictor = inference.Predictor(network, profile, device="cpu", knn=knn)
-        result = predictor.predict(read_scan(real_scan_path))
+        predictor = _predictor(knn)
+        result = predictor.predict(points)
         assert result.classes.shape == (123_389,)
-    assert calls == [None, DEFAULT_KNN]
+        batch = predictor.predict_batch([points, points[::2], points])
+        assert [len(r.classes) for r in batch] == [123_389, 61_695, 123_389]
+        assert np.array_equal(batch[0].classes, result.classes)
+        assert np.array_equal(batch[1].classes, predictor.predict(points[::2]).classes)
+    assert calls == [(scans, knn) for knn in (None, DEFAULT_KNN) for scans in (1, 3, 1)]
+
+
+@pytest.mark.parametrize("knn", [None, DEFAULT_KNN])
+def test_a_predictor_batch_waits_on_the_host_a_fixed_number_of_times(real_scan_path, knn):
+    """`Predictor.refine_batch` as `finish_batch` runs it: per batch, not per scan or chunk."""
+    from rangeret.io import read_scan
+
+    predictor = _predictor(knn)
+    points = read_scan(real_scan_path)
+    projections = [predictor.project(p) for p in (points, points[::3], points[1::2])]
+    logits = predictor.logits(projections)
+    expected = [predictor.refine(p, out) for p, out in zip(projections, logits, strict=True)]
+    with host_syncs() as counts:
+        classes = predictor.refine_batch(projections, logits)
+    assert sum(counts.values()) <= SYNCS_PER_BATCH
+    for got, want in zip(classes, expected, strict=True):
+        assert np.array_equal(got, want)
