@@ -162,6 +162,7 @@ def test_a_job_runs_on_the_gateways_actors_that_hold_every_gpu(cluster, tmp_path
         )
         assert failed == {} and done[-1] == (5, 0, 5)
         assert tree_bytes(tmp_path / "job") == tree_bytes(tmp_path / "single")
+        assert executor.precision == "fp32"
     finally:
         pool.shutdown()
 

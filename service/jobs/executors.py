@@ -13,9 +13,12 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
+import torch
+
 from rangeret.atomic import atomic_path
 from rangeret.inference import Predictor, PredictorSpec
 from rangeret.layout import ScanEntry, prediction_path
+from rangeret.precision import resolve_precision
 from rangeret.predict import is_complete, predict_tree
 from rangeret.profiles import DEFAULT_PROFILE, DatasetProfile, load_profile
 from rangeret.submission import TEST_SEQUENCES, required_directories
@@ -31,6 +34,8 @@ class JobExecutor(Protocol):
     """Runs the network over a job's scans (in this process or on a Ray cluster)."""
 
     backend: str
+    #: The precision the network ran at in the last `predict` (None before the first).
+    precision: str | None
 
     def predict(
         self,
@@ -54,6 +59,7 @@ class LocalExecutor:
     def __init__(self, spec: PredictorSpec, batch_size: int = 1) -> None:
         self.spec = spec
         self.batch_size = batch_size
+        self.precision: str | None = None
         self._predictor: Predictor | None = None
 
     def predict(
@@ -68,6 +74,7 @@ class LocalExecutor:
         """Predict the dataset's sequences into `out`, skipping scans already done."""
         if self._predictor is None:
             self._predictor = self.spec.build()
+        self.precision = self._predictor.precision
         summary = predict_tree(
             self._predictor,
             dataset,
@@ -105,6 +112,7 @@ class RayExecutor:
         self.batch_size = batch_size
         self.actors = actors
         self.pool = pool
+        self.precision: str | None = None
 
     def predict(
         self,
@@ -131,6 +139,11 @@ class RayExecutor:
             cancel=cancel,
             model_actors=shared,
         )
+        kinds = {d.split("@")[0].split(":")[0] for d in result.devices}
+        if kinds:
+            self.precision = ", ".join(
+                sorted({resolve_precision(self.spec.precision, torch.device(k)) for k in kinds})
+            )
         return result.failed
 
 

@@ -275,6 +275,7 @@ class JobManager:
                 checkpoint_sha256=self.checkpoint_sha256,
                 profile=self.profile,
             )
+            report.precision = self.executor.precision
             report_path = folder / REPORT_JSON
             report.write_json(report_path)
             metrics = {
