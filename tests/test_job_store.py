@@ -126,6 +126,7 @@ class FakeExecutor:
     """Writes all-zero predictions of the right length."""
 
     backend = "fake"
+    precision = "fp32"
 
     def predict(self, entries, dataset, sequences, out, progress, cancel):
         for i, entry in enumerate(entries):
