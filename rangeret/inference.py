@@ -10,6 +10,7 @@ everywhere.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import logging
 from collections.abc import Sequence
@@ -52,9 +53,15 @@ def resolve_checkpoint(path: str | Path | None) -> Path:
 
 def is_demo_checkpoint(sha256: str | None) -> bool:
     """Whether a checkpoint hash is that of the bundled demo weights."""
-    if not sha256 or not DEMO_CHECKPOINT.exists():
-        return False
-    return hashlib.sha256(DEMO_CHECKPOINT.read_bytes()).hexdigest() == sha256
+    return bool(sha256) and sha256 == _demo_sha256()
+
+
+@functools.cache
+def _demo_sha256() -> str | None:
+    """The bundled demo weights' SHA-256, read once (every description of a run asks for it)."""
+    if not DEMO_CHECKPOINT.exists():
+        return None
+    return hashlib.sha256(DEMO_CHECKPOINT.read_bytes()).hexdigest()
 
 
 @dataclass(frozen=True)
@@ -335,18 +342,6 @@ class Predictor:
             )
             for p, out, c in zip(projections, logits, classes, strict=True)
         ]
-
-    def finish(
-        self,
-        projection: Projection,
-        logits: torch.Tensor,
-        with_probabilities: bool = False,
-        times: StageTimes | None = None,
-    ) -> ScanPrediction:
-        """Refinement and raw ids for one scan whose logits are known."""
-        classes = self.refine(projection, logits, times)
-        probs = self.probabilities(projection, logits) if with_probabilities else None
-        return ScanPrediction(labels=self.to_raw(classes), classes=classes, probabilities=probs)
 
     def label_loaded(
         self, scans: Sequence[LoadedScan], times: StageTimes | None = None

@@ -56,6 +56,12 @@ def _weights(path, profile, seed=0):
     return network, state
 
 
+def _predict_sequence_1(tmp_path, data, *options):
+    """`rangeret predict` of sequence 1 of `data` into tmp_path/p; the exit code."""
+    args = ["predict", "-q", "--dataset", str(data), "--sequences", "1"]
+    return main([*args, "--out", str(tmp_path / "p"), *options])
+
+
 def _reference_projection(points, spec, height, width):
     """The release's projection: (5, H, W) normalised image, each point's pixel and range."""
     sensor = spec["sensor"]
@@ -178,20 +184,8 @@ def test_a_class_count_that_differs_from_the_profile_is_refused(tmp_path, capsys
     panda = load_profile("pandaset")
     data = _tree(tmp_path / "data", load_profile("semantickitti"))
     _weights(tmp_path / "w.pt", panda)
-    code = main(
-        [
-            *[
-                "predict",
-                "-q",
-                "--dataset",
-                str(data),
-                "--sequences",
-                "1",
-                "--out",
-                str(tmp_path / "p"),
-            ],
-            *["--checkpoint", str(tmp_path / "w.pt"), "--width", str(WIDTH)],
-        ]
+    code = _predict_sequence_1(
+        tmp_path, data, "--checkpoint", str(tmp_path / "w.pt"), "--width", str(WIDTH)
     )
     err = capsys.readouterr().err
     assert code == 1 and "15 classes" in err and "semantickitti profile has 20" in err
@@ -244,21 +238,7 @@ def test_the_projects_checkpoints_run_only_with_their_profile(tmp_path, capsys):
 
 def test_the_demo_weights_are_semantickittis(tmp_path, capsys):
     data = _tree(tmp_path / "data", load_profile("pandaset"))
-    code = main(
-        [
-            *[
-                "predict",
-                "-q",
-                "--dataset",
-                str(data),
-                "--sequences",
-                "1",
-                "--out",
-                str(tmp_path / "p"),
-            ],
-            *["--profile", "pandaset"],
-        ]
-    )
+    code = _predict_sequence_1(tmp_path, data, "--profile", "pandaset")
     err = capsys.readouterr().err
     assert code == 1 and "trained for the semantickitti profile" in err
 
@@ -271,27 +251,15 @@ def test_a_laser_id_off_the_image_names_the_file(tmp_path, capsys):
     points = np.fromfile(scan, np.float32).reshape(-1, 5)
     points[np.flatnonzero(np.linalg.norm(points[:, :3], axis=1) > 0)[0], 4] = 64
     points.tofile(scan)
-    code = main(
-        [
-            *[
-                "predict",
-                "-q",
-                "--dataset",
-                str(data),
-                "--sequences",
-                "1",
-                "--out",
-                str(tmp_path / "p"),
-            ],
-            *[
-                "--profile",
-                "pandaset",
-                "--checkpoint",
-                str(tmp_path / "w.pt"),
-                "--width",
-                str(WIDTH),
-            ],
-        ]
+    code = _predict_sequence_1(
+        tmp_path,
+        data,
+        "--profile",
+        "pandaset",
+        "--checkpoint",
+        str(tmp_path / "w.pt"),
+        "--width",
+        str(WIDTH),
     )
     out, err = capsys.readouterr()
     assert code == 1 and "1 of 2 scans could not be predicted" in err
@@ -306,27 +274,15 @@ def test_a_four_float_file_is_not_read_as_pandaset(tmp_path, capsys):
     _weights(tmp_path / "w.pt", profile)
     scan = sorted((data / "001" / "velodyne").glob("*.bin"))[0]
     scan.write_bytes(np.zeros((7, 4), np.float32).tobytes())
-    code = main(
-        [
-            *[
-                "predict",
-                "-q",
-                "--dataset",
-                str(data),
-                "--sequences",
-                "1",
-                "--out",
-                str(tmp_path / "p"),
-            ],
-            *[
-                "--profile",
-                "pandaset",
-                "--checkpoint",
-                str(tmp_path / "w.pt"),
-                "--width",
-                str(WIDTH),
-            ],
-        ]
+    code = _predict_sequence_1(
+        tmp_path,
+        data,
+        "--profile",
+        "pandaset",
+        "--checkpoint",
+        str(tmp_path / "w.pt"),
+        "--width",
+        str(WIDTH),
     )
     out = "".join(capsys.readouterr())
     assert code == 1 and "not a multiple of 20" in out and "laser_id" in out
@@ -340,11 +296,9 @@ def test_pandaset_evaluation_ignores_class_14_not_car(tmp_path, capsys):
         out = prediction_path(tmp_path / "pred", entry.sequence, entry.name)
         out.parent.mkdir(parents=True, exist_ok=True)
         truth.tofile(out)
+    args = ["evaluate", "-q", "--dataset", str(data), "--predictions", str(tmp_path / "pred")]
     code = main(
-        [
-            *["evaluate", "-q", "--dataset", str(data), "--predictions", str(tmp_path / "pred")],
-            *["--sequences", "1", "--profile", "pandaset", "--json", str(tmp_path / "r.json")],
-        ]
+        [*args, "--sequences", "1", "--profile", "pandaset", "--json", str(tmp_path / "r.json")]
     )
     assert code == 0, capsys.readouterr().err
     report = json.loads((tmp_path / "r.json").read_text())
@@ -354,12 +308,8 @@ def test_pandaset_evaluation_ignores_class_14_not_car(tmp_path, capsys):
 
 
 def test_submission_archives_are_semantickitti_only(tmp_path, capsys):
-    code = main(
-        [
-            *["submission", "--predictions", str(tmp_path), "--dataset", str(tmp_path)],
-            *["--out", str(tmp_path / "s.zip"), "--profile", "pandaset"],
-        ]
-    )
+    args = ["submission", "--predictions", str(tmp_path), "--dataset", str(tmp_path)]
+    code = main([*args, "--out", str(tmp_path / "s.zip"), "--profile", "pandaset"])
     err = capsys.readouterr().err
     assert code == 1 and "SemanticKITTI benchmark's format" in err
     assert not (tmp_path / "s.zip").exists()

@@ -288,3 +288,10 @@ def test_an_unknown_profile_names_the_builtins(capsys: pytest.CaptureFixture[str
     assert main(["profile", "show", "no-such-sensor"]) == 1
     err = capsys.readouterr().err
     assert "unknown profile 'no-such-sensor'" in err and "pandaset" in err
+
+
+def test_the_semantickitti_profile_holds_the_bundled_label_configuration() -> None:
+    """The profile's labels and `labels.semantickitti()` come from two files that must agree."""
+    from rangeret.labels import semantickitti
+
+    assert load_profile("semantickitti").labels == semantickitti()

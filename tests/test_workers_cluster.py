@@ -144,7 +144,7 @@ def test_a_job_runs_on_the_gateways_actors_that_hold_every_gpu(cluster, tmp_path
             _job(weights, data, tmp_path / "own", actor_start_timeout=20)
 
         options = PipelineOptions(read_cpus=0.25, write_cpus=0.1, actor_start_timeout=20)
-        out = tmp_path / "shared"
+        out = tmp_path / "on-pool"
         result = run_pipeline(spec, profile, entries, out, options, model_actors=pool.actors)
         assert not result.failed and result.written == len(entries) == 5
         assert result.actors == 2 and {d.split("@")[0] for d in result.devices} == {"cpu"}

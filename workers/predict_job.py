@@ -113,8 +113,9 @@ def run(args: argparse.Namespace) -> int:
     entries = list_scans(
         args.dataset, sequences, missing_ok=args.allow_partial, layout=profile.layout
     )
-    done = [e for e in entries if is_complete(e, args.out, profile.points)]
-    pending = [e for e in entries if not is_complete(e, args.out, profile.points)]
+    complete = [is_complete(e, args.out, profile.points) for e in entries]
+    done = [e for e, finished in zip(entries, complete, strict=True) if finished]
+    pending = [e for e, finished in zip(entries, complete, strict=True) if not finished]
     log.info(
         "%d scans in %s: %d to predict, %d already done",
         len(entries),
