@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import REPO
-from test_service import (
+from gateway_helpers import (
     Gateway,
     assert_error,
     free_port,
