@@ -5,7 +5,7 @@ the served network, and builds the `Gateway` (`service.gateway`) that owns the r
 the job store and runner, and the metrics. The endpoints are in `service.routes` (one module per
 resource), the error answers in `service.error_handlers`: every error is
 `{"detail": "<one sentence>"}`. With RANGERET_API_TOKEN set, every /v1 request needs
-`Authorization: Bearer TOKEN` (/healthz, /metrics and the API description do not).
+`Authorization: Bearer TOKEN` (/metrics and the API description do not; /healthz gives its details only with it).
 """
 
 from __future__ import annotations
@@ -67,6 +67,7 @@ def create_app(
     profile: DatasetProfile | None = None,
     checkpoint_sha256: str | None = None,
     dispatchers: int = 1,
+    model: str | None = None,
 ) -> FastAPI:
     """The gateway app over a ready worker pool whose network runs with `profile` (default
     semantickitti): its point record, labels, layout and splits are the gateway's.
@@ -78,7 +79,13 @@ def create_app(
         raise ValueError(problem)
     check_schema_version(settings.database_path)
     gateway = Gateway(
-        settings, pool, executor, profile or load_profile(None), checkpoint_sha256, dispatchers
+        settings,
+        pool,
+        executor,
+        profile or load_profile(None),
+        checkpoint_sha256,
+        dispatchers,
+        model=model,
     )
 
     @asynccontextmanager

@@ -31,6 +31,14 @@ async def get_jobs(gateway: GatewayDep) -> JobManager:
 JobsDep = Annotated[JobManager, Depends(get_jobs)]
 
 
+def token_matches(gateway: Gateway, credentials: HTTPAuthorizationCredentials | None) -> bool:
+    """Whether the request carries the gateway's bearer token (compared in constant time)."""
+    token = gateway.settings.token
+    if token is None or credentials is None:
+        return False
+    return hmac.compare_digest(credentials.credentials.encode(), token.encode())
+
+
 async def require_token(
     gateway: GatewayDep,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(BEARER)],
@@ -48,5 +56,5 @@ async def require_token(
             "This endpoint needs the header 'Authorization: Bearer <token>'.",
             {"WWW-Authenticate": "Bearer"},
         )
-    if not hmac.compare_digest(credentials.credentials.encode(), token.encode()):
+    if not token_matches(gateway, credentials):
         raise ApiError(401, "The bearer token is wrong.", {"WWW-Authenticate": "Bearer"})

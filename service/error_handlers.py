@@ -12,6 +12,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 from service.errors import ApiError, default_sentence, validation_sentence
 from service.schemas import ErrorResponse
@@ -33,13 +34,36 @@ async def api_error(_: Request, exc: ApiError) -> JSONResponse:
     return error_response(exc.status_code, exc.detail, exc.headers)
 
 
-async def http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
-    """Starlette's HTTP errors, with its short phrases turned into sentences."""
-    return error_response(
-        exc.status_code,
-        default_sentence(exc.status_code, exc.detail),
-        getattr(exc, "headers", None),
-    )
+#: The methods a 405's `Allow` may list, probed in this order.
+_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
+
+
+def allowed_methods(request: Request) -> list[str]:
+    """Every method some route of the app accepts at the request's path, for a 405's `Allow`.
+
+    Each method is tried against the app's routes, so routes of included routers count too.
+    """
+    routes = request.app.router.routes
+    return [
+        method
+        for method in _METHODS
+        if any(
+            route.matches({**request.scope, "method": method})[0] is Match.FULL for route in routes
+        )
+    ]
+
+
+async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    """Starlette's HTTP errors, with its short phrases turned into sentences; a 405 lists every
+    method of the path in `Allow`, not only that of the first route that matched it."""
+    headers = dict(getattr(exc, "headers", None) or {})
+    detail = default_sentence(exc.status_code, exc.detail)
+    if exc.status_code == 405:
+        allowed = allowed_methods(request)
+        if allowed:
+            headers["Allow"] = ", ".join(allowed)
+            detail = f"This endpoint accepts {', '.join(allowed)}, not {request.method[:20]}."
+    return error_response(exc.status_code, detail, headers or None)
 
 
 async def invalid_request(_: Request, exc: RequestValidationError) -> JSONResponse:

@@ -1,5 +1,5 @@
 """The `Gateway`: what every endpoint uses (settings, the served dataset profile, worker pool,
-batcher, job manager, metrics).
+single-scan admission, batcher, job manager, metrics).
 
 `create_app` builds one per app and keeps it in `app.state.gateway`; the app's lifespan starts it
 (job store, runner, batcher) and stops it. Routes get it through `service.dependencies`.
@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 from rangeret.profiles import DatasetProfile
+from service.admission import ScanAdmission
 from service.batching import ScanBackend, ScanBatcher
 from service.errors import ApiError
 from service.jobs import JobExecutor, JobManager, JobStore
@@ -42,12 +43,18 @@ class Gateway:
     profile: DatasetProfile
     checkpoint_sha256: str | None
     dispatchers: int
+    #: The served network's name (None: taken from the workers' descriptions).
+    model: str | None = None
     metrics: GatewayMetrics = field(init=False)
+    admission: ScanAdmission = field(init=False)
     batcher: ScanBatcher | None = None
     jobs: JobManager | None = None
 
     def __post_init__(self) -> None:
         self.metrics = GatewayMetrics(self.profile.name)
+        self.admission = ScanAdmission(
+            self.settings.max_queued_scans, self.settings.max_queued_bytes
+        )
 
     async def start(self) -> None:
         """Open the job store, recover and start the runner, start the batcher."""
@@ -62,6 +69,10 @@ class Gateway:
             profile=self.profile,
             checkpoint_sha256=self.checkpoint_sha256,
             on_scans=self.metrics.job_scans,
+            max_running=settings.max_running_jobs,
+            max_queued=settings.max_queued_jobs,
+            max_bytes=settings.max_job_bytes,
+            read_roots=settings.data_roots,
         )
         await asyncio.to_thread(self.jobs.start)
         self.batcher = ScanBatcher(

@@ -8,12 +8,16 @@ number of series stays bounded.
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, Info, generate_latest
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
+from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+log = logging.getLogger(__name__)
 
 LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
 
@@ -53,6 +57,11 @@ class GatewayMetrics:
         self.points = Counter(
             "rangeret_points_labelled",
             "Points labelled by single-scan requests",
+            registry=self.registry,
+        )
+        self.refused = Counter(
+            "rangeret_scans_refused",
+            "Single-scan requests refused with 503 because the gateway held as many as it may",
             registry=self.registry,
         )
         self.batch_size = Histogram(
@@ -96,8 +105,16 @@ class GatewayMetrics:
         return generate_latest(self.registry)
 
 
+#: The `status` label of a request whose client went away before its body was read.
+CLIENT_DISCONNECT = "client_disconnect"
+
+
 class MetricsMiddleware:
-    """ASGI middleware counting every HTTP request and timing it, by route template."""
+    """ASGI middleware counting every HTTP request and timing it, by route template.
+
+    A client that disconnects before its body is read is no server error: it is counted under
+    the status `client_disconnect` and logged as one line, and nothing is answered.
+    """
 
     def __init__(self, app: ASGIApp, metrics: Callable[[], GatewayMetrics | None]) -> None:
         self.app = app
@@ -108,7 +125,7 @@ class MetricsMiddleware:
             await self.app(scope, receive, send)
             return
         start = time.perf_counter()
-        status = [500]
+        status: list[int | str] = [500]
 
         async def send_wrapper(message: Message) -> None:
             if message["type"] == "http.response.start":
@@ -117,6 +134,13 @@ class MetricsMiddleware:
 
         try:
             await self.app(scope, receive, send_wrapper)
+        except ClientDisconnect:
+            status[0] = CLIENT_DISCONNECT
+            log.info(
+                "%s %s: the client disconnected before its request was read",
+                scope.get("method", ""),
+                scope.get("path", "")[:200],
+            )
         finally:
             metrics = self.metrics()
             if metrics is not None:

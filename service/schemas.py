@@ -200,14 +200,39 @@ class JobList(BaseModel):
     jobs: list[JobStatus]
 
 
-class Health(BaseModel):
-    """The gateway's and its worker backend's state."""
+class HealthSummary(BaseModel):
+    """What `/healthz` tells a caller without the token: up or not, and what is served."""
 
     model_config = ConfigDict(
         json_schema_extra={
             "examples": [
                 {
                     "status": "ok",
+                    "model": "rangeret-cir",
+                    "profile": "semantickitti",
+                    "version": "0.1.0",
+                }
+            ]
+        }
+    )
+
+    status: Literal["ok", "unavailable"]
+    model: str | None = Field(description="the network the gateway serves")
+    profile: str = Field(description="the dataset profile the gateway serves")
+    version: str = Field(description="the gateway's software version")
+
+
+class Health(HealthSummary):
+    """The gateway's and its worker backend's state, for callers the token rule lets in."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "status": "ok",
+                    "model": "rangeret-cir",
+                    "profile": "semantickitti",
+                    "version": "0.1.0",
                     "backend": "local",
                     "workers": [{"pid": 4242, "model": "rangeret-cir", "device": "cpu"}],
                     "precision": "fp32",
@@ -215,16 +240,13 @@ class Health(BaseModel):
                     "batch_size": 4,
                     "batch_wait_ms": 10.0,
                     "checkpoint_sha256": "9b1d...",
-                    "profile": "semantickitti",
                     "point_fields": ["x", "y", "z", "remission"],
                 }
             ]
         }
     )
 
-    status: Literal["ok", "unavailable"]
     backend: Literal["local", "ray"]
-    profile: str = Field(description="the dataset profile the gateway serves")
     point_fields: list[str] = Field(
         description="the float32 values of one point of a scan, in order (the profile's record)"
     )

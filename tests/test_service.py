@@ -597,6 +597,7 @@ def test_gateway_killed_mid_job_resumes_it(setup, tmp_path):
     finally:
         first.stop(signal.SIGKILL)
     assert status["state"] == "running" and 3 <= status["done"] < 16, status
+    assert status["started"] is not None
 
     second = start_gateway(setup["weights"], env, tmp_path / "second.log")
     try:
@@ -610,6 +611,7 @@ def test_gateway_killed_mid_job_resumes_it(setup, tmp_path):
         16,
         0,
     ), final
+    assert final["started"] == status["started"], "a resumed job keeps the time it first started"
     with zipfile.ZipFile(io.BytesIO(archive)) as zf:
         for i in range(16):
             data = zf.read(f"sequences/42/predictions/{i:06d}.label")

@@ -26,7 +26,7 @@ from rangeret.submission import required_directories
 from service.archives import ArchiveError, ArchiveLimits, ArchiveTooLarge, extract_archive
 from service.batching import BackendError, ScanBatcher, ScanRejected
 from service.errors import validation_sentence
-from service.jobs import JobManager, JobStore, write_predictions_zip
+from service.jobs import JobManager, JobRefused, JobStore, write_predictions_zip
 from service.routes.scans import wants_json
 from service.schemas import JobState
 from service.settings import Settings, is_loopback
@@ -543,3 +543,113 @@ def test_validation_sentences():
     assert validation_sentence(
         [{"loc": (), "msg": "Value error, give either 'split' or 'sequences'"}], "body"
     ) == ("The request body is invalid: give either 'split' or 'sequences'.")
+
+
+class PerJobExecutor(FakeExecutor):
+    """A `FakeExecutor` that holds the jobs over the sequences in `held` until released (or
+    cancelled), and runs the others at once."""
+
+    def __init__(self, held: set[str]) -> None:
+        super().__init__()
+        self.held = held
+        self.release.clear()
+        self.holding = threading.Semaphore(0)
+
+    def predict(self, entries, dataset, sequences, out, progress, cancel):
+        if self.held & set(sequences):
+            self.holding.release()
+            while not self.release.wait(0.05) and not cancel.is_set():
+                pass
+        for i, entry in enumerate(entries):
+            n = os.path.getsize(entry.scan_path) // self.point_bytes
+            write_labels(
+                prediction_path(out, entry.sequence, entry.name), np.zeros(n, dtype=np.uint32)
+            )
+            progress(i + 1, 0, len(entries))
+        return {}
+
+
+def test_claims_take_the_oldest_queued_job_once_and_a_resumed_job_keeps_its_start(tmp_path):
+    store = JobStore(tmp_path / "jobs.sqlite")
+    for name in ("a", "b", "c"):
+        store.create(name, "dataset", tmp_path, ["08"])
+        time.sleep(0.01)
+    claimed = [store.claim_next() for _ in range(4)]
+    assert [r.id if r else None for r in claimed] == ["a", "b", "c", None]
+    assert all(r.state is JobState.running and r.attempts == 1 for r in claimed[:3])
+    first_start = store.get("a").started
+    assert store.requeue("a") and store.start("a")
+    assert store.get("a").started == first_start and store.get("a").attempts == 2
+
+
+def test_jobs_run_side_by_side_and_the_queue_and_disk_are_bounded(tmp_path):
+    data = tmp_path / "data"
+    make_tree(data, {"08": [30], "09": [40, 50]}, labelled=False)
+    executor = PerJobExecutor(held={"09"})
+    manager = JobManager(
+        JobStore(tmp_path / "jobs.sqlite"),
+        executor,
+        tmp_path / "jobs",
+        3600,
+        max_running=2,
+        max_queued=1,
+        max_bytes=10_000,
+        read_roots=[tmp_path],
+    )
+
+    def submit(sequence: str, expected: int) -> str:
+        job_id, _ = manager.new_job()
+        manager.submit(job_id, "dataset", data, [sequence], expected_bytes=expected)
+        return job_id
+
+    manager.start()
+    try:
+        long_id = submit("09", 4_000)
+        assert executor.holding.acquire(timeout=10)
+        short_id = submit("08", 100)
+        assert _wait_state(manager, short_id, JobState.succeeded) is JobState.succeeded
+        assert manager.store.get(long_id).state is JobState.running
+
+        second_id = submit("09", 4_000)
+        assert executor.holding.acquire(timeout=10)
+        queued_id = submit("08", 100)
+        assert manager.store.get(queued_id).state is JobState.queued
+        with pytest.raises(JobRefused) as full:
+            submit("08", 100)
+        assert full.value.status_code == 429 and "RANGERET_MAX_QUEUED_JOBS" in str(full.value)
+        manager.cancel(queued_id)
+        with pytest.raises(JobRefused) as disk:
+            submit("08", 3_000)
+        assert disk.value.status_code == 507 and "RANGERET_MAX_JOB_BYTES" in str(disk.value)
+        assert submit("08", 1_000)
+        executor.release.set()
+        for job_id in (long_id, second_id):
+            assert _wait_state(manager, job_id, JobState.succeeded) is JobState.succeeded
+    finally:
+        executor.release.set()
+        manager.stop()
+
+
+def test_a_job_whose_files_were_linked_out_of_the_roots_since_it_was_queued_fails(tmp_path):
+    roots = tmp_path / "roots"
+    data = roots / "data"
+    make_tree(data, {"08": [30, 40]}, labelled=False)
+    outside = tmp_path / "outside.bin"
+    outside.write_bytes(b"\0" * 16 * 30)
+    scan = data / "sequences" / "08" / "velodyne" / "000001.bin"
+    scan.unlink()
+    scan.symlink_to(outside)
+    manager = JobManager(
+        JobStore(tmp_path / "jobs.sqlite"), FakeExecutor(), tmp_path / "jobs", 3600,
+        read_roots=[roots],
+    )  # fmt: skip
+    manager.start()
+    try:
+        job_id, _ = manager.new_job()
+        manager.submit(job_id, "dataset", data, ["08"])
+        assert _wait_state(manager, job_id, JobState.failed) is JobState.failed
+    finally:
+        manager.stop()
+    reason = manager.store.get(job_id).reason
+    assert "08/000001" in reason and "outside the data roots" in reason
+    assert str(tmp_path) not in reason

@@ -1,6 +1,9 @@
-"""The job runner: queue, one background thread, cancellation, recovery and retention.
+"""The job runner: queue, runner threads, admission, cancellation, recovery and retention.
 
-A job predicts every scan of its sequences into `JOBS/<id>/predictions` with its executor, then
+Up to `max_running` jobs run at once, each on its own runner thread, and the oldest queued job
+always starts next, so no job waits behind a long one for a free runner for ever. A job is
+admitted only while fewer than `max_queued` jobs wait and its expected output fits in the disk
+the job folders may use (`service.jobs.capacity`). A job predicts every scan of its sequences into `JOBS/<id>/predictions` with its executor, then
 writes the predictions zip and, for sequences with ground truth, the evaluation report. Everything
 is read with the gateway's dataset profile (layout, point record, labels); each job's folder
 records the profile it was accepted for, and a gateway serving another one fails it rather than
@@ -23,8 +26,10 @@ from rangeret.evaluation import evaluate_predictions
 from rangeret.layout import KITTI_LAYOUT, SequenceLayout, discover
 from rangeret.predict import is_complete, list_scans
 from rangeret.profiles import DatasetProfile, load_profile
+from service.jobs.capacity import disk_full, folder_bytes, queue_full
 from service.jobs.executors import JobExecutor, write_predictions_zip
 from service.jobs.store import JobRecord, JobStore
+from service.paths import escaping_scans, outside_roots_sentence
 from service.schemas import JobState
 
 log = logging.getLogger(__name__)
@@ -46,7 +51,12 @@ def labelled_sequences(
 
 
 class JobManager:
-    """Creates, runs (one at a time, oldest first), cancels, resumes and expires jobs."""
+    """Admits, runs (up to `max_running` at once, oldest first), cancels, resumes and expires
+    jobs.
+
+    `read_roots`, when given, are the folders a dataset job may read (links resolved); the jobs
+    folder, where uploaded archives are extracted, is always allowed then.
+    """
 
     def __init__(
         self,
@@ -57,7 +67,13 @@ class JobManager:
         profile: DatasetProfile | None = None,
         checkpoint_sha256: str | None = None,
         on_scans: Callable[[int], None] | None = None,
+        max_running: int = 1,
+        max_queued: int | None = None,
+        max_bytes: int | None = None,
+        read_roots: Sequence[Path] | None = None,
     ) -> None:
+        if max_running < 1:
+            raise ValueError("max_running must be at least 1")
         self.store = store
         self.executor = executor
         self.jobs_dir = jobs_dir
@@ -65,10 +81,23 @@ class JobManager:
         self.profile = profile or load_profile(None)
         self.checkpoint_sha256 = checkpoint_sha256
         self.on_scans = on_scans
+        self.max_running = max_running
+        self.max_queued = max_queued
+        self.max_bytes = max_bytes
+        self.read_roots = (
+            None
+            if read_roots is None
+            else [Path(r).resolve() for r in read_roots] + [jobs_dir.resolve()]
+        )
         self._wake = threading.Event()
         self._stop = threading.Event()
-        self._current: tuple[str, threading.Event] | None = None
-        self._current_lock = threading.Lock()
+        self._running: dict[str, threading.Event] = {}
+        self._running_lock = threading.Lock()
+        self._admit_lock = threading.Lock()
+        #: Bytes each queued or running job is expected to write (see `capacity`).
+        self._expected: dict[str, int] = {}
+        #: Sizes of finished jobs' folders, which no longer change.
+        self._finished_sizes: dict[str, int] = {}
         self._threads: list[threading.Thread] = []
 
     # Folders ------------------------------------------------------------------------------
@@ -90,11 +119,48 @@ class JobManager:
 
     # Life cycle -----------------------------------------------------------------------------
 
-    def submit(self, job_id: str, kind: str, dataset: Path, sequences: Sequence[str]) -> JobRecord:
-        """Queue a job whose folder is ready, noting the profile it is accepted for, and wake the
-        runner."""
-        (self.job_dir(job_id) / PROFILE_FILE).write_text(self.profile.name + "\n")
-        record = self.store.create(job_id, kind, dataset, sequences)
+    def check_queue(self) -> None:
+        """`JobRefused` (429) when the queue is full, so an upload is refused before it is read."""
+        if self.max_queued is not None and self.store.count(JobState.queued) >= self.max_queued:
+            raise queue_full(self.max_queued)
+
+    def disk_usage(self) -> int:
+        """Bytes the job folders hold or expect: each folder's files, and for queued and running
+        jobs at least what they are expected to write."""
+        total = 0
+        if not self.jobs_dir.is_dir():
+            return 0
+        finished = {j.id for j in self.store.list() if j.state.finished}
+        for folder in self.jobs_dir.iterdir():
+            job_id = folder.name
+            if job_id in finished:
+                if job_id not in self._finished_sizes:
+                    self._finished_sizes[job_id] = folder_bytes(folder)
+                total += self._finished_sizes[job_id]
+            else:
+                total += max(folder_bytes(folder), self._expected.get(job_id, 0))
+        return total
+
+    def submit(
+        self,
+        job_id: str,
+        kind: str,
+        dataset: Path,
+        sequences: Sequence[str],
+        expected_bytes: int = 0,
+    ) -> JobRecord:
+        """Queue a job whose folder is ready, noting the profile it is accepted for, and wake a
+        runner; `JobRefused` when the queue is full (429) or its `expected_bytes` of output do not
+        fit in the disk the jobs may use (507)."""
+        with self._admit_lock:
+            self.check_queue()
+            if self.max_bytes is not None:
+                used = self.disk_usage()
+                if used + expected_bytes > self.max_bytes:
+                    raise disk_full(expected_bytes, used, self.max_bytes)
+            (self.job_dir(job_id) / PROFILE_FILE).write_text(self.profile.name + "\n")
+            record = self.store.create(job_id, kind, dataset, sequences)
+            self._expected[job_id] = expected_bytes
         self._wake.set()
         return record
 
@@ -107,35 +173,41 @@ class JobManager:
         if record is None:
             return None
         if self.store.cancel(job_id):
-            with self._current_lock:
-                current = self._current
-            if current is not None and current[0] == job_id:
-                current[1].set()  # the runner removes the files once the batch in flight is done
+            with self._running_lock:
+                running = self._running.get(job_id)
+            if running is not None:
+                running.set()  # the runner removes the files once the batch in flight is done
             else:
                 self.remove_files(job_id)
+                self._expected.pop(job_id, None)
             return self.store.get(job_id)
         self.remove_files(job_id)
         self.store.delete(job_id)
+        self._finished_sizes.pop(job_id, None)
         return record
 
     def start(self) -> None:
-        """Recover from the previous run, then start the runner and the retention sweeper."""
+        """Recover from the previous run, then start the runners and the retention sweeper."""
         self.recover()
         self._stop.clear()
         self._threads = [
-            threading.Thread(target=self._run_loop, name="rangeret-jobs", daemon=True),
-            threading.Thread(target=self._sweep_loop, name="rangeret-retention", daemon=True),
+            threading.Thread(target=self._run_loop, name=f"rangeret-jobs-{i}", daemon=True)
+            for i in range(self.max_running)
         ]
+        self._threads.append(
+            threading.Thread(target=self._sweep_loop, name="rangeret-retention", daemon=True)
+        )
         for thread in self._threads:
             thread.start()
 
     def stop(self, timeout: float = 30.0) -> None:
-        """Stop after the batch in flight; a running job is queued again and resumes at next start."""
+        """Stop after the batches in flight; running jobs are queued again and resume at the next
+        start."""
         self._stop.set()
         self._wake.set()
-        with self._current_lock:
-            if self._current is not None:
-                self._current[1].set()
+        with self._running_lock:
+            for cancel in self._running.values():
+                cancel.set()
         for thread in self._threads:
             thread.join(timeout)
         self._threads = []
@@ -174,6 +246,7 @@ class JobManager:
         for job in expired:
             self.remove_files(job.id)
             self.store.delete(job.id)
+            self._finished_sizes.pop(job.id, None)
         if expired:
             log.info("removed %d finished job(s) past the retention time", len(expired))
         return len(expired)
@@ -190,7 +263,7 @@ class JobManager:
 
     def _run_loop(self) -> None:
         while not self._stop.is_set():
-            job = self.store.next_queued()
+            job = self.store.claim_next()
             if job is None:
                 self._wake.wait(1.0)
                 self._wake.clear()
@@ -201,21 +274,21 @@ class JobManager:
                 log.exception("job %s failed in the runner", job.id)
 
     def _run(self, job: JobRecord) -> None:
-        """Run one job to a final state (or back to queued when the gateway stops)."""
+        """Run one claimed job to a final state (or back to queued when the gateway stops)."""
         cancel = threading.Event()
-        with self._current_lock:
-            self._current = (job.id, cancel)
+        with self._running_lock:
+            self._running[job.id] = cancel
         try:
-            if self.store.start(job.id):
-                try:
-                    self._execute(job, cancel)
-                except Exception as exc:
-                    log.exception("job %s failed", job.id)
-                    self.store.finish(job.id, JobState.failed, reason=_sentence(exc))
+            self._execute(job, cancel)
+        except Exception as exc:
+            log.exception("job %s failed", job.id)
+            self.store.finish(job.id, JobState.failed, reason=_sentence(exc))
         finally:
-            with self._current_lock:
-                self._current = None
+            with self._running_lock:
+                self._running.pop(job.id, None)
         latest = self.store.get(job.id)
+        if latest is None or latest.state is not JobState.queued:
+            self._expected.pop(job.id, None)
         if latest is not None and latest.state is JobState.cancelled:
             self.remove_files(job.id)
 
@@ -234,6 +307,12 @@ class JobManager:
             return
         layout, record = self.profile.layout, self.profile.points
         entries = list_scans(dataset, job.sequences, layout=layout)
+        escaping = escaping_scans(entries, self.read_roots) if self.read_roots else []
+        if escaping:
+            self.store.finish(
+                job.id, JobState.failed, reason=outside_roots_sentence(escaping, "The job")
+            )
+            return
         skipped = sum(is_complete(e, out, record) for e in entries)
         self.store.progress(job.id, len(entries), skipped, 0)
         counted = [0]

@@ -82,6 +82,12 @@ class JobRecord:
     attempts: int = 0
 
 
+#: queued -> running: the first start's time is kept when a job resumes.
+_START = (
+    "UPDATE jobs SET state = ?, started = COALESCE(started, ?), attempts = attempts + 1 "
+    "WHERE id = ? AND state = ?"
+)
+
 _COLUMNS = (
     "id", "kind", "state", "dataset", "sequences", "created", "total", "done", "failed", "errors",
     "reason", "metrics", "predictions", "report", "started", "finished", "attempts",
@@ -174,10 +180,29 @@ class JobStore:
             f"WHERE state IN ({marks}) ORDER BY created DESC", [s.value for s in states]
         )
 
-    def next_queued(self) -> JobRecord | None:
-        """The oldest queued job."""
-        found = self._query("WHERE state = ? ORDER BY created LIMIT 1", (JobState.queued.value,))
-        return found[0] if found else None
+    def claim_next(self) -> JobRecord | None:
+        """The oldest queued job, moved to running in the same step, so that two runners never
+        take the same job; None when nothing is queued."""
+        with self._lock:
+            row = self._db.execute(
+                "SELECT id FROM jobs WHERE state = ? ORDER BY created, rowid LIMIT 1",
+                (JobState.queued.value,),
+            ).fetchone()
+            if row is None:
+                return None
+            self._db.execute(
+                _START, (JobState.running.value, time.time(), row[0], JobState.queued.value)
+            )
+        return self.get(row[0])
+
+    def count(self, state: JobState) -> int:
+        """Number of jobs in `state`."""
+        with self._lock:
+            return int(
+                self._db.execute(
+                    "SELECT COUNT(*) FROM jobs WHERE state = ?", (state.value,)
+                ).fetchone()[0]
+            )
 
     def counts(self) -> dict[str, int]:
         """Number of jobs in each state."""
@@ -187,11 +212,11 @@ class JobStore:
         return {s.value: int(found.get(s.value, 0)) for s in JobState}
 
     def start(self, job_id: str) -> bool:
-        """queued -> running; False when the job is no longer queued."""
+        """queued -> running; False when the job is no longer queued. A resumed job keeps the time
+        it first started."""
         return (
             self._execute(
-                "UPDATE jobs SET state = ?, started = ?, attempts = attempts + 1 WHERE id = ? AND state = ?",
-                (JobState.running.value, time.time(), job_id, JobState.queued.value),
+                _START, (JobState.running.value, time.time(), job_id, JobState.queued.value)
             )
             == 1
         )

@@ -1,36 +1,68 @@
 """/healthz and /metrics: the state of the gateway and its workers, for probes and Prometheus.
 
-Neither needs the bearer token, so probes and scrapers work without it.
+Neither needs the bearer token, so probes and scrapers work without it. Without the token,
+`/healthz` says only whether the gateway is up and what it serves (model, profile, version); the
+details (workers, their processes and checkpoint, queue, batching) need the token where one is
+set, as the /v1 endpoints do.
 """
 
 from __future__ import annotations
 
 import asyncio
+from importlib.metadata import PackageNotFoundError, version
+from typing import Annotated
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Depends
 from fastapi.responses import JSONResponse, Response
+from fastapi.security import HTTPAuthorizationCredentials
 
-from service.dependencies import GatewayDep
-from service.schemas import Health
+from service.dependencies import BEARER, GatewayDep, token_matches
+from service.schemas import Health, HealthSummary
 
 router = APIRouter()
+
+
+def software_version() -> str:
+    """The installed gateway's version ("unknown" when it runs from an uninstalled tree)."""
+    try:
+        return version("rangeret-service")
+    except PackageNotFoundError:
+        return "unknown"
 
 
 @router.get(
     "/healthz",
     summary="Health of the gateway and its workers",
-    response_model=Health,
-    responses={503: {"model": Health, "description": "The worker backend is unavailable"}},
+    description=(
+        "Without the token (where the gateway has one): status, model, profile and version only. "
+        "With it, or on a gateway without a token: the workers, precision, queue and batching too."
+    ),
+    response_model=Health | HealthSummary,
+    responses={
+        503: {"model": Health | HealthSummary, "description": "The worker backend is unavailable"}
+    },
 )
-async def healthz(gw: GatewayDep) -> JSONResponse:
+async def healthz(
+    gw: GatewayDep,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(BEARER)],
+) -> JSONResponse:
     state = await asyncio.to_thread(gw.pool.health)
     ok = bool(state.get("ok"))
     workers = state.get("actors", [])
+    model = gw.model or next((w["model"] for w in workers if w.get("model")), None)
+    summary = HealthSummary(
+        status="ok" if ok else "unavailable",
+        model=model,
+        profile=gw.profile.name,
+        version=software_version(),
+    )
+    status_code = 200 if ok else 503
+    if gw.settings.token is not None and not token_matches(gw, credentials):
+        return JSONResponse(summary.model_dump(mode="json"), status_code=status_code)
     precisions = sorted({w["precision"] for w in workers if w.get("precision")})
     body = Health(
-        status="ok" if ok else "unavailable",
+        **summary.model_dump(),
         backend=state.get("backend", gw.pool.backend),
-        profile=gw.profile.name,
         point_fields=list(gw.profile.points.fields),
         workers=workers,
         precision=", ".join(precisions) or None,
@@ -40,7 +72,7 @@ async def healthz(gw: GatewayDep) -> JSONResponse:
         checkpoint_sha256=gw.checkpoint_sha256,
         error=state.get("error"),
     )
-    return JSONResponse(body.model_dump(mode="json"), status_code=200 if ok else 503)
+    return JSONResponse(body.model_dump(mode="json"), status_code=status_code)
 
 
 @router.get(
