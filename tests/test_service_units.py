@@ -31,7 +31,9 @@ from service.routes.scans import wants_json
 from service.schemas import JobState
 from service.settings import Settings, is_loopback
 
-LIMITS = ArchiveLimits(max_bytes=1 << 20, max_members=20, max_points=1000)
+LIMITS = ArchiveLimits(
+    max_bytes=1 << 20, max_members=20, max_points=1000, max_extracted_bytes=1 << 20
+)
 SCAN = np.arange(40, dtype=np.float32).reshape(10, 4).tobytes()
 PANDASET = load_profile("pandaset")
 
@@ -116,7 +118,9 @@ def test_archive_limits_are_checked_before_writing(tmp_path):
         extract_archive(_zip(tmp_path, big), tmp_path / "b", LIMITS)
     total = {f"sequences/08/velodyne/{i:06d}.bin": b"\0" * 16000 for i in range(10)}
     with pytest.raises(ArchiveTooLarge, match="add up"):
-        extract_archive(_zip(tmp_path, total), tmp_path / "c", ArchiveLimits(100_000, 20, 1000))
+        extract_archive(
+            _zip(tmp_path, total), tmp_path / "c", ArchiveLimits(1 << 20, 20, 1000, 100_000)
+        )
 
 
 def test_tar_duplicates_and_special_members_are_refused(tmp_path):

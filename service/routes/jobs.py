@@ -243,7 +243,10 @@ async def _archive_job(request: Request, gw: Gateway, jobs: JobManager) -> JobRe
         upload = folder / "upload.part"
         await receive_archive(request, upload, settings.max_archive_bytes)
         limits = ArchiveLimits(
-            settings.max_archive_bytes, settings.max_archive_members, settings.max_points
+            settings.max_archive_bytes,
+            settings.max_archive_members,
+            settings.max_points,
+            settings.max_extracted_bytes,
         )
         try:
             found = await asyncio.to_thread(
