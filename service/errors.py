@@ -27,6 +27,7 @@ _DESCRIPTIONS = {
     401: "Missing or wrong bearer token",
     403: "Dataset path outside the configured data roots",
     404: "No such job or result",
+    408: "The body did not arrive in time (RANGERET_BODY_TIMEOUT_S, RANGERET_UPLOAD_TIMEOUT_S)",
     409: "The job has not succeeded (yet)",
     413: "Body, scan or archive over the configured limits",
     415: "Wrong media type",

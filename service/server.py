@@ -114,6 +114,7 @@ def run_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from service.app import create_app
+    from service.protocols import GatewayProtocol
 
     settings = settings_from_args(args)
     problem = settings.address_problem()
@@ -146,6 +147,8 @@ def run_serve(args: argparse.Namespace) -> int:
             port=settings.port,
             log_level=args.log_level,
             timeout_graceful_shutdown=30,
+            http=GatewayProtocol,
+            limit_concurrency=settings.max_connections,
         )
     finally:
         pool.shutdown()

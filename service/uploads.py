@@ -3,6 +3,10 @@
 A body over its limit is answered with 413. So that the client can read that answer instead of
 seeing its connection reset mid-upload, a moderately oversized body is read and dropped first;
 a body far over the limit (more than `DRAIN_MAX` bytes beyond it) is cut off at once.
+
+Every read has a deadline, `timeout` seconds from when the handler starts reading: a body that
+has not all arrived by then is answered with 408 and the connection is closed, and dropping a
+body before an error answer stops there too (the error answer then closes the connection).
 """
 
 from __future__ import annotations
@@ -44,25 +48,72 @@ def declared_length(request: Request) -> int | None:
 
 
 async def drain(
-    request: Request, limit: int = DRAIN_MAX, stream: AsyncIterator[bytes] | None = None
-) -> None:
-    """Read and drop what is left of the body (at most `limit` more bytes) before an error answer.
+    request: Request,
+    limit: int = DRAIN_MAX,
+    stream: AsyncIterator[bytes] | None = None,
+    *,
+    timeout: float,
+) -> bool:
+    """Read and drop what is left of the body (at most `limit` more bytes) before an error answer,
+    for at most `timeout` seconds; whether the body has all been read.
 
     `stream` is the body iterator already being read, when there is one.
     """
     if stream is None:
         length = declared_length(request)
         if length is not None and length > limit:
-            return
+            return False
         stream = request.stream()
     seen = 0
     try:
-        async for chunk in stream:
+        async for chunk in _until(stream, _deadline(timeout)):
             seen += len(chunk)
             if seen > limit:
-                return
+                return False
     except ClientDisconnect:
-        return
+        return True
+    except TimeoutError:
+        return False
+    return True
+
+
+def _deadline(timeout: float) -> float:
+    """The event loop's time `timeout` seconds from now."""
+    return asyncio.get_running_loop().time() + timeout
+
+
+def _left(deadline: float) -> float:
+    """Seconds left until `deadline` (the event loop's time), never negative."""
+    return max(0.0, deadline - asyncio.get_running_loop().time())
+
+
+async def _until(stream: AsyncIterator[bytes], deadline: float) -> AsyncIterator[bytes]:
+    """The chunks of `stream`; TimeoutError when the next one has not come by `deadline`."""
+    chunks = aiter(stream)
+    while True:
+        try:
+            async with asyncio.timeout_at(deadline):
+                chunk = await anext(chunks)
+        except StopAsyncIteration:
+            return
+        yield chunk
+
+
+def too_slow(timeout: float, what: str, setting: str) -> ApiError:
+    """The 408 answer for a body that did not arrive within `timeout` seconds; it closes the
+    connection, whose request is left half read."""
+    return ApiError(
+        408,
+        f"The {what} did not arrive within {timeout:,g} seconds (the limit set by {setting}).",
+        {"Connection": "close"},
+    )
+
+
+def _closing(error: ApiError, whole: bool) -> ApiError:
+    """`error`, closing the connection when the body it answers has not all been read."""
+    if not whole:
+        error.headers["Connection"] = "close"
+    return error
 
 
 def too_large(limit: int, what: str = "request body") -> ApiError:
@@ -70,19 +121,24 @@ def too_large(limit: int, what: str = "request body") -> ApiError:
     return ApiError(413, f"The {what} is larger than the limit of {limit:,} bytes.")
 
 
-async def read_body(request: Request, limit: int) -> bytes:
-    """The whole body, at most `limit` bytes (413 beyond, after draining a moderate excess)."""
+async def read_body(request: Request, limit: int, timeout: float) -> bytes:
+    """The whole body, at most `limit` bytes (413 beyond, after draining a moderate excess),
+    arrived within `timeout` seconds (408 past them, see RANGERET_BODY_TIMEOUT_S)."""
+    deadline = _deadline(timeout)
     length = declared_length(request)
     if length is not None and length > limit:
-        await drain(request, limit + DRAIN_MAX)
-        raise too_large(limit)
+        whole = await drain(request, limit + DRAIN_MAX, timeout=timeout)
+        raise _closing(too_large(limit), whole)
     body = bytearray()
-    stream = request.stream()
-    async for chunk in stream:
-        body += chunk
-        if len(body) > limit:
-            await drain(request, DRAIN_MAX, stream)
-            raise too_large(limit)
+    stream = _until(request.stream(), deadline)
+    try:
+        async for chunk in stream:
+            body += chunk
+            if len(body) > limit:
+                whole = await drain(request, DRAIN_MAX, stream, timeout=_left(deadline))
+                raise _closing(too_large(limit), whole)
+    except TimeoutError:
+        raise too_slow(timeout, "request body", "RANGERET_BODY_TIMEOUT_S") from None
     return bytes(body)
 
 
@@ -140,46 +196,58 @@ class _ArchivePart:
             self.other_bytes += end - start
 
 
-async def receive_archive(request: Request, target: Path, limit: int) -> int:
+async def receive_archive(request: Request, target: Path, limit: int, timeout: float) -> int:
     """Stream the multipart field `archive` into `target`; its size in bytes.
 
-    400 for a malformed form or one without an `archive` file, 413 over `limit` bytes.
+    400 for a malformed form or one without an `archive` file, 413 over `limit` bytes, 408 when
+    the body has not all arrived within `timeout` seconds (RANGERET_UPLOAD_TIMEOUT_S).
     """
+    deadline = _deadline(timeout)
     _, options = parse_options_header(request.headers.get("content-type", ""))
     boundary = options.get(b"boundary")
     if not boundary:
-        await drain(request)
-        raise ApiError(400, "The multipart/form-data body has no boundary parameter.")
+        whole = await drain(request, timeout=timeout)
+        raise _closing(
+            ApiError(400, "The multipart/form-data body has no boundary parameter."), whole
+        )
     length = declared_length(request)
     if length is not None and length > limit + _FORM_SLACK:
-        await drain(request, limit + DRAIN_MAX)
-        raise too_large(limit, "archive")
+        whole = await drain(request, limit + DRAIN_MAX, timeout=timeout)
+        raise _closing(too_large(limit, "archive"), whole)
     part = _ArchivePart()
     parser = MultipartParser(boundary, part.callbacks())
     size = 0
-    stream = request.stream()
+    stream = _until(request.stream(), deadline)
+
+    async def refuse(error: ApiError) -> ApiError:
+        whole = await drain(request, DRAIN_MAX, stream, timeout=_left(deadline))
+        return _closing(error, whole)
+
     with open(target, "wb") as out:
         try:
             async for chunk in stream:
                 parser.write(chunk)
                 if part.other_bytes > _FORM_SLACK:
-                    await drain(request, DRAIN_MAX, stream)
-                    raise ApiError(
-                        400,
-                        f"The form field {part.other_field!r} is unexpected: send only 'archive'.",
+                    raise await refuse(
+                        ApiError(
+                            400,
+                            f"The form field {part.other_field!r} is unexpected: "
+                            "send only 'archive'.",
+                        )
                     )
                 if part.pending:
                     data = b"".join(part.pending)
                     part.pending.clear()
                     size += len(data)
                     if size > limit:
-                        await drain(request, DRAIN_MAX, stream)
-                        raise too_large(limit, "archive")
+                        raise await refuse(too_large(limit, "archive"))
                     await asyncio.to_thread(_write, out, data)
             parser.finalize()
         except FormParserError as exc:
-            await drain(request, DRAIN_MAX, stream)
-            raise ApiError(400, f"The multipart/form-data body is malformed ({exc}).") from exc
+            error = ApiError(400, f"The multipart/form-data body is malformed ({exc}).")
+            raise await refuse(error) from exc
+        except TimeoutError:
+            raise too_slow(timeout, "archive upload", "RANGERET_UPLOAD_TIMEOUT_S") from None
     if not part.seen_archive:
         raise ApiError(400, "The form has no 'archive' file field (a .zip, .tar or .tar.gz).")
     return size

@@ -122,7 +122,7 @@ def resolve_dataset(text: str, roots: Sequence[Path]) -> Path:
     ),
     status_code=202,
     response_model=JobCreated,
-    responses=error_responses(400, 403, 404, 413, 415),
+    responses=error_responses(400, 403, 404, 408, 413, 415),
     openapi_extra={"requestBody": _JOB_BODY},
 )
 async def create_job(request: Request, gw: GatewayDep, jobs: JobsDep) -> JSONResponse:
@@ -132,7 +132,7 @@ async def create_job(request: Request, gw: GatewayDep, jobs: JobsDep) -> JSONRes
     elif kind == "application/json":
         record = await _dataset_job(request, gw, jobs)
     else:
-        await drain(request, gw.settings.max_body_bytes)
+        await drain(request, gw.settings.max_body_bytes, timeout=gw.settings.body_timeout_s)
         raise ApiError(
             415,
             "Send a job as multipart/form-data (an 'archive' file) or as application/json (a dataset).",
@@ -241,7 +241,9 @@ async def _archive_job(request: Request, gw: Gateway, jobs: JobManager) -> JobRe
     job_id, folder = await asyncio.to_thread(jobs.new_job)
     try:
         upload = folder / "upload.part"
-        await receive_archive(request, upload, settings.max_archive_bytes)
+        await receive_archive(
+            request, upload, settings.max_archive_bytes, settings.upload_timeout_s
+        )
         limits = ArchiveLimits(
             settings.max_archive_bytes,
             settings.max_archive_members,
@@ -270,7 +272,7 @@ async def _archive_job(request: Request, gw: Gateway, jobs: JobManager) -> JobRe
 async def _dataset_job(request: Request, gw: Gateway, jobs: JobManager) -> JobRecord:
     """Check a dataset job request (profile, roots, sequences in the profile's layout) and queue
     the job."""
-    body = await read_body(request, gw.settings.max_body_bytes)
+    body = await read_body(request, gw.settings.max_body_bytes, timeout=gw.settings.body_timeout_s)
     try:
         data = json.loads(body)
     except (ValueError, UnicodeDecodeError) as exc:

@@ -73,7 +73,7 @@ def _class_counts(labels: np.ndarray, config: LabelConfig) -> dict[str, int]:
                 "application/json": {"schema": ScanLabels.model_json_schema()},
             },
         },
-        **error_responses(400, 413, 415, 503),
+        **error_responses(400, 408, 413, 415, 503),
     },
     openapi_extra={"requestBody": {"required": True, "content": {OCTET: BINARY_CONTENT}}},
 )
@@ -84,12 +84,12 @@ async def label_scan(
 ) -> Response:
     limits = gw.settings
     if media_type(request) != OCTET:
-        await drain(request, limits.max_body_bytes)
+        await drain(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
         raise ApiError(
             415,
             f"Send the scan as {OCTET}, not {media_type(request) or 'without a Content-Type'}.",
         )
-    body = await read_body(request, limits.max_body_bytes)
+    body = await read_body(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
     record = gw.profile.points
     if len(body) // record.point_bytes > limits.max_points:
         raise ApiError(
