@@ -31,7 +31,9 @@ _DESCRIPTIONS = {
     409: "The job has not succeeded (yet)",
     413: "Body, scan or archive over the configured limits",
     415: "Wrong media type",
-    503: "The worker backend is unavailable",
+    429: "Too many jobs are waiting (RANGERET_MAX_QUEUED_JOBS)",
+    503: "The worker backend is unavailable, or the single-scan queue is full",
+    507: "The job folders' disk limit (RANGERET_MAX_JOB_BYTES) leaves no room for the job",
 }
 
 

@@ -140,7 +140,9 @@ def run_serve(args: argparse.Namespace) -> int:
             settings.batch_size,
             settings.batch_wait_ms,
         )
-        app = create_app(settings, pool, executor, facts.profile, facts.sha256, dispatchers)
+        app = create_app(
+            settings, pool, executor, facts.profile, facts.sha256, dispatchers, model=facts.model
+        )
         uvicorn.run(
             app,
             host=settings.host,

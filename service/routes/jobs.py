@@ -18,13 +18,14 @@ from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse, JSONResponse
 from pydantic import ValidationError
 
-from rangeret.layout import DatasetLayoutError, resolve_sequences
+from rangeret.layout import DatasetLayoutError, ScanEntry, resolve_sequences
 from rangeret.predict import list_scans
 from service.archives import ArchiveError, ArchiveLimits, extract_archive
 from service.dependencies import GatewayDep, JobsDep
 from service.errors import ApiError, error_responses, validation_sentence
 from service.gateway import Gateway
-from service.jobs import JobManager, JobRecord
+from service.jobs import JobManager, JobRecord, JobRefused, disk_full, expected_output_bytes
+from service.paths import escaping_scans, outside_roots_sentence
 from service.schemas import (
     BINARY_CONTENT,
     DatasetJobRequest,
@@ -34,7 +35,7 @@ from service.schemas import (
     JobState,
     JobStatus,
 )
-from service.uploads import drain, media_type, read_body, receive_archive
+from service.uploads import declared_length, drain, media_type, read_body, receive_archive
 
 router = APIRouter(prefix="/v1")
 
@@ -122,11 +123,16 @@ def resolve_dataset(text: str, roots: Sequence[Path]) -> Path:
     ),
     status_code=202,
     response_model=JobCreated,
-    responses=error_responses(400, 403, 404, 408, 413, 415),
+    responses=error_responses(400, 403, 404, 408, 413, 415, 429, 507),
     openapi_extra={"requestBody": _JOB_BODY},
 )
 async def create_job(request: Request, gw: GatewayDep, jobs: JobsDep) -> JSONResponse:
     kind = media_type(request)
+    try:
+        await asyncio.to_thread(jobs.check_queue)
+    except JobRefused as exc:
+        await drain(request, gw.settings.max_body_bytes, timeout=gw.settings.body_timeout_s)
+        raise ApiError(exc.status_code, str(exc)) from exc
     if kind == "multipart/form-data":
         record = await _archive_job(request, gw, jobs)
     elif kind == "application/json":
@@ -238,6 +244,13 @@ async def _succeeded_or_409(jobs: JobManager, job_id: str) -> JobRecord:
 async def _archive_job(request: Request, gw: Gateway, jobs: JobManager) -> JobRecord:
     """Receive, check and extract an uploaded archive into a new job's folder; queue the job."""
     settings = gw.settings
+    declared = declared_length(request)
+    if declared is not None:
+        used = await asyncio.to_thread(jobs.disk_usage)
+        if used + declared > settings.max_job_bytes:
+            await drain(request, settings.max_body_bytes, timeout=settings.upload_timeout_s)
+            exc = disk_full(declared, used, settings.max_job_bytes)
+            raise ApiError(exc.status_code, str(exc))
     job_id, folder = await asyncio.to_thread(jobs.new_job)
     try:
         upload = folder / "upload.part"
@@ -263,7 +276,10 @@ async def _archive_job(request: Request, gw: Gateway, jobs: JobManager) -> JobRe
             raise ApiError(exc.status_code, str(exc)) from exc
         finally:
             upload.unlink(missing_ok=True)
-        return await asyncio.to_thread(jobs.submit, job_id, "archive", found.root, found.sequences)
+        entries = await asyncio.to_thread(
+            list_scans, found.root, found.sequences, layout=gw.profile.layout
+        )
+        return await _submit(jobs, job_id, "archive", found.root, found.sequences, entries, gw)
     except BaseException:
         await asyncio.to_thread(jobs.remove_files, job_id)
         raise
@@ -277,6 +293,8 @@ async def _dataset_job(request: Request, gw: Gateway, jobs: JobManager) -> JobRe
         data = json.loads(body)
     except (ValueError, UnicodeDecodeError) as exc:
         raise ApiError(400, "The request body is not valid JSON.") from exc
+    except RecursionError as exc:
+        raise ApiError(400, "The request body's JSON is nested too deeply.") from exc
     try:
         job = DatasetJobRequest.model_validate(data)
     except ValidationError as exc:
@@ -288,11 +306,37 @@ async def _dataset_job(request: Request, gw: Gateway, jobs: JobManager) -> JobRe
             f"The request is for the {job.profile[:64]!r} profile but this gateway serves the "
             f"{profile.name!r} profile: one gateway serves one network.",
         )
-    root = resolve_dataset(job.dataset, gw.settings.data_roots)
+    roots = gw.settings.data_roots
+    root = resolve_dataset(job.dataset, roots)
     try:
         sequences = resolve_sequences(job.split, job.sequences, profile.labels, profile.layout)
-        await asyncio.to_thread(list_scans, root, sequences, layout=profile.layout)
+        entries = await asyncio.to_thread(list_scans, root, sequences, layout=profile.layout)
     except (DatasetLayoutError, ValueError) as exc:
         raise ApiError(400, f"The dataset cannot be used: {str(exc)[:400]}") from exc
+    escaping = await asyncio.to_thread(escaping_scans, entries, roots)
+    if escaping:
+        raise ApiError(403, outside_roots_sentence(escaping))
     job_id, _ = await asyncio.to_thread(jobs.new_job)
-    return await asyncio.to_thread(jobs.submit, job_id, "dataset", root, sequences)
+    try:
+        return await _submit(jobs, job_id, "dataset", root, sequences, entries, gw)
+    except BaseException:
+        await asyncio.to_thread(jobs.remove_files, job_id)
+        raise
+
+
+async def _submit(
+    jobs: JobManager,
+    job_id: str,
+    kind: str,
+    root: Path,
+    sequences: list[str],
+    entries: list[ScanEntry],
+    gw: Gateway,
+) -> JobRecord:
+    """Queue a job whose folder is ready, with the output its scans are expected to write; 429
+    or 507 when the gateway cannot take it now."""
+    expected = await asyncio.to_thread(expected_output_bytes, entries, gw.profile.points)
+    try:
+        return await asyncio.to_thread(jobs.submit, job_id, kind, root, sequences, expected)
+    except JobRefused as exc:
+        raise ApiError(exc.status_code, str(exc)) from exc

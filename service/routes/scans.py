@@ -14,11 +14,13 @@ from fastapi.responses import JSONResponse, Response
 
 from rangeret.io import ScanFormatError, parse_scan
 from rangeret.labels import LabelConfig
+from service.admission import RETRY_AFTER_S, QueueFull
 from service.batching import BackendError, ScanRejected
 from service.dependencies import GatewayDep
 from service.errors import ApiError, error_responses
+from service.gateway import Gateway
 from service.schemas import BINARY_CONTENT, ScanLabels
-from service.uploads import drain, media_type, read_body
+from service.uploads import declared_length, drain, media_type, read_body
 
 OCTET = "application/octet-stream"
 
@@ -87,8 +89,30 @@ async def label_scan(
         await drain(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
         raise ApiError(
             415,
-            f"Send the scan as {OCTET}, not {media_type(request) or 'without a Content-Type'}.",
+            f"Send the scan as {OCTET}; "
+            + (
+                f"this request's Content-Type is {media_type(request)[:100]}."
+                if media_type(request)
+                else "this request has no Content-Type."
+            ),
         )
+    declared = declared_length(request)
+    try:
+        reserve = (
+            limits.max_body_bytes if declared is None else min(declared, limits.max_body_bytes)
+        )
+        place = gw.admission.admit(reserve)
+    except QueueFull as exc:
+        await drain(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
+        gw.metrics.refused.inc()
+        raise ApiError(503, str(exc), {"Retry-After": str(RETRY_AFTER_S)}) from exc
+    with place:
+        return await _label(request, gw, knn)
+
+
+async def _label(request: Request, gw: Gateway, knn: bool) -> Response:
+    """Read, check and label an admitted scan, and answer in the form the client asked for."""
+    limits = gw.settings
     body = await read_body(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
     record = gw.profile.points
     if len(body) // record.point_bytes > limits.max_points:
