@@ -10,6 +10,12 @@ received.") and a request over `limit_concurrency`. The protocol classes here an
 - 503 for a request on a connection beyond the limit (`RANGERET_MAX_CONNECTIONS`): at most that
   many connections are served at once.
 
+A request line and headers must arrive within `header_timeout` seconds of the connection opening
+or of the previous answer (`RANGERET_HEADER_TIMEOUT_S`): past it a partly sent head is answered
+with a JSON 408 and a connection that sent nothing is closed, so idle or trickling connections
+cannot take every place under the connection limit; a head over `MAX_HEAD_BYTES` is answered with
+a JSON 431.
+
 An answer sent before its request's body has all arrived (an early error, a body dropped after
 its deadline) leaves the rest of the body to be read and dropped; the connection is closed
 `LEFTOVER_BODY_S` seconds after that answer unless a further request has started on it, so a
@@ -39,6 +45,11 @@ log = logging.getLogger("uvicorn.error")
 
 #: Seconds a connection stays open after an answer sent before its request body had all arrived.
 LEFTOVER_BODY_S = 30.0
+#: Default seconds a request line and headers may take to arrive (RANGERET_HEADER_TIMEOUT_S).
+HEADER_TIMEOUT_S = 10.0
+#: Largest request line and headers accepted: httptools is stopped while it parses a larger one,
+#: h11 refuses a head spread over reads beyond 16 KiB by itself, and the app never sees one.
+MAX_HEAD_BYTES = 64 << 10
 #: Longest parser reason quoted in a 400 answer.
 _REASON_MAX = 80
 _UNSAFE = re.compile(r"[^ -~]+")
@@ -58,15 +69,29 @@ def parser_reason(exc: BaseException | None) -> str:
     return text
 
 
+class HeadTooLarge(Exception):
+    """A request line and headers over `MAX_HEAD_BYTES` (raised inside the parser's callbacks)."""
+
+    error_status_hint = 431
+
+
 def invalid_request_answer(exc: BaseException | None) -> tuple[int, str]:
-    """The status and sentence answering a request the parser rejected with `exc`."""
-    status = getattr(exc, "error_status_hint", 400)
+    """The status and sentence answering a request the parser rejected with `exc` (or with an
+    error raised in one of its callbacks, which the parser wraps)."""
+    causes = [exc, getattr(exc, "__cause__", None), getattr(exc, "__context__", None)]
+    status = max((getattr(c, "error_status_hint", 400) for c in causes if c), default=400)
     if status == 431:
         return 431, "The request line and headers are larger than the gateway accepts."
     reason = parser_reason(exc)
     if reason:
         return 400, sentence(f"The request is not valid HTTP ({reason})")
     return 400, "The request is not valid HTTP."
+
+
+def head_size(scope: Scope) -> int:
+    """The bytes of a request's target and headers, as they came."""
+    target = len(scope.get("raw_path") or b"") + len(scope.get("query_string") or b"")
+    return target + sum(len(name) + len(value) + 4 for name, value in scope.get("headers", ()))
 
 
 def error_body(detail: str) -> bytes:
@@ -115,6 +140,9 @@ class _GatewayAnswers:
 
     A mixin placed before uvicorn's protocol class; it relies on that class's attributes."""
 
+    #: Seconds a request head may take to arrive; set per server by `with_header_timeout`.
+    header_timeout: float = HEADER_TIMEOUT_S
+
     app: Any
     limit_concurrency: int | None
     connections: set[Any]
@@ -133,6 +161,58 @@ class _GatewayAnswers:
         self._inner_app = self.app
         self.app = self._admit
         self._leftover_timer: asyncio.TimerHandle | None = None
+        self._head_timer: asyncio.TimerHandle | None = None
+        self._head_bytes = 0
+        self._head_cycle: Any = None
+
+    @classmethod
+    def with_header_timeout(cls, seconds: float) -> type[asyncio.Protocol]:
+        """This protocol with request heads bounded to `seconds` (RANGERET_HEADER_TIMEOUT_S)."""
+        return type(cls.__name__, (cls,), {"header_timeout": seconds})
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        """uvicorn's, and the wait for the first request's head started."""
+        super().connection_made(transport)  # type: ignore[misc]
+        self._start_head_timer()
+
+    def data_received(self, data: bytes) -> None:
+        """uvicorn's, noting whether part of an awaited request head has come."""
+        if self._awaiting_head():
+            self._head_bytes += len(data)
+        super().data_received(data)  # type: ignore[misc]
+
+    def _awaiting_head(self) -> bool:
+        """Whether the connection waits for a request head: the timer runs and no request has
+        been parsed since it started (each parsed head makes a new `cycle`)."""
+        return self._head_timer is not None and self.cycle is self._head_cycle
+
+    def _start_head_timer(self) -> None:
+        self._cancel_head_timer()
+        self._head_bytes = 0
+        self._head_cycle = self.cycle
+        self._head_timer = self.loop.call_later(self.header_timeout, self._head_overdue)
+
+    def _cancel_head_timer(self) -> None:
+        if self._head_timer is not None:
+            self._head_timer.cancel()
+            self._head_timer = None
+
+    def _head_overdue(self) -> None:
+        """No whole request head came in time: a JSON 408 when part of one came, then close."""
+        if not self._awaiting_head() or self.transport.is_closing():
+            self._head_timer = None
+            return
+        self._head_timer = None
+        if self._head_bytes:
+            log.info("a request head did not arrive within %g s; answered 408", self.header_timeout)
+            detail = (
+                f"The request line and headers did not arrive within {self.header_timeout:,g} "
+                "seconds (the limit set by RANGERET_HEADER_TIMEOUT_S)."
+            )
+            self.transport.write(
+                error_response_bytes(408, detail, self.server_state.default_headers)
+            )
+        self.transport.close()
 
     def _body_pending(self) -> bool:
         """Whether the current request's body has not all arrived yet."""
@@ -148,6 +228,12 @@ class _GatewayAnswers:
         self, scope: Scope, receive: ASGIReceiveCallable, send: ASGISendCallable
     ) -> None:
         """The app, or a JSON 503 for a request beyond the connection limit."""
+        self._cancel_head_timer()
+        if scope["type"] == "http" and head_size(scope) > MAX_HEAD_BYTES:
+            await send_error(
+                send, 431, "The request line and headers are larger than the gateway accepts."
+            )
+            return
         if scope["type"] == "http" and self._over_limit():
             log.warning("over the limit of %d connections; answered 503", self.connection_limit)
             await send_error(
@@ -165,7 +251,7 @@ class _GatewayAnswers:
         uvicorn calls this inside its `except` for the parser's error, so that error is the one
         being handled. When an answer is already being written, a second one would corrupt it:
         the connection is only closed."""
-        exc = sys.exception()
+        exc = sys.exc_info()[1]
         cycle = self.cycle
         if cycle is not None and not cycle.response_complete:
             writing = cycle.response_started
@@ -185,7 +271,10 @@ class _GatewayAnswers:
         """uvicorn's bookkeeping; then, when the request's body is still arriving, a timer that
         closes the connection unless a further request starts on it in time."""
         super().on_response_complete()  # type: ignore[misc]
-        if self.transport.is_closing() or not self._body_pending():
+        if self.transport.is_closing():
+            return
+        if not self._body_pending():
+            self._start_head_timer()
             return
         self._cancel_leftover_timer()
         self._leftover_timer = self.loop.call_later(
@@ -204,8 +293,9 @@ class _GatewayAnswers:
             self._leftover_timer = None
 
     def connection_lost(self, exc: Exception | None) -> None:
-        """uvicorn's, and the leftover-body timer cancelled."""
+        """uvicorn's, and the timers cancelled."""
         self._cancel_leftover_timer()
+        self._cancel_head_timer()
         super().connection_lost(exc)  # type: ignore[misc]
 
 
@@ -230,10 +320,26 @@ else:
         """uvicorn's httptools protocol with the gateway's JSON answers."""
 
         _message_done = True
+        _parsed_head = 0
 
         def on_message_begin(self) -> None:
             self._message_done = False
+            self._parsed_head = 0
             super().on_message_begin()
+
+        def on_url(self, url: bytes) -> None:
+            self._count_head(len(url))
+            super().on_url(url)
+
+        def on_header(self, name: bytes, value: bytes) -> None:
+            self._count_head(len(name) + len(value) + 4)
+            super().on_header(name, value)
+
+        def _count_head(self, size: int) -> None:
+            """httptools bounds no head: refuse one over `MAX_HEAD_BYTES` with a 431."""
+            self._parsed_head += size
+            if self._parsed_head > MAX_HEAD_BYTES:
+                raise HeadTooLarge
 
         def on_message_complete(self) -> None:
             # uvicorn ignores the end of a body whose answer is already sent; note it here.

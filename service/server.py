@@ -149,7 +149,7 @@ def run_serve(args: argparse.Namespace) -> int:
             port=settings.port,
             log_level=args.log_level,
             timeout_graceful_shutdown=30,
-            http=GatewayProtocol,
+            http=GatewayProtocol.with_header_timeout(settings.header_timeout_s),
             limit_concurrency=settings.max_connections,
         )
     finally:

@@ -92,10 +92,11 @@ async def _until(stream: AsyncIterator[bytes], deadline: float) -> AsyncIterator
     chunks = aiter(stream)
     while True:
         try:
-            async with asyncio.timeout_at(deadline):
-                chunk = await anext(chunks)
+            chunk = await asyncio.wait_for(anext(chunks), _left(deadline))
         except StopAsyncIteration:
             return
+        except asyncio.TimeoutError as exc:  # not yet the built-in TimeoutError on Python 3.10
+            raise TimeoutError from exc
         yield chunk
 
 

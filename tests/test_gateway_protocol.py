@@ -32,6 +32,8 @@ SOCKET_TIMEOUT = 30
 BODY_TIMEOUT_S = 2
 UPLOAD_TIMEOUT_S = 3
 MAX_CONNECTIONS = 3
+#: The request-head deadline of the small servers.
+HEADER_TIMEOUT_S = 3
 
 
 @dataclass
@@ -255,7 +257,7 @@ def small_server(request, monkeypatch) -> Iterator[int]:
         small_app,
         host="127.0.0.1",
         port=port,
-        http=request.param,
+        http=request.param.with_header_timeout(HEADER_TIMEOUT_S),
         limit_concurrency=2,
         log_level="error",
         lifespan="off",
@@ -285,6 +287,36 @@ def test_protocols_answer_beyond_the_limit_in_json(small_server):
     finally:
         for sock in held:
             sock.close()
+
+
+def test_protocols_answer_a_head_that_does_not_come_in_time_with_408(small_server):
+    answer = exchange(small_server, b"GET / HTTP/1.1\r\nHost: t\r\n", timeout=SOCKET_TIMEOUT)
+    assert "RANGERET_HEADER_TIMEOUT_S" in assert_json_error(answer, 408)
+
+
+def test_protocols_answer_a_head_over_the_limit_with_431(small_server):
+    head = b"GET / HTTP/1.1\r\nHost: t\r\n" + b"X-Filler: " + b"a" * 100_000 + b"\r\n\r\n"
+    assert_json_error(exchange(small_server, head), 431)
+
+
+def test_protocols_take_a_large_body_sent_with_its_head(small_server):
+    request = b"POST / HTTP/1.1\r\nHost: t\r\nContent-Length: 300000\r\n\r\n" + b"x" * 300_000
+    with socket.create_connection(("127.0.0.1", small_server), timeout=SOCKET_TIMEOUT) as sock:
+        sock.sendall(request)
+        assert sock.recv(65536).startswith(b"HTTP/1.1 200")
+
+
+def test_protocols_close_a_connection_that_sends_nothing(small_server):
+    with socket.create_connection(("127.0.0.1", small_server), timeout=SOCKET_TIMEOUT) as sock:
+        assert sock.recv(65536) == b"", "closed without an answer"
+
+
+def test_protocols_bound_the_head_of_a_later_request_too(small_server):
+    with socket.create_connection(("127.0.0.1", small_server), timeout=SOCKET_TIMEOUT) as sock:
+        sock.sendall(b"GET / HTTP/1.1\r\nHost: t\r\n\r\n")
+        assert sock.recv(65536).startswith(b"HTTP/1.1 200")
+        sock.sendall(b"GET / HTTP/1.1\r\nHost: t\r\n")
+        assert_json_error(read_answer(sock), 408)
 
 
 def test_protocols_close_a_connection_whose_body_never_comes(small_server):
