@@ -126,7 +126,9 @@ def test_a_client_that_disconnects_mid_body_is_no_server_error(gateway):
         what="the disconnect being counted",
     )
     assert _metric(gateway, route % "500") == 0
-    assert "Traceback" not in gateway.output()
+    log = gateway.output()
+    assert "Traceback" not in log
+    assert log.count("the client disconnected before its request was read") == 1
 
 
 def test_405_lists_every_method_of_the_path(gateway):
