@@ -416,7 +416,7 @@ def soak(args: argparse.Namespace, url: str, pid: int | None, gw: StartedGateway
     """Warm up, load for `--seconds`, sample memory; the figures."""
     headers = {"Authorization": f"Bearer {args.token}"} if args.token else {}
     try:
-        health = httpx.get(url + "/healthz", timeout=10).json()
+        health = httpx.get(url + "/healthz", headers=headers, timeout=10).json()
     except (httpx.HTTPError, ValueError) as exc:
         sys.exit(f"{url}/healthz did not answer: {exc}")
     fields = health.get("point_fields") or []
