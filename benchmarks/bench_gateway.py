@@ -12,11 +12,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
-import signal
-import socket
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -24,64 +20,23 @@ from pathlib import Path
 import httpx
 import numpy as np
 import torch
-from _common import REAL_SCAN, REPO, require_real_scan, small_state_dict
+from _common import REAL_SCAN, require_real_scan, small_state_dict
+from _gateway import StartedGateway, start_gateway
 
 from rangeret.io import read_scan
 
 OCTET = {"Content-Type": "application/octet-stream"}
 
 
-def free_port() -> int:
-    """A free TCP port on 127.0.0.1."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def start_gateway(
-    weights: Path, state: Path, batch: int, wait_ms: float, device: str
-) -> tuple[subprocess.Popen, str]:
+def launch(weights: Path, state: Path, batch: int, wait_ms: float, device: str) -> StartedGateway:
     """A gateway process with these batching settings, once it answers /healthz."""
-    port = free_port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("RANGERET_")}
-    env.update(
-        RANGERET_STATE_DIR=str(state),
-        RANGERET_BATCH_SIZE=str(batch),
-        RANGERET_BATCH_WAIT_MS=str(wait_ms),
-    )
-    cmd = [
-        sys.executable,
-        "-m",
-        "service",
-        "--checkpoint",
-        str(weights),
-        "--height",
-        "32",
-        "--width",
-        "256",
-        "--device",
-        device,
-        "--port",
-        str(port),
-        "--log-level",
-        "warning",
-    ]
-    proc = subprocess.Popen(
-        cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
-    )
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.time() + 180
-    while time.time() < deadline:
-        if proc.poll() is not None:
-            sys.exit(f"the gateway exited: {proc.stderr.read().decode(errors='replace')[-2000:]}")
-        try:
-            if httpx.get(url + "/healthz", timeout=2).status_code == 200:
-                return proc, url
-        except httpx.TransportError:
-            pass
-        time.sleep(0.2)
-    proc.kill()
-    sys.exit("the gateway did not start in time")
+    options = ["--checkpoint", str(weights), "--height", "32", "--width", "256"]
+    settings = {
+        "RANGERET_STATE_DIR": str(state),
+        "RANGERET_BATCH_SIZE": str(batch),
+        "RANGERET_BATCH_WAIT_MS": str(wait_ms),
+    }
+    return start_gateway([*options, "--device", device], settings, state / "gateway.log", "")
 
 
 async def load(
@@ -116,16 +71,14 @@ def run_config(
 ) -> dict[str, float]:
     """Start a gateway, load it, stop it; its figures."""
     with tempfile.TemporaryDirectory() as state:
-        proc, url = start_gateway(weights, Path(state), batch, wait_ms, args.device)
+        gw = launch(weights, Path(state), batch, wait_ms, args.device)
         try:
-            wall, latencies = asyncio.run(load(url, body, args.clients, args.scans, args.timeout))
-            metrics = httpx.get(url + "/metrics", timeout=10).text
+            wall, latencies = asyncio.run(
+                load(gw.url, body, args.clients, args.scans, args.timeout)
+            )
+            metrics = httpx.get(gw.url + "/metrics", timeout=10).text
         finally:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+            gw.stop()
     batches = sum(
         float(line.split()[-1])
         for line in metrics.splitlines()

@@ -20,10 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
-import socket
 import statistics
-import subprocess
 import sys
 import tempfile
 import threading
@@ -34,7 +31,8 @@ from pathlib import Path
 
 import httpx
 import numpy as np
-from _common import REAL_SCAN, REPO, require_real_scan
+from _common import REAL_SCAN, require_real_scan
+from _gateway import StartedGateway, start_gateway
 
 OCTET = "application/octet-stream"
 RECORD_FIELDS = 4  # float32 x, y, z, remission: the SemanticKITTI point record this run sends
@@ -45,42 +43,7 @@ KINDS = ("200", "503", "4xx", "5xx other", "transport")
 # The gateway -------------------------------------------------------------------------------------
 
 
-def free_port() -> int:
-    """A free TCP port on 127.0.0.1."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-@dataclass
-class StartedGateway:
-    """A gateway process this run started, its address and its log."""
-
-    proc: subprocess.Popen
-    url: str
-    log: Path
-    description: str
-
-    def log_tail(self) -> str:
-        return self.log.read_text(errors="replace")[-3000:] if self.log.exists() else ""
-
-    def stop(self) -> str:
-        """SIGTERM, then wait (SIGKILL after 30 s); how it ended."""
-        if self.proc.poll() is not None:
-            return f"had already exited with {self.proc.returncode}"
-        self.proc.send_signal(signal.SIGTERM)
-        try:
-            self.proc.wait(30)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait(10)
-            return "did not stop within 30 s of SIGTERM and was killed"
-        if self.proc.returncode == -signal.SIGTERM:  # uvicorn re-raises it once shut down
-            return "stopped on SIGTERM after its graceful shutdown"
-        return f"stopped on SIGTERM, exit code {self.proc.returncode}"
-
-
-def start_gateway(args: argparse.Namespace, tmp: Path) -> StartedGateway:
+def launch(args: argparse.Namespace, tmp: Path) -> StartedGateway:
     """A gateway process with the run's network options, once it answers /healthz with 200."""
     net: list[str] = []
     height, width = args.height, args.width
@@ -108,32 +71,14 @@ def start_gateway(args: argparse.Namespace, tmp: Path) -> StartedGateway:
     ):
         if value is not None:
             net += [option, str(value)]
-    env = {k: v for k, v in os.environ.items() if not k.startswith("RANGERET_")}
-    env["RANGERET_STATE_DIR"] = str(tmp / "state")
+    settings = {"RANGERET_STATE_DIR": str(tmp / "state")}
     for item in args.env:
         key, sep, value = item.partition("=")
         if not sep or not key.startswith("RANGERET_"):
             sys.exit(f"--env takes RANGERET_NAME=VALUE, got {item!r}")
-        env[key] = value
-    port = free_port()
-    cmd = [sys.executable, "-m", "service", *net, "--port", str(port), "--log-level", "warning"]
-    log = tmp / "gateway.log"
-    with open(log, "wb") as out:
-        proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT)
+        settings[key] = value
     shape = f"{height}x{width}" if height and width else "the profile's resolution"
-    gw = StartedGateway(proc, f"http://127.0.0.1:{port}", log, f"{weights_name}, {shape}")
-    deadline = time.time() + 180
-    while time.time() < deadline:
-        if proc.poll() is not None:
-            sys.exit(f"the gateway exited with {proc.returncode}:\n{gw.log_tail()}")
-        try:
-            if httpx.get(gw.url + "/healthz", timeout=2).status_code == 200:
-                return gw
-        except httpx.TransportError:
-            pass
-        time.sleep(0.2)
-    gw.stop()
-    sys.exit(f"the gateway did not answer /healthz within 180 s:\n{gw.log_tail()}")
+    return start_gateway(net, settings, tmp / "gateway.log", f"{weights_name}, {shape}")
 
 
 def rss_mib(pid: int | None) -> float | None:
@@ -558,7 +503,7 @@ def main() -> None:
         report = soak(args, args.url.rstrip("/"), args.pid, None)
     else:
         with tempfile.TemporaryDirectory(prefix="bench-soak-") as tmp:
-            gw = start_gateway(args, Path(tmp))
+            gw = launch(args, Path(tmp))
             try:
                 report = soak(args, gw.url, gw.proc.pid, gw)
             finally:
