@@ -309,6 +309,58 @@ def cmd_profile(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_weights(args: argparse.Namespace) -> int:
+    """List the published models, or download one into the hub cache or a folder."""
+    from rangeret.hub import cached_weights, fetch_weights
+    from rangeret.registry import load_registry, lookup
+
+    if args.action == "download":
+        model = lookup(args.name)
+        if model is None:
+            known = ", ".join(sorted(load_registry()))
+            raise CommandError(f"there is no published model {args.name!r}; known: {known}")
+        path = fetch_weights(model, args.to)
+        print(f"{model.name}: {path}")
+        return 0
+    rows = [("name", "dataset", "profile", "mIoU (%)", "cached", "size")]
+    for model in load_registry().values():
+        cached = cached_weights(model)
+        size = cached.stat().st_size if cached else model.size
+        rows.append(
+            (
+                model.name,
+                model.dataset,
+                model.profile,
+                model.miou_text(),
+                "yes" if cached else "no",
+                f"{size / 2**20:.1f} MiB" if size else "unknown",
+            )
+        )
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    for row in rows:
+        print(
+            "  ".join(cell.ljust(width) for cell, width in zip(row, widths, strict=True)).rstrip()
+        )
+    return 0
+
+
+def _weights_arguments(p: argparse.ArgumentParser) -> None:
+    actions = p.add_subparsers(dest="action", required=True, metavar="ACTION")
+    actions.add_parser(
+        "list", help="the published models: dataset, mIoU, whether cached here, and size"
+    )
+    download = actions.add_parser(
+        "download",
+        help="fetch a published model into the hub cache (HF_HOME) or a folder",
+        description="Downloads go through huggingface_hub: HF_ENDPOINT, HF_HOME, HF_HUB_OFFLINE "
+        "and HF_TOKEN apply.",
+    )
+    download.add_argument("name", metavar="NAME", help="a name of `rangeret weights list`")
+    download.add_argument(
+        "--to", type=Path, metavar="DIR", help="this folder instead of the hub cache"
+    )
+
+
 def _profile_arguments(p: argparse.ArgumentParser) -> None:
     actions = p.add_subparsers(dest="action", required=True, metavar="ACTION")
     actions.add_parser("list", help="the built-in profiles")
@@ -385,6 +437,12 @@ BUILTIN_COMMANDS = (
         "dataset profiles: list the built-in ones, show one as YAML",
         _profile_arguments,
         cmd_profile,
+    ),
+    Subcommand(
+        "weights",
+        "published models: list them, download one",
+        _weights_arguments,
+        cmd_weights,
     ),
 )
 

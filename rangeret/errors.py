@@ -12,6 +12,7 @@ import sys
 from collections.abc import Callable, Sequence
 
 from rangeret.evaluation import EvaluationError
+from rangeret.hub import WeightsError
 from rangeret.io import ScanFormatError
 from rangeret.layout import DatasetLayoutError
 from rangeret.submission import SubmissionError
@@ -25,6 +26,7 @@ USER_ERRORS: tuple[type[BaseException], ...] = (
     DatasetLayoutError,
     EvaluationError,
     SubmissionError,
+    WeightsError,
     FileNotFoundError,
     ValueError,
 )

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from rangeret.hub import resolve_weights
 from rangeret.labels import LabelConfig
 from rangeret.loading import LoadedScan
 from rangeret.models import CheckpointError, CheckpointInfo, load_checkpoint
@@ -27,6 +28,7 @@ from rangeret.point_labels import DEFAULT_KNN, KnnSettings, point_classes_batch
 from rangeret.precision import forward_precision, resolve_precision
 from rangeret.profiles import DatasetProfile, load_profile, profile_of_record
 from rangeret.projection import Projection, ProjectionConfig, project_with
+from rangeret.registry import profile_for_published
 from rangeret.timing import StageTimes
 
 log = logging.getLogger(__name__)
@@ -40,9 +42,11 @@ DEMO_WARNING = (
 
 
 def resolve_checkpoint(path: str | Path | None) -> Path:
-    """The checkpoint to load: `path`, or the bundled demo weights (announced loudly) when None."""
+    """The checkpoint to load: `path`, a published model's file when `path` is its registered
+    name (`rangeret-kitti-657`, fetched from the cache or the hub), or the bundled demo weights
+    (announced loudly) when None."""
     if path is not None:
-        return Path(path)
+        return resolve_weights(path)[0]
     if not DEMO_CHECKPOINT.exists():
         raise FileNotFoundError(
             f"no --checkpoint given and the bundled demo weights {DEMO_CHECKPOINT} are missing"
@@ -217,12 +221,16 @@ class Predictor:
         tta: TtaSettings | None = None,
         precision: str = "auto",
     ) -> Predictor:
-        """A predictor for a checkpoint file: the project's own (self-describing) or a published one.
+        """A predictor for a checkpoint file, the project's own (self-describing) or a published
+        one, or for a published model's registered name (its file fetched, its profile taken).
 
         The project's own files run with the profile they record (asking for another one is an
         error). Published files record none: they run with `profile` (default `semantickitti`),
         which gives their resolution and field of view unless height, width or fov are given.
         """
+        path, published = resolve_weights(path)
+        if published is not None:
+            profile = profile_for_published(published, profile)
         network = load_checkpoint(
             path,
             model=model,

@@ -141,8 +141,10 @@ def add_network_options(parser: argparse.ArgumentParser) -> None:
         "--checkpoint",
         type=Path,
         metavar="FILE",
-        help="weights: the project's own checkpoint or a published .pt file "
-        "(default: the bundled demo weights, trained on simulated scenes only)",
+        help="weights: a published model's name (`rangeret weights list`: rangeret-kitti-657, "
+        "rangeret-panda-600, rangeret-poss-528; fetched from the cache or the model hub, with "
+        "its profile), the project's own checkpoint or a published .pt file (default: the "
+        "bundled demo weights, trained on simulated scenes only)",
     )
     add_projection_options(g)
     g.add_argument(
@@ -178,7 +180,9 @@ def add_network_options(parser: argparse.ArgumentParser) -> None:
 
 def spec_from_args(args: argparse.Namespace) -> PredictorSpec:
     """A `PredictorSpec` from the shared network options (checked, not loaded yet)."""
+    from rangeret.hub import fetch_weights, published_name
     from rangeret.inference import KnnSettings, PredictorSpec, TtaSettings, resolve_checkpoint
+    from rangeret.registry import profile_for_published
 
     if args.batch_size < 1:
         raise CommandError(f"--batch-size must be at least 1, got {args.batch_size}")
@@ -189,12 +193,22 @@ def spec_from_args(args: argparse.Namespace) -> PredictorSpec:
         if (args.tta_flip or args.tta_shifts)
         else None
     )
+    profile = requested_profile(args)
+    model, height, width = args.model, args.height, args.width
+    published = published_name(args.checkpoint) if args.checkpoint is not None else None
+    if published is None:
+        checkpoint = resolve_checkpoint(args.checkpoint)
+    else:  # the name brings its profile, network and resolution; checked before any download
+        profile = profile_for_published(published, profile)
+        model = model or published.model
+        height, width = height or published.height or None, width or published.width or None
+        checkpoint = fetch_weights(published)
     return PredictorSpec(
-        checkpoint=str(resolve_checkpoint(args.checkpoint)),
-        model=args.model,
-        profile=requested_profile(args),
-        height=args.height,
-        width=args.width,
+        checkpoint=str(checkpoint),
+        model=model,
+        profile=profile,
+        height=height,
+        width=width,
         fov_up=args.fov_up,
         fov_down=args.fov_down,
         device=args.device,
