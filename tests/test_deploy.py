@@ -86,6 +86,19 @@ def test_container_files_exist_and_pins_agree():
     subprocess.run(["bash", "-n", str(DEPLOY / "entrypoint.sh")], check=True)
 
 
+def test_the_image_installs_every_dependency_of_the_project():
+    """The image installs the project with --no-deps, so its pip lines must name every
+    dependency pyproject declares (torch comes from the CUDA wheel index)."""
+    import tomllib
+
+    dockerfile = (DEPLOY / "Dockerfile").read_text()
+    installed = " ".join(re.findall(r"pip install[^&]*", dockerfile.replace("\\\n", " ")))
+    declared = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["dependencies"]
+    for requirement in declared:
+        name = re.split(r"[<>=\[ ]", requirement, maxsplit=1)[0]
+        assert re.search(rf"(^|[\s\"]){re.escape(name)}([\s\"\[]|$)", installed), name
+
+
 def test_cluster_launcher_config():
     config = yaml.safe_load((DEPLOY / "ray-cluster.yaml").read_text())
     assert config["provider"]["type"] == "local"
