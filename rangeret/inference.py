@@ -37,7 +37,8 @@ log = logging.getLogger(__name__)
 DEMO_CHECKPOINT = Path(__file__).with_name("data") / "demo-weights.pt"
 DEMO_WARNING = (
     "using the bundled demo weights, trained on simulated street scenes only: their labels on "
-    "real scans are not meaningful; pass --checkpoint with real weights such as rangeret-kitti-657.pt"
+    "real scans are not meaningful; pass --checkpoint with real weights such as "
+    "rangeret-kitti-657 (`rangeret weights list`)"
 )
 
 

@@ -124,7 +124,9 @@ def lookup(name: str) -> PublishedModel | None:
     return load_registry().get(name)
 
 
-def profile_for_published(model: PublishedModel, requested: DatasetProfile | None) -> DatasetProfile:
+def profile_for_published(
+    model: PublishedModel, requested: DatasetProfile | None
+) -> DatasetProfile:
     """The profile a published model runs with: its own, or `requested` when that is the same
     profile (a ValueError naming both when it is another)."""
     if requested is None:

@@ -33,7 +33,7 @@ def test_demo_end_to_end(tmp_path, capsys):
     with zipfile.ZipFile(out / "submission.zip") as zf:
         assert "not a real submission" in zf.read("description.txt").decode()
     assert not (out / "dataset" / "sequences" / "11" / "labels").exists()
-    assert "rangeret-kitti-657.pt" in printed
+    assert "--checkpoint rangeret-kitti-657" in printed
 
 
 def test_demo_on_another_profile_needs_its_network(tmp_path, capsys):

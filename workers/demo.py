@@ -148,7 +148,7 @@ def run_demo(
         print(f"\nNote: {DEMO_WARNING}.")
     print("\nOn real SemanticKITTI data with a published checkpoint:")
     print(
-        "  rangeret predict --dataset ROOT --split valid --out PRED --checkpoint rangeret-kitti-657.pt"
+        "  rangeret predict --dataset ROOT --split valid --out PRED --checkpoint rangeret-kitti-657"
     )
     print(
         "  rangeret evaluate --dataset ROOT --predictions PRED --split valid --json report.json --plots plots"
@@ -156,7 +156,7 @@ def run_demo(
     print(
         "  ray job submit --working-dir . -- python -m workers.predict_job --dataset ROOT --split test \\"
     )
-    print("      --out PRED --submission submission.zip --checkpoint rangeret-kitti-657.pt")
+    print("      --out PRED --submission submission.zip --checkpoint rangeret-kitti-657")
     print("  rangeret validate-submission submission.zip --dataset ROOT")
     return out
 

@@ -1,7 +1,7 @@
 """`python -m workers.predict_job`: predict a split on a Ray cluster, then report and archive.
 
     ray job submit --working-dir . -- python -m workers.predict_job --dataset ROOT --split test \\
-        --out PRED --submission submission.zip --checkpoint rangeret-kitti-657.pt
+        --out PRED --submission submission.zip --checkpoint rangeret-kitti-657
 
 Connects to the cluster in RAY_ADDRESS (set by `ray job submit`), or starts a local Ray when
 none is set. On a multi-node cluster ROOT and PRED must be on storage every node mounts. The job
