@@ -934,11 +934,11 @@ def label_in_process(
             refill()
             results = predictor.label_loaded(loaded, times)
             done_at.append(time.perf_counter())
-            for scan, (labels, error) in zip(loaded, results, strict=True):
-                if error is not None:
+            for scan, (found, error) in zip(loaded, results, strict=True):
+                if found is None:
                     failed[scan.entry.key] = error
                 else:
-                    writes.append(writers.submit(write, scan.entry, labels))
+                    writes.append(writers.submit(write, scan.entry, found.labels))
         labelled = time.perf_counter()
         for future in writes:
             future.result()

@@ -67,6 +67,7 @@ def cmd_predict(args: argparse.Namespace) -> int:
         args.out,
         batch_size=args.batch_size,
         progress=not args.quiet,
+        save_confidence=args.save_confidence,
     )
     print(summary.text())
     if not summary.ok:
@@ -204,6 +205,12 @@ def _predict_arguments(p: argparse.ArgumentParser) -> None:
     add_selection(p)
     p.add_argument(
         "--out", type=Path, required=True, metavar="PRED", help="predictions tree to write"
+    )
+    p.add_argument(
+        "--save-confidence",
+        action="store_true",
+        help="also write each point's confidence (the softmax probability of its label at its "
+        "pixel) as float16 in PRED/sequences/XX/confidence/NNNNNN.npy",
     )
     add_network_options(p)
 

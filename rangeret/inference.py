@@ -24,7 +24,12 @@ from rangeret.hub import resolve_weights
 from rangeret.labels import LabelConfig
 from rangeret.loading import LoadedScan
 from rangeret.models import CheckpointError, CheckpointInfo, load_checkpoint
-from rangeret.point_labels import DEFAULT_KNN, KnnSettings, point_classes_batch
+from rangeret.point_labels import (
+    DEFAULT_KNN,
+    KnnSettings,
+    point_classes_batch,
+    point_confidences,
+)
 from rangeret.precision import forward_precision, resolve_precision
 from rangeret.profiles import DatasetProfile, load_profile, profile_of_record
 from rangeret.projection import Projection, ProjectionConfig, project_with
@@ -161,6 +166,8 @@ class ScanPrediction:
     labels: np.ndarray
     classes: np.ndarray
     probabilities: np.ndarray | None = None
+    #: Each point's softmax probability of its final class at its pixel (float32), when asked.
+    confidence: np.ndarray | None = None
 
 
 class Predictor:
@@ -338,31 +345,46 @@ class Predictor:
         projections: Sequence[Projection],
         with_probabilities: bool = False,
         times: StageTimes | None = None,
+        with_confidence: bool = False,
     ) -> list[ScanPrediction]:
         """Stages 2 to 4 for a batch of projected scans: every runner's path from projection to
-        raw labels (one process, the Ray model actors, the gateway's actors)."""
+        raw labels (one process, the Ray model actors, the gateway's actors); with
+        `with_confidence`, each point's confidence in its label too."""
         logits = self.logits(projections, times)
         classes = self.refine_batch(projections, logits, times)
+        confidences: list[np.ndarray | None] = [None] * len(projections)
+        if with_confidence:
+            confidences = point_confidences(
+                logits, [p.proj_x for p in projections], [p.proj_y for p in projections], classes
+            )
         return [
             ScanPrediction(
                 labels=self.to_raw(c),
                 classes=c,
                 probabilities=self.probabilities(p, out) if with_probabilities else None,
+                confidence=conf,
             )
-            for p, out, c in zip(projections, logits, classes, strict=True)
+            for p, out, c, conf in zip(projections, logits, classes, confidences, strict=True)
         ]
 
     def label_loaded(
-        self, scans: Sequence[LoadedScan], times: StageTimes | None = None
-    ) -> list[tuple[np.ndarray | None, str | None]]:
-        """(raw labels, None) or (None, why) for each scan of a loaded batch, in order.
+        self,
+        scans: Sequence[LoadedScan],
+        times: StageTimes | None = None,
+        with_confidence: bool = False,
+    ) -> list[tuple[ScanPrediction | None, str | None]]:
+        """(prediction, None) or (None, why) for each scan of a loaded batch, in order.
 
         The network runs once on the readable scans; if it fails (out of device memory, say),
         each of them becomes a named failure instead of stopping the run.
         """
         good = [s.projection for s in scans if s.error is None]
         try:
-            done = iter([r.labels for r in self.finish_batch(good, times=times)] if good else [])
+            done = iter(
+                self.finish_batch(good, times=times, with_confidence=with_confidence)
+                if good
+                else []
+            )
         except RuntimeError as exc:
             reason = f"the network failed: {exc}"
             return [(None, s.error or reason) for s in scans]

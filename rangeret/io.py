@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rangeret.atomic import atomic_write_bytes
+from rangeret.atomic import atomic_path, atomic_write_bytes
 
 POINT_BYTES = 16
 LABEL_BYTES = 4
@@ -145,6 +145,28 @@ def write_labels(path: str | os.PathLike[str], labels: np.ndarray) -> None:
     if labels.size and (labels.min() < 0 or labels.max() > np.iinfo(np.uint32).max):
         raise ValueError(f"{path}: labels do not fit in uint32")
     atomic_write_bytes(path, labels.astype(LABEL_DTYPE, copy=False).tobytes())
+
+
+def write_confidence(path: str | os.PathLike[str], confidence: np.ndarray) -> None:
+    """Write per-point confidences (0..1) atomically as a float16 `.npy` file."""
+    confidence = np.asarray(confidence)
+    if confidence.ndim != 1:
+        raise ValueError(f"{path}: confidences must be one-dimensional, got {confidence.shape}")
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.save(f, confidence.astype(np.float16))
+
+
+def read_confidence(path: str | os.PathLike[str], num_points: int | None = None) -> np.ndarray:
+    """Per-point confidences of a `.npy` file as float32; ScanFormatError for another count."""
+    try:
+        values = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise ScanFormatError(path, f"is not a confidence file ({exc})") from exc
+    if values.ndim != 1 or (num_points is not None and values.size != num_points):
+        raise ScanFormatError(
+            path, f"holds {values.size} confidences but the scan has {num_points} points"
+        )
+    return values.astype(np.float32)
 
 
 def write_scan(

@@ -120,6 +120,12 @@ def prediction_path(pred_root: Path | str, sequence: str, name: str) -> Path:
     return predictions_dir(pred_root, sequence) / f"{name}.label"
 
 
+def confidence_path(pred_root: Path | str, sequence: str, name: str) -> Path:
+    """Where the point confidences of scan `sequence/name` live in a predictions tree, beside
+    its prediction (`sequences/XX/confidence/NNNNNN.npy`)."""
+    return Path(pred_root) / "sequences" / sequence / "confidence" / f"{name}.npy"
+
+
 def list_sequences(root: Path | str, layout: SequenceLayout = KITTI_LAYOUT) -> list[str]:
     """Sorted names of the sequence folders of a dataset (those holding a velodyne folder)."""
     base = layout.sequences_root(root)

@@ -129,3 +129,27 @@ def single_thread_on_cpu(device: torch.device) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(threads)
+
+
+def point_confidences(
+    logits: torch.Tensor,
+    proj_x: Sequence[np.ndarray],
+    proj_y: Sequence[np.ndarray],
+    classes: Sequence[np.ndarray],
+) -> list[np.ndarray]:
+    """Each point's confidence: the softmax probability, at the point's pixel of (B, C, H, W)
+    `logits`, of the class the point was finally given (after kNN); 0 for a point without a
+    pixel. One float32 array per scan."""
+    probabilities = torch.softmax(logits.float(), dim=1)
+    out = []
+    for b, (px, py, cls) in enumerate(zip(proj_x, proj_y, classes, strict=True)):
+        confidence = np.zeros(len(cls), dtype=np.float32)
+        valid = px >= 0
+        if valid.any():
+            index = [
+                torch.from_numpy(np.ascontiguousarray(a[valid], dtype=np.int64)).to(logits.device)
+                for a in (cls, py, px)
+            ]
+            confidence[valid] = probabilities[b, index[0], index[1], index[2]].cpu().numpy()
+        out.append(confidence)
+    return out

@@ -25,6 +25,7 @@ from rangeret.io import (
     PointRecord,
     ScanFormatError,
     scan_num_points,
+    write_confidence,
     write_labels,
 )
 from rangeret.layout import (
@@ -32,6 +33,7 @@ from rangeret.layout import (
     DatasetLayoutError,
     ScanEntry,
     SequenceLayout,
+    confidence_path,
     discover,
     prediction_path,
 )
@@ -74,13 +76,22 @@ class PredictSummary:
         return "\n".join(lines)
 
 
-def is_complete(entry: ScanEntry, out: Path, record: PointRecord = KITTI_RECORD) -> bool:
-    """Whether the scan's prediction exists with one label per point (a finished earlier run)."""
+def is_complete(
+    entry: ScanEntry,
+    out: Path,
+    record: PointRecord = KITTI_RECORD,
+    with_confidence: bool = False,
+) -> bool:
+    """Whether the scan's prediction exists with one label per point (a finished earlier run),
+    and its confidence file too when `with_confidence`."""
     pred = prediction_path(out, entry.sequence, entry.name)
     try:
-        return pred.stat().st_size == scan_num_points(entry.scan_path, record) * LABEL_BYTES
+        whole = pred.stat().st_size == scan_num_points(entry.scan_path, record) * LABEL_BYTES
     except (OSError, ScanFormatError):
         return False
+    return whole and (
+        not with_confidence or confidence_path(out, entry.sequence, entry.name).is_file()
+    )
 
 
 def list_scans(
@@ -114,8 +125,10 @@ def predict_tree(
     progress: bool = True,
     on_progress: Callable[[int, int, int], None] | None = None,
     cancel: threading.Event | None = None,
+    save_confidence: bool = False,
 ) -> PredictSummary:
-    """Write `OUT/sequences/XX/predictions/NNNNNN.label` for every scan of `sequences`.
+    """Write `OUT/sequences/XX/predictions/NNNNNN.label` for every scan of `sequences` (and, with
+    `save_confidence`, each point's confidence in `OUT/sequences/XX/confidence/NNNNNN.npy`).
 
     `on_progress(done, failed, total)` is called after every batch; setting `cancel` stops the
     run after the current batch (files already written stay complete).
@@ -126,7 +139,7 @@ def predict_tree(
     profile = predictor.profile
     entries = list_scans(dataset, sequences, layout=profile.layout)
     summary = PredictSummary(total=len(entries))
-    pending = [e for e in entries if not is_complete(e, out, profile.points)]
+    pending = [e for e in entries if not is_complete(e, out, profile.points, save_confidence)]
     summary.skipped = len(entries) - len(pending)
     if summary.skipped:
         log.info(
@@ -153,14 +166,17 @@ def predict_tree(
             if not loaded or (cancel is not None and cancel.is_set()):
                 break
             future = pool.submit(load_batch, next(batches, []), config, times, profile.points)
-            for scan, (labels, error) in zip(
-                loaded, predictor.label_loaded(loaded, times), strict=True
-            ):
-                if error is not None:
-                    summary.failed[scan.entry.key] = error
+            results = predictor.label_loaded(loaded, times, with_confidence=save_confidence)
+            for scan, (found, error) in zip(loaded, results, strict=True):
+                if found is None:
+                    summary.failed[scan.entry.key] = error or "not labelled"
                     continue
+                entry = scan.entry
                 with times.stage("write"):
-                    write_labels(prediction_path(out, scan.entry.sequence, scan.entry.name), labels)
+                    if found.confidence is not None:
+                        path = confidence_path(out, entry.sequence, entry.name)
+                        write_confidence(path, found.confidence)
+                    write_labels(prediction_path(out, entry.sequence, entry.name), found.labels)
                 summary.written += 1
                 summary.points += scan.projection.num_points
             bar.update(len(loaded))

@@ -15,9 +15,12 @@ import logging
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from workers.pool import LabelledScan
 
 log = logging.getLogger(__name__)
 
@@ -26,9 +29,10 @@ class ScanBackend(Protocol):
     """What the batcher needs from a pool (`workers.pool.ScanPool` or `LocalScanPool`)."""
 
     async def predict_async(
-        self, scans: Sequence[np.ndarray], knn: bool = True
-    ) -> list[np.ndarray | str]:
-        """Raw labels for each scan of a batch, or the reason a scan cannot be labelled."""
+        self, scans: Sequence[np.ndarray], knn: bool = True, confidence: bool = False
+    ) -> list[LabelledScan | str]:
+        """Each scan of a batch labelled (with confidences when asked), or the reason a scan
+        cannot be labelled."""
         ...
 
     def queue_depth(self) -> int:
@@ -47,9 +51,9 @@ class ScanRejected(ValueError):
 @dataclass
 class _Request:
     points: np.ndarray
-    knn: bool
+    options: tuple[bool, bool]  # (knn, confidence): requests share a batch only with equal ones
     arrived: float
-    future: asyncio.Future[np.ndarray]
+    future: asyncio.Future[LabelledScan]
 
 
 class ScanBatcher:
@@ -96,11 +100,14 @@ class ScanBatcher:
             if not request.future.done():
                 request.future.set_exception(BackendError("the gateway is shutting down"))
 
-    async def label(self, points: np.ndarray, knn: bool = True) -> np.ndarray:
-        """Raw labels (uint32, one per point) of one scan (the profile's point records), computed
-        within a batch; `ScanRejected` when the workers refuse the scan itself."""
+    async def label(
+        self, points: np.ndarray, knn: bool = True, confidence: bool = False
+    ) -> LabelledScan:
+        """One scan (the profile's point records) labelled within a batch: raw labels (uint32,
+        one per point) and, when asked, their confidences; `ScanRejected` when the workers refuse
+        the scan itself."""
         loop = asyncio.get_running_loop()
-        request = _Request(points, knn, loop.time(), loop.create_future())
+        request = _Request(points, (knn, confidence), loop.time(), loop.create_future())
         self._queue.append(request)
         self._arrived.set()
         return await request.future
@@ -113,10 +120,10 @@ class ScanBatcher:
         """Requests waiting plus batches in the workers: the gateway's queue depth."""
         return self.waiting() + self.pool.queue_depth()
 
-    def _matching(self, knn: bool) -> int:
-        return sum(1 for r in self._queue if r.knn == knn and not r.future.done())
+    def _matching(self, options: tuple[bool, bool]) -> int:
+        return sum(1 for r in self._queue if r.options == options and not r.future.done())
 
-    def _take(self, knn: bool) -> list[_Request]:
+    def _take(self, options: tuple[bool, bool]) -> list[_Request]:
         """Remove and return up to `batch_size` live requests with these options, oldest first."""
         batch: list[_Request] = []
         kept: deque[_Request] = deque()
@@ -124,7 +131,7 @@ class ScanBatcher:
             request = self._queue.popleft()
             if request.future.done():
                 continue  # its client went away
-            if request.knn == knn and len(batch) < self.batch_size:
+            if request.options == options and len(batch) < self.batch_size:
                 batch.append(request)
             else:
                 kept.append(request)
@@ -150,18 +157,19 @@ class ScanBatcher:
                 await self._wait_for_arrival(None)
             head = self._queue[0]
             deadline = head.arrived + self.max_wait
-            while self._matching(head.knn) < self.batch_size:
+            while self._matching(head.options) < self.batch_size:
                 remaining = deadline - loop.time()
                 if remaining <= 0 or not await self._wait_for_arrival(remaining):
                     break
-            batch = self._take(head.knn)
+            batch = self._take(head.options)
             if batch:
-                await self._run(batch, head.knn, loop.time())
+                await self._run(batch, head.options, loop.time())
 
-    async def _run(self, batch: list[_Request], knn: bool, sent: float) -> None:
+    async def _run(self, batch: list[_Request], options: tuple[bool, bool], sent: float) -> None:
         """Send one batch to the pool and hand each request its labels (or the failure)."""
+        knn, confidence = options
         try:
-            results = await self.pool.predict_async([r.points for r in batch], knn)
+            results = await self.pool.predict_async([r.points for r in batch], knn, confidence)
         except asyncio.CancelledError:
             for request in batch:
                 if not request.future.done():

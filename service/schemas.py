@@ -48,6 +48,12 @@ class ScanLabels(BaseModel):
     class_counts: dict[str, int] = Field(
         description="points per class name of the served profile, for the classes present"
     )
+    confidence: list[float] | None = Field(
+        default=None,
+        description="with `confidence=true`: each point's confidence in its label (the softmax "
+        "probability of its class at its pixel, 0 to 1; 0 for a point without a pixel), in the "
+        "scan's point order",
+    )
 
 
 class DatasetJobRequest(BaseModel):

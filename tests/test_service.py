@@ -40,6 +40,7 @@ from gateway_helpers import (
 from workers_helpers import build_tree, small_weights
 
 from rangeret.cli import main as rangeret_main
+from rangeret.inference import PredictorSpec
 from rangeret.io import read_labels, read_scan, write_scan
 from rangeret.labels import semantickitti
 from rangeret.layout import prediction_path, velodyne_dir
@@ -182,6 +183,35 @@ def test_json_form(setup, gateway):
         config.class_names[c]: int(n) for c, n in enumerate(counts) if n
     }
     assert sum(body["class_counts"].values()) == expected.size
+
+
+def test_confidences_come_with_the_json_form_only(setup, gateway):
+    scan = setup["data"] / "sequences" / "08" / "velodyne" / "000000.bin"
+    expected = read_labels(prediction_path(setup["ref"], "08", "000000"))
+    predictor = PredictorSpec(
+        checkpoint=str(setup["weights"]), height=32, width=256, device="cpu"
+    ).build()
+    reference = predictor.finish_batch([predictor.project(read_scan(scan))], with_confidence=True)[
+        0
+    ].confidence
+    json_accept = {**OCTET, "Accept": "application/json"}
+    with gateway.client() as client:
+        r = client.post(
+            "/v1/scans",
+            content=scan.read_bytes(),
+            headers=json_accept,
+            params={"confidence": "true"},
+        )
+        refused = client.post(
+            "/v1/scans", content=scan.read_bytes(), headers=OCTET, params={"confidence": "true"}
+        )
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["labels"] == expected.tolist() and len(body["confidence"]) == expected.size
+    confidence = np.asarray(body["confidence"])
+    assert ((confidence >= 0) & (confidence <= 1)).all()
+    np.testing.assert_allclose(confidence, reference, atol=1e-4)
+    assert "Accept: application/json" in assert_error(refused, 400)
 
 
 def test_concurrent_requests_are_batched_and_each_equals_rangeret_predict(setup, gateway):

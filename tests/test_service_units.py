@@ -30,6 +30,7 @@ from service.jobs import JobManager, JobRefused, JobStore, write_predictions_zip
 from service.routes.scans import wants_json
 from service.schemas import JobState
 from service.settings import Settings, is_loopback
+from workers.pool import LabelledScan
 
 LIMITS = ArchiveLimits(
     max_bytes=1 << 20, max_members=20, max_points=1000, max_extracted_bytes=1 << 20
@@ -194,17 +195,25 @@ class FakePool:
     def __init__(self, delay: float = 0.05) -> None:
         self.delay = delay
         self.batches: list[tuple[int, bool]] = []
+        self.confidences: list[bool] = []
         self.fail = False
         self.in_flight = 0
 
-    async def predict_async(self, scans, knn=True):
+    async def predict_async(self, scans, knn=True, confidence=False):
         self.batches.append((len(scans), knn))
+        self.confidences.append(confidence)
         self.in_flight += 1
         try:
             await asyncio.sleep(self.delay)
             if self.fail:
                 raise RuntimeError("actor died")
-            return [np.full(len(s), len(s) + (0 if knn else 1000), dtype=np.uint32) for s in scans]
+            return [
+                LabelledScan(
+                    np.full(len(s), len(s) + (0 if knn else 1000), dtype=np.uint32),
+                    np.full(len(s), 0.5, dtype=np.float32) if confidence else None,
+                )
+                for s in scans
+            ]
         finally:
             self.in_flight -= 1
 
@@ -230,8 +239,9 @@ def test_batcher_gathers_concurrent_requests_up_to_the_batch_size():
         return pool, results
 
     pool, results = asyncio.run(run())
-    for n, labels in enumerate(results, start=1):
-        assert labels.tolist() == [n + (0 if n % 2 == 0 else 1000)] * n
+    for n, labelled in enumerate(results, start=1):
+        assert labelled.labels.tolist() == [n + (0 if n % 2 == 0 else 1000)] * n
+        assert labelled.confidence is None
     assert all(size <= 4 for size, _ in pool.batches) and sum(s for s, _ in pool.batches) == 11
     assert max(size for size, _ in pool.batches) > 1 and len(pool.batches) < 11
 
@@ -263,14 +273,14 @@ def test_batcher_reports_backend_failures_and_keeps_serving():
         await batcher.stop()
         return labels
 
-    assert asyncio.run(run()).tolist() == [2, 2]
+    assert asyncio.run(run()).labels.tolist() == [2, 2]
 
 
 class RejectingPool(FakePool):
     """Refuses every scan of 3 points, as a worker refuses a scan it cannot project."""
 
-    async def predict_async(self, scans, knn=True):
-        labels = await super().predict_async(scans, knn)
+    async def predict_async(self, scans, knn=True, confidence=False):
+        labels = await super().predict_async(scans, knn, confidence)
         return [
             "a laser id is off the image" if len(s) == 3 else out
             for s, out in zip(scans, labels, strict=True)
@@ -292,7 +302,28 @@ def test_batcher_refuses_one_scan_and_labels_the_rest_of_its_batch():
     pool, (two, three, four) = asyncio.run(run())
     assert pool.batches == [(3, True)]
     assert isinstance(three, ScanRejected) and "laser id" in str(three)
-    assert two.tolist() == [2, 2] and four.tolist() == [4] * 4
+    assert two.labels.tolist() == [2, 2] and four.labels.tolist() == [4] * 4
+
+
+def test_batcher_never_mixes_requests_for_confidences_with_others():
+    async def run():
+        pool = FakePool(delay=0.02)
+        batcher = ScanBatcher(pool, batch_size=8, max_wait=0.05)
+        await batcher.start()
+        try:
+            results = await asyncio.gather(
+                *(batcher.label(_scan(n), confidence=n % 2 == 0) for n in range(1, 9))
+            )
+        finally:
+            await batcher.stop()
+        return pool, results
+
+    pool, results = asyncio.run(run())
+    for n, labelled in enumerate(results, start=1):
+        assert (labelled.confidence is not None) == (n % 2 == 0)
+        if labelled.confidence is not None:
+            assert labelled.confidence.shape == (n,)
+    assert sorted(pool.confidences) == [False, True]  # one batch of each
 
 
 # Jobs ------------------------------------------------------------------------------------------

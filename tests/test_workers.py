@@ -212,16 +212,20 @@ def test_scan_pool_serves_batches_and_survives_a_crash(ray_local, setup):
     pool = ScanPool(spec, actors=1, actor_cpus=1.0)
     try:
         assert pool.wait_ready(timeout=120)[0]["model"] == "rangeret-cir"
-        labels = asyncio.run(pool.predict_async(scans))
+        labels = [r.labels for r in asyncio.run(pool.predict_async(scans))]
         expected = [r.labels for r in predictor.predict_batch(scans)]
         assert all(np.array_equal(a, b) for a, b in zip(labels, expected, strict=True))
         raw = asyncio.run(pool.predict_async(scans[:1], knn=False))[0]
-        assert raw.shape == scans[0][:, 0].shape
+        assert raw.labels.shape == scans[0][:, 0].shape and raw.confidence is None
+        sure = asyncio.run(pool.predict_async(scans[:1], confidence=True))[0]
+        assert np.array_equal(sure.labels, expected[0])
+        assert sure.confidence.shape == expected[0].shape
+        assert (sure.confidence >= 0).all() and (sure.confidence <= 1).all()
         killer = kill_actor_when(lambda: True, class_part="ScanWorker")
         killer.join(timeout=30)
         assert killer.killed
         again = asyncio.run(pool.predict_async(scans[:1]))
-        assert np.array_equal(again[0], expected[0])
+        assert np.array_equal(again[0].labels, expected[0])
         assert pool.health()["ok"]
     finally:
         pool.shutdown()

@@ -199,7 +199,10 @@ def label_batch(predictor: Predictor, encoded: bytes) -> bytes:
     """Stage 2 on one encoded `BatchRecord`: the network, kNN refinement and raw ids of its
     scans; the record names the device and process that ran it."""
     record = BatchRecord.decode({ROW_COLUMN: encoded})
-    record.results = predictor.label_loaded(record.loaded, record.times)
+    record.results = [
+        (None if found is None else found.labels, error)
+        for found, error in predictor.label_loaded(record.loaded, record.times)
+    ]
     record.loaded = []
     record.worker = f"{predictor.device}@{os.getpid()}"
     return record.encode()[ROW_COLUMN]

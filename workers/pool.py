@@ -16,6 +16,7 @@ import math
 import os
 import threading
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -25,6 +26,15 @@ from workers.pipeline import GPU_ACTOR_CPUS, warm_up
 from workers.pipeline import label_batch as label_record
 
 log = logging.getLogger(__name__)
+
+
+@dataclass
+class LabelledScan:
+    """One scan labelled by a worker: raw labels (uint32, one per point) and, when asked, each
+    point's confidence in its label (float32)."""
+
+    labels: np.ndarray
+    confidence: np.ndarray | None = None
 
 
 class ScanWorker:
@@ -56,10 +66,12 @@ class ScanWorker:
         """Who this worker is: process, device and model, for health checks."""
         return {"pid": os.getpid(), **self.spec_predictor.describe()}
 
-    def predict(self, scans: Sequence[np.ndarray], knn: bool = True) -> list[np.ndarray | str]:
-        """Raw labels (uint32, one per point) for each scan of a batch of the profile's point
-        records; a scan that cannot be projected (a laser id off the image) gets the reason
-        instead, so it never fails the other scans of its batch."""
+    def predict(
+        self, scans: Sequence[np.ndarray], knn: bool = True, confidence: bool = False
+    ) -> list[LabelledScan | str]:
+        """Each scan of a batch of the profile's point records labelled (with its points'
+        confidences when asked); a scan that cannot be projected (a laser id off the image) gets
+        the reason instead, so it never fails the other scans of its batch."""
         predictor = self.spec_predictor if knn else self.without_knn
         projections: list[Projection] = []
         rejected: dict[int, str] = {}
@@ -68,10 +80,15 @@ class ScanWorker:
                 projections.append(predictor.project(scan))
             except ValueError as exc:
                 rejected[i] = str(exc)
-        labels = iter(
-            [r.labels for r in predictor.finish_batch(projections)] if projections else []
+        done = iter(
+            [
+                LabelledScan(r.labels, r.confidence)
+                for r in predictor.finish_batch(projections, with_confidence=confidence)
+            ]
+            if projections
+            else []
         )
-        return [rejected[i] if i in rejected else next(labels) for i in range(len(scans))]
+        return [rejected[i] if i in rejected else next(done) for i in range(len(scans))]
 
     def label_batch(self, encoded: bytes) -> bytes:
         """A job's batch (an encoded `workers.stages.BatchRecord`), labelled as the pipeline's
@@ -127,13 +144,13 @@ class ScanPool:
             self._busy[index] -= 1
 
     async def predict_async(
-        self, scans: Sequence[np.ndarray], knn: bool = True
-    ) -> list[np.ndarray | str]:
+        self, scans: Sequence[np.ndarray], knn: bool = True, confidence: bool = False
+    ) -> list[LabelledScan | str]:
         """Labels (or the reason a scan is refused) for a batch of scans from the least busy
         actor, awaited without blocking the loop."""
         index = self._pick()
         try:
-            return await self.actors[index].predict.remote(list(scans), knn)
+            return await self.actors[index].predict.remote(list(scans), knn, confidence)
         finally:
             self._release(index)
 
@@ -173,16 +190,18 @@ class LocalScanPool:
     def wait_ready(self, timeout: float | None = None) -> list[dict]:
         return [self.worker.info()]
 
-    def predict(self, scans: Sequence[np.ndarray], knn: bool = True) -> list[np.ndarray | str]:
+    def predict(
+        self, scans: Sequence[np.ndarray], knn: bool = True, confidence: bool = False
+    ) -> list[LabelledScan | str]:
         with self._lock:
-            return self.worker.predict(scans, knn)
+            return self.worker.predict(scans, knn, confidence)
 
     async def predict_async(
-        self, scans: Sequence[np.ndarray], knn: bool = True
-    ) -> list[np.ndarray | str]:
+        self, scans: Sequence[np.ndarray], knn: bool = True, confidence: bool = False
+    ) -> list[LabelledScan | str]:
         self._waiting += 1
         try:
-            return await asyncio.to_thread(self.predict, scans, knn)
+            return await asyncio.to_thread(self.predict, scans, knn, confidence)
         finally:
             self._waiting -= 1
 

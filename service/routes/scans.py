@@ -83,8 +83,20 @@ async def label_scan(
     request: Request,
     gw: GatewayDep,
     knn: bool = Query(default=True, description="refine labels with kNN over the point cloud"),
+    confidence: bool = Query(
+        default=False,
+        description="also return each point's confidence (the softmax probability of its label "
+        "at its pixel); needs `Accept: application/json`",
+    ),
 ) -> Response:
     limits = gw.settings
+    if confidence and not wants_json(request.headers.get("accept")):
+        await drain(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
+        raise ApiError(
+            400,
+            "Confidences come only in the JSON answer: send 'Accept: application/json' with "
+            "confidence=true, or leave confidence out for the raw label bytes.",
+        )
     if media_type(request) != OCTET:
         await drain(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
         raise ApiError(
@@ -107,10 +119,10 @@ async def label_scan(
         gw.metrics.refused.inc()
         raise ApiError(503, str(exc), {"Retry-After": str(RETRY_AFTER_S)}) from exc
     with place:
-        return await _label(request, gw, knn)
+        return await _label(request, gw, knn, confidence)
 
 
-async def _label(request: Request, gw: Gateway, knn: bool) -> Response:
+async def _label(request: Request, gw: Gateway, knn: bool, confidence: bool) -> Response:
     """Read, check and label an admitted scan, and answer in the form the client asked for."""
     limits = gw.settings
     body = await read_body(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
@@ -135,19 +147,22 @@ async def _label(request: Request, gw: Gateway, knn: bool) -> Response:
     if gw.batcher is None:
         raise ApiError(503, "The gateway is starting; try again in a moment.")
     try:
-        labels = await gw.batcher.label(points, knn)
+        labelled = await gw.batcher.label(points, knn, confidence)
     except ScanRejected as exc:
         raise ApiError(400, f"The scan cannot be projected: {exc}.") from exc
     except BackendError as exc:
         raise ApiError(503, str(exc)) from exc
     gw.metrics.scans.labels(source="request").inc()
     gw.metrics.points.inc(len(points))
-    raw = labels.astype("<u4", copy=False)
+    raw = labelled.labels.astype("<u4", copy=False)
     if wants_json(request.headers.get("accept")):
         body = ScanLabels(
             num_points=len(raw),
             labels=raw.tolist(),
             class_counts=_class_counts(raw, gw.profile.labels),
+            confidence=None
+            if labelled.confidence is None
+            else np.round(labelled.confidence, 4).tolist(),
         )
-        return JSONResponse(body.model_dump())
+        return JSONResponse(body.model_dump(exclude_none=True))
     return Response(raw.tobytes(), media_type=OCTET)

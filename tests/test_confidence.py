@@ -1,0 +1,67 @@
+"""Point confidences: the softmax probability, at a point's pixel, of the class the point was
+finally given (after kNN); written by `rangeret predict --save-confidence` as float16 `.npy` files
+beside the predictions, one value per point in [0, 1]."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from conftest import data_path
+from workers_helpers import small_weights
+
+from rangeret.cli import main as rangeret_main
+from rangeret.inference import PredictorSpec
+from rangeret.io import read_confidence, read_labels, read_scan, write_scan
+from rangeret.layout import confidence_path, prediction_path, velodyne_dir
+from rangeret.point_labels import point_confidences
+
+
+def test_a_confidence_is_the_softmax_of_the_final_class_at_the_pixel():
+    torch.manual_seed(0)
+    logits = torch.randn(2, 5, 3, 4)
+    px = [np.array([0, 3, -1]), np.array([1, 1])]
+    py = [np.array([0, 2, -1]), np.array([1, 2])]
+    classes = [np.array([4, 0, 2]), np.array([1, 3])]
+    found = point_confidences(logits, px, py, classes)
+    probabilities = torch.softmax(logits, dim=1).numpy()
+    assert np.isclose(found[0][0], probabilities[0, 4, 0, 0])
+    assert np.isclose(found[0][1], probabilities[0, 0, 2, 3])
+    assert found[0][2] == 0.0  # no pixel
+    assert np.allclose(found[1], [probabilities[1, 1, 1, 1], probabilities[1, 3, 2, 1]])
+
+
+def test_without_knn_a_confidence_is_the_pixels_top_probability(tmp_path):
+    spec = PredictorSpec(
+        checkpoint=str(small_weights(tmp_path)), height=32, width=256, device="cpu", knn=None
+    )
+    predictor = spec.build()
+    points = read_scan(data_path("semantickitti-scan", "000000.bin"))[::7]
+    projection = predictor.project(points)
+    result = predictor.finish_batch([projection], with_probabilities=True, with_confidence=True)[0]
+    pixel = projection.proj_x >= 0
+    assert result.confidence.shape == (len(points),) and result.confidence.dtype == np.float32
+    np.testing.assert_allclose(
+        result.confidence[pixel], result.probabilities[pixel].max(axis=1), rtol=1e-5
+    )
+
+
+def test_predict_saves_one_confidence_per_point_beside_each_prediction(tmp_path):
+    weights = small_weights(tmp_path)
+    data = tmp_path / "data"
+    scan = read_scan(data_path("semantickitti-scan", "000000.bin"))
+    for i, step in enumerate((3, 5)):
+        write_scan(velodyne_dir(data, "08") / f"{i:06d}.bin", scan[i::step])
+    net = ["--checkpoint", str(weights), "--height", "32", "--width", "256", "--device", "cpu"]
+    common = ["predict", "--dataset", str(data), "--sequences", "08", *net, "-q"]
+    assert rangeret_main([*common, "--out", str(tmp_path / "plain")]) == 0
+    assert not (tmp_path / "plain" / "sequences" / "08" / "confidence").exists()
+    # A tree predicted without confidences gets them on a second run that asks for them.
+    assert rangeret_main([*common, "--out", str(tmp_path / "plain"), "--save-confidence"]) == 0
+    for i, step in enumerate((3, 5)):
+        name = f"{i:06d}"
+        path = confidence_path(tmp_path / "plain", "08", name)
+        assert path.parent.name == "confidence" and path.suffix == ".npy"
+        assert np.load(path).dtype == np.float16
+        values = read_confidence(path, num_points=len(scan[i::step]))
+        assert ((values >= 0) & (values <= 1)).all() and values.max() > 0
+        assert len(read_labels(prediction_path(tmp_path / "plain", "08", name))) == values.size
