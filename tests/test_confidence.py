@@ -65,3 +65,26 @@ def test_predict_saves_one_confidence_per_point_beside_each_prediction(tmp_path)
         values = read_confidence(path, num_points=len(scan[i::step]))
         assert ((values >= 0) & (values <= 1)).all() and values.max() > 0
         assert len(read_labels(prediction_path(tmp_path / "plain", "08", name))) == values.size
+
+
+def test_calibration_bins_add_up_and_give_the_expected_calibration_error():
+    from rangeret.calibration import Calibration
+
+    confidence = np.array([0.05, 0.15, 0.95, 0.95, 1.0, 0.55])
+    correct = np.array([False, True, True, False, True, True])
+    whole = Calibration()
+    whole.add(confidence, correct)
+    parts = Calibration()
+    for half in (slice(0, 3), slice(3, 6)):
+        part = Calibration()
+        part.add(confidence[half], correct[half])
+        parts.merge(part)
+    assert parts.to_dict() == whole.to_dict()
+    report = whole.to_dict()
+    assert report["points"] == 6 and sum(b["points"] for b in report["bins"]) == 6
+    top = report["bins"][9]  # 0.95, 0.95 and 1.0 (the last bin holds 1.0)
+    assert top["points"] == 3 and np.isclose(top["accuracy"], 2 / 3)
+    assert np.isclose(top["confidence"], (0.95 + 0.95 + 1.0) / 3)
+    expected = (abs(0 - 0.05) + abs(1 - 0.15) + 3 * abs(2 / 3 - (2.9 / 3)) + abs(1 - 0.55)) / 6
+    assert np.isclose(report["ece"], expected)
+    assert report["bins"][3]["accuracy"] is None  # an empty bin
