@@ -18,11 +18,13 @@ from typing import TYPE_CHECKING
 from rangeret.errors import CommandError, run_command
 from rangeret.options import (
     add_label_config,
+    add_leaderboard_options,
     add_network_options,
     add_output_options,
     add_profile_option,
     add_selection,
     label_config_from_args,
+    leaderboard_from_args,
     profile_from_args,
     requested_profile,
     selected_sequences,
@@ -104,17 +106,29 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def cmd_submission(args: argparse.Namespace) -> int:
     """Write and validate the CodaLab/Codabench zip of a predictions tree."""
+    from rangeret.leaderboard import description_text
+    from rangeret.run_info import read_run_info
     from rangeret.submission import write_submission
 
     _benchmark_profile_only(args)
     if args.workers is not None and args.workers < 1:
         raise CommandError(f"--workers must be at least 1, got {args.workers}")
+    run = read_run_info(args.predictions)
+    description = description_text(
+        leaderboard_from_args(args),
+        written_by="rangeret submission",
+        checkpoint_sha256=run.get("checkpoint_sha256"),
+        model=run.get("model"),
+        profile=run.get("profile"),
+        demo_weights=bool(run.get("demo_weights")),
+        notes=[args.description] if args.description else [],
+    )
     check = write_submission(
         args.predictions,
         args.dataset,
         args.out,
         allow_partial=args.allow_partial,
-        description=args.description,
+        description=description,
         config=label_config_from_args(args),
         progress=not args.quiet,
         workers=args.workers,
@@ -238,7 +252,13 @@ def _submission_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
     p.add_argument("--out", type=Path, required=True, metavar="FILE.zip")
     _allow_partial_option(p)
-    p.add_argument("--description", metavar="TEXT", help="text of description.txt in the archive")
+    add_leaderboard_options(p)
+    p.add_argument(
+        "--description",
+        metavar="TEXT",
+        help="free text for description.txt, after the leaderboard's lines and the checkpoint's "
+        "SHA-256 (read from PRED/run.json)",
+    )
     p.add_argument(
         "--workers",
         type=int,

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 from rangeret.errors import CommandError
 from rangeret.labels import LabelConfig, load_label_config
 from rangeret.layout import resolve_sequences
+from rangeret.leaderboard import DEFAULT_NAME, DEFAULT_URL, LeaderboardEntry
 from rangeret.precision import PRECISIONS
 from rangeret.profiles import BUILTIN_PROFILES, DatasetProfile, load_profile
 
@@ -97,6 +98,31 @@ def label_config_from_args(args: argparse.Namespace) -> LabelConfig:
         raise CommandError(
             f"cannot read the label configuration {args.label_config}: {exc}"
         ) from exc
+
+
+def add_leaderboard_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """--method-name, --pdf-url, --code-url: the first three lines of an archive's description.txt,
+    which the benchmark's leaderboard shows."""
+    parser.add_argument(
+        "--method-name",
+        metavar="NAME",
+        help=f"the method's name on the leaderboard (default: {DEFAULT_NAME})",
+    )
+    parser.add_argument(
+        "--pdf-url", metavar="URL", help=f"link to the method's paper (default: {DEFAULT_URL})"
+    )
+    parser.add_argument(
+        "--code-url", metavar="URL", help=f"link to the method's code (default: {DEFAULT_URL})"
+    )
+
+
+def leaderboard_from_args(args: argparse.Namespace) -> LeaderboardEntry:
+    """The leaderboard entry of --method-name, --pdf-url and --code-url (defaults for the missing
+    ones); a value on more than one line is a CommandError naming its option."""
+    try:
+        return LeaderboardEntry.from_values(args.method_name, args.pdf_url, args.code_url)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from exc
 
 
 def add_projection_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:

@@ -43,3 +43,18 @@ def write_run_info(
     path = Path(out) / RUN_INFO
     atomic_write_text(path, json.dumps(record, indent=2) + "\n")
     return path
+
+
+def read_run_info(out: Path | str) -> dict[str, Any]:
+    """`OUT/run.json` as a dict, or {} when the tree has none; a file that is not a JSON object
+    is a ValueError naming it."""
+    path = Path(out) / RUN_INFO
+    try:
+        record = json.loads(path.read_text())
+    except FileNotFoundError:
+        return {}
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path} is not a readable run record ({exc})") from exc
+    if not isinstance(record, dict):
+        raise ValueError(f"{path} is not a run record (a JSON object)")
+    return record

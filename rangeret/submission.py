@@ -2,7 +2,9 @@
 
 The server expects a zip with explicit directory entries `sequences/`, `sequences/NN/` and
 `sequences/NN/predictions/` for NN = 11..21, and `sequences/NN/predictions/NNNNNN.label` (raw ids,
-uint32) with one label per point of the matching test scan; `description.txt` is optional.
+uint32) with one label per point of the matching test scan; `description.txt` is optional, but
+its first three lines (`name:`, `pdf url:`, `code url:`, see `rangeret.leaderboard`) are what the
+leaderboard shows, so every archive written here has them and the validator warns without them.
 
 The official validator compares the zip only with the local velodyne folders, so an incomplete
 local copy of the test set passes it and the server then fails. Here the dataset is also checked
@@ -28,6 +30,7 @@ from rangeret.atomic import atomic_path
 from rangeret.io import LABEL_BYTES, ScanFormatError, scan_num_points
 from rangeret.labels import LabelConfig, semantickitti
 from rangeret.layout import ScanEntry, discover, prediction_path
+from rangeret.leaderboard import DEFAULT_NAME, DEFAULT_URL, LeaderboardEntry, description_problems
 from rangeret.zipfiles import DeflatedFile, ReproducibleZip, deflate_file, map_ahead
 
 #: Scans per sequence of the official SemanticKITTI test split (20,351 in all).
@@ -54,13 +57,15 @@ class SubmissionError(ValueError):
 
 @dataclass
 class SubmissionCheck:
-    """What a validation found: the scans checked and every problem, each naming its file."""
+    """What a validation found: the scans checked and every problem, each naming its file, and
+    warnings about what the server accepts but shows badly (the leaderboard's metadata)."""
 
     path: Path
     partial: bool
     sequences: list[str] = field(default_factory=list)
     scans: int = 0
     problems: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -75,10 +80,12 @@ class SubmissionCheck:
         """One paragraph for people: passed or not, what was checked, the first problems."""
         kind = "partial archive (for testing only)" if self.partial else "archive"
         if self.ok:
-            return (
+            lines = [
                 f"{self.path}: valid {kind}; {self.scans:,} predictions checked over "
                 f"{len(self.sequences)} sequence(s) ({', '.join(self.sequences)})"
-            )
+            ]
+            lines += [f"  warning: {w}" for w in self.warnings]
+            return "\n".join(lines)
         lines = [f"{self.path}: INVALID {kind}, {len(self.problems)} problem(s):"]
         lines += [f"  - {p}" for p in self.problems[:_MAX_LISTED]]
         if len(self.problems) > _MAX_LISTED:
@@ -171,6 +178,8 @@ def write_submission(
 ) -> SubmissionCheck:
     """Build the submission zip of a predictions tree for the test scans of `dataset`.
 
+    `description` is the text of `description.txt` (`rangeret.leaderboard.description_text`);
+    without it the file holds the leaderboard's three lines with the benchmark's defaults.
     Raises `SubmissionError` listing every missing or wrong prediction (and an incomplete local
     test set unless `allow_partial`); in that case no file is written. The archive is validated
     before it is moved into place, and is byte-for-byte reproducible for the same inputs whatever
@@ -179,6 +188,8 @@ def write_submission(
     """
     predictions, dataset, out = Path(predictions), Path(dataset), Path(out)
     config = config or semantickitti()
+    if description is None:
+        description = "\n".join(LeaderboardEntry().lines())
     if out.suffix != ".zip":
         raise SubmissionError([f"{out}: the archive's name must end with .zip"])
     scans, _, problems = _dataset_scans(dataset, allow_partial)
@@ -228,6 +239,8 @@ def validate_submission(
     Checks what the official validator checks (directory entries, one prediction per scan with
     one label per point) and more: raw ids the learning map can produce, unsafe or unexpected
     entries, duplicates, and, unless `allow_partial`, that the dataset is the full test split.
+    A `description.txt` without the leaderboard's three lines is a warning: the server accepts it
+    but shows the method as Anonymous.
     """
     archive, dataset = Path(archive), Path(dataset)
     config = config or semantickitti()
@@ -273,6 +286,7 @@ def validate_submission(
                 check.problems.append(f"{archive}: {name} has no matching test scan in {dataset}")
             else:
                 check.problems.append(f"{archive}: unexpected entry {name!r}")
+        check.warnings += _description_warnings(zf, entries.get(DESCRIPTION_NAME), archive)
         for name, entry in tqdm(wanted.items(), desc="validate", unit="scan", disable=not progress):
             try:
                 num_points = scan_num_points(entry.scan_path)
@@ -299,6 +313,23 @@ def validate_submission(
                 check.problems.append(problem)
             check.scans += 1
     return check
+
+
+def _description_warnings(
+    zf: zipfile.ZipFile, info: zipfile.ZipInfo | None, archive: Path
+) -> list[str]:
+    """What keeps the leaderboard from showing the archive's name and links, or []."""
+    if info is None:
+        return [
+            f"{archive} has no {DESCRIPTION_NAME}: the leaderboard shows the method as "
+            f"{DEFAULT_NAME} with {DEFAULT_URL} links (rangeret submission --method-name, "
+            "--pdf-url and --code-url write it)"
+        ]
+    try:
+        text = zf.read(info).decode("utf-8")
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        return [f"{archive}: {DESCRIPTION_NAME} cannot be read as UTF-8 text ({exc})"]
+    return [f"{archive}: {DESCRIPTION_NAME} {p}" for p in description_problems(text)]
 
 
 def _unsafe_entry(info: zipfile.ZipInfo) -> str | None:

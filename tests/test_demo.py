@@ -8,6 +8,7 @@ import zipfile
 
 import pytest
 
+from rangeret.leaderboard import LeaderboardEntry
 from rangeret.submission import validate_submission
 
 pytestmark = pytest.mark.slow
@@ -17,7 +18,10 @@ def test_demo_end_to_end(tmp_path, capsys):
     ray = pytest.importorskip("ray")
     from workers.demo import run_demo
 
-    out = run_demo(tmp_path / "demo", valid_scans=2, test_scans=1, progress=False)
+    entry = LeaderboardEntry("RangeRet demo", "https://example.org/paper.pdf")
+    out = run_demo(
+        tmp_path / "demo", valid_scans=2, test_scans=1, progress=False, leaderboard=entry
+    )
     assert not ray.is_initialized()
     printed = capsys.readouterr().out
     report = json.loads((out / "report.json").read_text())
@@ -31,7 +35,15 @@ def test_demo_end_to_end(tmp_path, capsys):
     check = validate_submission(out / "submission.zip", out / "dataset", allow_partial=True)
     assert check.ok and check.scans == 11
     with zipfile.ZipFile(out / "submission.zip") as zf:
-        assert "not a real submission" in zf.read("description.txt").decode()
+        description = zf.read("description.txt").decode()
+    assert description.splitlines()[:4] == [
+        "name: RangeRet demo",
+        "pdf url: https://example.org/paper.pdf",
+        "code url: n/a",
+        f"checkpoint sha256: {report['checkpoint_sha256']}",
+    ]
+    assert "not a real submission" in description and "simulated street scenes" in description
+    assert check.warnings == []
     assert not (out / "dataset" / "sequences" / "11" / "labels").exists()
     assert "--checkpoint rangeret-kitti-657" in printed
 

@@ -16,6 +16,7 @@ from rangeret.cli import main
 from rangeret.io import write_labels, write_scan
 from rangeret.labels import semantickitti
 from rangeret.layout import discover, prediction_path, velodyne_dir
+from rangeret.leaderboard import LeaderboardEntry, description_text
 from rangeret.submission import (
     TEST_SCAN_COUNTS,
     TEST_SEQUENCES,
@@ -106,7 +107,12 @@ def test_cli_workers_option(small_test_set, tmp_path):
     base = ["submission", "-q", "--predictions", str(preds), "--dataset", str(data)]
     base += ["--allow-partial"]
     assert main([*base, "--out", str(tmp_path / "a.zip"), "--workers", "2"]) == 0
-    write_submission(preds, data, tmp_path / "b.zip", allow_partial=True, workers=1)
+    description = description_text(
+        LeaderboardEntry(), written_by="rangeret submission", checkpoint_sha256=None
+    )
+    write_submission(
+        preds, data, tmp_path / "b.zip", allow_partial=True, workers=1, description=description
+    )
     assert (tmp_path / "a.zip").read_bytes() == (tmp_path / "b.zip").read_bytes()
     assert main([*base, "--out", str(tmp_path / "c.zip"), "--workers", "0"]) != 0
     assert not (tmp_path / "c.zip").exists()

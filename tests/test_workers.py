@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import json
 import time
+import zipfile
 
 import numpy as np
 import pytest
@@ -123,9 +124,26 @@ def test_job_resumes_and_names_bad_scans(ray_local, setup, tmp_path, capsys):
         "--read-cpus",
         "0.25",
         *_net(weights),
+        "--submission",
+        str(tmp_path / "s.zip"),
+        "--allow-partial",
+        "--method-name",
+        "RangeRet",
+        "--code-url",
+        "https://example.org/code",
     ]
     assert job_main(args) == 0
     first = tree_bytes(tmp_path / "p")
+    with zipfile.ZipFile(tmp_path / "s.zip") as zf:
+        lines = zf.read("description.txt").decode().splitlines()
+    run = json.loads((tmp_path / "p" / "run.json").read_text())
+    assert lines[:4] == [
+        "name: RangeRet",
+        "pdf url: n/a",
+        "code url: https://example.org/code",
+        f"checkpoint sha256: {run['checkpoint_sha256']}",
+    ]
+    assert "written by: workers.predict_job" in lines
     victim = tmp_path / "p" / "sequences" / "08" / "predictions" / "000001.label"
     victim.unlink()
     capsys.readouterr()

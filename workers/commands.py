@@ -10,7 +10,13 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from rangeret.options import add_precision_option, add_profile_option, requested_profile
+from rangeret.options import (
+    add_leaderboard_options,
+    add_precision_option,
+    add_profile_option,
+    leaderboard_from_args,
+    requested_profile,
+)
 from rangeret.plugins import Subcommand, TrainBackend
 from workers.train_options import add_ray_options
 
@@ -30,17 +36,22 @@ def _demo_arguments(parser: argparse.ArgumentParser) -> None:
     )
     add_profile_option(parser)
     add_precision_option(parser)
+    add_leaderboard_options(
+        parser.add_argument_group("leaderboard (description.txt of the archive)")
+    )
 
 
 def _run_demo(args: argparse.Namespace) -> int:
     from workers.demo import run_demo
 
+    leaderboard = leaderboard_from_args(args)
     run_demo(
         args.out,
         checkpoint=args.checkpoint,
         progress=not args.quiet,
         profile=requested_profile(args),
         precision=args.precision,
+        leaderboard=leaderboard,
     )
     return 0
 

@@ -26,6 +26,7 @@ from rangeret.inference import (
 )
 from rangeret.io import read_labels, read_scan
 from rangeret.layout import discover, prediction_path
+from rangeret.leaderboard import LeaderboardEntry, description_text
 from rangeret.plots import plot_range_image, write_plots
 from rangeret.profiles import DEFAULT_PROFILE, DatasetProfile
 from rangeret.projection import project_with
@@ -44,8 +45,12 @@ def run_demo(
     progress: bool = True,
     profile: DatasetProfile | None = None,
     precision: str = "auto",
+    leaderboard: LeaderboardEntry | None = None,
 ) -> Path:
     """Run the demo into `out` (default: a new timestamped folder) and return the folder.
+
+    `leaderboard` gives the first lines of the archive's description.txt (default: the
+    benchmark's defaults).
 
     With a `profile` other than SemanticKITTI's the scans are that dataset's (layout, point
     record, labels), the checkpoint must be a network for it (the demo weights are SemanticKITTI's)
@@ -127,8 +132,15 @@ def run_demo(
             archive,
             allow_partial=True,
             progress=progress,
-            description=f"rangeret demo: simulated scans, demo weights (sha256 {info.sha256}); "
-            "not a real submission",
+            description=description_text(
+                leaderboard or LeaderboardEntry(),
+                written_by="rangeret demo",
+                checkpoint_sha256=info.sha256,
+                model=info.name,
+                profile=profile.name,
+                demo_weights=weights.resolve() == DEMO_CHECKPOINT.resolve(),
+                notes=["simulated scans: not a real submission"],
+            ),
         )
         validate_submission(archive, dataset, allow_partial=True).raise_for_problems()
 

@@ -16,7 +16,6 @@ import argparse
 import logging
 import os
 import sys
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -28,8 +27,16 @@ from rangeret.inference import (
     describe_network,
     is_demo_checkpoint,
 )
+from rangeret.leaderboard import description_text
 from rangeret.models.checkpoint_info import CheckpointInfo
-from rangeret.options import add_network_options, add_selection, selected_sequences, spec_from_args
+from rangeret.options import (
+    add_leaderboard_options,
+    add_network_options,
+    add_selection,
+    leaderboard_from_args,
+    selected_sequences,
+    spec_from_args,
+)
 from rangeret.predict import PredictSummary, is_complete, list_scans
 from rangeret.profiles import DEFAULT_PROFILE, DatasetProfile
 from rangeret.run_info import write_run_info
@@ -56,6 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="accept a dataset with missing sequences or scans, and archive it (for tests only)",
     )
+    add_leaderboard_options(p.add_argument_group("leaderboard (description.txt of --submission)"))
     p.add_argument(
         "--report",
         type=Path,
@@ -104,6 +112,7 @@ def connect(address: str | None) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the job for parsed arguments; returns the exit code."""
+    leaderboard = leaderboard_from_args(args)
     spec = spec_from_args(args)
     if args.actors is not None and args.actors < 1:
         raise CommandError(f"--actors must be at least 1, got {args.actors}")
@@ -187,23 +196,19 @@ def run(args: argparse.Namespace) -> int:
             args.dataset,
             args.submission,
             allow_partial=args.allow_partial,
-            description=_description(info, demo),
+            description=description_text(
+                leaderboard,
+                written_by="workers.predict_job",
+                checkpoint_sha256=info.sha256,
+                model=info.name,
+                profile=profile.name,
+                demo_weights=demo,
+            ),
             config=label_config,
             progress=not args.quiet,
         )
         print(check.summary())
     return 0
-
-
-def _description(info: CheckpointInfo, demo: bool) -> str:
-    lines = [
-        f"RangeRet ({info.name}) predictions",
-        f"checkpoint sha256: {info.sha256}",
-        f"written {time.strftime('%Y-%m-%d')} by the rangeret service",
-    ]
-    if demo:
-        lines.append(f"NOTE: {DEMO_WARNING}")
-    return "\n".join(lines)
 
 
 def _write_run_info(

@@ -24,6 +24,7 @@ from pathlib import Path
 
 from rangeret.evaluation import evaluate_predictions
 from rangeret.layout import KITTI_LAYOUT, SequenceLayout, discover
+from rangeret.leaderboard import LeaderboardEntry, description_text
 from rangeret.predict import is_complete, list_scans
 from rangeret.profiles import DatasetProfile, load_profile
 from service.jobs.capacity import disk_full, folder_bytes, queue_full
@@ -367,10 +368,12 @@ class JobManager:
         )
 
     def _description(self) -> str:
-        return (
-            "RangeRet predictions written by the rangeret gateway\n"
-            f"profile: {self.profile.name}\n"
-            f"checkpoint sha256: {self.checkpoint_sha256 or 'unknown'}\n"
+        """The archive's description.txt: the leaderboard's default lines, then the run's."""
+        return description_text(
+            LeaderboardEntry(),
+            written_by="the rangeret gateway",
+            checkpoint_sha256=self.checkpoint_sha256,
+            profile=self.profile.name,
         )
 
 
