@@ -173,6 +173,22 @@ def _benchmark_profile_only(args: argparse.Namespace) -> None:
         )
 
 
+def cmd_view(args: argparse.Namespace) -> int:
+    """Write a scan with its labels as a coloured PLY point cloud and a bird's-eye PNG."""
+    from rangeret.view import load_labelled_scan, write_view
+
+    if args.out.suffix not in (".ply", ".png"):
+        raise CommandError(
+            f"--out {args.out}: the file must end with .ply (point cloud and PNG) or .png (PNG only)"
+        )
+    profile = profile_from_args(args)
+    view = load_labelled_scan(args.scan, args.labels, args.ground_truth, profile)
+    for path in write_view(view, args.out, profile):
+        print(f"{path.suffix[1:]}: {path}")
+    print(f"{len(view.points):,} points of {args.scan}, coloured by {view.coloured_by}")
+    return 0
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     """Write a simulated dataset in a profile's layout, point record and labels."""
     from rangeret.sim import SensorConfig, simulate_dataset
@@ -276,6 +292,28 @@ def _validate_submission_arguments(p: argparse.ArgumentParser) -> None:
     _allow_partial_option(p)
     add_profile_option(p)
     add_label_config(p)
+
+
+def _view_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scan", type=Path, metavar="SCAN", help="a .bin scan")
+    p.add_argument(
+        "--labels", type=Path, metavar="FILE", help="predicted .label file (colours the cloud)"
+    )
+    p.add_argument(
+        "--ground-truth",
+        type=Path,
+        metavar="FILE",
+        help="ground-truth .label file (colours the cloud without --labels; with it, an error map)",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        metavar="FILE.ply|FILE.png",
+        help="a binary PLY (x, y, z, red, green, blue, label) with a bird's-eye PNG of the same "
+        "stem beside it, or the PNG alone",
+    )
+    add_profile_option(p)
 
 
 def _train_arguments(p: argparse.ArgumentParser) -> None:
@@ -446,6 +484,12 @@ BUILTIN_COMMANDS = (
         "check a submission zip before uploading it",
         _validate_submission_arguments,
         cmd_validate_submission,
+    ),
+    Subcommand(
+        "view",
+        "a scan with its labels as a coloured PLY point cloud and bird's-eye PNGs",
+        _view_arguments,
+        cmd_view,
     ),
     Subcommand(
         "train",
