@@ -1,4 +1,5 @@
-"""The `rangeret` command: predict, evaluate, submission archives, training and simulation.
+"""The `rangeret` command: predict, evaluate, compare reports, submission archives, training and
+simulation.
 
 The library's own subcommands are defined here; `serve`, `demo` and `train --ray` come from the
 layers above it through entry points (`rangeret.plugins`). Each subcommand exits 0 on success and
@@ -102,6 +103,33 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         for path in write_plots(report, args.plots, profile.labels):
             print(f"plot: {path}")
     return 0
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    """Print the per-class IoU of evaluation reports side by side, with deltas against the first."""
+    from rangeret.compare import compare_reports
+
+    if args.out is not None and args.out.suffix.lower() != ".png":
+        raise CommandError(f"--out names the PNG to write, so it must end in .png, got {args.out}")
+    comparison = compare_reports(args.reports)
+    print(comparison.table())
+    if args.out is not None:
+        print(f"plot: {comparison.write_png(args.out)}")
+    return 0
+
+
+def _compare_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "reports",
+        type=Path,
+        nargs="+",
+        metavar="REPORT.json",
+        help="evaluation reports (of `rangeret evaluate --json`, the Ray job or a gateway job); "
+        "the first is the baseline of the deltas",
+    )
+    p.add_argument(
+        "--out", type=Path, metavar="FILE.png", help="also draw the comparison as grouped bars"
+    )
 
 
 def cmd_submission(args: argparse.Namespace) -> int:
@@ -250,7 +278,12 @@ def _evaluate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--predictions", type=Path, required=True, metavar="PRED")
     add_selection(p)
     p.add_argument("--json", type=Path, metavar="FILE", help="write the JSON report here")
-    p.add_argument("--plots", type=Path, metavar="DIR", help="write confusion.png and iou.png here")
+    p.add_argument(
+        "--plots",
+        type=Path,
+        metavar="DIR",
+        help="write confusion.png, iou.png, iou-by-distance.png and miou-by-sequence.png here",
+    )
     add_profile_option(p)
     add_label_config(p)
 
@@ -472,6 +505,12 @@ BUILTIN_COMMANDS = (
         "per-class IoU of predictions against ground truth",
         _evaluate_arguments,
         cmd_evaluate,
+    ),
+    Subcommand(
+        "compare",
+        "per-class IoU of evaluation reports side by side, deltas against the first",
+        _compare_arguments,
+        cmd_compare,
     ),
     Subcommand(
         "submission",

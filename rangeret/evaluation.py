@@ -2,7 +2,8 @@
 
 Every scan of the chosen sequences must have ground truth and a prediction of the same length;
 anything missing or malformed is listed by file before any number is given, so a result is never
-computed on a silent subset.
+computed on a silent subset. Each scan file is read for its points' ranges, which place every
+point in a distance band of the report's breakdown.
 """
 
 from __future__ import annotations
@@ -13,9 +14,10 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from rangeret.io import ScanFormatError, read_labels, scan_num_points
+from rangeret.distance import scan_bands
+from rangeret.io import PointRecord, ScanFormatError, read_labels, read_scan
 from rangeret.labels import LabelConfig
-from rangeret.layout import discover, prediction_path
+from rangeret.layout import ScanEntry, discover, prediction_path
 from rangeret.metrics import EvaluationReport, RawLabelEvaluator
 from rangeret.profiles import DatasetProfile, load_profile
 
@@ -32,6 +34,19 @@ class EvaluationError(ValueError):
         super().__init__(f"{len(self.problems)} problem(s): {shown}{more}")
 
 
+def count_scan(
+    evaluator: RawLabelEvaluator, entry: ScanEntry, prediction: Path, record: PointRecord
+) -> None:
+    """Count one labelled scan's prediction file against its label file, each point in the
+    distance band its scan file gives it; `ScanFormatError` names a file that does not fit."""
+    if entry.label_path is None:
+        raise ValueError(f"scan {entry.key} has no ground-truth label file")
+    bands = scan_bands(read_scan(entry.scan_path, record))
+    gt_raw = read_labels(entry.label_path, num_points=bands.size)
+    pred_raw = read_labels(prediction, num_points=bands.size)
+    evaluator.add(pred_raw, gt_raw, entry.sequence, bands)
+
+
 def evaluate_predictions(
     dataset: Path | str,
     predictions: Path | str,
@@ -41,7 +56,8 @@ def evaluate_predictions(
     progress: bool = False,
     profile: DatasetProfile | None = None,
 ) -> EvaluationReport:
-    """Evaluate `PRED/sequences/XX/predictions` against the dataset's labels.
+    """Evaluate `PRED/sequences/XX/predictions` against the dataset's labels, overall, per
+    sequence and per distance band.
 
     The profile (default semantickitti) gives the dataset's layout, point record and labels;
     `config` replaces its labels. Raises `EvaluationError` listing every missing label or
@@ -66,13 +82,9 @@ def evaluate_predictions(
     evaluator = RawLabelEvaluator(config)
     for entry, pred in tqdm(pairs, desc="evaluate", unit="scan", disable=not progress):
         try:
-            n = scan_num_points(entry.scan_path, profile.points)
-            gt_raw = read_labels(entry.label_path, num_points=n)
-            pred_raw = read_labels(pred, num_points=n)
+            count_scan(evaluator, entry, pred, profile.points)
         except ScanFormatError as exc:
             problems.append(str(exc))
-            continue
-        evaluator.add(pred_raw, gt_raw)
     if problems:
         raise EvaluationError(problems)
     report = evaluator.report(found.sequences, checkpoint_sha256)

@@ -4,7 +4,9 @@ The semantics are the official evaluator's: C[pred, gt] over the training classe
 ignored ground-truth classes are zeroed; TP = diagonal, FP = row sum - TP, FN = column sum - TP;
 IoU_c = TP / (TP + FP + FN + 1e-15); mIoU averages every evaluated class, so a class absent from
 both prediction and ground truth counts as 0; accuracy = sum TP / (TP + FP over evaluated classes).
-Matrices are plain counts, so partial results from many workers merge by addition.
+Matrices are plain counts, so partial results from many workers merge by addition. The evaluator
+keeps one matrix per sequence and distance band (`rangeret.distance`); the report's matrices by
+sequence, by band and overall are sums of those, so the parts add up to the whole exactly.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rangeret.distance import NUM_BANDS, band_limits, band_name
 from rangeret.labels import LabelConfig, semantickitti
 
 EPS = 1e-15
@@ -116,6 +119,10 @@ class ConfusionMatrix:
         inc = self.include
         return float(tp.sum() / (tp[inc].sum() + fp[inc].sum() + EPS))
 
+    def evaluated_points(self) -> int:
+        """Points whose ground truth is an evaluated class: those the scores are computed on."""
+        return int(self.matrix[:, self.include].sum())
+
 
 @dataclass
 class EvaluationReport:
@@ -131,6 +138,8 @@ class EvaluationReport:
     notes: list[str] = field(default_factory=list)
     profile: str | None = None
     precision: str | None = None
+    by_sequence: dict[str, ConfusionMatrix] = field(default_factory=dict)
+    by_distance: list[ConfusionMatrix] = field(default_factory=list)
 
     @property
     def miou(self) -> float:
@@ -140,13 +149,25 @@ class EvaluationReport:
     def accuracy(self) -> float:
         return self.confusion.accuracy()
 
-    def iou_by_name(self) -> dict[str, float]:
-        """IoU (0..1) of each evaluated class, by class name."""
-        iou = self.confusion.iou()
-        return {self.class_names[c]: float(iou[c]) for c in self.confusion.include}
+    def iou_by_name(self, confusion: ConfusionMatrix | None = None) -> dict[str, float]:
+        """IoU (0..1) of each evaluated class, by class name (of `confusion`, default overall)."""
+        confusion = confusion or self.confusion
+        iou = confusion.iou()
+        return {self.class_names[c]: float(iou[c]) for c in confusion.include}
+
+    def part_dict(self, confusion: ConfusionMatrix) -> dict:
+        """The scores of one part of the data (a sequence, a distance band) for the JSON report."""
+        return {
+            "miou": confusion.miou(),
+            "accuracy": confusion.accuracy(),
+            "iou": self.iou_by_name(confusion),
+            "points": confusion.evaluated_points(),
+            "confusion": confusion.matrix.tolist(),
+        }
 
     def to_dict(self) -> dict:
-        """The JSON report: miou, accuracy, iou by name, the raw confusion[pred][gt] and context."""
+        """The JSON report: miou, accuracy, iou by name, the raw confusion[pred][gt], context, and
+        the same scores per sequence and per distance band."""
         out: dict = {
             "miou": self.miou,
             "accuracy": self.accuracy,
@@ -158,6 +179,13 @@ class EvaluationReport:
             "sequences": list(self.sequences),
             "unknown_prediction_ids": self.unknown_prediction_ids,
         }
+        if self.by_sequence:
+            out["per_sequence"] = {seq: self.part_dict(cm) for seq, cm in self.by_sequence.items()}
+        if self.by_distance:
+            out["per_distance"] = [
+                dict(zip(("min_m", "max_m"), band_limits(band), strict=True), **self.part_dict(cm))
+                for band, cm in enumerate(self.by_distance)
+            ]
         if self.checkpoint_sha256:
             out["checkpoint_sha256"] = self.checkpoint_sha256
         if self.profile:
@@ -178,10 +206,14 @@ class EvaluationReport:
     def from_dict(cls, data: dict, config: LabelConfig | None = None) -> EvaluationReport:
         """Rebuild a report from its JSON form."""
         config = config or semantickitti()
-        matrix = np.asarray(data["confusion"], dtype=np.int64)
         ignore = tuple(c for c in range(config.num_classes) if config.ignored[c])
+
+        def matrix(counts: list) -> ConfusionMatrix:
+            counts = np.asarray(counts, dtype=np.int64)
+            return ConfusionMatrix(counts.shape[0], ignore, counts)
+
         return cls(
-            confusion=ConfusionMatrix(matrix.shape[0], ignore, matrix),
+            confusion=matrix(data["confusion"]),
             class_names=tuple(data.get("class_names", config.class_names)),
             num_scans=int(data.get("num_scans", 0)),
             num_points=int(data.get("num_points", 0)),
@@ -191,6 +223,10 @@ class EvaluationReport:
             notes=list(data.get("notes", [])),
             profile=data.get("profile"),
             precision=data.get("precision"),
+            by_sequence={
+                seq: matrix(part["confusion"]) for seq, part in data.get("per_sequence", {}).items()
+            },
+            by_distance=[matrix(part["confusion"]) for part in data.get("per_distance", [])],
         )
 
     def table(self) -> str:
@@ -208,15 +244,37 @@ class EvaluationReport:
         lines.append(f"{'mIoU':<{width}}  {100 * self.miou:6.2f}")
         lines.append(f"{'accuracy':<{width}}  {100 * self.accuracy:6.2f}")
         lines.append(f"{self.num_scans:,} scans, {self.num_points:,} points")
+        parts = [
+            ("sequence", list(self.by_sequence.items())),
+            ("distance", [(band_name(b), cm) for b, cm in enumerate(self.by_distance)]),
+        ]
+        for title, rows in parts:
+            if rows:
+                lines.append("")
+                lines.extend(_parts_table(title, rows))
         return "\n".join(lines)
 
 
+def _parts_table(title: str, rows: list[tuple[str, ConfusionMatrix]]) -> list[str]:
+    """Lines of points, mIoU and accuracy (percent) per part, headed by `title`."""
+    width = max(len(title), *(len(name) for name, _ in rows))
+    lines = [f"{title:<{width}}  {'points':>13}  {'mIoU %':>6}  {'accuracy %':>10}"]
+    for name, cm in rows:
+        lines.append(
+            f"{name:<{width}}  {cm.evaluated_points():>13,}  {100 * cm.miou():6.2f}  "
+            f"{100 * cm.accuracy():10.2f}"
+        )
+    return lines
+
+
 class RawLabelEvaluator:
-    """Accumulates raw-id label arrays (as read from `.label` files) into a confusion matrix.
+    """Accumulates raw-id label arrays (as read from `.label` files) into confusion matrices.
 
     Both arrays are masked to their low 16 bits and mapped through the learning map; ids the map
     does not know count as the unlabeled class (0 for SemanticKITTI, as in the official
-    evaluator), and unknown predicted ids are counted so a report can say so.
+    evaluator), and unknown predicted ids are counted so a report can say so. Each point is counted
+    in the matrix of its scan's sequence and its distance band; every other matrix (by sequence,
+    by band, overall) is a sum of those.
     """
 
     def __init__(self, config: LabelConfig | None = None) -> None:
@@ -228,41 +286,80 @@ class RawLabelEvaluator:
         for raw, cls in self.config.raw_to_class.items():
             lut[raw] = cls
         self._lut = lut
-        self._counts = np.zeros((n + 1) * (n + 1), dtype=np.int64)
+        #: Counts per sequence: (NUM_BANDS, (n + 1) ** 2), cell band, pred * (n + 1) + gt.
+        self._counts: dict[str, np.ndarray] = {}
         self.num_scans = 0
         self.num_points = 0
 
-    def add(self, pred_raw: np.ndarray, gt_raw: np.ndarray) -> None:
-        """Count one scan's raw predicted and ground-truth labels (same length)."""
+    def add(
+        self, pred_raw: np.ndarray, gt_raw: np.ndarray, sequence: str, bands: np.ndarray
+    ) -> None:
+        """Count one scan's raw predicted and ground-truth labels (same length) in its sequence,
+        each point in its distance band (`rangeret.distance.distance_bands`)."""
         if pred_raw.shape != gt_raw.shape:
             raise ValueError(f"{pred_raw.size} predictions for {gt_raw.size} ground-truth labels")
-        p = self._lut.take(_low16(pred_raw))
+        bands = np.asarray(bands).reshape(-1)
+        if bands.size != pred_raw.size:
+            raise ValueError(f"{bands.size} distance bands for {pred_raw.size} labels")
+        if bands.size and (bands.min() < 0 or bands.max() >= NUM_BANDS):
+            raise ValueError(f"distance bands must lie in 0..{NUM_BANDS - 1}")
+        m = self._n + 1
+        cells = NUM_BANDS * m * m
+        # The lookup gives uint8 classes; all three indices combine in uint16 where they fit.
+        wide = np.uint16 if cells <= 1 << 16 else np.intp
+        p = self._lut.take(_low16(pred_raw)).astype(wide)
         g = self._lut.take(_low16(gt_raw))
-        self._counts += confusion_counts(p, g, self._n + 1).reshape(-1)
+        index = bands.astype(wide) * wide(m * m) + p * wide(m) + g
+        counts = np.bincount(index.reshape(-1), minlength=cells).reshape(NUM_BANDS, m * m)
+        if sequence in self._counts:
+            self._counts[sequence] += counts
+        else:
+            self._counts[sequence] = counts.astype(np.int64)
         self.num_scans += 1
         self.num_points += int(pred_raw.size)
 
     def merge(self, other: RawLabelEvaluator) -> None:
         """Add the counts of another evaluator over the same label configuration."""
-        self._counts += other._counts
+        for sequence, counts in other._counts.items():
+            if sequence in self._counts:
+                self._counts[sequence] += counts
+            else:
+                self._counts[sequence] = counts.copy()
         self.num_scans += other.num_scans
         self.num_points += other.num_points
+
+    def _band_totals(self) -> np.ndarray:
+        """(NUM_BANDS, (n + 1) ** 2) counts summed over the sequences."""
+        m = self._n + 1
+        return sum(self._counts.values(), np.zeros((NUM_BANDS, m * m), dtype=np.int64))
 
     @property
     def unknown_prediction_ids(self) -> int:
         """How many predicted labels held a raw id the label configuration does not know."""
         n = self._n
-        return int(self._counts.reshape(n + 1, n + 1)[n].sum())
+        return int(self._band_totals().sum(axis=0).reshape(n + 1, n + 1)[n].sum())
 
-    def confusion(self) -> ConfusionMatrix:
-        """The confusion matrix, unknown ids counted as the unlabeled class."""
+    def _fold(self, counts: np.ndarray) -> ConfusionMatrix:
+        """The confusion matrix of (n + 1) ** 2 counts, unknown ids counted as unlabeled."""
         n, u = self._n, self.config.unlabeled_class
-        full = self._counts.reshape(n + 1, n + 1).copy()
+        full = counts.reshape(n + 1, n + 1).copy()
         full[u] += full[n]
         full[:, u] += full[:, n]
         cm = ConfusionMatrix.for_config(self.config)
         cm.merge(full[:n, :n])
         return cm
+
+    def confusion(self) -> ConfusionMatrix:
+        """The confusion matrix, unknown ids counted as the unlabeled class."""
+        return self._fold(self._band_totals().sum(axis=0))
+
+    def by_sequence(self) -> dict[str, ConfusionMatrix]:
+        """The confusion matrix of each sequence counted, in sequence order."""
+        return {seq: self._fold(self._counts[seq].sum(axis=0)) for seq in sorted(self._counts)}
+
+    def by_distance(self) -> list[ConfusionMatrix]:
+        """The confusion matrix of each distance band, nearest first."""
+        return [self._fold(counts) for counts in self._band_totals()]
 
     def report(
         self, sequences: Sequence[str] = (), checkpoint_sha256: str | None = None
@@ -283,6 +380,8 @@ class RawLabelEvaluator:
             unknown_prediction_ids=self.unknown_prediction_ids,
             checkpoint_sha256=checkpoint_sha256,
             notes=notes,
+            by_sequence=self.by_sequence(),
+            by_distance=self.by_distance(),
         )
 
 

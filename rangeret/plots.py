@@ -1,4 +1,5 @@
-"""PNG plots of an evaluation: the row-normalised confusion matrix and per-class IoU bars."""
+"""PNG plots of an evaluation: the row-normalised confusion matrix, per-class IoU bars, per-class
+IoU by distance band (a heat map) and mIoU per sequence (bars)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rangeret.distance import band_name
 from rangeret.labels import LabelConfig, semantickitti
 from rangeret.metrics import EvaluationReport
 
@@ -83,15 +85,104 @@ def plot_iou(report: EvaluationReport, path: Path | str, config: LabelConfig | N
     return _save(fig, path)
 
 
+def plot_iou_by_distance(report: EvaluationReport, path: Path | str) -> Path:
+    """Heat map of each evaluated class's IoU in each distance band, with each band's mIoU and
+    points; a class absent from a band (no point predicted or labelled) is left grey."""
+    plt = _pyplot()
+    include = report.confusion.include
+    bands = report.by_distance
+    iou = np.full((len(include), len(bands)), np.nan)
+    for b, cm in enumerate(bands):
+        tp, fp, fn = cm.stats()
+        seen = (tp + fp + fn)[include] > 0
+        iou[seen, b] = 100 * cm.iou()[include][seen]
+
+    fig, ax = plt.subplots(figsize=(2.2 + 1.3 * len(bands), 1.2 + 0.38 * len(include)))
+    ax.set_facecolor("0.85")
+    im = ax.imshow(np.ma.masked_invalid(iou), cmap="viridis", vmin=0, vmax=100, aspect="auto")
+    for i in range(len(include)):
+        for b in range(len(bands)):
+            if not np.isnan(iou[i, b]):
+                colour = "black" if iou[i, b] > 60 else "white"
+                ax.text(
+                    b, i, f"{iou[i, b]:.0f}", ha="center", va="center", fontsize=7, color=colour
+                )
+    columns = [
+        f"{band_name(b)}\nmIoU {100 * cm.miou():.1f}\n{cm.evaluated_points():,} pts"
+        for b, cm in enumerate(bands)
+    ]
+    ax.set_xticks(range(len(bands)), columns, fontsize=7)
+    ax.set_yticks(range(len(include)), [report.class_names[c] for c in include], fontsize=8)
+    ax.set_xlabel("distance from the sensor")
+    ax.set_title("IoU (%) by distance band (grey: class absent from the band)")
+    fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="IoU (%)")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_miou_by_sequence(report: EvaluationReport, path: Path | str) -> Path:
+    """Bar chart of each sequence's mIoU, with the overall mIoU line."""
+    plt = _pyplot()
+    names = list(report.by_sequence)
+    miou = [100 * cm.miou() for cm in report.by_sequence.values()]
+
+    fig, ax = plt.subplots(figsize=(max(4.0, 1.5 + 0.7 * len(names)), 4))
+    bars = ax.bar(range(len(names)), miou, color="steelblue", edgecolor="black", linewidth=0.5)
+    ax.bar_label(bars, labels=[f"{v:.1f}" for v in miou], fontsize=7, padding=2)
+    ax.axhline(
+        100 * report.miou, color="crimson", linestyle="--", label=f"mIoU {100 * report.miou:.1f} %"
+    )
+    ax.set_xticks(range(len(names)), names)
+    ax.set_xlabel("sequence")
+    ax.set_ylim(0, 100)
+    ax.set_ylabel("mIoU (%)")
+    ax.set_title("mIoU per sequence")
+    ax.legend(loc="upper right")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_iou_comparison(
+    labels: list[str], names: list[str], values: np.ndarray, path: Path | str
+) -> Path:
+    """Grouped bars comparing reports: `values[r, i]` is report `labels[r]`'s value (percent) of
+    row `names[i]` (per-class IoU, then mIoU)."""
+    plt = _pyplot()
+    values = np.asarray(values, dtype=np.float64)
+    reports, rows = values.shape
+    width = 0.8 / reports
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.0 + rows * (0.25 + 0.18 * reports)), 4.8))
+    colours = plt.get_cmap("tab10")
+    for r in range(reports):
+        offsets = np.arange(rows) - 0.4 + width * (r + 0.5)
+        ax.bar(offsets, values[r], width, label=labels[r], color=colours(r % 10), linewidth=0)
+    ax.axvline(rows - 1.5, color="0.5", linewidth=0.8)
+    ax.set_xticks(range(rows), names, rotation=60, ha="right")
+    ax.set_xlim(-0.6, rows - 0.4)
+    ax.set_ylim(0, 100)
+    ax.set_ylabel("IoU (%)")
+    ax.set_title("Per-class IoU and mIoU of each report")
+    ax.legend(loc="upper left", fontsize=8, ncols=min(reports, 4))
+    fig.tight_layout()
+    return _save(fig, path)
+
+
 def write_plots(
     report: EvaluationReport, folder: Path | str, config: LabelConfig | None = None
 ) -> list[Path]:
-    """Write `confusion.png` and `iou.png` into `folder`, in the label configuration's colours."""
+    """Write `confusion.png` and `iou.png` into `folder`, in the label configuration's colours,
+    and, for a report broken down by distance and sequence, `iou-by-distance.png` and
+    `miou-by-sequence.png`."""
     folder = Path(folder)
-    return [
+    paths = [
         plot_confusion(report, folder / "confusion.png"),
         plot_iou(report, folder / "iou.png", config),
     ]
+    if report.by_distance:
+        paths.append(plot_iou_by_distance(report, folder / "iou-by-distance.png"))
+    if report.by_sequence:
+        paths.append(plot_miou_by_sequence(report, folder / "miou-by-sequence.png"))
+    return paths
 
 
 def _save(fig, path: Path | str) -> Path:

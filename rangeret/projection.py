@@ -15,6 +15,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from rangeret.distance import point_ranges
+
 #: Normalisation of the five input channels (range, x, y, z, remission) on SemanticKITTI.
 CHANNEL_MEANS = (12.12, 10.88, 0.23, -1.04, 0.21)
 CHANNEL_STDS = (12.32, 11.47, 6.91, 0.86, 0.16)
@@ -147,7 +149,7 @@ def project_with(points: np.ndarray, config: ProjectionConfig) -> Projection:
     # Channel-major copy: contiguous columns make every later gather and ufunc cheaper.
     cols = np.ascontiguousarray(pts.T)
     with np.errstate(invalid="ignore", over="ignore"):
-        depth = np.sqrt(cols[0] * cols[0] + cols[1] * cols[1] + cols[2] * cols[2])
+        depth = point_ranges(cols[0], cols[1], cols[2])
     valid = np.isfinite(depth) & (depth > 0) & np.isfinite(cols[3])
     if valid.all():
         idx = np.arange(n)

@@ -55,7 +55,12 @@ def test_evaluate_command_writes_report_and_plots(tmp_path):
     assert "mIoU" in run.stdout and "traffic-sign" in run.stdout
     report = json.loads((tmp_path / "r.json").read_text())
     assert report["accuracy"] == 1.0 and report["num_scans"] == 2
-    assert sorted(p.name for p in (tmp_path / "plots").iterdir()) == ["confusion.png", "iou.png"]
+    assert sorted(p.name for p in (tmp_path / "plots").iterdir()) == [
+        "confusion.png",
+        "iou-by-distance.png",
+        "iou.png",
+        "miou-by-sequence.png",
+    ]
 
 
 def test_evaluate_reports_missing_files_in_one_line(tmp_path, capsys):

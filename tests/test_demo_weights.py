@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from rangeret.distance import scan_bands
 from rangeret.inference import DEMO_CHECKPOINT, Predictor, is_demo_checkpoint
 from rangeret.io import read_labels, read_scan
 from rangeret.labels import semantickitti
@@ -28,11 +29,12 @@ def test_demo_weights_load_and_beat_the_majority_class(tmp_path):
     gts = []
     for entry in discover(tmp_path, ["08"], with_labels=True).scans:
         gt = read_labels(entry.label_path)
-        gts.append(gt)
-        ours.add(predictor.predict(read_scan(entry.scan_path)).labels, gt)
-    counts = np.bincount(np.concatenate([cfg.to_class(g) for g in gts]), minlength=20)
+        points = read_scan(entry.scan_path)
+        gts.append((gt, scan_bands(points)))
+        ours.add(predictor.predict(points).labels, gt, "08", gts[-1][1])
+    counts = np.bincount(np.concatenate([cfg.to_class(g) for g, _ in gts]), minlength=20)
     counts[0] = 0
     top = cfg.to_raw(np.array([counts.argmax()]))[0]
-    for gt in gts:
-        majority.add(np.full(gt.size, top, np.uint32), gt)
+    for gt, bands in gts:
+        majority.add(np.full(gt.size, top, np.uint32), gt, "08", bands)
     assert ours.report().miou > 2 * majority.report().miou

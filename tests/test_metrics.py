@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from reference import add_at_confusion, scores
 
-from rangeret.io import read_labels
+from rangeret.distance import scan_bands
+from rangeret.io import read_labels, read_scan
 from rangeret.labels import semantickitti
 from rangeret.metrics import ConfusionMatrix, EvaluationReport, RawLabelEvaluator, confusion_counts
 from rangeret.plots import write_plots
@@ -61,11 +62,16 @@ def real_gt(real_label_path):
     return read_labels(real_label_path)
 
 
-def test_perfect_predictions_on_the_real_scan(real_gt):
+@pytest.fixture(scope="module")
+def real_bands(real_scan_path):
+    return scan_bands(read_scan(real_scan_path))
+
+
+def test_perfect_predictions_on_the_real_scan(real_gt, real_bands):
     cfg = semantickitti()
     ev = RawLabelEvaluator()
     perfect = cfg.to_raw(cfg.to_class(real_gt))
-    ev.add(perfect, real_gt)
+    ev.add(perfect, real_gt, "08", real_bands)
     report = ev.report()
     present = set(np.unique(cfg.to_class(real_gt)).tolist()) - {0}
     assert report.accuracy == pytest.approx(1.0)
@@ -75,7 +81,7 @@ def test_perfect_predictions_on_the_real_scan(real_gt):
     }
 
 
-def test_shuffled_predictions_equal_the_official_formulation(real_gt):
+def test_shuffled_predictions_equal_the_official_formulation(real_gt, real_bands):
     cfg = semantickitti()
     rng = np.random.default_rng(3)
     pred = real_gt.copy()
@@ -83,7 +89,7 @@ def test_shuffled_predictions_equal_the_official_formulation(real_gt):
     pred[idx] = rng.permutation(pred[idx])
     pred[:500] = rng.choice(np.array(cfg.class_raw_ids, np.uint32), 500)
     ev = RawLabelEvaluator()
-    ev.add(pred, real_gt)
+    ev.add(pred, real_gt, "08", real_bands)
     gt_c, pred_c = cfg.to_class(real_gt).astype(np.int64), cfg.to_class(pred).astype(np.int64)
     ref_conf = add_at_confusion(pred_c, gt_c, 20)
     miou, iou, acc = scores(ref_conf, [0])
@@ -99,7 +105,7 @@ def test_unknown_ids_count_as_unlabeled_and_are_reported():
     ev = RawLabelEvaluator()
     gt = np.array([10, 10, 40, 40 | (3 << 16), 300], np.uint32)
     pred = np.array([10, 77, 40, 40, 10 | (9 << 16)], np.uint32)
-    ev.add(pred, gt)
+    ev.add(pred, gt, "08", np.zeros(gt.size, np.uint8))
     cm = ev.confusion().matrix
     assert cm[1, 1] == 1 and cm[0, 1] == 1 and cm[9, 9] == 2 and cm[1, 0] == 1
     assert cm.sum() == 5
@@ -107,10 +113,10 @@ def test_unknown_ids_count_as_unlabeled_and_are_reported():
     assert "1 predicted labels held raw ids" in ev.report().notes[0]
 
 
-def test_report_json_table_and_plots(tmp_path, real_gt):
+def test_report_json_table_and_plots(tmp_path, real_gt, real_bands):
     cfg = semantickitti()
     ev = RawLabelEvaluator()
-    ev.add(cfg.to_raw(cfg.to_class(real_gt)), real_gt)
+    ev.add(cfg.to_raw(cfg.to_class(real_gt)), real_gt, "08", real_bands)
     report = ev.report(sequences=["08"], checkpoint_sha256="ab" * 32)
     report.write_json(tmp_path / "r" / "report.json")
     data = json.loads((tmp_path / "r" / "report.json").read_text())

@@ -424,6 +424,9 @@ def test_archive_job_with_labels_equals_rangeret_evaluate(setup, gateway, tmp_pa
     served = report.json()
     assert served["confusion"] == reference["confusion"] and served["miou"] == reference["miou"]
     assert served["iou"] == reference["iou"] and served["checkpoint_sha256"]
+    assert list(served["per_sequence"]) == ["08"] and len(served["per_distance"]) == 6
+    for key in ("per_sequence", "per_distance"):
+        assert served[key] == reference[key]
     assert (
         status["metrics"]["miou"] == reference["miou"]
         and status["metrics"]["iou"] == reference["iou"]

@@ -101,7 +101,11 @@ def test_job_equals_rangeret_predict_and_evaluate(ray_local, setup, tmp_path, ba
     eval_report = json.loads((tmp_path / "eval.json").read_text())
     assert job_report["confusion"] == eval_report["confusion"]
     assert job_report["miou"] == eval_report["miou"]
-    assert (tmp_path / "report-plots" / "iou.png").exists()
+    assert list(job_report["per_sequence"]) == ["08"]
+    for key in ("per_sequence", "per_distance"):
+        assert job_report[key] == eval_report[key]
+    for name in ("iou.png", "iou-by-distance.png", "miou-by-sequence.png"):
+        assert (tmp_path / "report-plots" / name).exists()
     runs = [json.loads((tmp_path / t / "run.json").read_text()) for t in ("single", "ray")]
     assert [r["runner"] for r in runs] == ["rangeret predict", "workers.predict_job"]
     assert sorted(runs[0]) == sorted(runs[1])

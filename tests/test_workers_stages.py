@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from conftest import make_tree
 
-from rangeret.io import read_labels
+from rangeret.distance import scan_bands
+from rangeret.io import read_labels, read_scan
 from rangeret.labels import semantickitti
 from rangeret.layout import discover, prediction_path, velodyne_dir
 from rangeret.projection import ProjectionConfig
@@ -33,6 +34,10 @@ def test_a_batch_survives_encoding_between_stages(entries):
     assert "000001.bin" in again.loaded[1].error
     assert again.loaded[2].projection.num_points == 500
     assert again.times.scans["read"] == 3 and again.times.scans["project"] == 2
+    # The bands found from the projection are those the scan file gives (`rangeret evaluate`'s).
+    assert again.bands[1] is None
+    for i in (0, 2):
+        np.testing.assert_array_equal(again.bands[i], scan_bands(read_scan(entries[i].scan_path)))
 
 
 def test_writer_names_failures_and_counts_labelled_scans(entries, tmp_path):
@@ -40,11 +45,16 @@ def test_writer_names_failures_and_counts_labelled_scans(entries, tmp_path):
     record = BatchRecord(0, entries)
     truth = [read_labels(e.label_path) for e in entries]
     record.results = [(truth[0], None), (None, "unreadable"), (truth[2], None)]
+    first = scan_bands(read_scan(entries[0].scan_path))
+    record.bands = [first, None, np.full(500, 5, np.uint8)]
     out = tmp_path / "pred"
     done = BatchRecord.decode(write_results(record, str(out), config).encode())
     assert done.failures == [None, "unreadable", None]
     assert done.points == 800 and done.results == []
     assert done.counts.num_scans == 2 and done.counts.report().accuracy == 1.0
+    assert done.bands == [] and list(done.counts.by_sequence()) == ["08"]
+    far = done.counts.by_distance()[5].matrix.sum()
+    assert far == 500 + int((first == 5).sum())
     written = prediction_path(out, "08", entries[2].name)
     np.testing.assert_array_equal(read_labels(written), truth[2])
     assert not prediction_path(out, "08", entries[1].name).exists()

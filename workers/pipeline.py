@@ -38,8 +38,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from rangeret.io import read_labels
-from rangeret.labels import LabelConfig
+from rangeret.evaluation import count_scan
 from rangeret.layout import ScanEntry, prediction_path
 from rangeret.metrics import RawLabelEvaluator
 from rangeret.profiles import DatasetProfile
@@ -473,13 +472,13 @@ def _cpu_layout(options: PipelineOptions) -> tuple[int, float]:
 
 
 def count_labels(
-    entries: Iterable[ScanEntry], out: Path | str, label_config: LabelConfig
+    entries: Iterable[ScanEntry], out: Path | str, profile: DatasetProfile
 ) -> RawLabelEvaluator:
-    """Confusion counts of scans predicted earlier (skipped on resume), read from their files."""
-    evaluator = RawLabelEvaluator(label_config)
+    """Confusion counts of scans predicted earlier (skipped on resume), read from their files as
+    `rangeret evaluate` reads them (the scan for its points' distance bands)."""
+    evaluator = RawLabelEvaluator(profile.labels)
     for entry in entries:
-        if entry.label_path is None:
-            continue
-        pred = read_labels(prediction_path(out, entry.sequence, entry.name))
-        evaluator.add(pred, read_labels(entry.label_path, num_points=pred.size))
+        if entry.label_path is not None:
+            pred = prediction_path(out, entry.sequence, entry.name)
+            count_scan(evaluator, entry, pred, profile.points)
     return evaluator

@@ -158,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
     print(summary.text())
 
     evaluator = result.evaluator
-    evaluator.merge(count_labels(done, args.out, label_config))
+    evaluator.merge(count_labels(done, args.out, profile))
     if evaluator.num_scans and not result.failed:
         report = evaluator.report(sequences, info.sha256)
         report.profile = profile.name

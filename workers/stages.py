@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from rangeret.distance import distance_bands
 from rangeret.io import KITTI_RECORD, PointRecord, ScanFormatError, read_labels, write_labels
 from rangeret.labels import LabelConfig
 from rangeret.layout import ScanEntry, prediction_path
@@ -29,9 +30,11 @@ ROW_COLUMN = "record"
 class BatchRecord:
     """One batch of scans on its way through the pipeline.
 
-    The reader fills `loaded` (a projection or a failure per scan); the model actor replaces it by
-    `results` (raw labels or a failure per scan) and names itself in `worker`; the writer clears
-    `results` once the files are written and fills `failures`, `points` and `counts`.
+    The reader fills `loaded` (a projection or a failure per scan) and, for each labelled scan
+    it projected, `bands` (each point's distance band, from the projection's ranges; None for the
+    other scans); the model actor replaces `loaded` by `results` (raw labels or a failure per
+    scan) and names itself in `worker`; the writer clears `results` and `bands` once the files
+    are written and fills `failures`, `points` and `counts`.
     """
 
     index: int
@@ -39,6 +42,7 @@ class BatchRecord:
     times: StageTimes = field(default_factory=StageTimes)
     loaded: list[LoadedScan] = field(default_factory=list)
     results: list[tuple[np.ndarray | None, str | None]] = field(default_factory=list)
+    bands: list[np.ndarray | None] = field(default_factory=list)
     worker: str = ""
     failures: list[str | None] = field(default_factory=list)
     points: int = 0
@@ -60,16 +64,26 @@ class BatchRecord:
 def read_and_project(
     record: BatchRecord, projection: ProjectionConfig, points: PointRecord = KITTI_RECORD
 ) -> BatchRecord:
-    """Stage 1: read and project every scan of a batch; unreadable scans become named failures."""
+    """Stage 1: read and project every scan of a batch; unreadable scans become named failures.
+    Labelled scans get their points' distance bands from the projection's ranges, so the writer
+    counts them by distance without reading the scan again."""
     record.loaded = load_batch(record.entries, projection, record.times, points)
+    record.bands = [
+        distance_bands(scan.projection.unproj_range)
+        if scan.projection is not None and scan.entry.label_path is not None
+        else None
+        for scan in record.loaded
+    ]
     return record
 
 
 def write_results(record: BatchRecord, out: str, label_config: LabelConfig) -> BatchRecord:
-    """Stage 3: atomic label writes, and the confusion counts of the batch's labelled scans."""
+    """Stage 3: atomic label writes, and the confusion counts of the batch's labelled scans (by
+    sequence and by the distance bands the reader found)."""
     evaluator = RawLabelEvaluator(label_config)
     failures: list[str | None] = []
-    for entry, (labels, error) in zip(record.entries, record.results, strict=True):
+    rows = zip(record.entries, record.results, record.bands, strict=True)
+    for entry, (labels, error), bands in rows:
         if error is not None:
             failures.append(error)
             continue
@@ -77,13 +91,14 @@ def write_results(record: BatchRecord, out: str, label_config: LabelConfig) -> B
             with record.times.stage("write"):
                 write_labels(prediction_path(out, entry.sequence, entry.name), labels)
             if entry.label_path is not None:
-                evaluator.add(labels, read_labels(entry.label_path, num_points=labels.size))
+                gt = read_labels(entry.label_path, num_points=labels.size)
+                evaluator.add(labels, gt, entry.sequence, bands)
         except (OSError, ScanFormatError) as exc:
             failures.append(str(exc))
             continue
         record.points += int(labels.size)
         failures.append(None)
-    record.failures, record.counts, record.results = failures, evaluator, []
+    record.failures, record.counts, record.results, record.bands = failures, evaluator, [], []
     return record
 
 
