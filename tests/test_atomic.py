@@ -29,6 +29,20 @@ def test_failed_body_keeps_the_previous_file_and_no_temporary(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.bin"]
 
 
+def test_atomic_files_get_the_mode_a_plain_open_gives(tmp_path):
+    import os
+
+    from rangeret.atomic import _UMASK
+
+    atomic_write_bytes(tmp_path / "a.bin", b"x")
+    with open(tmp_path / "b.bin", "wb") as f:
+        f.write(b"x")
+    mode = stat.S_IMODE((tmp_path / "a.bin").stat().st_mode)
+    assert mode == stat.S_IMODE((tmp_path / "b.bin").stat().st_mode) == 0o666 & ~_UMASK
+    assert mode & stat.S_IRGRP or _UMASK & 0o040, "readable by the group unless the umask says no"
+    assert os.access(tmp_path / "a.bin", os.R_OK)
+
+
 def test_atomic_path_replaces_on_success_and_makes_folders(tmp_path):
     target = tmp_path / "a" / "b" / "out.txt"
     with atomic_path(target) as tmp:
