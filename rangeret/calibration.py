@@ -79,3 +79,18 @@ class Calibration:
                 }
             )
         return {"ece": self.ece(), "points": self.points, "bins": rows}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> Calibration:
+        """Rebuild the accumulation from a report's `calibration` (counts exact, sums to the
+        precision the report keeps)."""
+        rows = data["bins"]
+        count = np.array([row["points"] for row in rows], dtype=np.int64)
+        mean = np.array([row["confidence"] or 0.0 for row in rows], dtype=np.float64)
+        accuracy = np.array([row["accuracy"] or 0.0 for row in rows], dtype=np.float64)
+        return cls(
+            bins=len(rows),
+            count=count,
+            confidence=mean * count,
+            correct=np.rint(accuracy * count).astype(np.int64),
+        )

@@ -3,7 +3,9 @@
 Every scan of the chosen sequences must have ground truth and a prediction of the same length;
 anything missing or malformed is listed by file before any number is given, so a result is never
 computed on a silent subset. Each scan file is read for its points' ranges, which place every
-point in a distance band of the report's breakdown.
+point in a distance band of the report's breakdown. Where every scan has a confidence file
+beside its prediction (`rangeret predict --save-confidence`), the report adds the calibration of
+those confidences.
 """
 
 from __future__ import annotations
@@ -12,12 +14,14 @@ import logging
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
+from rangeret.calibration import Calibration
 from rangeret.distance import scan_bands
-from rangeret.io import PointRecord, ScanFormatError, read_labels, read_scan
+from rangeret.io import PointRecord, ScanFormatError, read_confidence, read_labels, read_scan
 from rangeret.labels import LabelConfig
-from rangeret.layout import ScanEntry, discover, prediction_path
+from rangeret.layout import ScanEntry, confidence_path, discover, prediction_path
 from rangeret.metrics import EvaluationReport, RawLabelEvaluator
 from rangeret.profiles import DatasetProfile, load_profile
 
@@ -35,16 +39,29 @@ class EvaluationError(ValueError):
 
 
 def count_scan(
-    evaluator: RawLabelEvaluator, entry: ScanEntry, prediction: Path, record: PointRecord
+    evaluator: RawLabelEvaluator,
+    entry: ScanEntry,
+    prediction: Path,
+    record: PointRecord,
+    calibration: Calibration | None = None,
+    confidence: Path | None = None,
 ) -> None:
     """Count one labelled scan's prediction file against its label file, each point in the
-    distance band its scan file gives it; `ScanFormatError` names a file that does not fit."""
+    distance band its scan file gives it, and with `calibration` its `confidence` file too;
+    `ScanFormatError` names a file that does not fit."""
     if entry.label_path is None:
         raise ValueError(f"scan {entry.key} has no ground-truth label file")
     bands = scan_bands(read_scan(entry.scan_path, record))
     gt_raw = read_labels(entry.label_path, num_points=bands.size)
     pred_raw = read_labels(prediction, num_points=bands.size)
     evaluator.add(pred_raw, gt_raw, entry.sequence, bands)
+    if calibration is not None and confidence is not None:
+        config = evaluator.config
+        values = read_confidence(confidence, num_points=bands.size)
+        gt = config.to_class(gt_raw)
+        evaluated = ~np.asarray(config.ignored)[gt]
+        correct = config.to_class(pred_raw) == gt
+        calibration.add(values[evaluated], correct[evaluated])
 
 
 def evaluate_predictions(
@@ -80,15 +97,29 @@ def evaluate_predictions(
         raise EvaluationError([f"no labelled scan found in sequences {', '.join(sequences)}"])
 
     evaluator = RawLabelEvaluator(config)
-    for entry, pred in tqdm(pairs, desc="evaluate", unit="scan", disable=not progress):
+    confidences = [confidence_path(predictions, e.sequence, e.name) for e, _ in pairs]
+    have = sum(path.is_file() for path in confidences)
+    calibration = Calibration() if have == len(pairs) else None
+    for (entry, pred), confidence in tqdm(
+        list(zip(pairs, confidences, strict=True)),
+        desc="evaluate",
+        unit="scan",
+        disable=not progress,
+    ):
         try:
-            count_scan(evaluator, entry, pred, profile.points)
+            count_scan(evaluator, entry, pred, profile.points, calibration, confidence)
         except ScanFormatError as exc:
             problems.append(str(exc))
     if problems:
         raise EvaluationError(problems)
     report = evaluator.report(found.sequences, checkpoint_sha256)
     report.profile = profile.name
+    report.calibration = calibration
+    if 0 < have < len(pairs):
+        report.notes.append(
+            f"only {have} of {len(pairs)} scans have confidence files, so no calibration is "
+            "reported (rangeret predict --save-confidence writes them for every scan)"
+        )
     log.info(
         "evaluated %d scans (%d points): mIoU %.4f",
         report.num_scans,

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rangeret.calibration import Calibration
 from rangeret.distance import NUM_BANDS, band_limits, band_name
 from rangeret.labels import LabelConfig, semantickitti
 
@@ -140,6 +141,8 @@ class EvaluationReport:
     precision: str | None = None
     by_sequence: dict[str, ConfusionMatrix] = field(default_factory=dict)
     by_distance: list[ConfusionMatrix] = field(default_factory=list)
+    #: The calibration of the predictions' confidences, where every scan had them.
+    calibration: Calibration | None = None
 
     @property
     def miou(self) -> float:
@@ -186,6 +189,8 @@ class EvaluationReport:
                 dict(zip(("min_m", "max_m"), band_limits(band), strict=True), **self.part_dict(cm))
                 for band, cm in enumerate(self.by_distance)
             ]
+        if self.calibration is not None:
+            out["calibration"] = self.calibration.to_dict()
         if self.checkpoint_sha256:
             out["checkpoint_sha256"] = self.checkpoint_sha256
         if self.profile:
@@ -227,6 +232,9 @@ class EvaluationReport:
                 seq: matrix(part["confusion"]) for seq, part in data.get("per_sequence", {}).items()
             },
             by_distance=[matrix(part["confusion"]) for part in data.get("per_distance", [])],
+            calibration=Calibration.from_dict(data["calibration"])
+            if "calibration" in data
+            else None,
         )
 
     def table(self) -> str:
@@ -252,6 +260,12 @@ class EvaluationReport:
             if rows:
                 lines.append("")
                 lines.extend(_parts_table(title, rows))
+        if self.calibration is not None:
+            lines.append("")
+            lines.append(
+                f"confidence calibration: ECE {100 * self.calibration.ece():.2f} % over "
+                f"{self.calibration.points:,} points"
+            )
         return "\n".join(lines)
 
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rangeret.calibration import Calibration
 from rangeret.distance import band_name
 from rangeret.labels import LabelConfig, semantickitti
 from rangeret.metrics import EvaluationReport
@@ -172,7 +173,7 @@ def write_plots(
 ) -> list[Path]:
     """Write `confusion.png` and `iou.png` into `folder`, in the label configuration's colours,
     and, for a report broken down by distance and sequence, `iou-by-distance.png` and
-    `miou-by-sequence.png`."""
+    `miou-by-sequence.png`, and `calibration.png` where the report has confidences."""
     folder = Path(folder)
     paths = [
         plot_confusion(report, folder / "confusion.png"),
@@ -182,7 +183,34 @@ def write_plots(
         paths.append(plot_iou_by_distance(report, folder / "iou-by-distance.png"))
     if report.by_sequence:
         paths.append(plot_miou_by_sequence(report, folder / "miou-by-sequence.png"))
+    if report.calibration is not None:
+        paths.append(plot_calibration(report.calibration, folder / "calibration.png"))
     return paths
+
+
+def plot_calibration(calibration: Calibration, path: Path | str) -> Path:
+    """Reliability diagram: each confidence bin's accuracy against its mean confidence (a
+    calibrated network lies on the diagonal), and how many points each bin holds."""
+    plt = _pyplot()
+    rows = calibration.to_dict()["bins"]
+    centres = [(row["min"] + row["max"]) / 2 for row in rows]
+    width = 1.0 / len(rows)
+    accuracy = [row["accuracy"] or 0.0 for row in rows]
+    fig, (ax, counts) = plt.subplots(
+        2, 1, figsize=(5, 6), sharex=True, gridspec_kw={"height_ratios": [3, 1]}
+    )
+    ax.bar(centres, accuracy, width, color="steelblue", edgecolor="black", linewidth=0.5)
+    ax.plot([0, 1], [0, 1], color="crimson", linestyle="--", label="calibrated")
+    ax.set_ylim(0, 1)
+    ax.set_ylabel("accuracy")
+    ax.set_title(f"Confidence calibration (ECE {100 * calibration.ece():.2f} %)")
+    ax.legend(loc="upper left")
+    counts.bar(centres, [row["points"] for row in rows], width, color="0.6")
+    counts.set_xlim(0, 1)
+    counts.set_xlabel("confidence")
+    counts.set_ylabel("points")
+    fig.tight_layout()
+    return _save(fig, path)
 
 
 def _save(fig, path: Path | str) -> Path:

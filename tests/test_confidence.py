@@ -88,3 +88,40 @@ def test_calibration_bins_add_up_and_give_the_expected_calibration_error():
     expected = (abs(0 - 0.05) + abs(1 - 0.15) + 3 * abs(2 / 3 - (2.9 / 3)) + abs(1 - 0.55)) / 6
     assert np.isclose(report["ece"], expected)
     assert report["bins"][3]["accuracy"] is None  # an empty bin
+
+
+def test_evaluate_reports_calibration_where_every_scan_has_confidences(tmp_path):
+    import json
+
+    from conftest import make_tree
+
+    from rangeret.calibration import Calibration
+    from rangeret.metrics import EvaluationReport
+
+    weights = small_weights(tmp_path)
+    data = tmp_path / "data"
+    make_tree(data, {"08": [300, 400]})
+    net = ["--checkpoint", str(weights), "--height", "32", "--width", "256", "--device", "cpu"]
+    predict = ["predict", "--dataset", str(data), "--sequences", "08", *net, "-q"]
+    evaluate = ["evaluate", "--dataset", str(data), "--sequences", "08", "-q"]
+    assert rangeret_main([*predict, "--out", str(tmp_path / "pred"), "--save-confidence"]) == 0
+    report_path = tmp_path / "report.json"
+    plots = tmp_path / "plots"
+    args = [*evaluate, "--predictions", str(tmp_path / "pred"), "--json", str(report_path)]
+    assert rangeret_main([*args, "--plots", str(plots)]) == 0
+    report = json.loads(report_path.read_text())
+    calibration = report["calibration"]
+    evaluated = sum(part["points"] for part in report["per_sequence"].values())
+    assert calibration["points"] == evaluated == sum(b["points"] for b in calibration["bins"])
+    assert 0 <= calibration["ece"] <= 1 and (plots / "calibration.png").stat().st_size > 0
+    # The bins' accuracy, weighted by their points, is the overall accuracy.
+    correct = sum(b["accuracy"] * b["points"] for b in calibration["bins"] if b["points"])
+    assert np.isclose(correct / evaluated, report["accuracy"])
+    rebuilt = EvaluationReport.from_dict(report).calibration
+    assert isinstance(rebuilt, Calibration) and np.isclose(rebuilt.ece(), calibration["ece"])
+
+    # Without confidences for every scan there is no calibration, and a note says why.
+    confidence_path(tmp_path / "pred", "08", "000001").unlink()
+    assert rangeret_main([*args]) == 0
+    report = json.loads(report_path.read_text())
+    assert "calibration" not in report and "confidence files" in " ".join(report["notes"])
