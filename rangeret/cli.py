@@ -24,12 +24,14 @@ from rangeret.options import (
     add_output_options,
     add_profile_option,
     add_selection,
+    add_weights_options,
     label_config_from_args,
     leaderboard_from_args,
     profile_from_args,
     requested_profile,
     selected_sequences,
     spec_from_args,
+    weights_spec_from_args,
 )
 from rangeret.plugins import COMMANDS_GROUP, Subcommand, load_plugins
 from rangeret.profiles import DEFAULT_PROFILE, builtin_profiles, load_profile
@@ -459,6 +461,58 @@ def _weights_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    """Export a network to ONNX with the metadata a consumer needs, checked against torch."""
+    from dataclasses import replace
+
+    from rangeret.io import read_scan
+    from rangeret.onnx_export import ExportError, write_export
+
+    spec = replace(weights_spec_from_args(args), device="cpu", precision="fp32")
+    predictor = spec.build()
+    profile, config = predictor.profile, predictor.network.config
+    scan = read_scan(args.check_scan, profile.points) if args.check_scan else None
+    try:
+        check = write_export(
+            predictor.network,
+            profile,
+            args.out,
+            dynamic_batch=args.dynamic_batch,
+            checkpoint_sha256=predictor.checkpoint_sha256,
+            scan=scan,
+        )
+    except ExportError as exc:
+        raise CommandError(str(exc)) from exc
+    print(check.text())
+    print(
+        f"{args.out}: {config.name} ({config.layers} blocks), {profile.name} profile, "
+        f"({'N' if args.dynamic_batch else 1}, 5, {profile.projection.height}, "
+        f"{profile.projection.width}) -> logits, checkpoint sha256 "
+        f"{(predictor.checkpoint_sha256 or '')[:12]}"
+    )
+    return 0
+
+
+def _export_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--format", default="onnx", choices=["onnx"], help="the file format (default onnx)"
+    )
+    p.add_argument("--out", type=Path, required=True, metavar="FILE.onnx", help="file to write")
+    p.add_argument(
+        "--dynamic-batch",
+        action="store_true",
+        help="a dynamic batch dimension (default: batch 1)",
+    )
+    p.add_argument(
+        "--check-scan",
+        type=Path,
+        metavar="FILE",
+        help="a .bin scan of the profile's sensor for the check against torch (default: a "
+        "simulated street scan), beside fixed-seed noise",
+    )
+    add_weights_options(p.add_argument_group("network"))
+
+
 def _profile_arguments(p: argparse.ArgumentParser) -> None:
     actions = p.add_subparsers(dest="action", required=True, metavar="ACTION")
     actions.add_parser("list", help="the built-in profiles")
@@ -553,6 +607,12 @@ BUILTIN_COMMANDS = (
         "published models: list them, download one",
         _weights_arguments,
         cmd_weights,
+    ),
+    Subcommand(
+        "export",
+        "a network as ONNX with its metadata, checked against torch",
+        _export_arguments,
+        cmd_export,
     ),
 )
 

@@ -10,6 +10,7 @@ everywhere.
 
 from __future__ import annotations
 
+import copy
 import functools
 import hashlib
 import logging
@@ -24,6 +25,7 @@ from rangeret.hub import resolve_weights
 from rangeret.labels import LabelConfig
 from rangeret.loading import LoadedScan
 from rangeret.models import CheckpointError, CheckpointInfo, load_checkpoint
+from rangeret.onnx_backend import OnnxForward
 from rangeret.point_labels import (
     DEFAULT_KNN,
     KnnSettings,
@@ -102,6 +104,7 @@ class PredictorSpec:
     precision: str = "auto"
     knn: KnnSettings | None = DEFAULT_KNN
     tta: TtaSettings | None = None
+    backend: str = "torch"
 
     def build(self) -> Predictor:
         """Load the checkpoint and make the predictor."""
@@ -117,6 +120,7 @@ class PredictorSpec:
             precision=self.precision,
             knn=self.knn,
             tta=self.tta,
+            backend=self.backend,
         )
 
 
@@ -131,10 +135,11 @@ def describe_network(
     tta: TtaSettings | None,
     device: str,
     precision: str,
+    backend: str = "torch",
 ) -> dict:
     """The description of a network and its options that logs, reports and `run.json` carry;
     `device` and `precision` are those used, or those asked for where the network runs
-    elsewhere."""
+    elsewhere; `backend` is where its forward pass runs (torch or onnxruntime)."""
     return {
         "model": model,
         "checkpoint": checkpoint,
@@ -146,6 +151,7 @@ def describe_network(
         "tta": asdict(tta) if tta else None,
         "device": device,
         "precision": precision,
+        "backend": backend,
     }
 
 
@@ -172,7 +178,8 @@ class ScanPrediction:
 
 class Predictor:
     """A loaded network plus the dataset profile (projection, refinement rule, label map) it runs
-    with."""
+    with. With `backend="onnxruntime"` the network's forward pass runs in an onnxruntime session
+    of its export (`rangeret.onnx_backend`); the network itself then stays on the CPU."""
 
     def __init__(
         self,
@@ -183,6 +190,7 @@ class Predictor:
         tta: TtaSettings | None = None,
         checkpoint_sha256: str | None = None,
         precision: str = "auto",
+        backend: str = "torch",
     ) -> None:
         classes = _network_classes(network)
         if classes is not None and classes != profile.num_classes:
@@ -191,12 +199,18 @@ class Predictor:
                 f"{profile.num_classes}: it was not made for this dataset"
             )
         self.device = select_device(device)
-        self.precision = resolve_precision(precision, self.device)
-        self.network = network.to(self.device).eval()
+        self.precision = resolve_precision(precision, self.device, backend)
+        self.backend = backend
         self.profile = profile
         self.knn = knn
         self.tta = tta
         self.checkpoint_sha256 = checkpoint_sha256
+        self.onnx: OnnxForward | None = None
+        if backend == "onnxruntime":
+            self.network = network.cpu().eval()
+            self.onnx = OnnxForward(self.network, profile, self.device, checkpoint_sha256)
+        else:
+            self.network = network.to(self.device).eval()
         self.times = StageTimes()  # where stages record unless the caller passes its own record
 
     @property
@@ -228,6 +242,7 @@ class Predictor:
         knn: KnnSettings | None = DEFAULT_KNN,
         tta: TtaSettings | None = None,
         precision: str = "auto",
+        backend: str = "torch",
     ) -> Predictor:
         """A predictor for a checkpoint file, the project's own (self-describing) or a published
         one, or for a published model's registered name (its file fetched, its profile taken).
@@ -249,7 +264,14 @@ class Predictor:
         info = network.checkpoint_info
         resolved = profile_for_checkpoint(info, profile, fov_up, fov_down)
         return cls(
-            network, resolved, device, knn, tta, checkpoint_sha256=info.sha256, precision=precision
+            network,
+            resolved,
+            device,
+            knn,
+            tta,
+            checkpoint_sha256=info.sha256,
+            precision=precision,
+            backend=backend,
         )
 
     def describe(self) -> dict:
@@ -265,7 +287,16 @@ class Predictor:
             tta=self.tta,
             device=str(self.device),
             precision=self.precision,
+            backend=self.backend,
         )
+
+    def with_knn(self, knn: KnnSettings | None) -> Predictor:
+        """The same predictor with another kNN refinement (None: pixel classes), sharing the
+        network, its onnxruntime session and every other setting."""
+        other = copy.copy(self)
+        other.knn = knn
+        other.times = StageTimes()
+        return other
 
     # Stages -------------------------------------------------------------------------------
 
@@ -396,6 +427,8 @@ class Predictor:
         return self.times if times is None else times
 
     def _forward(self, batch: torch.Tensor) -> torch.Tensor:
+        if self.onnx is not None:
+            return self.onnx(batch)
         with forward_precision(self.precision, self.device):
             return self.network(batch).float()
 

@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from rangeret.backends import BACKENDS, check_backend
 from rangeret.errors import CommandError
 from rangeret.labels import LabelConfig, load_label_config
 from rangeret.layout import resolve_sequences
@@ -150,20 +152,21 @@ def add_precision_option(parser: argparse.ArgumentParser | argparse._ArgumentGro
         "--precision",
         default="auto",
         choices=list(PRECISIONS),
-        help="precision of the network's passes; auto is fp16 on CUDA and fp32 on the CPU (default)",
+        help="precision of the network's passes; auto is fp16 on CUDA and fp32 on the CPU "
+        "(default; always fp32 with --backend onnxruntime)",
     )
 
 
-def add_network_options(parser: argparse.ArgumentParser) -> None:
-    """The options shared by every command that runs a network (predict, serve, the Ray job)."""
-    g = parser.add_argument_group("network")
-    add_profile_option(g)
-    g.add_argument(
+def add_weights_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """--profile, --model, --checkpoint and the projection options: which weights load, and for
+    which sensor (every command that loads a network, `rangeret export` included)."""
+    add_profile_option(parser)
+    parser.add_argument(
         "--model",
         choices=["rangeret-thesis", "rangeret-cir"],
         help="network name; recognised from the checkpoint when omitted",
     )
-    g.add_argument(
+    parser.add_argument(
         "--checkpoint",
         type=Path,
         metavar="FILE",
@@ -172,7 +175,25 @@ def add_network_options(parser: argparse.ArgumentParser) -> None:
         "its profile), the project's own checkpoint or a published .pt file (default: the "
         "bundled demo weights, trained on simulated scenes only)",
     )
-    add_projection_options(g)
+    add_projection_options(parser)
+
+
+def add_backend_option(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """--backend torch|onnxruntime: where the network's forward pass runs."""
+    parser.add_argument(
+        "--backend",
+        default="torch",
+        choices=list(BACKENDS),
+        help="run the network in torch (default) or in onnxruntime on its ONNX export, made "
+        "once per checkpoint into $RANGERET_CACHE/onnx (else ~/.cache/rangeret/onnx); "
+        "onnxruntime runs fp32 only, and on CUDA needs the onnxruntime-gpu package",
+    )
+
+
+def add_network_options(parser: argparse.ArgumentParser) -> None:
+    """The options shared by every command that runs a network (predict, serve, the Ray job)."""
+    g = parser.add_argument_group("network")
+    add_weights_options(g)
     g.add_argument(
         "--batch-size",
         type=int,
@@ -192,6 +213,7 @@ def add_network_options(parser: argparse.ArgumentParser) -> None:
         help="auto picks CUDA when present (default)",
     )
     add_precision_option(g)
+    add_backend_option(g)
     g.add_argument(
         "--tta-flip", action="store_true", help="test-time augmentation: add the mirrored view"
     )
@@ -206,19 +228,38 @@ def add_network_options(parser: argparse.ArgumentParser) -> None:
 
 def spec_from_args(args: argparse.Namespace) -> PredictorSpec:
     """A `PredictorSpec` from the shared network options (checked, not loaded yet)."""
-    from rangeret.hub import fetch_weights, published_name
-    from rangeret.inference import KnnSettings, PredictorSpec, TtaSettings, resolve_checkpoint
-    from rangeret.registry import profile_for_published
+    from rangeret.inference import KnnSettings, TtaSettings
 
     if args.batch_size < 1:
         raise CommandError(f"--batch-size must be at least 1, got {args.batch_size}")
     if args.tta_shifts < 0:
         raise CommandError(f"--tta-shifts must not be negative, got {args.tta_shifts}")
+    try:
+        check_backend(args.backend, args.precision)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from exc
     tta = (
         TtaSettings(flip=args.tta_flip, shifts=args.tta_shifts)
         if (args.tta_flip or args.tta_shifts)
         else None
     )
+    return replace(
+        weights_spec_from_args(args),
+        device=args.device,
+        precision=args.precision,
+        knn=None if args.no_knn else KnnSettings(),
+        tta=tta,
+        backend=args.backend,
+    )
+
+
+def weights_spec_from_args(args: argparse.Namespace) -> PredictorSpec:
+    """A `PredictorSpec` of the weights options (a published model's name fetched, with its
+    profile, network and resolution), the run's own settings left at their defaults."""
+    from rangeret.hub import fetch_weights, published_name
+    from rangeret.inference import PredictorSpec, resolve_checkpoint
+    from rangeret.registry import profile_for_published
+
     profile = requested_profile(args)
     model, height, width = args.model, args.height, args.width
     published = published_name(args.checkpoint) if args.checkpoint is not None else None
@@ -237,8 +278,4 @@ def spec_from_args(args: argparse.Namespace) -> PredictorSpec:
         width=width,
         fov_up=args.fov_up,
         fov_down=args.fov_down,
-        device=args.device,
-        precision=args.precision,
-        knn=None if args.no_knn else KnnSettings(),
-        tta=tta,
     )

@@ -3,7 +3,8 @@
 `auto` is fp16 on CUDA and fp32 on the CPU. fp16 and bf16 run under `torch.autocast` (weights
 stay fp32; logits come back as fp32); fp32 on CUDA turns TF32 off for the pass, so fp32 means
 fp32 on every device. The same weights, precision, batch size and device type give the same
-labels. The module imports torch only when a pass runs, so option parsing stays light.
+labels. With the onnxruntime backend only fp32 runs (`rangeret.backends` says why). The module
+imports torch only when a pass runs, so option parsing stays light.
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ import contextlib
 from collections.abc import Iterator
 from typing import TYPE_CHECKING
 
+from rangeret.backends import check_backend
+
 if TYPE_CHECKING:
     import torch
 
@@ -19,12 +22,14 @@ if TYPE_CHECKING:
 PRECISIONS = ("auto", "fp32", "fp16", "bf16")
 
 
-def resolve_precision(name: str, device: torch.device) -> str:
-    """The precision a run uses on `device`: `auto` becomes fp16 on CUDA and fp32 elsewhere."""
+def resolve_precision(name: str, device: torch.device, backend: str = "torch") -> str:
+    """The precision a run uses on `device` with `backend`: `auto` becomes fp16 on CUDA and fp32
+    elsewhere with torch, and fp32 with onnxruntime (which refuses fp16 and bf16)."""
     if name not in PRECISIONS:
         raise ValueError(f"--precision must be one of {', '.join(PRECISIONS)}, got {name!r}")
+    check_backend(backend, name)
     if name == "auto":
-        return "fp16" if device.type == "cuda" else "fp32"
+        return "fp16" if device.type == "cuda" and backend == "torch" else "fp32"
     return name
 
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rangeret.inference import Predictor, PredictorSpec
+from rangeret.inference import PredictorSpec
 from rangeret.projection import Projection
 from workers.pipeline import GPU_ACTOR_CPUS, warm_up
 from workers.pipeline import label_batch as label_record
@@ -50,14 +50,7 @@ class ScanWorker:
         torch.set_num_threads(max(1, math.ceil(cpus)))
         self.spec_predictor = spec.build()
         knn = self.spec_predictor.knn
-        self.without_knn = Predictor(
-            self.spec_predictor.network,
-            self.spec_predictor.profile,
-            self.spec_predictor.device,
-            knn=None,
-            tta=self.spec_predictor.tta,
-            checkpoint_sha256=self.spec_predictor.checkpoint_sha256,
-        )
+        self.without_knn = self.spec_predictor.with_knn(None)
         if knn is None:
             self.spec_predictor = self.without_knn
         self.warm_up_seconds = warm_up(self.spec_predictor)

@@ -228,6 +228,7 @@ def _write_run_info(
         tta=spec.tta,
         device=spec.device,
         precision=spec.precision,
+        backend=spec.backend,
     )
     write_run_info(
         args.out,

@@ -7,7 +7,9 @@ device type is not in `MEASURED` the default runs. On CUDA the first call for an
 dtype, input shapes) key runs every candidate: one that raises (a kernel that does not compile) or
 whose output differs from the default's by more than float rounding (`tolerance`) is set aside,
 the others are timed, and the fastest is cached and logged at INFO. Every later call reuses the
-choice; under `torch.compile` tracing the cached choice or the default runs, unmeasured.
+choice; under `torch.compile` tracing the cached choice or the default runs, unmeasured. Under
+`torch.export` (the ONNX export) the default runs without a look-up, whose key holds the input's
+shape and would fix the exported graph's batch size.
 """
 
 from __future__ import annotations
@@ -48,6 +50,8 @@ def choose(
     v: torch.Tensor,
 ) -> str:
     """Name of the candidate that runs `operation` on inputs shaped like `q` and `v`."""
+    if torch.compiler.is_exporting():
+        return default
     key = (operation, q.device, q.dtype, tuple(q.shape), v.shape[-1], tuple(candidates))
     choice = _choices.get(key)
     if choice is not None:

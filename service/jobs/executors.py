@@ -142,7 +142,12 @@ class RayExecutor:
         kinds = {d.split("@")[0].split(":")[0] for d in result.devices}
         if kinds:
             self.precision = ", ".join(
-                sorted({resolve_precision(self.spec.precision, torch.device(k)) for k in kinds})
+                sorted(
+                    {
+                        resolve_precision(self.spec.precision, torch.device(k), self.spec.backend)
+                        for k in kinds
+                    }
+                )
             )
         return result.failed
 
