@@ -25,7 +25,7 @@ from rangeret.hub import resolve_weights
 from rangeret.labels import LabelConfig
 from rangeret.loading import LoadedScan
 from rangeret.models import CheckpointError, CheckpointInfo, load_checkpoint
-from rangeret.onnx_backend import OnnxForward
+from rangeret.onnx_backend import OnnxForward, cached_export
 from rangeret.point_labels import (
     DEFAULT_KNN,
     KnnSettings,
@@ -483,7 +483,9 @@ def _transform(
 
 def checkpoint_profile(spec: PredictorSpec) -> tuple[CheckpointInfo, DatasetProfile]:
     """Load `spec`'s checkpoint once (on the CPU) to check it and resolve the profile it runs
-    with, for drivers that build predictors elsewhere (the Ray job, the gateway)."""
+    with, for drivers that build predictors elsewhere (the Ray job, the gateway). With the
+    onnxruntime backend the export is made here too, once, so that the workers started next load
+    it from the cache instead of each exporting it."""
     network = load_checkpoint(
         spec.checkpoint,
         model=spec.model,
@@ -492,7 +494,10 @@ def checkpoint_profile(spec: PredictorSpec) -> tuple[CheckpointInfo, DatasetProf
         default_resolution=_resolution(spec.profile),
     )
     info = network.checkpoint_info
-    return info, profile_for_checkpoint(info, spec.profile, spec.fov_up, spec.fov_down)
+    profile = profile_for_checkpoint(info, spec.profile, spec.fov_up, spec.fov_down)
+    if spec.backend == "onnxruntime":
+        cached_export(network, profile, info.sha256)
+    return info, profile
 
 
 def profile_for_checkpoint(

@@ -48,11 +48,9 @@ def state_sha256(network: torch.nn.Module) -> str:
     return digest.hexdigest()
 
 
-def export_path(
-    network: torch.nn.Module, profile: DatasetProfile, checkpoint_sha256: str | None
-) -> Path:
-    """The cache file of the dynamic-batch export of `network` for `profile`."""
-    sha = checkpoint_sha256 or state_sha256(network)
+def export_path(network: torch.nn.Module, profile: DatasetProfile, sha: str) -> Path:
+    """The cache file of the dynamic-batch export of `network` (weights of SHA-256 `sha`) for
+    `profile`."""
     record = onnx_metadata(network, profile, dynamic_batch=True, checkpoint_sha256=sha)
     key = hashlib.sha256(
         json.dumps({**record, "torch": torch.__version__}, sort_keys=True).encode()
@@ -67,18 +65,14 @@ def export_path(
 def cached_export(
     network: torch.nn.Module, profile: DatasetProfile, checkpoint_sha256: str | None
 ) -> Path:
-    """The cached export of `network` for `profile`, made (and checked) first if missing."""
-    path = export_path(network, profile, checkpoint_sha256)
+    """The cached export of `network` for `profile`, made (and checked) first if missing; weights
+    that come from no file are known by `state_sha256`."""
+    sha = checkpoint_sha256 or state_sha256(network)
+    path = export_path(network, profile, sha)
     if path.exists():
         return path
     log.info("exporting %s to ONNX for onnxruntime, once, into %s", network.config.name, path)
-    check = write_export(
-        network,
-        profile,
-        path,
-        dynamic_batch=True,
-        checkpoint_sha256=checkpoint_sha256 or state_sha256(network),
-    )
+    check = write_export(network, profile, path, dynamic_batch=True, checkpoint_sha256=sha)
     log.info("%s", check.text())
     return path
 

@@ -22,7 +22,7 @@ from gateway_helpers import NET, OCTET, gateway_env, start_gateway
 from workers_helpers import small_weights
 
 from rangeret.cli import main as rangeret_main
-from rangeret.inference import PredictorSpec
+from rangeret.inference import PredictorSpec, checkpoint_profile
 from rangeret.io import read_labels, read_scan, write_scan
 from rangeret.labels import semantickitti
 from rangeret.layout import prediction_path, velodyne_dir
@@ -184,7 +184,8 @@ def test_onnxruntime_labels_the_real_scan_as_torch_does(setup, predictions):
     assert len(list((setup["cache"] / "onnx").glob("rangeret-cir-32x256-*.onnx"))) == 1
 
 
-def test_a_predictor_spec_carries_the_backend_to_its_predictor(setup, predictions):
+def test_a_driver_exports_once_for_the_predictors_its_workers_build(setup, tmp_path, monkeypatch):
+    monkeypatch.setenv(CACHE_VARIABLE, str(tmp_path))
     spec = PredictorSpec(
         checkpoint=str(setup["weights"]["rangeret-cir"]),
         height=32,
@@ -192,8 +193,12 @@ def test_a_predictor_spec_carries_the_backend_to_its_predictor(setup, prediction
         device="cpu",
         backend="onnxruntime",
     )
-    predictor = spec.build()  # the export made by `predictions` is loaded from the cache
-    assert predictor.onnx is not None and predictor.describe()["backend"] == "onnxruntime"
+    checkpoint_profile(spec)  # what the Ray job and the gateway do before starting workers
+    exported = list((tmp_path / "onnx").glob("*.onnx"))
+    assert len(exported) == 1
+    predictor = spec.build()
+    assert predictor.onnx is not None and predictor.onnx.path == exported[0]
+    assert predictor.describe()["backend"] == "onnxruntime"
     without_knn = predictor.with_knn(None)
     assert without_knn.onnx is predictor.onnx and without_knn.knn is None
     assert next(predictor.network.parameters()).device.type == "cpu"
@@ -238,6 +243,8 @@ def test_the_gateway_labels_with_onnxruntime_as_torch_does(setup, predictions):
     assert labels.size == expected.size and np.mean(labels == expected) >= 0.9999
     assert [w["backend"] for w in health["workers"]] == ["onnxruntime"]
     assert health["precision"] == "fp32"
+    # the gateway's check of the weights and its worker found the export `rangeret predict` made
+    assert len(list((setup["cache"] / "onnx").glob("*.onnx"))) == 1
 
 
 # Bad input -----------------------------------------------------------------------------------
