@@ -1,5 +1,6 @@
 # The two commands of the quick start: `make demo` (the main job) and `make test` (the whole suite).
-# Both build the virtual environment in .venv on first use.
+# Both build the virtual environment in .venv and the gateway's web page (`make web`) on first use;
+# `make test` also installs chromium for the browser tests (as root; otherwise it names the command).
 
 PYTHON ?= python3
 # The CPU build of torch found on this machine kind; on a GPU machine pass e.g. TORCH_SPEC=torch==2.13.0
@@ -9,8 +10,12 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 OUT ?= runs/demo
+# The web page's npm packages (three.js, pinned by package-lock.json), installed once by npm ci.
+WEB := service/web
+WEB_STAMP := $(WEB)/node_modules/.installed
+CHROMIUM_INSTALL := apt-get update && apt-get install -y --no-install-recommends chromium
 
-.PHONY: demo test lint bench gpu-check clean
+.PHONY: demo test lint web browser bench gpu-check clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -19,14 +24,27 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -qq -e '.[dev]'
 	touch $(STAMP)
 
-demo: $(STAMP)
+$(WEB_STAMP): $(WEB)/package.json $(WEB)/package-lock.json
+	@command -v npm >/dev/null 2>&1 || { echo "The web page needs Node.js 20 or later with npm; install it, then run make again." >&2; exit 1; }
+	cd $(WEB) && npm ci --ignore-scripts --no-audit --no-fund
+	touch $(WEB_STAMP)
+
+web: $(WEB_STAMP)
+
+# The browser tests drive Debian's chromium; it is installed here when missing (as root).
+browser:
+	@command -v chromium >/dev/null 2>&1 || { \
+	  if [ "$$(id -u)" = 0 ]; then $(CHROMIUM_INSTALL); \
+	  else echo "The browser tests need chromium: run  sudo sh -c '$(CHROMIUM_INSTALL)'" >&2; exit 1; fi; }
+
+demo: $(STAMP) $(WEB_STAMP)
 	$(BIN)/rangeret demo --out $(OUT)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
-test: lint
+test: lint $(WEB_STAMP) browser
 	$(BIN)/python -m pytest
 
 bench: $(STAMP)
@@ -37,4 +55,4 @@ gpu-check: $(STAMP)
 	PYTHONPATH=. $(BIN)/python benchmarks/gpu_check.py --out runs/gpu-check
 
 clean:
-	rm -rf $(VENV) runs .pytest_cache .ruff_cache
+	rm -rf $(VENV) runs .pytest_cache .ruff_cache $(WEB)/node_modules

@@ -6,6 +6,7 @@ the job store and runner, and the metrics. The endpoints are in `service.routes`
 resource), the error answers in `service.error_handlers`: every error is
 `{"detail": "<one sentence>"}`. With RANGERET_API_TOKEN set, every /v1 request needs
 `Authorization: Bearer TOKEN` (/metrics and the API description do not; /healthz gives its details only with it).
+The web page at `/` (`service.routes.page`) needs no token itself and sends it on its API calls.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ from service.jobs import JobExecutor, check_schema_version
 from service.metrics import MetricsMiddleware
 from service.routes.health import router as health_router
 from service.routes.jobs import router as jobs_router
+from service.routes.page import router as page_router
+from service.routes.profile import router as profile_router
 from service.routes.scans import router as scans_router
 from service.schemas import ErrorResponse
 from service.settings import Settings
@@ -119,6 +122,8 @@ def create_app(
         guarded = {"dependencies": [Depends(require_token)], "responses": error_responses(401)}
     app.include_router(scans_router, **guarded)
     app.include_router(jobs_router, **guarded)
+    app.include_router(profile_router, **guarded)
     app.include_router(health_router)
+    app.include_router(page_router)
     app.openapi = lambda: _openapi(app)
     return app

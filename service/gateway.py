@@ -8,6 +8,7 @@ single-scan admission, batcher, job manager, metrics).
 from __future__ import annotations
 
 import asyncio
+import logging
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -17,7 +18,10 @@ from service.batching import ScanBackend, ScanBatcher
 from service.errors import ApiError
 from service.jobs import JobExecutor, JobManager, JobStore
 from service.metrics import GatewayMetrics
+from service.page_assets import PageFiles, PageNotBuilt
 from service.settings import Settings
+
+log = logging.getLogger(__name__)
 
 
 class WorkerPool(ScanBackend, Protocol):
@@ -49,6 +53,8 @@ class Gateway:
     admission: ScanAdmission = field(init=False)
     batcher: ScanBatcher | None = None
     jobs: JobManager | None = None
+    #: The web page's files (`service.page_assets`), read on first use.
+    page: PageFiles = field(default_factory=PageFiles)
 
     def __post_init__(self) -> None:
         self.metrics = GatewayMetrics(self.profile.name)
@@ -83,6 +89,10 @@ class Gateway:
             on_batch=self.metrics.observe_batch,
         )
         await self.batcher.start()
+        try:
+            await asyncio.to_thread(self.page.get)
+        except PageNotBuilt as exc:
+            log.warning("%s Until then / answers 503; the API is served.", exc)
 
     async def stop(self) -> None:
         """Stop the batcher and the job runner (a running job resumes at the next start)."""

@@ -265,3 +265,60 @@ class Health(HealthSummary):
     batch_wait_ms: float
     checkpoint_sha256: str | None = None
     error: str | None = None
+
+
+class ProfileClass(BaseModel):
+    """One training class of the served profile, as the web page draws it."""
+
+    index: int = Field(ge=0, description="the class's index (0 .. classes - 1)")
+    name: str
+    raw_id: int = Field(ge=0, description="the raw id predictions carry for this class")
+    color: str = Field(
+        pattern=r"^#[0-9a-f]{6}$",
+        description="the class's colour in the profile's palette, as RGB hex (#rrggbb)",
+    )
+    ignored: bool = Field(description="whether the class is left out of IoU and mIoU")
+
+
+class ServedProfile(BaseModel):
+    """What a client needs to read scans and labels of the served profile and score them."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "profile": "semantickitti",
+                    "point_fields": ["x", "y", "z", "remission"],
+                    "point_bytes": 16,
+                    "classes": [
+                        {
+                            "index": 0,
+                            "name": "unlabeled",
+                            "raw_id": 0,
+                            "color": "#000000",
+                            "ignored": True,
+                        },
+                        {
+                            "index": 1,
+                            "name": "car",
+                            "raw_id": 10,
+                            "color": "#6496f5",
+                            "ignored": False,
+                        },
+                    ],
+                    "raw_to_class": {"0": 0, "1": 0, "10": 1},
+                    "unlabeled_class": 0,
+                }
+            ]
+        }
+    )
+
+    profile: str = Field(description="the served dataset profile's name")
+    point_fields: list[str] = Field(description="the float32 values of one point, in order")
+    point_bytes: int = Field(gt=0, description="bytes per point of a scan")
+    classes: list[ProfileClass] = Field(description="the training classes, by index")
+    raw_to_class: dict[str, int] = Field(
+        description="the class index of every raw id of the label configuration (its learning "
+        "map); a raw id not listed, after masking it to its low 16 bits, is the unlabeled class"
+    )
+    unlabeled_class: int = Field(ge=0, description="the class of raw ids the map does not list")

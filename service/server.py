@@ -24,7 +24,15 @@ from service.settings import Settings
 log = logging.getLogger("rangeret.serve")
 
 #: Options of `serve` that override the settings of the same name.
-_OVERRIDES = ("host", "port", "batch_size", "batch_wait_ms", "ray_address", "actors")
+_OVERRIDES = (
+    "host",
+    "port",
+    "batch_size",
+    "batch_wait_ms",
+    "ray_address",
+    "actors",
+    "root_path",
+)
 
 
 def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
@@ -50,6 +58,11 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         metavar="N",
         help="model actors on the Ray cluster (default: one per GPU, or 1)",
+    )
+    g.add_argument(
+        "--root-path",
+        metavar="PREFIX",
+        help="path prefix a reverse proxy serves the gateway under, such as /rangeret (default none)",
     )
     g.add_argument(
         "--log-level",
@@ -151,6 +164,7 @@ def run_serve(args: argparse.Namespace) -> int:
             timeout_graceful_shutdown=30,
             http=GatewayProtocol.with_header_timeout(settings.header_timeout_s),
             limit_concurrency=settings.max_connections,
+            root_path=settings.root_path,
         )
     finally:
         pool.shutdown()

@@ -26,6 +26,7 @@ RANGERET_BATCH_SIZE        most single-scan requests per network pass (default 1
 RANGERET_BATCH_WAIT_MS     longest a request waits for others to fill its batch (default 10)
 RANGERET_RAY_ADDRESS       Ray cluster to use ("auto" or host:port); unset: in-process worker
 RANGERET_ACTORS            model actors on the Ray cluster (default: one per GPU, or 1)
+RANGERET_ROOT_PATH         path prefix a reverse proxy serves the gateway under (e.g. /rangeret)
 
 docs/http-api.md describes every setting with the endpoints and answers it shapes.
 """
@@ -77,6 +78,7 @@ class Settings(BaseSettings):
     batch_wait_ms: float = Field(default=10.0, ge=0)
     ray_address: str | None = None
     actors: int | None = Field(default=None, ge=1)
+    root_path: str = ""
 
     @field_validator("data_roots", mode="before")
     @classmethod
@@ -107,6 +109,17 @@ class Settings(BaseSettings):
         if isinstance(value, str) and not value.strip():
             return None
         return value
+
+    @field_validator("root_path", mode="after")
+    @classmethod
+    def _prefix(cls, value: str) -> str:
+        """A path prefix such as `/rangeret`: empty, or `/` then path segments, no trailing `/`."""
+        text = value.strip().rstrip("/")
+        if text and (not text.startswith("/") or any(c in text for c in "?#\\ ")):
+            raise ValueError(
+                f"a path prefix starts with '/' and holds no '?', '#', '\\' or space, got {value!r}"
+            )
+        return text
 
     @field_validator("data_roots", mode="after")
     @classmethod

@@ -69,7 +69,7 @@ def test_rayjob_entrypoint_names_a_module_and_flags_that_exist():
 
 def test_container_files_exist_and_pins_agree():
     dockerfile = (DEPLOY / "Dockerfile").read_text()
-    for source in re.findall(r"^COPY (.+) \S+$", dockerfile, flags=re.M):
+    for source in re.findall(r"^COPY (?!--from=)(.+) \S+$", dockerfile, flags=re.M):
         for item in source.split():
             assert (REPO / item).exists(), item
     assert "USER rangeret" in dockerfile and "HEALTHCHECK" in dockerfile
@@ -84,6 +84,44 @@ def test_container_files_exist_and_pins_agree():
     for mode in ("gateway)", "ray-head)", "ray-worker)"):
         assert mode in entry
     subprocess.run(["bash", "-n", str(DEPLOY / "entrypoint.sh")], check=True)
+
+
+def test_the_image_carries_the_web_page_built_in_a_pinned_node_stage():
+    """The node stage installs the page's locked npm packages; the image takes every file the
+    gateway serves from them (and three.js's licence), where the package data picks them up."""
+    from fnmatch import fnmatch
+
+    import tomllib
+
+    from service.page_assets import VENDOR_FILES, WEB_DIR
+
+    dockerfile = (DEPLOY / "Dockerfile").read_text()
+    stage = re.search(r"^FROM node:(\S+) AS web$", dockerfile, flags=re.M)
+    assert stage and re.fullmatch(r"\d+\.\d+\.\d+-[a-z]+-slim", stage.group(1)), stage
+    assert "COPY service/web/package.json service/web/package-lock.json /web/" in dockerfile
+    assert "RUN npm ci " in dockerfile
+    copied = []
+    for sources, target in re.findall(r"^COPY --from=web (.+) (\S+)$", dockerfile, flags=re.M):
+        for source in sources.split():
+            name = source.removeprefix("/web/node_modules/")
+            assert target == f"/app/service/web/node_modules/{name.rsplit('/', 1)[0]}/", source
+            copied.append(name)
+    assert set(VENDOR_FILES) | {"three/LICENSE"} <= set(copied)
+    # The copy comes before the project is installed, and the wheel's package data holds it.
+    assert dockerfile.index("COPY --from=web") < dockerfile.index("RUN pip install --no-deps .")
+    patterns = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"][
+        "package-data"
+    ]["service"]
+    served = [f"web/node_modules/{name}" for name in (*VENDOR_FILES, "three/LICENSE")]
+    served += [f"web/src/{p.name}" for p in (WEB_DIR / "src").iterdir()] + ["web/index.html"]
+    for path in served:
+        assert any(fnmatch(path, pattern) for pattern in patterns), path
+    # npm ci installs exactly the version package.json pins.
+    package = json.loads((WEB_DIR / "package.json").read_text())
+    lock = json.loads((WEB_DIR / "package-lock.json").read_text())
+    pinned = package["dependencies"]["three"]
+    assert re.fullmatch(r"\d+\.\d+\.\d+", pinned)
+    assert lock["packages"]["node_modules/three"]["version"] == pinned
 
 
 def test_the_image_installs_every_dependency_of_the_project():

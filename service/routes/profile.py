@@ -1,0 +1,54 @@
+"""GET /v1/profile: the served profile's point record, classes, palette and learning map.
+
+The web page reads it to draw scans in the profile's colours and to score a prediction against a
+ground-truth file with the benchmark's rules; any client can use it the same way.
+"""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from rangeret.profiles import DatasetProfile
+from service.dependencies import GatewayDep
+from service.schemas import ProfileClass, ServedProfile
+
+router = APIRouter(prefix="/v1")
+
+
+def served_profile(profile: DatasetProfile) -> ServedProfile:
+    """The API form of a dataset profile: classes with RGB colours, and the raw-id map."""
+    labels = profile.labels
+    rgb = labels.class_rgb()
+    classes = [
+        ProfileClass(
+            index=index,
+            name=name,
+            raw_id=labels.class_raw_ids[index],
+            color="#{:02x}{:02x}{:02x}".format(*(int(v) for v in rgb[index])),
+            ignored=labels.ignored[index],
+        )
+        for index, name in enumerate(labels.class_names)
+    ]
+    return ServedProfile(
+        profile=profile.name,
+        point_fields=list(profile.points.fields),
+        point_bytes=profile.points.point_bytes,
+        classes=classes,
+        raw_to_class={str(raw): cls for raw, cls in sorted(labels.raw_to_class.items())},
+        unlabeled_class=labels.unlabeled_class,
+    )
+
+
+@router.get(
+    "/profile",
+    summary="The served profile's classes, palette and label map",
+    description=(
+        "The served dataset profile's point record, its training classes (name, raw id, colour "
+        "as #rrggbb, ignored or not) and the map from raw ids to classes, as the evaluation "
+        "uses them: enough to colour a scan's labels and to score a prediction against ground "
+        "truth the way the benchmark does."
+    ),
+    response_model=ServedProfile,
+)
+async def profile(gw: GatewayDep) -> ServedProfile:
+    return served_profile(gw.profile)

@@ -1,0 +1,193 @@
+/**
+ * "Jobs": every job with its state and live progress (`GET v1/jobs`, polled), a job's report,
+ * downloads of its predictions archive and report, cancelling and removing jobs, and starting
+ * jobs from an uploaded archive or from a dataset on the server.
+ */
+
+import { count, el, fillBody, percent, saveBlob } from './dom.js';
+import { reportView } from './report.js';
+
+const ACTIVE = new Set(['queued', 'running']);
+const POLL_ACTIVE_MS = 1000;
+const POLL_IDLE_MS = 4000;
+
+export class JobsPanel {
+  constructor(api, state) {
+    this.api = api;
+    this.state = state;
+    this.profile = null;
+    this.timer = null;
+    this.running = false;
+    this.table = document.getElementById('jobs-table');
+    this.status = document.getElementById('jobs-status');
+    this.report = document.getElementById('report');
+    document.getElementById('archive-form').addEventListener('submit', (event) => {
+      event.preventDefault();
+      this.upload(event.target);
+    });
+    document.getElementById('dataset-form').addEventListener('submit', (event) => {
+      event.preventDefault();
+      this.startDataset(event.target);
+    });
+  }
+
+  say(text, isError = false) {
+    this.status.textContent = text;
+    this.status.classList.toggle('error', isError);
+  }
+
+  start(profile) {
+    this.profile = profile;
+    this.running = true;
+    this.poll();
+  }
+
+  stop() {
+    this.running = false;
+    clearTimeout(this.timer);
+  }
+
+  async poll() {
+    clearTimeout(this.timer);
+    if (!this.running) return;
+    let active = false;
+    try {
+      const { jobs } = await this.api.json('v1/jobs');
+      this.state.jobs = jobs;
+      active = jobs.some((job) => ACTIVE.has(job.state));
+      this.draw(jobs);
+    } catch (error) {
+      this.say(error.message, true);
+    }
+    if (this.running) this.timer = setTimeout(() => this.poll(), active ? POLL_ACTIVE_MS : POLL_IDLE_MS);
+  }
+
+  draw(jobs) {
+    fillBody(
+      this.table,
+      jobs.map((job) => {
+        const progress = el('progress', { max: job.total || 1, value: job.done });
+        const actions = [];
+        if (job.state === 'succeeded') {
+          if (job.metrics) {
+            actions.push(
+              el('button', { type: 'button', text: 'Report', onclick: () => this.showReport(job) }),
+            );
+          }
+          actions.push(this.download(job, 'predictions', `${job.id}-predictions.zip`, 'Predictions'));
+          if (job.metrics) actions.push(this.download(job, 'report', `${job.id}-report.json`, 'Report JSON'));
+        }
+        actions.push(
+          el('button', {
+            type: 'button',
+            text: ACTIVE.has(job.state) ? 'Cancel' : 'Remove',
+            onclick: () => this.remove(job),
+          }),
+        );
+        return el(
+          'tr',
+          { 'data-job': job.id, 'data-state': job.state },
+          el('td', { class: 'mono', title: job.id, text: job.id.slice(0, 8) }),
+          el('td', { text: job.kind }),
+          el('td', { text: job.sequences.join(' ') }),
+          el('td', { class: `state ${job.state}`, text: job.state, title: job.reason || '' }),
+          el(
+            'td',
+            {},
+            progress,
+            ` ${count(job.done)} / ${count(job.total)}${job.failed ? `, ${job.failed} failed` : ''}`,
+          ),
+          el('td', { text: job.metrics ? percent(job.metrics.miou) : '–' }),
+          el('td', { text: new Date(job.created).toLocaleString() }),
+          el('td', { class: 'actions' }, actions),
+        );
+      }),
+    );
+  }
+
+  /** A link to one of a job's files, fetched with the token and saved under `name`. */
+  download(job, what, name, text) {
+    const path = `v1/jobs/${job.id}/${what}`;
+    return el('a', {
+      href: path,
+      class: 'button',
+      'data-download': what,
+      text,
+      onclick: async (event) => {
+        event.preventDefault();
+        try {
+          const response = await this.api.request(path, { accept: '*/*' });
+          saveBlob(await response.blob(), name);
+        } catch (error) {
+          this.say(error.message, true);
+        }
+      },
+    });
+  }
+
+  async showReport(job) {
+    try {
+      const report = await this.api.json(`v1/jobs/${job.id}/report`);
+      this.report.replaceChildren(...reportView(report, job, this.profile));
+      this.report.hidden = false;
+      this.state.report = {
+        job: job.id,
+        miou: report.miou,
+        sequences: Object.keys(report.per_sequence || {}),
+        bands: (report.per_distance || []).length,
+      };
+      this.report.scrollIntoView({ block: 'start' });
+    } catch (error) {
+      this.say(error.message, true);
+    }
+  }
+
+  async remove(job) {
+    try {
+      await this.api.json(`v1/jobs/${job.id}`, { method: 'DELETE' });
+      if (this.state.report && this.state.report.job === job.id) {
+        this.report.hidden = true;
+        this.state.report = null;
+      }
+      this.say(`Job ${job.id.slice(0, 8)} ${ACTIVE.has(job.state) ? 'cancelled' : 'removed'}.`);
+    } catch (error) {
+      this.say(error.message, true);
+    }
+    this.poll();
+  }
+
+  async upload(form) {
+    const file = form.elements.archive.files[0];
+    if (!file) {
+      this.say('Choose an archive to upload.', true);
+      return;
+    }
+    const body = new FormData();
+    body.append('archive', file, file.name);
+    this.say(`Uploading ${file.name}…`);
+    await this.create(body);
+    form.reset();
+  }
+
+  async startDataset(form) {
+    const dataset = form.elements.dataset.value.trim();
+    const split = form.elements.split.value;
+    const sequences = form.elements.sequences.value.split(/[\s,]+/).filter(Boolean);
+    if (!split && !sequences.length) {
+      this.say('Name the sequences, or choose a split.', true);
+      return;
+    }
+    const request = split ? { dataset, split } : { dataset, sequences };
+    await this.create(JSON.stringify(request), { 'Content-Type': 'application/json' });
+  }
+
+  async create(body, headers = {}) {
+    try {
+      const created = await this.api.json('v1/jobs', { method: 'POST', headers, body });
+      this.say(`Job ${created.id.slice(0, 8)} is queued.`);
+    } catch (error) {
+      this.say(error.message, true);
+    }
+    this.poll();
+  }
+}
