@@ -124,6 +124,11 @@ class PageFiles:
         self._assets: PageAssets | None = None
         self._lock = threading.Lock()
 
+    @property
+    def loaded(self) -> PageAssets | None:
+        """The assets once read, else None (reading them is `get`'s work)."""
+        return self._assets
+
     def get(self) -> PageAssets:
         """The assets; raises PageNotBuilt while the npm packages are not installed."""
         with self._lock:

@@ -337,6 +337,38 @@ def test_an_archive_job_from_upload_to_report(setup, page, capsys):
     assert log.errors == [] and log.failed == []
 
 
+def test_a_dataset_job_is_started_from_the_page(setup, page):
+    tab, log = page
+    tab.goto(setup["gateway"].url + "/")
+    sign_in(tab)
+    tab.wait_for_selector("#tabs:not([hidden])")
+    tab.click("nav button[data-tab=jobs]")
+    tab.fill("#dataset-form input[name=dataset]", "missing")
+    tab.select_option("#dataset-form select[name=split]", "valid")
+    tab.click("#dataset-form button[type=submit]")
+    tab.wait_for_selector("#jobs-status.error")
+    assert tab.inner_text("#jobs-status") == (
+        "There is no dataset folder at that path under the data roots."
+    )
+    tab.fill("#dataset-form input[name=dataset]", "tree")
+    tab.select_option("#dataset-form select[name=split]", "")
+    tab.fill("#dataset-form input[name=sequences]", "8")
+    tab.click("#dataset-form button[type=submit]")
+    tab.wait_for_function(
+        "() => window.rangeretPage.state.jobs.some((job) => job.kind === 'dataset')"
+    )
+    job = next(j for j in state(tab, ".jobs") if j["kind"] == "dataset")
+    assert job["sequences"] == ["08"]
+    row = f"#jobs-table tr[data-job='{job['id']}']"
+    tab.wait_for_selector(f"{row}[data-state=succeeded]", timeout=180_000)
+    assert "2 / 2" in tab.inner_text(row)
+    tab.click(f"{row} button:text-is('Remove')")
+    tab.wait_for_selector(row, state="detached")
+    # The 404 of the missing dataset was the gateway's answer to a request the page made.
+    assert [f for f in log.failed if "/v1/jobs" in f] == [f"404 {setup['gateway'].url}/v1/jobs"]
+    assert [e for e in log.errors if "404" not in e] == []
+
+
 # Behind a reverse proxy's path prefix ----------------------------------------------------------------
 
 

@@ -26,6 +26,8 @@ NO_CACHE = "no-cache"
 
 async def _assets(gw: GatewayDep) -> PageAssets:
     """The page's assets; 503 naming the build command while they are not built."""
+    if gw.page.loaded is not None:
+        return gw.page.loaded
     try:
         return await asyncio.to_thread(gw.page.get)
     except PageNotBuilt as exc:
