@@ -24,6 +24,7 @@ from service.app import create_app
 from service.jobs import SCHEMA_VERSION, JobDatabaseVersionError, JobStore
 from service.schemas import JobState
 from service.settings import Settings
+from workers.pool import LabelledScan
 
 TOKEN = "store-test-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -112,8 +113,8 @@ class FakePool:
 
     backend = "local"
 
-    async def predict_async(self, scans, knn=True):
-        return [np.full(len(s), 40, dtype=np.uint32) for s in scans]
+    async def predict_async(self, scans, knn=True, confidence=False):
+        return [LabelledScan(np.full(len(s), 40, dtype=np.uint32)) for s in scans]
 
     def queue_depth(self):
         return 0
