@@ -198,6 +198,11 @@ class JobStatus(BaseModel):
     status_url: str
     predictions_url: str
     report_url: str
+    plots: list[str] = Field(
+        default_factory=list,
+        description="the report's PNGs once a labelled job has succeeded (confusion.png, iou.png, "
+        "iou-by-distance.png, miou-by-sequence.png), each at `/v1/jobs/{id}/plots/{name}`",
+    )
 
 
 class JobList(BaseModel):

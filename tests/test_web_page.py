@@ -311,11 +311,23 @@ def test_an_archive_job_from_upload_to_report(setup, page, capsys):
     tab.wait_for_selector("#report-distance tbody tr")
     with gw.client() as client:
         report = client.get(f"/v1/jobs/{job_id}/report").json()
+        plots = client.get(f"/v1/jobs/{job_id}").json()["plots"]
+        png = client.get(f"/v1/jobs/{job_id}/plots/iou-by-distance.png")
+        missing = client.get(f"/v1/jobs/{job_id}/plots/nothing.png")
+    assert plots == ["confusion.png", "iou-by-distance.png", "iou.png", "miou-by-sequence.png"]
+    assert png.headers["content-type"] == "image/png" and png.content.startswith(b"\x89PNG")
+    assert missing.status_code == 404
+    tab.wait_for_function(f"() => window.rangeretPage.state.report.plots.length === {len(plots)}")
+    tab.wait_for_function(
+        "() => [...document.querySelectorAll('#report-plots img')]"
+        ".every((img) => img.complete && img.naturalWidth > 0)"
+    )
     assert state(tab, ".report") == {
         "job": job_id,
         "miou": report["miou"],
         "sequences": ["08"],
         "bands": 6,
+        "plots": plots,
     }
     sequences = tab.locator("#report-sequences tbody tr")
     assert sequences.count() == 1 and sequences.first.inner_text().startswith("08")

@@ -25,6 +25,7 @@ from pathlib import Path
 from rangeret.evaluation import evaluate_predictions
 from rangeret.layout import KITTI_LAYOUT, SequenceLayout, discover
 from rangeret.leaderboard import LeaderboardEntry, description_text
+from rangeret.plots import write_plots
 from rangeret.predict import is_complete, list_scans
 from rangeret.profiles import DatasetProfile, load_profile
 from service.jobs.capacity import disk_full, folder_bytes, queue_full
@@ -39,6 +40,8 @@ log = logging.getLogger(__name__)
 MAX_ATTEMPTS = 3
 PREDICTIONS_ZIP = "predictions.zip"
 REPORT_JSON = "report.json"
+#: The folder of a labelled job's report PNGs (those of `rangeret evaluate --plots`).
+PLOTS_DIR = "plots"
 #: The file in a job's folder that names the profile the job was accepted for.
 PROFILE_FILE = "profile.txt"
 
@@ -358,6 +361,7 @@ class JobManager:
             report.precision = self.executor.precision
             report_path = folder / REPORT_JSON
             report.write_json(report_path)
+            write_plots(report, folder / PLOTS_DIR, self.profile.labels)
             metrics = {
                 "miou": report.miou,
                 "accuracy": report.accuracy,

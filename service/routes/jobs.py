@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 from collections.abc import Sequence
 from datetime import datetime, timezone
 from pathlib import Path
@@ -25,6 +26,7 @@ from service.dependencies import GatewayDep, JobsDep
 from service.errors import ApiError, error_responses, validation_sentence
 from service.gateway import Gateway
 from service.jobs import JobManager, JobRecord, JobRefused, disk_full, expected_output_bytes
+from service.jobs.manager import PLOTS_DIR
 from service.paths import escaping_scans, outside_roots_sentence
 from service.schemas import (
     BINARY_CONTENT,
@@ -67,7 +69,7 @@ def _iso(ts: float | None) -> datetime | None:
 
 
 def job_status(record: JobRecord) -> JobStatus:
-    """The API form of a stored job."""
+    """The API form of a stored job (it lists the job's plots: call it in a worker thread)."""
     base = f"/v1/jobs/{record.id}"
     return JobStatus(
         id=record.id,
@@ -86,7 +88,23 @@ def job_status(record: JobRecord) -> JobStatus:
         status_url=base,
         predictions_url=f"{base}/predictions",
         report_url=f"{base}/report",
+        plots=report_plots(record),
     )
+
+
+#: A report PNG's name, as `rangeret.plots.write_plots` names them.
+_PLOT_NAME = re.compile(r"^[a-z][a-z-]{0,63}\.png$")
+
+
+def report_plots(record: JobRecord) -> list[str]:
+    """The names of a succeeded labelled job's report PNGs (none for other jobs)."""
+    if record.state is not JobState.succeeded or not record.report:
+        return []
+    folder = Path(record.report).parent / PLOTS_DIR
+    try:
+        return sorted(p.name for p in folder.iterdir() if _PLOT_NAME.fullmatch(p.name))
+    except OSError:
+        return []
 
 
 def resolve_dataset(text: str, roots: Sequence[Path]) -> Path:
@@ -152,7 +170,7 @@ async def create_job(request: Request, gw: GatewayDep, jobs: JobsDep) -> JSONRes
 @router.get("/jobs", summary="List jobs", response_model=JobList)
 async def list_jobs(jobs: JobsDep) -> JobList:
     records = await asyncio.to_thread(jobs.store.list)
-    return JobList(jobs=[job_status(r) for r in records])
+    return JobList(jobs=await asyncio.to_thread(lambda: [job_status(r) for r in records]))
 
 
 @router.get(
@@ -162,7 +180,7 @@ async def list_jobs(jobs: JobsDep) -> JobList:
     responses=error_responses(404),
 )
 async def get_job(job_id: str, jobs: JobsDep) -> JobStatus:
-    return job_status(await _record_or_404(jobs, job_id))
+    return await asyncio.to_thread(job_status, await _record_or_404(jobs, job_id))
 
 
 @router.get(
@@ -209,6 +227,25 @@ async def get_report(job_id: str, jobs: JobsDep) -> FileResponse:
     return FileResponse(record.report, media_type="application/json")
 
 
+@router.get(
+    "/jobs/{job_id}/plots/{name}",
+    summary="A succeeded labelled job's report PNG",
+    description="One of the job's `plots`: IoU per class, the confusion matrix, IoU by distance "
+    "band, mIoU per sequence, as `rangeret evaluate --plots` draws them.",
+    response_class=FileResponse,
+    responses={
+        200: {"description": "The PNG", "content": {"image/png": BINARY_CONTENT}},
+        **error_responses(404, 409),
+    },
+)
+async def get_plot(job_id: str, name: str, jobs: JobsDep) -> FileResponse:
+    record = await _succeeded_or_409(jobs, job_id)
+    if name not in await asyncio.to_thread(report_plots, record):
+        raise ApiError(404, f"The job has no plot {name[:64]!r}; its plots are listed in 'plots'.")
+    path = Path(record.report).parent / PLOTS_DIR / name
+    return FileResponse(path, media_type="image/png")
+
+
 @router.delete(
     "/jobs/{job_id}",
     summary="Cancel a job and remove its files",
@@ -220,7 +257,7 @@ async def delete_job(job_id: str, jobs: JobsDep) -> JobStatus:
     record = await asyncio.to_thread(jobs.cancel, job_id)
     if record is None:
         raise ApiError(404, f"There is no job {job_id[:64]!r}.")
-    return job_status(record)
+    return await asyncio.to_thread(job_status, record)
 
 
 async def _record_or_404(jobs: JobManager, job_id: str) -> JobRecord:

@@ -135,10 +135,30 @@ export class JobsPanel {
         miou: report.miou,
         sequences: Object.keys(report.per_sequence || {}),
         bands: (report.per_distance || []).length,
+        plots: [],
       };
       this.report.scrollIntoView({ block: 'start' });
+      await this.showPlots(job);
     } catch (error) {
       this.say(error.message, true);
+    }
+  }
+
+  /** The report's PNGs, fetched with the token (an <img> cannot send it) and shown as blobs. */
+  async showPlots(job) {
+    for (const url of this.plotUrls || []) URL.revokeObjectURL(url);
+    this.plotUrls = [];
+    const box = el('div', { class: 'report-plots', id: 'report-plots' });
+    this.report.append(box);
+    for (const name of job.plots || []) {
+      const response = await this.api.request(`v1/jobs/${job.id}/plots/${name}`, {
+        accept: 'image/png',
+      });
+      const url = URL.createObjectURL(await response.blob());
+      this.plotUrls.push(url);
+      const image = el('img', { src: url, alt: name, 'data-plot': name });
+      box.append(el('figure', {}, image, el('figcaption', { text: name })));
+      this.state.report.plots.push(name);
     }
   }
 
