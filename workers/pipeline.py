@@ -173,6 +173,22 @@ class PipelineResult:
     writers: int = 0
     devices: list[str] = field(default_factory=list)
 
+    def precision(self, spec: PredictorSpec) -> str | None:
+        """The precision the network ran at on the run's devices (`auto` resolved per device
+        type, as each model actor resolved it), comma-separated; None when no batch ran."""
+        import torch
+
+        from rangeret.precision import resolve_precision
+
+        kinds = {d.split("@")[0].split(":")[0] for d in self.devices}
+        if not kinds:
+            return None
+        return ", ".join(
+            sorted(
+                {resolve_precision(spec.precision, torch.device(k), spec.backend) for k in kinds}
+            )
+        )
+
 
 def warm_up(predictor: Predictor) -> float:
     """Run the network once on an empty scan's range image (zeros of (1, 5, H, W)), so that the

@@ -162,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
     if evaluator.num_scans and not result.failed:
         report = evaluator.report(sequences, info.sha256)
         report.profile = profile.name
-        report.precision = spec.precision
+        report.precision = result.precision(spec)
         if demo:
             report.notes.append(DEMO_WARNING)
         print(report.table())

@@ -13,12 +13,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
-import torch
-
 from rangeret.atomic import atomic_path
 from rangeret.inference import Predictor, PredictorSpec
 from rangeret.layout import ScanEntry, prediction_path
-from rangeret.precision import resolve_precision
 from rangeret.predict import is_complete, predict_tree
 from rangeret.profiles import DEFAULT_PROFILE, DatasetProfile, load_profile
 from rangeret.submission import TEST_SEQUENCES, required_directories
@@ -139,16 +136,7 @@ class RayExecutor:
             cancel=cancel,
             model_actors=shared,
         )
-        kinds = {d.split("@")[0].split(":")[0] for d in result.devices}
-        if kinds:
-            self.precision = ", ".join(
-                sorted(
-                    {
-                        resolve_precision(self.spec.precision, torch.device(k), self.spec.backend)
-                        for k in kinds
-                    }
-                )
-            )
+        self.precision = result.precision(self.spec) or self.precision
         return result.failed
 
 
