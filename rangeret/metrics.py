@@ -139,6 +139,8 @@ class EvaluationReport:
     notes: list[str] = field(default_factory=list)
     profile: str | None = None
     precision: str | None = None
+    #: The inference backend the predictions came from (torch or onnxruntime), where known.
+    backend: str | None = None
     by_sequence: dict[str, ConfusionMatrix] = field(default_factory=dict)
     by_distance: list[ConfusionMatrix] = field(default_factory=list)
     #: The calibration of the predictions' confidences, where every scan had them.
@@ -197,6 +199,8 @@ class EvaluationReport:
             out["profile"] = self.profile
         if self.precision:
             out["precision"] = self.precision
+        if self.backend:
+            out["backend"] = self.backend
         if self.notes:
             out["notes"] = list(self.notes)
         return out
@@ -228,6 +232,7 @@ class EvaluationReport:
             notes=list(data.get("notes", [])),
             profile=data.get("profile"),
             precision=data.get("precision"),
+            backend=data.get("backend"),
             by_sequence={
                 seq: matrix(part["confusion"]) for seq, part in data.get("per_sequence", {}).items()
             },

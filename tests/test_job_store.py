@@ -128,6 +128,7 @@ class FakeExecutor:
 
     backend = "fake"
     precision = "fp32"
+    inference_backend = "torch"
 
     def predict(self, entries, dataset, sequences, out, progress, cancel):
         for i, entry in enumerate(entries):

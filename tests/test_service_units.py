@@ -334,6 +334,7 @@ class FakeExecutor:
 
     backend = "fake"
     precision = "fp32"
+    inference_backend = "torch"
 
     def __init__(self, point_bytes: int = 16) -> None:
         self.point_bytes = point_bytes
@@ -394,7 +395,8 @@ def test_job_runs_to_success_with_predictions_and_report(tmp_path):
     assert (record.total, record.done, record.failed) == (2, 2, 0)
     assert Path(record.predictions).is_file() and Path(record.report).is_file()
     assert set(record.metrics) == {"miou", "accuracy", "iou"}
-    assert json.loads(Path(record.report).read_text())["precision"] == "fp32"
+    report = json.loads(Path(record.report).read_text())
+    assert (report["precision"], report["backend"]) == ("fp32", "torch")
 
 
 def test_a_job_reads_evaluates_and_zips_in_the_profile_of_the_gateway(tmp_path):

@@ -102,6 +102,7 @@ def test_job_equals_rangeret_predict_and_evaluate(ray_local, setup, tmp_path, ba
     assert job_report["confusion"] == eval_report["confusion"]
     assert job_report["miou"] == eval_report["miou"]
     assert job_report["precision"] == "fp32", "auto, as the CPU model actor resolved it"
+    assert job_report["backend"] == "torch"
     assert list(job_report["per_sequence"]) == ["08"]
     for key in ("per_sequence", "per_distance"):
         assert job_report[key] == eval_report[key]

@@ -163,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
         report = evaluator.report(sequences, info.sha256)
         report.profile = profile.name
         report.precision = result.precision(spec)
+        report.backend = spec.backend
         if demo:
             report.notes.append(DEMO_WARNING)
         print(report.table())

@@ -33,6 +33,8 @@ class JobExecutor(Protocol):
     backend: str
     #: The precision the network ran at in the last `predict` (None before the first).
     precision: str | None
+    #: The inference backend that runs the network (torch or onnxruntime).
+    inference_backend: str
 
     def predict(
         self,
@@ -58,6 +60,11 @@ class LocalExecutor:
         self.batch_size = batch_size
         self.precision: str | None = None
         self._predictor: Predictor | None = None
+
+    @property
+    def inference_backend(self) -> str:
+        """The backend the spec runs the network with."""
+        return self.spec.backend
 
     def predict(
         self,
@@ -110,6 +117,11 @@ class RayExecutor:
         self.actors = actors
         self.pool = pool
         self.precision: str | None = None
+
+    @property
+    def inference_backend(self) -> str:
+        """The backend the spec runs the network with."""
+        return self.spec.backend
 
     def predict(
         self,

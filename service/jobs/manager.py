@@ -359,6 +359,7 @@ class JobManager:
                 profile=self.profile,
             )
             report.precision = self.executor.precision
+            report.backend = self.executor.inference_backend
             report_path = folder / REPORT_JSON
             report.write_json(report_path)
             write_plots(report, folder / PLOTS_DIR, self.profile.labels)
