@@ -14,9 +14,11 @@ import contextlib
 import hashlib
 import logging
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
-from rangeret.registry import PublishedModel
+from rangeret.profiles import DatasetProfile
+from rangeret.registry import PublishedModel, lookup, profile_for_published
 
 log = logging.getLogger(__name__)
 
@@ -134,18 +136,42 @@ def _remove(path: Path) -> None:
 def published_name(value: str | Path) -> PublishedModel | None:
     """The registered model a `--checkpoint` value names (`rangeret-kitti-657`, or the file name
     `rangeret-kitti-657.pt` when no such file exists here), or None for a path."""
-    from rangeret.registry import lookup
-
     text = str(value)
     if Path(text).exists() or os.sep in text:
         return None
     return lookup(text) or lookup(text.removesuffix(".pt"))
 
 
-def resolve_weights(value: str | Path) -> tuple[Path, PublishedModel | None]:
-    """The file a `--checkpoint` value leads to, and the registered model when it is a name
-    (fetched from the cache or the hub); a path is returned as it is."""
-    model = published_name(value)
-    if model is None:
-        return Path(value), None
-    return fetch_weights(model), model
+@dataclass(frozen=True)
+class ResolvedWeights:
+    """Where a `--checkpoint` value leads, and the profile, network and resolution to load it
+    with (what was asked for, completed by a published model's registry entry)."""
+
+    path: Path
+    profile: DatasetProfile | None
+    model: str | None
+    height: int | None
+    width: int | None
+
+
+def resolve_weights(
+    value: str | Path,
+    profile: DatasetProfile | None = None,
+    model: str | None = None,
+    height: int | None = None,
+    width: int | None = None,
+) -> ResolvedWeights:
+    """The file a `--checkpoint` value leads to: a path as it is; for a published model's name
+    its file (from the cache or the hub), with its profile (another requested one is refused
+    before any download), network and resolution wherever those were not given."""
+    published = published_name(value)
+    if published is None:
+        return ResolvedWeights(Path(value), profile, model, height, width)
+    profile = profile_for_published(published, profile)
+    return ResolvedWeights(
+        fetch_weights(published),
+        profile,
+        model or published.model,
+        height or published.height or None,
+        width or published.width or None,
+    )

@@ -35,7 +35,6 @@ from rangeret.point_labels import (
 from rangeret.precision import forward_precision, resolve_precision
 from rangeret.profiles import DatasetProfile, load_profile, profile_of_record
 from rangeret.projection import Projection, ProjectionConfig, project_with
-from rangeret.registry import profile_for_published
 from rangeret.timing import StageTimes
 
 log = logging.getLogger(__name__)
@@ -54,7 +53,7 @@ def resolve_checkpoint(path: str | Path | None) -> Path:
     name (`rangeret-kitti-657`, fetched from the cache or the hub), or the bundled demo weights
     (announced loudly) when None."""
     if path is not None:
-        return resolve_weights(path)[0]
+        return resolve_weights(path).path
     if not DEMO_CHECKPOINT.exists():
         raise FileNotFoundError(
             f"no --checkpoint given and the bundled demo weights {DEMO_CHECKPOINT} are missing"
@@ -251,14 +250,13 @@ class Predictor:
         error). Published files record none: they run with `profile` (default `semantickitti`),
         which gives their resolution and field of view unless height, width or fov are given.
         """
-        path, published = resolve_weights(path)
-        if published is not None:
-            profile = profile_for_published(published, profile)
+        weights = resolve_weights(path, profile, model, height, width)
+        profile = weights.profile
         network = load_checkpoint(
-            path,
-            model=model,
-            height=height,
-            width=width,
+            weights.path,
+            model=weights.model,
+            height=weights.height,
+            width=weights.width,
             default_resolution=_resolution(profile),
         )
         info = network.checkpoint_info

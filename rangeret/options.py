@@ -256,26 +256,22 @@ def spec_from_args(args: argparse.Namespace) -> PredictorSpec:
 def weights_spec_from_args(args: argparse.Namespace) -> PredictorSpec:
     """A `PredictorSpec` of the weights options (a published model's name fetched, with its
     profile, network and resolution), the run's own settings left at their defaults."""
-    from rangeret.hub import fetch_weights, published_name
+    from rangeret.hub import resolve_weights
     from rangeret.inference import PredictorSpec, resolve_checkpoint
-    from rangeret.registry import profile_for_published
 
-    profile = requested_profile(args)
-    model, height, width = args.model, args.height, args.width
-    published = published_name(args.checkpoint) if args.checkpoint is not None else None
-    if published is None:
-        checkpoint = resolve_checkpoint(args.checkpoint)
-    else:  # the name brings its profile, network and resolution; checked before any download
-        profile = profile_for_published(published, profile)
-        model = model or published.model
-        height, width = height or published.height or None, width or published.width or None
-        checkpoint = fetch_weights(published)
+    weights = resolve_weights(
+        args.checkpoint if args.checkpoint is not None else resolve_checkpoint(None),
+        requested_profile(args),
+        args.model,
+        args.height,
+        args.width,
+    )
     return PredictorSpec(
-        checkpoint=str(checkpoint),
-        model=model,
-        profile=profile,
-        height=height,
-        width=width,
+        checkpoint=str(weights.path),
+        model=weights.model,
+        profile=weights.profile,
+        height=weights.height,
+        width=weights.width,
         fov_up=args.fov_up,
         fov_down=args.fov_down,
     )
