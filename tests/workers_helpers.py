@@ -91,6 +91,16 @@ def free_ports(n: int) -> list[int]:
     return ports
 
 
+def node_ports(workers: int = 40) -> list[int]:
+    """Nine free ports for a node's components and, last, the first of `workers` + 1 worker
+    ports, a range that holds none of the nine (Ray refuses a port used twice)."""
+    while True:
+        ports = free_ports(10)
+        first = ports[-1]
+        if not any(first <= port <= first + workers for port in ports[:-1]):
+            return ports
+
+
 @dataclass
 class RayNode:
     """A node started with `ray start`: its GCS address, dashboard URL and environment."""
@@ -109,7 +119,7 @@ def ray_node(folder: Path, head: RayNode | None = None, num_cpus: int = 2, num_g
     would stop every Ray on the machine)."""
     bindir = Path(sys.executable).parent
     env = dict(os.environ, PATH=f"{bindir}{os.pathsep}{os.environ['PATH']}", RAY_AUTH_MODE="token")
-    gcs, dash, client, agent, grpc, metrics, nm, om, wmin, runtime_env = free_ports(10)
+    gcs, dash, client, agent, grpc, metrics, nm, om, runtime_env, wmin = node_ports()
     cmd = [
         str(bindir / "ray"),
         "start",
