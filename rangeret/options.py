@@ -275,3 +275,87 @@ def weights_spec_from_args(args: argparse.Namespace) -> PredictorSpec:
         fov_up=args.fov_up,
         fov_down=args.fov_down,
     )
+
+
+#: The network options by name, as Serve application arguments and job submissions spell them:
+#: each is the `dest` of its command-line option, except `knn` (a bool; `knn: false` is
+#: `--no-knn`).
+NETWORK_OPTIONS = (
+    "checkpoint",
+    "profile",
+    "model",
+    "height",
+    "width",
+    "fov_up",
+    "fov_down",
+    "batch_size",
+    "knn",
+    "device",
+    "precision",
+    "backend",
+    "tta_flip",
+    "tta_shifts",
+)
+
+
+def network_values(args: argparse.Namespace) -> dict[str, object]:
+    """The network options a command was given, by name (see `NETWORK_OPTIONS`), those left
+    unset omitted: what another process needs to build the same network."""
+    values: dict[str, object] = {}
+    for name in NETWORK_OPTIONS:
+        value = (not args.no_knn) if name == "knn" else getattr(args, name, None)
+        if value is None or (value is False and name == "tta_flip"):
+            continue
+        values[name] = str(value) if isinstance(value, Path) else value
+    return values
+
+
+def network_argv(values: dict[str, object]) -> list[str]:
+    """The command-line options for network options by name (the inverse of `network_values`);
+    an unknown name or a value of the wrong kind is a `CommandError` naming it."""
+    unknown = sorted(set(values) - set(NETWORK_OPTIONS))
+    if unknown:
+        raise CommandError(
+            f"unknown network option(s) {', '.join(unknown)}; the known ones are "
+            f"{', '.join(NETWORK_OPTIONS)}"
+        )
+    argv: list[str] = []
+    for name in NETWORK_OPTIONS:
+        if name not in values or values[name] is None:
+            continue
+        value = values[name]
+        flag = "--" + name.replace("_", "-")
+        if name in ("knn", "tta_flip"):
+            if not isinstance(value, bool):
+                raise CommandError(f"the network option {name} is true or false, got {value!r}")
+            if name == "knn" and not value:
+                argv.append("--no-knn")
+            elif name == "tta_flip" and value:
+                argv.append(flag)
+            continue
+        if isinstance(value, bool) or not isinstance(value, str | int | float):
+            raise CommandError(
+                f"the network option {name} takes a number or a string, got {value!r}"
+            )
+        argv += [flag, str(value)]
+    return argv
+
+
+def network_args(values: dict[str, object]) -> argparse.Namespace:
+    """The parsed network options for options by name, checked as the command line checks them;
+    a bad one is a `CommandError` naming it."""
+    parser = argparse.ArgumentParser(prog="network options", add_help=False, exit_on_error=False)
+    add_network_options(parser)
+    argv = network_argv(values)
+    try:
+        args, unknown = parser.parse_known_args(argv)
+    except argparse.ArgumentError as exc:
+        raise CommandError(f"bad network option: {exc}") from exc
+    if unknown:
+        raise CommandError(f"bad network options: {' '.join(unknown)}")
+    return args
+
+
+def spec_from_values(values: dict[str, object]) -> PredictorSpec:
+    """A `PredictorSpec` from network options by name (a published model's name resolved)."""
+    return spec_from_args(network_args(values))

@@ -1,8 +1,8 @@
 """The FastAPI app of the gateway: `create_app`, its lifespan and its OpenAPI document.
 
-`create_app` takes the settings, a started worker pool, a job executor and the dataset profile of
-the served network, and builds the `Gateway` (`service.gateway`) that owns the request batcher,
-the job store and runner, and the metrics. The endpoints are in `service.routes` (one module per
+`create_app` takes the settings, a single-scan labeller, a job executor and the dataset profile of
+the served network, and builds the `Gateway` (`service.gateway`) that owns the labeller, the job
+store and runner, and the metrics. The endpoints are in `service.routes` (one module per
 resource), the error answers in `service.error_handlers`: every error is
 `{"detail": "<one sentence>"}`. With RANGERET_API_TOKEN set, every /v1 request needs
 `Authorization: Bearer TOKEN` (/metrics and the API description do not; /healthz gives its details only with it).
@@ -22,7 +22,7 @@ from rangeret.profiles import DatasetProfile, load_profile
 from service.dependencies import require_token
 from service.error_handlers import install_error_handlers
 from service.errors import error_responses
-from service.gateway import Gateway, WorkerPool
+from service.gateway import Gateway, ScanLabeller
 from service.jobs import JobExecutor, check_schema_version
 from service.metrics import MetricsMiddleware
 from service.routes.health import router as health_router
@@ -65,14 +65,13 @@ def _openapi(app: FastAPI) -> dict[str, Any]:
 
 def create_app(
     settings: Settings,
-    pool: WorkerPool,
+    labeller: ScanLabeller,
     executor: JobExecutor,
     profile: DatasetProfile | None = None,
     checkpoint_sha256: str | None = None,
-    dispatchers: int = 1,
     model: str | None = None,
 ) -> FastAPI:
-    """The gateway app over a ready worker pool whose network runs with `profile` (default
+    """The gateway app over a ready labeller whose network runs with `profile` (default
     semantickitti): its point record, labels, layout and splits are the gateway's.
 
     Refuses (ValueError) a non-loopback host without a token and a job database newer than this code.
@@ -83,11 +82,10 @@ def create_app(
     check_schema_version(settings.database_path)
     gateway = Gateway(
         settings,
-        pool,
+        labeller,
         executor,
         profile or load_profile(None),
         checkpoint_sha256,
-        dispatchers,
         model=model,
     )
 

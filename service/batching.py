@@ -1,10 +1,10 @@
-"""Dynamic batching of single-scan requests in front of the worker pool.
+"""Dynamic batching of single-scan requests in front of the in-process network.
 
 Requests wait in one queue. Each dispatcher (one per model worker) takes the oldest request and up
 to `batch_size - 1` more with the same options, waiting at most `max_wait` seconds after the oldest
 arrived for the batch to fill, and awaits the pool on the whole batch. While a batch is in the
 network, new requests gather, so under load batches fill without waiting. The event loop only
-moves arrays around: the pool runs the network in a worker thread or on a Ray actor.
+moves arrays around: the pool runs the network in a worker thread.
 """
 
 from __future__ import annotations
@@ -20,13 +20,13 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 if TYPE_CHECKING:
-    from workers.pool import LabelledScan
+    from workers.scans import LabelledScan
 
 log = logging.getLogger(__name__)
 
 
 class ScanBackend(Protocol):
-    """What the batcher needs from a pool (`workers.pool.ScanPool` or `LocalScanPool`)."""
+    """What the batcher needs from a pool (`service.local_labeller.LocalPool`)."""
 
     async def predict_async(
         self, scans: Sequence[np.ndarray], knn: bool = True, confidence: bool = False
@@ -41,7 +41,12 @@ class ScanBackend(Protocol):
 
 
 class BackendError(RuntimeError):
-    """The worker backend failed on a batch (not the request's fault)."""
+    """The labelling backend failed or cannot be reached (not the request's fault): 503, to be
+    retried."""
+
+
+class BackendTimeout(BackendError):
+    """The labelling backend did not answer in time: 504."""
 
 
 class ScanRejected(ValueError):

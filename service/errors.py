@@ -32,7 +32,8 @@ _DESCRIPTIONS = {
     413: "Body, scan or archive over the configured limits",
     415: "Wrong media type",
     429: "Too many jobs are waiting (RANGERET_MAX_QUEUED_JOBS)",
-    503: "The worker backend is unavailable, or the single-scan queue is full",
+    503: "The labelling backend is unavailable or overloaded, or the single-scan queue is full",
+    504: "The Serve application did not answer in time (RANGERET_SERVE_TIMEOUT_S)",
     507: "The job folders' disk limit (RANGERET_MAX_JOB_BYTES) leaves no room for the job",
 }
 

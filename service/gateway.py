@@ -1,36 +1,60 @@
-"""The `Gateway`: what every endpoint uses (settings, the served dataset profile, worker pool,
-single-scan admission, batcher, job manager, metrics).
+"""The `Gateway`: what every endpoint uses (settings, the served dataset profile, the single-scan
+labeller and its admission, the job manager, metrics).
 
 `create_app` builds one per app and keeps it in `app.state.gateway`; the app's lifespan starts it
-(job store, runner, batcher) and stops it. Routes get it through `service.dependencies`.
+(job store, runner, labeller) and stops it. Routes get it through `service.dependencies`.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
 
 from rangeret.profiles import DatasetProfile
 from service.admission import ScanAdmission
-from service.batching import ScanBackend, ScanBatcher
 from service.errors import ApiError
 from service.jobs import JobExecutor, JobManager, JobStore
 from service.metrics import GatewayMetrics
 from service.page_assets import PageFiles, PageNotBuilt
 from service.settings import Settings
 
+if TYPE_CHECKING:
+    from workers.scans import LabelledScan
+
 log = logging.getLogger(__name__)
 
 
-class WorkerPool(ScanBackend, Protocol):
-    """What the gateway needs from `workers.pool.ScanPool` / `LocalScanPool`."""
+class ScanLabeller(Protocol):
+    """What labels single scans: `service.local_labeller.LocalLabeller` (in this process) or
+    `service.serve_client.ServeLabeller` (the Serve application)."""
 
     backend: str
 
-    def health(self) -> dict:
-        """The workers' state."""
+    async def start(self, on_batch: Callable[[int, float], None] | None = None) -> None:
+        """Start serving (on the app's event loop)."""
+        ...
+
+    async def stop(self) -> None:
+        """Stop; requests still waiting fail."""
+        ...
+
+    async def label(
+        self, points: np.ndarray, raw: bytes, knn: bool = True, confidence: bool = False
+    ) -> LabelledScan:
+        """One scan labelled: its points parsed and its bytes as received."""
+        ...
+
+    def depth(self) -> int:
+        """Scans accepted and not answered yet."""
+        ...
+
+    async def health(self) -> dict:
+        """`{"backend", "ok", "actors": [descriptions], "error"}` for /healthz."""
         ...
 
 
@@ -42,16 +66,15 @@ class Gateway:
     """
 
     settings: Settings
-    pool: WorkerPool
+    labeller: ScanLabeller
     executor: JobExecutor
     profile: DatasetProfile
     checkpoint_sha256: str | None
-    dispatchers: int
     #: The served network's name (None: taken from the workers' descriptions).
     model: str | None = None
     metrics: GatewayMetrics = field(init=False)
     admission: ScanAdmission = field(init=False)
-    batcher: ScanBatcher | None = None
+    started: bool = False
     jobs: JobManager | None = None
     #: The web page's files (`service.page_assets`), read on first use.
     page: PageFiles = field(default_factory=PageFiles)
@@ -63,7 +86,7 @@ class Gateway:
         )
 
     async def start(self) -> None:
-        """Open the job store, recover and start the runner, start the batcher."""
+        """Open the job store, recover and start the runner, start the labeller."""
         settings = self.settings
         settings.jobs_folder.mkdir(parents=True, exist_ok=True)
         store = await asyncio.to_thread(JobStore, settings.database_path)
@@ -81,23 +104,18 @@ class Gateway:
             read_roots=settings.data_roots,
         )
         await asyncio.to_thread(self.jobs.start)
-        self.batcher = ScanBatcher(
-            self.pool,
-            batch_size=settings.batch_size,
-            max_wait=settings.batch_wait_ms / 1000,
-            dispatchers=self.dispatchers,
-            on_batch=self.metrics.observe_batch,
-        )
-        await self.batcher.start()
+        await self.labeller.start(self.metrics.observe_batch)
+        self.started = True
         try:
             await asyncio.to_thread(self.page.get)
         except PageNotBuilt as exc:
             log.warning("%s Until then / answers 503; the API is served.", exc)
 
     async def stop(self) -> None:
-        """Stop the batcher and the job runner (a running job resumes at the next start)."""
-        if self.batcher is not None:
-            await self.batcher.stop()
+        """Stop the labeller and the job runner (a running job resumes at the next start)."""
+        if self.started:
+            self.started = False
+            await self.labeller.stop()
         if self.jobs is not None:
             await asyncio.to_thread(self.jobs.stop)
             await asyncio.to_thread(self.jobs.store.close)

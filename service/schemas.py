@@ -257,7 +257,10 @@ class Health(HealthSummary):
         }
     )
 
-    backend: Literal["local", "ray"]
+    backend: Literal["local", "serve"] = Field(
+        description="where single scans are labelled: in the gateway's process, or on the Serve "
+        "application (RANGERET_SERVE_URL)"
+    )
     point_fields: list[str] = Field(
         description="the float32 values of one point of a scan, in order (the profile's record)"
     )

@@ -1,9 +1,11 @@
-"""`rangeret serve`: build the worker pool and the job executor, then run the gateway on uvicorn.
+"""`rangeret serve`: build the single-scan labeller and the job executor, then run the gateway on
+uvicorn.
 
-With a Ray address (`--ray-address` or RANGERET_RAY_ADDRESS) single scans go to the model actors of
-`workers.pool.ScanPool` and jobs to the Ray pipeline; without one, both run in this process
-(`LocalScanPool`, `predict_tree`). Options given on the command line win over RANGERET_* variables.
-The gateway serves one dataset profile: the checkpoint's, or the one given with `--profile`.
+On a cluster, single scans go to the Serve application at `--serve-url` (RANGERET_SERVE_URL,
+`workers.serve_app`) and jobs become Ray jobs through the Jobs API at `--jobs-address`
+(RANGERET_JOBS_ADDRESS); without them, each runs in this process (`LocalLabeller`,
+`predict_tree`). Options given on the command line win over RANGERET_* variables. The gateway
+serves one dataset profile: the checkpoint's, or the one given with `--profile`.
 """
 
 from __future__ import annotations
@@ -16,9 +18,11 @@ from pydantic import ValidationError
 
 from rangeret.errors import CommandError
 from rangeret.inference import PredictorSpec, checkpoint_profile
-from rangeret.options import add_network_options, spec_from_args
+from rangeret.options import add_network_options, network_values, spec_from_args
 from rangeret.profiles import DatasetProfile
 from service.errors import validation_sentence
+from service.gateway import ScanLabeller
+from service.jobs import JobExecutor
 from service.settings import Settings
 
 log = logging.getLogger("rangeret.serve")
@@ -29,8 +33,9 @@ _OVERRIDES = (
     "port",
     "batch_size",
     "batch_wait_ms",
-    "ray_address",
-    "actors",
+    "serve_url",
+    "serve_timeout_s",
+    "jobs_address",
     "root_path",
 )
 
@@ -49,15 +54,22 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         help="longest a single-scan request waits for others to fill its batch (default 10)",
     )
     g.add_argument(
-        "--ray-address",
-        metavar="ADDR",
-        help="Ray cluster for the workers ('auto' or host:port); default: run them in this process",
+        "--serve-url",
+        metavar="URL",
+        help="the Serve application that labels single scans: the proxy's http://host:port "
+        "followed by the application's route prefix (default: the network runs in this process)",
     )
     g.add_argument(
-        "--actors",
-        type=int,
-        metavar="N",
-        help="model actors on the Ray cluster (default: one per GPU, or 1)",
+        "--serve-timeout-s",
+        type=float,
+        metavar="S",
+        help="longest a single scan waits for the Serve application before a 504 (default 300)",
+    )
+    g.add_argument(
+        "--jobs-address",
+        metavar="URL",
+        help="the Ray dashboard (http://host:8265) whose Jobs API runs the gateway's jobs as Ray "
+        "jobs (default: jobs run in this process)",
     )
     g.add_argument(
         "--root-path",
@@ -100,26 +112,35 @@ def checkpoint_facts(spec: PredictorSpec) -> CheckpointFacts:
     return CheckpointFacts(profile, info.sha256, info.name)
 
 
-def build_backend(settings: Settings, spec: PredictorSpec, facts: CheckpointFacts):
-    """The single-scan pool, the job executor and the number of batch dispatchers, all running
-    the network with the served profile. On a GPU cluster the pool's actors (one per GPU unless
-    `actors` says otherwise) also run the jobs, so a job never waits for a GPU the pool holds."""
-    from service.jobs import LocalExecutor, RayExecutor
-    from workers.pool import LocalScanPool, ScanPool
+def build_labeller(settings: Settings, spec: PredictorSpec, facts: CheckpointFacts) -> ScanLabeller:
+    """What labels single scans: the Serve application at `serve_url` (once it answers with the
+    same checkpoint and profile), or else the network in this process behind the local batcher."""
+    served = replace(spec, profile=facts.profile)
+    if settings.serve_url:
+        from service.serve_client import ServeLabeller
+
+        labeller = ServeLabeller(settings.serve_url, facts.profile, settings.serve_timeout_s)
+        labeller.check_serves(facts.sha256, settings.serve_timeout_s)
+        return labeller
+    from service.local_labeller import LocalLabeller, LocalPool
+
+    return LocalLabeller(LocalPool(served), settings.batch_size, settings.batch_wait_ms / 1000)
+
+
+def build_executor(
+    settings: Settings, values: dict[str, object], spec: PredictorSpec, facts: CheckpointFacts
+) -> JobExecutor:
+    """What runs the gateway's jobs: Ray jobs through the Jobs API at `jobs_address` (the same
+    entrypoint as `ray job submit`, given the gateway's network options `values`), or else
+    `predict_tree` in this process."""
+    from service.jobs import LocalExecutor
 
     served = replace(spec, profile=facts.profile)
-    if settings.ray_address:
-        import ray
+    if settings.jobs_address:
+        from service.jobs.ray_jobs import RayJobExecutor
 
-        if not ray.is_initialized():
-            ray.init(address=settings.ray_address, log_to_driver=False)
-        use_gpu = None if spec.device == "auto" else spec.device == "cuda"
-        pool = ScanPool(served, actors=settings.actors, use_gpu=use_gpu)
-        executor = RayExecutor(
-            served, facts.profile, settings.batch_size, settings.actors, pool=pool
-        )
-        return pool, executor, len(pool.actors)
-    return LocalScanPool(served), LocalExecutor(served, settings.batch_size), 1
+        return RayJobExecutor(settings.jobs_address, values, facts.profile, settings.batch_size)
+    return LocalExecutor(served, settings.batch_size)
 
 
 def run_serve(args: argparse.Namespace) -> int:
@@ -139,33 +160,28 @@ def run_serve(args: argparse.Namespace) -> int:
     args.batch_size = settings.batch_size
     spec = spec_from_args(args)
     facts = checkpoint_facts(spec)
-    pool, executor, dispatchers = build_backend(settings, spec, facts)
-    try:
-        workers = pool.wait_ready()
-        log.info(
-            "%s (sha256 %s, profile %s) on %d %s worker(s); batches of up to %d scans, "
-            "waiting up to %g ms",
-            facts.model,
-            facts.sha256[:12],
-            facts.profile.name,
-            len(workers),
-            pool.backend,
-            settings.batch_size,
-            settings.batch_wait_ms,
-        )
-        app = create_app(
-            settings, pool, executor, facts.profile, facts.sha256, dispatchers, model=facts.model
-        )
-        uvicorn.run(
-            app,
-            host=settings.host,
-            port=settings.port,
-            log_level=args.log_level,
-            timeout_graceful_shutdown=30,
-            http=GatewayProtocol.with_header_timeout(settings.header_timeout_s),
-            limit_concurrency=settings.max_connections,
-            root_path=settings.root_path,
-        )
-    finally:
-        pool.shutdown()
+    labeller = build_labeller(settings, spec, facts)
+    executor = build_executor(settings, network_values(args), spec, facts)
+    log.info(
+        "%s (sha256 %s, profile %s): single scans %s, jobs %s; batches of up to %d scans",
+        facts.model,
+        facts.sha256[:12],
+        facts.profile.name,
+        f"on the Serve application at {settings.serve_url}"
+        if settings.serve_url
+        else "in this process",
+        f"as Ray jobs at {settings.jobs_address}" if settings.jobs_address else "in this process",
+        settings.batch_size,
+    )
+    app = create_app(settings, labeller, executor, facts.profile, facts.sha256, model=facts.model)
+    uvicorn.run(
+        app,
+        host=settings.host,
+        port=settings.port,
+        log_level=args.log_level,
+        timeout_graceful_shutdown=30,
+        http=GatewayProtocol.with_header_timeout(settings.header_timeout_s),
+        limit_concurrency=settings.max_connections,
+        root_path=settings.root_path,
+    )
     return 0

@@ -24,8 +24,11 @@ RANGERET_MAX_QUEUED_JOBS   most jobs waiting to run; beyond, 429 (default 100)
 RANGERET_MAX_JOB_BYTES     most disk the job folders may use together; beyond, 507 (default 100 GiB)
 RANGERET_BATCH_SIZE        most single-scan requests per network pass (default 1)
 RANGERET_BATCH_WAIT_MS     longest a request waits for others to fill its batch (default 10)
-RANGERET_RAY_ADDRESS       Ray cluster to use ("auto" or host:port); unset: in-process worker
-RANGERET_ACTORS            model actors on the Ray cluster (default: one per GPU, or 1)
+RANGERET_SERVE_URL         the Serve application that labels single scans (proxy URL and route
+                           prefix, e.g. http://rangeret-serve-svc:8000/rangeret); unset: in-process
+RANGERET_SERVE_TIMEOUT_S   longest a single scan may wait for the Serve application (default 300)
+RANGERET_JOBS_ADDRESS      the Ray dashboard whose Jobs API runs the gateway's jobs
+                           (e.g. http://rangeret-head-svc:8265); unset: jobs run in-process
 RANGERET_ROOT_PATH         path prefix a reverse proxy serves the gateway under (e.g. /rangeret)
 
 docs/http-api.md describes every setting with the endpoints and answers it shapes.
@@ -76,8 +79,9 @@ class Settings(BaseSettings):
     max_job_bytes: int = Field(default=100 * GIB, gt=0)
     batch_size: int = Field(default=1, ge=1)
     batch_wait_ms: float = Field(default=10.0, ge=0)
-    ray_address: str | None = None
-    actors: int | None = Field(default=None, ge=1)
+    serve_url: str | None = None
+    serve_timeout_s: float = Field(default=300.0, gt=0)
+    jobs_address: str | None = None
     root_path: str = ""
 
     @field_validator("data_roots", mode="before")
@@ -102,13 +106,25 @@ class Settings(BaseSettings):
                 return value
         return value
 
-    @field_validator("api_token", "ray_address", mode="before")
+    @field_validator("api_token", "serve_url", "jobs_address", mode="before")
     @classmethod
     def _empty_is_unset(cls, value: object) -> object:
         """An empty variable counts as unset, so `RANGERET_API_TOKEN=` never means an empty token."""
         if isinstance(value, str) and not value.strip():
             return None
         return value
+
+    @field_validator("serve_url", "jobs_address", mode="after")
+    @classmethod
+    def _http_url(cls, value: str | None) -> str | None:
+        """An http(s) URL with a host, kept without a trailing `/`."""
+        if value is None:
+            return None
+        text = value.strip().rstrip("/")
+        scheme, _, rest = text.partition("://")
+        if scheme not in ("http", "https") or not rest or rest.startswith("/"):
+            raise ValueError(f"an http:// or https:// URL with a host, got {value!r}")
+        return text
 
     @field_validator("root_path", mode="after")
     @classmethod

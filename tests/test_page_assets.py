@@ -16,6 +16,7 @@ from fastapi.testclient import TestClient
 
 from rangeret.profiles import load_profile
 from service.app import create_app
+from service.local_labeller import LocalLabeller
 from service.page_assets import (
     BUILD_COMMAND,
     VENDOR_FILES,
@@ -34,16 +35,14 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 class FakePool:
     """A healthy worker pool that is never asked to label here."""
 
-    backend = "local"
-
     async def predict_async(self, scans, knn=True, confidence=False):
         raise AssertionError("no scan is labelled in these tests")
 
     def queue_depth(self):
         return 0
 
-    def health(self):
-        return {"backend": "local", "ok": True, "actors": [{"pid": os.getpid()}]}
+    def info(self):
+        return {"pid": os.getpid()}
 
 
 class FakeExecutor:
@@ -73,7 +72,7 @@ def _unbuilt_copy(tmp_path: Path) -> Path:
 
 def _app(tmp_path: Path, token: str | None = TOKEN, web: Path | None = None):
     settings = Settings(state_dir=tmp_path / "state", api_token=token)
-    app = create_app(settings, FakePool(), FakeExecutor())
+    app = create_app(settings, LocalLabeller(FakePool()), FakeExecutor())
     if web is not None:
         app.state.gateway.page = PageFiles(web)
     return app
@@ -181,7 +180,9 @@ def test_the_profile_endpoint_follows_the_token_rule_and_describes_the_profile(t
 
     pandaset = load_profile("pandaset")
     settings = Settings(state_dir=tmp_path / "panda", api_token=None)
-    with TestClient(create_app(settings, FakePool(), FakeExecutor(), pandaset)) as client:
+    with TestClient(
+        create_app(settings, LocalLabeller(FakePool()), FakeExecutor(), pandaset)
+    ) as client:
         body = client.get("/v1/profile").json()
     assert body["profile"] == "pandaset" and body["point_bytes"] == 20
     assert body["unlabeled_class"] == pandaset.labels.unlabeled_class == 14

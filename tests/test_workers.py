@@ -1,9 +1,8 @@
-"""The Ray pipeline and the single-scan pool on a local Ray: same labels as `rangeret predict`,
-resume, and a model actor killed mid-run."""
+"""The Ray pipeline on a local Ray: same labels as `rangeret predict`, resume, and a model actor
+killed mid-run; the single-scan worker that Serve replicas and the in-process gateway run."""
 
 from __future__ import annotations
 
-import asyncio
 import json
 import time
 import zipfile
@@ -226,46 +225,40 @@ def test_a_model_actor_killed_mid_run_costs_no_scan(ray_local, tmp_path, setup, 
     capsys.readouterr()
 
 
-def test_scan_pool_serves_batches_and_survives_a_crash(ray_local, setup):
-    from workers.pool import ScanPool
+def test_scan_worker_labels_batches_as_the_predictor_does(setup):
+    from workers.scans import ScanWorker
 
     data, weights = setup
     spec = PredictorSpec(checkpoint=str(weights), height=32, width=256, device="cpu")
     predictor = spec.build()
     scans = [read_scan(p) for p in sorted(data.rglob("*.bin"))[:2]]
-    pool = ScanPool(spec, actors=1, actor_cpus=1.0)
-    try:
-        assert pool.wait_ready(timeout=120)[0]["model"] == "rangeret-cir"
-        labels = [r.labels for r in asyncio.run(pool.predict_async(scans))]
-        expected = [r.labels for r in predictor.predict_batch(scans)]
-        assert all(np.array_equal(a, b) for a, b in zip(labels, expected, strict=True))
-        raw = asyncio.run(pool.predict_async(scans[:1], knn=False))[0]
-        assert raw.labels.shape == scans[0][:, 0].shape and raw.confidence is None
-        sure = asyncio.run(pool.predict_async(scans[:1], confidence=True))[0]
-        assert np.array_equal(sure.labels, expected[0])
-        assert sure.confidence.shape == expected[0].shape
-        assert (sure.confidence >= 0).all() and (sure.confidence <= 1).all()
-        killer = kill_actor_when(lambda: True, class_part="ScanWorker")
-        killer.join(timeout=30)
-        assert killer.killed
-        again = asyncio.run(pool.predict_async(scans[:1]))
-        assert np.array_equal(again[0].labels, expected[0])
-        assert pool.health()["ok"]
-    finally:
-        pool.shutdown()
+    worker = ScanWorker(spec)
+    assert worker.info()["model"] == "rangeret-cir" and worker.profile.name == "semantickitti"
+    labels = [r.labels for r in worker.predict(scans)]
+    expected = [r.labels for r in predictor.predict_batch(scans)]
+    assert all(np.array_equal(a, b) for a, b in zip(labels, expected, strict=True))
+    raw = worker.predict(scans[:1], knn=False)[0]
+    assert raw.labels.shape == scans[0][:, 0].shape and raw.confidence is None
+    assert not np.array_equal(raw.labels, expected[0])  # kNN changes some labels
+    sure = worker.predict(scans[:1], confidence=True)[0]
+    assert np.array_equal(sure.labels, expected[0])
+    assert sure.confidence.shape == expected[0].shape
+    assert (sure.confidence >= 0).all() and (sure.confidence <= 1).all()
 
 
-def test_a_job_runs_beside_the_gateways_pool_actors(ray_local, setup, tmp_path, capsys):
+def test_a_job_runs_beside_actors_that_hold_cpus(ray_local, setup, tmp_path, capsys):
     """Regression: CPU model actors were sized from a node's total CPUs, so a job never started
-    while other actors (the gateway's pool) held some of them."""
-    from workers.pool import ScanPool
-
+    while other actors (Serve replicas, say) held some of them."""
     data, weights = setup
-    pool = ScanPool(
-        PredictorSpec(checkpoint=str(weights), height=32, width=256, device="cpu"), actors=1
-    )
+
+    @ray_local.remote(num_cpus=1)
+    class Holder:
+        def ready(self) -> bool:
+            return True
+
+    holder = Holder.remote()
     try:
-        pool.wait_ready(timeout=120)
+        assert ray_local.get(holder.ready.remote(), timeout=120)
         code = job_main(
             [
                 "-q",
@@ -281,7 +274,7 @@ def test_a_job_runs_beside_the_gateways_pool_actors(ray_local, setup, tmp_path, 
         )
         assert code == 0 and len(tree_bytes(tmp_path / "p")) == 5
     finally:
-        pool.shutdown()
+        ray_local.kill(holder)
     capsys.readouterr()
 
 
@@ -312,13 +305,13 @@ def test_readers_and_writers_beside_gpu_actors_grow_with_the_free_cores():
 
 
 def test_model_actors_warm_up_before_their_first_batch(setup):
-    """The pipeline's and the pool's model actors run the network once when they are built: a
-    real batch then finds every decay table made and builds none."""
+    """The pipeline's model actors and the single-scan worker run the network once when they are
+    built: a real batch then finds every decay table made and builds none."""
     from rangeret.inference import checkpoint_profile
     from rangeret.layout import discover
     from rangeret.models.decay import GridCache
     from workers.pipeline import ModelWorker
-    from workers.pool import ScanWorker
+    from workers.scans import ScanWorker
     from workers.stages import ROW_COLUMN, BatchRecord, read_and_project
 
     data, weights = setup
@@ -331,16 +324,26 @@ def test_model_actors_warm_up_before_their_first_batch(setup):
         model_worker, scan_worker = ModelWorker(spec, 1.0), ScanWorker(spec)
     finally:
         torch.set_num_threads(threads)
+    scans = [read_scan(e.scan_path) for e in record.entries]
+
+    def through_model_worker() -> list:
+        labelled = BatchRecord.decode(
+            {ROW_COLUMN: model_worker({ROW_COLUMN: [row]})[ROW_COLUMN][0]}
+        )
+        return [error for _, error in labelled.results]
+
+    def through_scan_worker() -> list:
+        return [r if isinstance(r, str) else None for r in scan_worker.predict(scans)]
+
     runs = [
-        (model_worker.predictor, lambda: model_worker({ROW_COLUMN: [row]})[ROW_COLUMN][0]),
-        (scan_worker.spec_predictor, lambda: scan_worker.label_batch(row)),
+        (model_worker.predictor, through_model_worker),
+        (scan_worker.spec_predictor, through_scan_worker),
     ]
     for predictor, run in runs:
         caches = [m for m in predictor.network.modules() if isinstance(m, GridCache)]
         built = [c.entries() for c in caches]
         assert caches and all(any(key[0] != "rotary" for key in b) for b in built), built
-        labelled = BatchRecord.decode({ROW_COLUMN: run()})
-        assert [error for _, error in labelled.results] == [None, None]
+        assert run() == [None, None]
         after = [c.entries() for c in caches]
         assert [b.keys() for b in built] == [a.keys() for a in after]
         assert all(a[k] is b[k] for a, b in zip(after, built, strict=True) for k in b)

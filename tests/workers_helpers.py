@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import secrets
 import shutil
 import signal
 import socket
@@ -101,6 +102,11 @@ def node_ports(workers: int = 40) -> list[int]:
             return ports
 
 
+#: The Ray token of the nodes the tests start (token authentication needs one; without it a head
+#: would take `~/.ray/auth_token`, which exists only where an earlier `ray.init()` wrote it).
+RAY_TEST_TOKEN = secrets.token_hex(32)
+
+
 @dataclass
 class RayNode:
     """A node started with `ray start`: its GCS address, dashboard URL and environment."""
@@ -118,7 +124,12 @@ def ray_node(folder: Path, head: RayNode | None = None, num_cpus: int = 2, num_g
     folder of its own, stopped afterwards with its whole process group (never `ray stop`, which
     would stop every Ray on the machine)."""
     bindir = Path(sys.executable).parent
-    env = dict(os.environ, PATH=f"{bindir}{os.pathsep}{os.environ['PATH']}", RAY_AUTH_MODE="token")
+    env = dict(
+        os.environ,
+        PATH=f"{bindir}{os.pathsep}{os.environ['PATH']}",
+        RAY_AUTH_MODE="token",
+        RAY_AUTH_TOKEN=head.env["RAY_AUTH_TOKEN"] if head else RAY_TEST_TOKEN,
+    )
     gcs, dash, client, agent, grpc, metrics, nm, om, runtime_env, wmin = node_ports()
     cmd = [
         str(bindir / "ray"),

@@ -6,8 +6,7 @@ Scans are grouped into batches on the driver, in the same order and with the sam
 - `stages.Reader` (`read_and_project`; small CPU actors, a fraction of a core each): reads the
   scans and projects them; a scan that cannot be read travels on as a named failure.
 - `ModelWorker` (an actor pool: one GPU each when the cluster has GPUs, CPU actors otherwise): the
-  network on the batch, then kNN refinement and raw ids on the actor's device. A run can instead
-  send its batches to model actors that run already (`SharedModel`: the gateway's).
+  network on the batch, then kNN refinement and raw ids on the actor's device.
 - `stages.Writer` (`write_results`; small CPU actors like the readers): atomic writes of the label
   files and, for labelled scans, per-scan confusion matrices, summed per batch.
 
@@ -34,7 +33,7 @@ import warnings
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -45,7 +44,7 @@ from rangeret.profiles import DatasetProfile
 from rangeret.timing import StageTimes
 from workers.stages import ROW_COLUMN, BatchRecord, Reader, Writer
 
-if TYPE_CHECKING:  # torch stays out of the processes that only forward batches (`SharedModel`)
+if TYPE_CHECKING:  # torch stays out of the driver until a model actor needs it
     from rangeret.inference import Predictor, PredictorSpec
 
 log = logging.getLogger(__name__)
@@ -65,13 +64,6 @@ CPU_TASKS_IN_FLIGHT = 2
 """Batches sent to each CPU model actor at once: one running, one arriving. A batch takes a CPU
 actor seconds, so a deeper queue only leaves the last batches behind one actor while others idle."""
 
-SHARED_TASKS_IN_FLIGHT = 2
-"""Batches a run sends at once to each model actor it shares (the gateway's): one running, one
-queued, so the GPU stays busy while a single-scan request waits behind at most two batches."""
-
-SHARED_CPUS = 0.1
-"""CPUs of the one `SharedModel` actor, which only forwards batches and waits for their labels."""
-
 FREE_GPU_WAIT_S = 10.0
 """How long a run that finds no free GPU waits for one before it fails: actors that are ending
 (those of a job that has just finished) give their GPUs back within seconds."""
@@ -90,7 +82,7 @@ class PipelineOptions:
     """How the pipeline runs: batch size, model actors and the CPU share of each stage.
 
     GPU clusters: model actors default to one per GPU free when the run starts
-    (`ray.available_resources()`: a gateway's actors may hold some GPUs), each reserving
+    (`ray.available_resources()`: Serve replicas may hold some GPUs), each reserving
     `actor_cpus` or `GPU_ACTOR_CPUS`. With no GPU free after `FREE_GPU_WAIT_S` seconds the run is a
     `ClusterCapacityError` naming the numbers, unless an autoscaler can add GPUs (one actor then
     waits for them). Readers: up to one per CPU core of the cluster that the model actors leave
@@ -107,8 +99,7 @@ class PipelineOptions:
     ceil(actor_cpus) threads. Readers and writers: up to max(2, model actors) of each, the layout
     measured on 2 cores.
 
-    `actors`, `use_gpu` and `actor_cpus` shape the model actors a run starts; a run given actors
-    that run already (`run_pipeline`'s `model_actors`) uses those instead. Batches flow once every
+    `actors`, `use_gpu` and `actor_cpus` shape the model actors a run starts. Batches flow once every
     model actor has started, so that each GPU works from the first batch on;
     `actor_start_timeout` seconds without them (long enough for an autoscaler to bring GPU nodes
     up) is a `ClusterCapacityError`.
@@ -126,8 +117,8 @@ class PipelineOptions:
 
 @dataclass(frozen=True)
 class Layout:
-    """The actors of each stage of a run: `model` is "gpu" or "cpu" for model actors the run
-    starts, "shared" for actors that run already; readers and writers are the most of each."""
+    """The actors of each stage of a run: `model` is "gpu" or "cpu"; readers and writers are the
+    most of each."""
 
     model: str
     actors: int
@@ -138,19 +129,12 @@ class Layout:
     @property
     def in_flight(self) -> int:
         """Batches sent to each model actor at once (see the *_TASKS_IN_FLIGHT constants)."""
-        return {
-            "gpu": GPU_TASKS_IN_FLIGHT,
-            "cpu": CPU_TASKS_IN_FLIGHT,
-            "shared": SHARED_TASKS_IN_FLIGHT,
-        }[self.model]
+        return GPU_TASKS_IN_FLIGHT if self.model == "gpu" else CPU_TASKS_IN_FLIGHT
 
     def describe(self, options: PipelineOptions) -> str:
         """One line for the job's log."""
-        if self.model == "shared":
-            model = f"{self.actors} shared model actor(s)"
-        else:
-            gpu = "1 GPU + " if self.model == "gpu" else ""
-            model = f"{self.actors} model actor(s) ({gpu}{self.actor_cpus:g} CPU each)"
+        gpu = "1 GPU + " if self.model == "gpu" else ""
+        model = f"{self.actors} model actor(s) ({gpu}{self.actor_cpus:g} CPU each)"
         return (
             f"{model}, {self.in_flight} batch(es) of {options.batch_size} scan(s) in flight "
             f"each; up to {self.readers} readers ({options.read_cpus:g} CPU each) and "
@@ -238,30 +222,6 @@ class ModelWorker:
         return {ROW_COLUMN: [label_batch(self.predictor, row) for row in batch[ROW_COLUMN]]}
 
 
-class SharedModel:
-    """Stage 2 on model actors that run already (the gateway's `workers.pool.ScanWorker`s, with a
-    `label_batch` method): each batch goes to the one with the fewest of the run's batches in
-    flight. One actor of this class forwards every batch, on one thread per batch in flight."""
-
-    def __init__(self, actors: Sequence[Any]) -> None:
-        self.actors = list(actors)
-        self._busy = [0] * len(self.actors)
-        self._lock = threading.Lock()
-
-    def __call__(self, row: dict) -> dict:
-        import ray
-
-        with self._lock:
-            index = min(range(len(self.actors)), key=self._busy.__getitem__)
-            self._busy[index] += 1
-        try:
-            labelled = ray.get(self.actors[index].label_batch.remote(row[ROW_COLUMN]))
-        finally:
-            with self._lock:
-                self._busy[index] -= 1
-        return {ROW_COLUMN: labelled}
-
-
 def cluster_gpus() -> int:
     """Number of GPUs the connected Ray cluster offers (0 on CPU-only clusters)."""
     import ray
@@ -277,14 +237,10 @@ def gpu_feeders(free_cpus: float, model_cpus: float) -> tuple[int, int]:
     return max(2, math.floor(spare) - writers), writers
 
 
-def plan_layout(options: PipelineOptions, shared: int = 0) -> Layout:
-    """The actors of each stage for a run on the connected cluster (see `PipelineOptions`);
-    `shared` is the number of model actors that run already and take the run's batches."""
+def plan_layout(options: PipelineOptions) -> Layout:
+    """The actors of each stage for a run on the connected cluster (see `PipelineOptions`)."""
     import ray
 
-    if shared:
-        readers, writers = gpu_feeders(ray.available_resources().get("CPU", 0.0), 0.0)
-        return Layout("shared", shared, 0.0, readers, writers)
     gpus = cluster_gpus()
     use_gpu = gpus > 0 if options.use_gpu is None else options.use_gpu
     if use_gpu and not gpus:
@@ -306,7 +262,6 @@ def run_pipeline(
     options: PipelineOptions = PipelineOptions(),
     progress: Callable[[int, int, int], None] | None = None,
     cancel: threading.Event | None = None,
-    model_actors: Sequence[Any] | None = None,
 ) -> PipelineResult:
     """Predict `entries` into the tree at `out` on the connected Ray cluster.
 
@@ -315,9 +270,6 @@ def run_pipeline(
     projection, the writers its labels.
     `progress(done, failed, total)` is called after every batch; setting `cancel` stops the run
     after the batch in flight (files already written stay complete).
-    `model_actors`, when given, are model actors that run already, built from the same spec and
-    profile (`workers.pool.ScanPool`'s): the batches go to them instead of to actors the run
-    starts, so a job runs beside a gateway that holds the GPUs.
     """
     import ray
     import ray.data
@@ -326,7 +278,7 @@ def run_pipeline(
     result = PipelineResult(evaluator=RawLabelEvaluator(profile.labels))
     if not entries:
         return result
-    layout = plan_layout(options, len(model_actors or ()))
+    layout = plan_layout(options)
     result.actors, result.readers, result.writers = layout.actors, layout.readers, layout.writers
     log.info("pipeline: %s", layout.describe(options))
 
@@ -352,33 +304,19 @@ def run_pipeline(
         compute=ray.data.ActorPoolStrategy(min_size=1, max_size=layout.readers),
         num_cpus=options.read_cpus,
     )
-    if layout.model == "shared":
-        calls = layout.in_flight * layout.actors
-        ds = ds.map(
-            SharedModel,
-            fn_constructor_kwargs={"actors": list(model_actors or ())},
-            compute=ray.data.ActorPoolStrategy(
-                size=1,
-                max_tasks_in_flight_per_actor=calls,
-                max_concurrent_calls_per_actor=calls,
-                enable_true_multi_threading=True,
-            ),
-            num_cpus=SHARED_CPUS,
-        )
-    else:
-        worker_spec = replace(spec, profile=profile)
-        if layout.model == "cpu" and spec.device == "auto":
-            worker_spec = replace(worker_spec, device="cpu")
-        ds = ds.map_batches(
-            ModelWorker,
-            fn_constructor_kwargs={"spec": worker_spec, "cpus": layout.actor_cpus},
-            compute=ray.data.ActorPoolStrategy(
-                size=layout.actors, max_tasks_in_flight_per_actor=layout.in_flight
-            ),
-            batch_size=1,
-            num_cpus=layout.actor_cpus,
-            **({"num_gpus": 1} if layout.model == "gpu" else {}),
-        )
+    worker_spec = replace(spec, profile=profile)
+    if layout.model == "cpu" and spec.device == "auto":
+        worker_spec = replace(worker_spec, device="cpu")
+    ds = ds.map_batches(
+        ModelWorker,
+        fn_constructor_kwargs={"spec": worker_spec, "cpus": layout.actor_cpus},
+        compute=ray.data.ActorPoolStrategy(
+            size=layout.actors, max_tasks_in_flight_per_actor=layout.in_flight
+        ),
+        batch_size=1,
+        num_cpus=layout.actor_cpus,
+        **({"num_gpus": 1} if layout.model == "gpu" else {}),
+    )
     ds = ds.map(
         Writer,
         fn_constructor_kwargs={"out": out, "label_config": profile.labels},
@@ -395,7 +333,7 @@ def run_pipeline(
         rows = iter(ds.iter_rows())
         first = next(rows, None)
     except ray.exceptions.GetTimeoutError as exc:
-        need = {"gpu": "1 GPU", "cpu": f"{layout.actor_cpus:g} CPU", "shared": "their CPUs"}
+        need = {"gpu": "1 GPU", "cpu": f"{layout.actor_cpus:g} CPU"}
         raise ClusterCapacityError(
             f"the pipeline's actors ({layout.describe(options)}) did not start within "
             f"{options.actor_start_timeout:g} s: the Ray cluster does not offer "
@@ -449,19 +387,19 @@ def _free_gpus(gpus: int) -> int:
         time.sleep(0.5)
     if free:
         return free
-    most = _autoscaler_gpus()
+    most = autoscaler_gpus()
     if most > gpus:
         log.info("no GPU is free; the autoscaler can grow the cluster to %d GPUs: waiting", most)
         return 1
     raise ClusterCapacityError(
         f"none of the Ray cluster's {gpus} GPU(s) is free (0 of {gpus} after "
-        f"{FREE_GPU_WAIT_S:g} s: other actors, such as a gateway's model actors, hold them) and "
-        "the cluster cannot grow: submit the job to the gateway, which runs it on its own actors, "
-        "or start the gateway with fewer --actors than GPUs"
+        f"{FREE_GPU_WAIT_S:g} s: other actors, such as the Serve application's replicas, hold "
+        "them) and the cluster cannot grow: give the cluster more GPUs, an autoscaler, or lower "
+        "the Serve application's max_replicas"
     )
 
 
-def _autoscaler_gpus() -> int:
+def autoscaler_gpus() -> int:
     """The most GPUs the autoscaler may grow the cluster to, as Ray Train reads it; 0 where no
     autoscaler reports one (a fixed cluster) or the driver cannot ask (through Ray Client)."""
     import ray
@@ -476,7 +414,7 @@ def _autoscaler_gpus() -> int:
 
 def _cpu_layout(options: PipelineOptions) -> tuple[int, float]:
     """CPU model actors and the CPUs of each: see `PipelineOptions`. The free CPUs are those of the
-    largest node not held now (other actors, such as the gateway's, may hold some)."""
+    largest node not held now (other actors, such as Serve replicas, may hold some)."""
     import ray
 
     largest = max((n["Resources"].get("CPU", 0.0) for n in ray.nodes() if n["Alive"]), default=1.0)

@@ -46,7 +46,7 @@ async def healthz(
     gw: GatewayDep,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(BEARER)],
 ) -> JSONResponse:
-    state = await asyncio.to_thread(gw.pool.health)
+    state = await gw.labeller.health()
     ok = bool(state.get("ok"))
     workers = state.get("actors", [])
     model = gw.model or next((w["model"] for w in workers if w.get("model")), None)
@@ -62,11 +62,11 @@ async def healthz(
     precisions = sorted({w["precision"] for w in workers if w.get("precision")})
     body = Health(
         **summary.model_dump(),
-        backend=state.get("backend", gw.pool.backend),
+        backend=state.get("backend", gw.labeller.backend),
         point_fields=list(gw.profile.points.fields),
         workers=workers,
         precision=", ".join(precisions) or None,
-        queue_depth=gw.batcher.depth() if gw.batcher else 0,
+        queue_depth=gw.labeller.depth(),
         batch_size=gw.settings.batch_size,
         batch_wait_ms=gw.settings.batch_wait_ms,
         checkpoint_sha256=gw.checkpoint_sha256,
@@ -87,6 +87,6 @@ async def healthz(
     },
 )
 async def metrics(gw: GatewayDep) -> Response:
-    depth = gw.batcher.depth() if gw.batcher else 0
+    depth = gw.labeller.depth()
     counts = await asyncio.to_thread(gw.jobs.store.counts) if gw.jobs else {}
     return Response(gw.metrics.render(depth, counts), media_type=gw.metrics.content_type)

@@ -15,7 +15,7 @@ from fastapi.responses import JSONResponse, Response
 from rangeret.io import ScanFormatError, parse_scan
 from rangeret.labels import LabelConfig
 from service.admission import RETRY_AFTER_S, QueueFull
-from service.batching import BackendError, ScanRejected
+from service.batching import BackendError, BackendTimeout, ScanRejected
 from service.dependencies import GatewayDep
 from service.errors import ApiError, error_responses
 from service.gateway import Gateway
@@ -75,7 +75,7 @@ def _class_counts(labels: np.ndarray, config: LabelConfig) -> dict[str, int]:
                 "application/json": {"schema": ScanLabels.model_json_schema()},
             },
         },
-        **error_responses(400, 408, 413, 415, 503),
+        **error_responses(400, 408, 413, 415, 503, 504),
     },
     openapi_extra={"requestBody": {"required": True, "content": {OCTET: BINARY_CONTENT}}},
 )
@@ -144,14 +144,16 @@ async def _label(request: Request, gw: Gateway, knn: bool, confidence: bool) -> 
         points = await asyncio.to_thread(parse_scan, body, "the scan", record)
     except ScanFormatError as exc:
         raise ApiError(400, f"The scan is malformed: {exc.problem}.") from exc
-    if gw.batcher is None:
+    if not gw.started:
         raise ApiError(503, "The gateway is starting; try again in a moment.")
     try:
-        labelled = await gw.batcher.label(points, knn, confidence)
+        labelled = await gw.labeller.label(points, body, knn, confidence)
     except ScanRejected as exc:
         raise ApiError(400, f"The scan cannot be projected: {exc}.") from exc
+    except BackendTimeout as exc:
+        raise ApiError(504, _sentence(exc)) from exc
     except BackendError as exc:
-        raise ApiError(503, str(exc)) from exc
+        raise ApiError(503, _sentence(exc), {"Retry-After": str(RETRY_AFTER_S)}) from exc
     gw.metrics.scans.labels(source="request").inc()
     gw.metrics.points.inc(len(points))
     raw = labelled.labels.astype("<u4", copy=False)
@@ -166,3 +168,9 @@ async def _label(request: Request, gw: Gateway, knn: bool, confidence: bool) -> 
         )
         return JSONResponse(body.model_dump(exclude_none=True))
     return Response(raw.tobytes(), media_type=OCTET)
+
+
+def _sentence(exc: Exception) -> str:
+    """A backend failure as the answer's sentence."""
+    text = str(exc)
+    return text[:1].upper() + text[1:] + ("" if text.endswith(".") else ".")

@@ -1,0 +1,188 @@
+"""Single scans labelled by the Serve application (`workers.serve_app`) through Serve's HTTP proxy.
+
+`ServeLabeller` posts each admitted scan's bytes to `<serve url>/scans` (the proxy's scheme, host
+and port, then the application's route prefix) and reads the labels back in the exchange of
+`workers.scan_wire`; Serve batches concurrent requests on its replicas. An answer that does not
+come within `timeout` seconds is `BackendTimeout` (504); an unreachable, overloaded (503) or
+failing application is `BackendError` (503 with Retry-After). At start-up `check_serves` compares
+the application's checkpoint and profile with the gateway's.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+
+import httpx
+import numpy as np
+
+from rangeret.errors import CommandError
+from rangeret.profiles import DatasetProfile
+from service.batching import BackendError, BackendTimeout, ScanRejected
+from workers.scan_wire import INFO_PATH, OCTET, SCANS_PATH, decode_labels, options_query
+from workers.scans import LabelledScan
+
+log = logging.getLogger(__name__)
+
+#: Connections kept open to the proxy; requests beyond them wait for one (within `timeout`).
+MAX_CONNECTIONS = 256
+#: How long one health or start-up probe of the application may take.
+PROBE_TIMEOUT_S = 10.0
+
+
+class ServeLabeller:
+    """Labels single scans on the Serve application at `url`."""
+
+    backend = "serve"
+
+    def __init__(self, url: str, profile: DatasetProfile, timeout: float) -> None:
+        self.url = url.rstrip("/")
+        self.profile = profile
+        self.timeout = timeout
+        self._client: httpx.AsyncClient | None = None
+        self._in_flight = 0
+
+    def _new_client(self) -> httpx.AsyncClient:
+        limits = httpx.Limits(
+            max_connections=MAX_CONNECTIONS, max_keepalive_connections=MAX_CONNECTIONS
+        )
+        return httpx.AsyncClient(timeout=httpx.Timeout(self.timeout), limits=limits)
+
+    async def start(self, on_batch: object = None) -> None:
+        """Open the connection pool (Serve does the batching, so `on_batch` is not called)."""
+        self._client = self._new_client()
+
+    async def stop(self) -> None:
+        """Close the connection pool."""
+        if self._client is not None:
+            await self._client.aclose()
+            self._client = None
+
+    async def label(
+        self, points: np.ndarray, raw: bytes, knn: bool = True, confidence: bool = False
+    ) -> LabelledScan:
+        """One scan (`raw`, its bytes; `points`, them parsed) labelled by the application."""
+        if self._client is None:
+            raise BackendError("the gateway is starting; try again in a moment")
+        self._in_flight += 1
+        try:
+            response = await asyncio.wait_for(
+                self._client.post(
+                    self.url + SCANS_PATH,
+                    params=options_query(knn, confidence),
+                    content=raw,
+                    headers={"Content-Type": OCTET},
+                ),
+                self.timeout,
+            )
+        except (asyncio.TimeoutError, httpx.TimeoutException) as exc:
+            raise BackendTimeout(
+                f"the Serve application at {self.url} did not answer within {self.timeout:g} s "
+                "(RANGERET_SERVE_TIMEOUT_S)"
+            ) from exc
+        except httpx.TransportError as exc:
+            raise BackendError(
+                f"the Serve application at {self.url} cannot be reached ({_reason(exc)})"
+            ) from exc
+        finally:
+            self._in_flight -= 1
+        return self._answer(response, len(points))
+
+    def _answer(self, response: httpx.Response, points: int) -> LabelledScan:
+        """The labels of a 200, or the error its status means."""
+        if response.status_code == 200:
+            try:
+                return decode_labels(response.content, response.headers, points)
+            except ValueError as exc:
+                raise BackendError(str(exc)) from exc
+        detail = _detail(response)
+        if response.status_code == 422:
+            raise ScanRejected(detail.removeprefix("The scan cannot be projected: ").rstrip("."))
+        if response.status_code in (408, 504):
+            raise BackendTimeout(
+                f"the Serve application at {self.url} timed out ({response.status_code})"
+            )
+        if response.status_code == 503:
+            raise BackendError(
+                f"the Serve application at {self.url} is overloaded or has no replica ready"
+            )
+        if response.status_code == 404:
+            raise BackendError(
+                f"no Serve application answers at {self.url} (404): is it deployed with this "
+                "route prefix?"
+            )
+        raise BackendError(
+            f"the Serve application at {self.url} answered {response.status_code}: {detail}"
+        )
+
+    def depth(self) -> int:
+        """Scans sent to the application and not answered yet."""
+        return self._in_flight
+
+    async def health(self) -> dict:
+        """Whether the application answers, and what it serves."""
+        client = self._client or self._new_client()
+        try:
+            response = await client.get(self.url + INFO_PATH, timeout=PROBE_TIMEOUT_S)
+            response.raise_for_status()
+            return {"backend": self.backend, "ok": True, "actors": [response.json()]}
+        except (httpx.HTTPError, ValueError) as exc:
+            return {
+                "backend": self.backend,
+                "ok": False,
+                "error": f"the Serve application at {self.url}: {_reason(exc)}",
+            }
+        finally:
+            if client is not self._client:
+                await client.aclose()
+
+    def check_serves(self, sha256: str, wait_s: float) -> dict:
+        """The application's description, once it answers (waiting up to `wait_s` seconds);
+        a `CommandError` naming both when it serves another checkpoint or profile than
+        `sha256` and the gateway's profile, or when it never answers."""
+        deadline = time.monotonic() + wait_s
+        problem = ""
+        while True:
+            try:
+                response = httpx.get(self.url + INFO_PATH, timeout=PROBE_TIMEOUT_S)
+                if response.status_code == 200:
+                    served = response.json()
+                    break
+                problem = f"it answered {response.status_code}"
+            except (httpx.HTTPError, ValueError) as exc:
+                problem = _reason(exc)
+            if time.monotonic() >= deadline:
+                raise CommandError(
+                    f"the Serve application at {self.url} did not answer within {wait_s:g} s "
+                    f"({problem}): deploy it first (serve deploy, or the RayService), or fix "
+                    "--serve-url"
+                )
+            log.info("waiting for the Serve application at %s (%s)", self.url, problem)
+            time.sleep(2.0)
+        theirs = served.get("checkpoint_sha256")
+        if theirs != sha256:
+            raise CommandError(
+                f"the Serve application at {self.url} serves checkpoint sha256 {theirs} and this "
+                f"gateway's checkpoint is sha256 {sha256}: give both the same weights"
+            )
+        if served.get("profile") != self.profile.name:
+            raise CommandError(
+                f"the Serve application at {self.url} serves the {served.get('profile')} profile "
+                f"and this gateway the {self.profile.name} profile: give both the same one"
+            )
+        return served
+
+
+def _detail(response: httpx.Response) -> str:
+    """The `detail` of an error answer, or the start of its text."""
+    try:
+        return str(response.json()["detail"])
+    except (ValueError, KeyError, TypeError):
+        return " ".join(response.text.split())[:200] or response.reason_phrase
+
+
+def _reason(exc: BaseException) -> str:
+    """A short reason for a failed request."""
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text}"[:300] if text else type(exc).__name__
