@@ -1,5 +1,5 @@
-"""The job store's schema version (stamped, checked, refused when newer) and the rule that no
-SQLite call runs on the gateway's event loop."""
+"""The job store's schema version (stamped, migrated, checked, refused when newer), its submission
+counter, and the rule that no SQLite call runs on the gateway's event loop."""
 
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ from service.app import create_app
 from service.jobs import SCHEMA_VERSION, JobDatabaseVersionError, JobStore
 from service.schemas import JobState
 from service.settings import Settings
-from workers.pool import LabelledScan
+from workers.scans import LabelledScan
 
 TOKEN = "store-test-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -50,35 +50,95 @@ def _set_user_version(path: Path, version: int) -> None:
 # Schema version --------------------------------------------------------------------------------
 
 
+#: The jobs table of schema version 1, as gateways of that version (and before it) wrote it.
+_VERSION_1_TABLE = """CREATE TABLE jobs (
+    id TEXT PRIMARY KEY, kind TEXT NOT NULL, state TEXT NOT NULL,
+    dataset TEXT NOT NULL, sequences TEXT NOT NULL, created REAL NOT NULL,
+    total INTEGER NOT NULL DEFAULT 0, done INTEGER NOT NULL DEFAULT 0,
+    failed INTEGER NOT NULL DEFAULT 0, errors TEXT NOT NULL DEFAULT '[]',
+    reason TEXT, metrics TEXT, predictions TEXT, report TEXT,
+    started REAL, finished REAL, attempts INTEGER NOT NULL DEFAULT 0)"""
+
+
+def _old_database(path: Path, version: int, job_id: str) -> None:
+    """A file of schema version 1 (stamped `version`: 0 is a file from before the version was
+    kept) holding one running job with counts, started twice."""
+    db = sqlite3.connect(path)
+    try:
+        db.execute(_VERSION_1_TABLE)
+        db.execute("CREATE INDEX jobs_state ON jobs (state, created)")
+        db.execute(
+            "INSERT INTO jobs (id, kind, state, dataset, sequences, created, total, done, "
+            "attempts, started) VALUES (?, 'archive', 'running', '/data', '[\"11\"]', 1.0, 5, 3, "
+            "2, 2.0)",
+            (job_id,),
+        )
+        db.execute(f"PRAGMA user_version = {version}")
+        db.commit()
+    finally:
+        db.close()
+
+
+def _columns(path: Path) -> list[str]:
+    db = sqlite3.connect(path)
+    try:
+        return [row[1] for row in db.execute("PRAGMA table_info(jobs)")]
+    finally:
+        db.close()
+
+
 def test_a_new_database_is_stamped_with_the_schema_version(tmp_path):
     path = tmp_path / "state" / "jobs.sqlite"
     store = JobStore(path)
     store.create("a" * 32, "dataset", tmp_path, ["08"])
     store.close()
-    assert _user_version(path) == SCHEMA_VERSION == 1
+    assert _user_version(path) == SCHEMA_VERSION == 2
+    assert _columns(path)[-2:] == ["attempts", "submission"]
     again = JobStore(path)
     try:
-        assert again.get("a" * 32).state is JobState.queued
+        record = again.get("a" * 32)
+        assert record.state is JobState.queued and record.submission == 0
     finally:
         again.close()
     assert _user_version(path) == SCHEMA_VERSION
 
 
-def test_a_database_from_before_the_version_is_stamped_and_keeps_its_jobs(tmp_path):
+@pytest.mark.parametrize("version", [0, 1], ids=["before-versions", "version-1"])
+def test_an_older_database_is_migrated_and_keeps_its_jobs(tmp_path, version):
     path = tmp_path / "jobs.sqlite"
-    store = JobStore(path)
-    store.create("b" * 32, "archive", tmp_path, ["11"])
-    store.start("b" * 32)
-    store.close()
-    _set_user_version(path, 0)  # what a gateway that kept no version left behind
+    _old_database(path, version, "b" * 32)
     reopened = JobStore(path)
     try:
         record = reopened.get("b" * 32)
         assert record.state is JobState.running and record.sequences == ["11"]
-        assert record.attempts == 1
+        assert (record.total, record.done, record.attempts, record.started) == (5, 3, 2, 2.0)
+        assert record.submission == 0
+        assert reopened.next_submission("b" * 32) == 1
     finally:
         reopened.close()
     assert _user_version(path) == SCHEMA_VERSION
+    assert "submission" in _columns(path)
+    again = JobStore(path)  # a migrated file opens as it is
+    try:
+        assert again.get("b" * 32).submission == 1
+    finally:
+        again.close()
+
+
+def test_submissions_are_counted_and_kept_across_restarts(tmp_path):
+    path = tmp_path / "jobs.sqlite"
+    store = JobStore(path)
+    store.create("c" * 32, "dataset", tmp_path, ["08"])
+    assert [store.next_submission("c" * 32) for _ in range(3)] == [1, 2, 3]
+    assert store.claim_next().submission == 3
+    store.close()
+    again = JobStore(path)
+    try:
+        assert again.get("c" * 32).submission == 3 and again.next_submission("c" * 32) == 4
+        with pytest.raises(KeyError):
+            again.next_submission("not-a-job")
+    finally:
+        again.close()
 
 
 def test_a_newer_database_is_refused_naming_the_file_and_both_versions(tmp_path):
@@ -99,27 +159,33 @@ def test_create_app_refuses_a_newer_database_before_serving(tmp_path):
     JobStore(settings.database_path).close()
     _set_user_version(settings.database_path, SCHEMA_VERSION + 5)
     with pytest.raises(JobDatabaseVersionError, match=str(SCHEMA_VERSION + 5)):
-        create_app(settings, FakePool(), FakeExecutor())
+        create_app(settings, FakeLabeller(), FakeExecutor())
     assert not (tmp_path / "absent").exists()
-    create_app(Settings(state_dir=tmp_path / "absent"), FakePool(), FakeExecutor())
+    create_app(Settings(state_dir=tmp_path / "absent"), FakeLabeller(), FakeExecutor())
     assert not (tmp_path / "absent").exists()  # checking creates nothing
 
 
 # No SQLite on the event loop -------------------------------------------------------------------
 
 
-class FakePool:
-    """A worker pool answering label 40 for every point."""
+class FakeLabeller:
+    """A single-scan labeller answering label 40 for every point."""
 
     backend = "local"
 
-    async def predict_async(self, scans, knn=True, confidence=False):
-        return [LabelledScan(np.full(len(s), 40, dtype=np.uint32)) for s in scans]
+    async def start(self, on_batch=None):
+        return None
 
-    def queue_depth(self):
+    async def stop(self):
+        return None
+
+    async def label(self, points, raw, knn=True, confidence=False):
+        return LabelledScan(np.full(len(points), 40, dtype=np.uint32))
+
+    def depth(self):
         return 0
 
-    def health(self):
+    async def health(self):
         return {"backend": "local", "ok": True, "actors": [{"pid": os.getpid()}]}
 
 
@@ -179,7 +245,7 @@ def test_routes_never_touch_the_store_on_the_event_loop(tmp_path, monkeypatch):
     roots = tmp_path / "roots"
     make_tree(roots / "data", {"08": [30, 40], "11": [20]}, labelled=True)
     settings = Settings(state_dir=tmp_path / "state", data_roots=[roots], api_token=TOKEN)
-    app = create_app(settings, FakePool(), FakeExecutor())
+    app = create_app(settings, FakeLabeller(), FakeExecutor())
     archive = io.BytesIO()
     with zipfile.ZipFile(archive, "w") as zf:
         for path in sorted((roots / "data").rglob("*.bin")):

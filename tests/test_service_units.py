@@ -30,7 +30,7 @@ from service.jobs import JobManager, JobRefused, JobStore, write_predictions_zip
 from service.routes.scans import wants_json
 from service.schemas import JobState
 from service.settings import Settings, is_loopback
-from workers.pool import LabelledScan
+from workers.scans import LabelledScan
 
 LIMITS = ArchiveLimits(
     max_bytes=1 << 20, max_members=20, max_points=1000, max_extracted_bytes=1 << 20

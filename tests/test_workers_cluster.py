@@ -1,5 +1,6 @@
 """A two-node cluster on one machine with logical GPUs: one model actor per GPU, a GPU node that
-leaves mid-job without costing a scan, and jobs beside a gateway's pool that holds GPUs.
+leaves mid-job without costing a scan, and jobs beside other actors (Serve replicas) that hold
+GPUs.
 
 The actors are scheduled on the logical GPUs (one each) but run their network on the CPU
 (`device="cpu"`), so the tests behave the same on a host with a real GPU.
@@ -9,7 +10,6 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import replace
 
 import pytest
 from workers_helpers import build_tree, small_weights, tree_bytes
@@ -122,64 +122,33 @@ def test_more_gpu_actors_than_gpus_is_a_named_error_not_a_hang(cluster, tmp_path
     assert not list((tmp_path / "out").rglob("*.label"))
 
 
-def test_a_job_runs_on_the_gateways_actors_that_hold_every_gpu(cluster, tmp_path):
-    """The gateway's pool holds one actor per GPU: a job that starts its own actors fails at once
-    with the numbers (the cluster cannot grow), and one given the pool's actors finishes."""
-    from service.jobs import RayExecutor
+def test_a_job_takes_the_gpus_other_actors_leave(cluster, tmp_path):
+    """An actor holds one of the two GPUs (as a Serve replica does): a job sizes its model actors
+    from the free GPUs, and one that finds none free says so with the numbers."""
+    import ray
+
     from workers.pipeline import ClusterCapacityError
-    from workers.pool import ScanPool
 
-    weights = small_weights(tmp_path)
-    data = build_tree(tmp_path / "data", labelled=2, unlabelled=3)
-    _predict_here(weights, data, tmp_path / "single")
-    spec = _spec(weights)
-    _, profile = checkpoint_profile(spec)
-    entries = discover(data, ["08", "11"]).scans
-    pool = ScanPool(replace(spec, profile=profile))
-    try:
-        infos = pool.wait_ready(timeout=120)
-        assert pool.use_gpu and [i["device"] for i in infos] == ["cpu", "cpu"]
-        _wait_for_free_gpus(0)
-        with pytest.raises(ClusterCapacityError, match=r"none of the Ray cluster's 2 GPU\(s\)"):
-            _job(weights, data, tmp_path / "own", actor_start_timeout=20)
-
-        options = PipelineOptions(read_cpus=0.25, write_cpus=0.1, actor_start_timeout=20)
-        out = tmp_path / "on-pool"
-        result = run_pipeline(spec, profile, entries, out, options, model_actors=pool.actors)
-        assert not result.failed and result.written == len(entries) == 5
-        assert result.actors == 2 and {d.split("@")[0] for d in result.devices} == {"cpu"}
-        assert tree_bytes(out) == tree_bytes(tmp_path / "single")
-
-        executor = RayExecutor(spec, profile, pool=pool)
-        done: list[tuple[int, int, int]] = []
-        failed = executor.predict(
-            entries,
-            data,
-            ["08", "11"],
-            tmp_path / "job",
-            lambda *counts: done.append(counts),
-            threading.Event(),
-        )
-        assert failed == {} and done[-1] == (5, 0, 5)
-        assert tree_bytes(tmp_path / "job") == tree_bytes(tmp_path / "single")
-        assert executor.precision == "fp32"
-    finally:
-        pool.shutdown()
-
-
-def test_a_job_takes_the_gpus_the_gateway_leaves(cluster, tmp_path):
-    """A gateway started with fewer actors than GPUs: a job sizes its actors from the free GPUs."""
-    from workers.pool import ScanPool
+    @ray.remote(num_gpus=1, num_cpus=0)
+    class Replica:
+        def ready(self) -> bool:
+            return True
 
     weights = small_weights(tmp_path)
     data = build_tree(tmp_path / "data", labelled=1, unlabelled=3)
-    pool = ScanPool(_spec(weights), actors=1)
+    holders = [Replica.remote()]
     try:
-        pool.wait_ready(timeout=120)
+        ray.get(holders[0].ready.remote(), timeout=120)
         _wait_for_free_gpus(1)
         result = _job(weights, data, tmp_path / "out", actor_start_timeout=20)
         assert result.actors == 1 and len(result.devices) == 1
         assert not result.failed and result.written == 4
         assert result.readers >= 2 and result.writers >= 2
+        holders.append(Replica.remote())
+        ray.get(holders[1].ready.remote(), timeout=120)
+        _wait_for_free_gpus(0)
+        with pytest.raises(ClusterCapacityError, match=r"none of the Ray cluster's 2 GPU\(s\)"):
+            _job(weights, data, tmp_path / "none", actor_start_timeout=20)
     finally:
-        pool.shutdown()
+        for holder in holders:
+            ray.kill(holder)

@@ -7,7 +7,9 @@ Connects to the cluster in RAY_ADDRESS (set by `ray job submit`), or starts a lo
 none is set. On a multi-node cluster ROOT and PRED must be on storage every node mounts. The job
 writes the predictions tree; for labelled scans the evaluation report (JSON and PNGs); with
 `--submission` the validated archive. Scans already predicted are skipped (resume); the job
-exits non-zero when any scan could not be predicted, naming each one.
+exits non-zero when any scan could not be predicted, naming each one. It keeps its progress in
+PRED/progress.json (`workers.progress`): a record at the start, after batches, and a final one at
+the very end, also when scans failed or bad input stopped it.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from rangeret.errors import CommandError, run_command
+from rangeret.errors import USER_ERRORS, CommandError, run_command
 from rangeret.inference import (
     DEMO_WARNING,
     PredictorSpec,
@@ -41,6 +43,7 @@ from rangeret.predict import PredictSummary, is_complete, list_scans
 from rangeret.profiles import DEFAULT_PROFILE, DatasetProfile
 from rangeret.run_info import write_run_info
 from workers.pipeline import PipelineOptions, count_labels, run_pipeline
+from workers.progress import ProgressWriter
 
 log = logging.getLogger("workers.predict_job")
 
@@ -111,7 +114,23 @@ def connect(address: str | None) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the job for parsed arguments; returns the exit code."""
+    """Run the job for parsed arguments; returns the exit code. The final progress record is
+    written last, also when failed scans or bad input (the errors `run_command` reports as one
+    line) end the job; a job stopped by anything else leaves none."""
+    recorder = ProgressWriter(args.out)
+    try:
+        return _run(args, recorder)
+    except (CommandError, *USER_ERRORS) as exc:
+        if not recorder.finished:
+            try:
+                recorder.finish(error=exc.reason if isinstance(exc, CommandError) else str(exc))
+            except OSError as problem:  # the error itself is what the user must see
+                log.warning("the final progress record could not be written: %s", problem)
+        raise
+
+
+def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
+    """The job's body, keeping its progress with `recorder`."""
     leaderboard = leaderboard_from_args(args)
     spec = spec_from_args(args)
     if args.actors is not None and args.actors < 1:
@@ -134,6 +153,7 @@ def run(args: argparse.Namespace) -> int:
     )
     demo = is_demo_checkpoint(info.sha256)
     _write_run_info(args, spec, info, profile, sequences)
+    recorder.start(len(entries), len(done))
 
     connect(None)
     options = PipelineOptions(
@@ -143,7 +163,8 @@ def run(args: argparse.Namespace) -> int:
         actor_cpus=args.actor_cpus,
         use_gpu=None if args.device == "auto" else args.device == "cuda",
     )
-    result = run_pipeline(spec, profile, pending, args.out, options)
+    result = run_pipeline(spec, profile, pending, args.out, options, progress=recorder.batch)
+    precision = result.precision(spec)
     log.info("model actors: %s", ", ".join(result.devices) or "none needed")
 
     summary = PredictSummary(
@@ -162,7 +183,7 @@ def run(args: argparse.Namespace) -> int:
     if evaluator.num_scans and not result.failed:
         report = evaluator.report(sequences, info.sha256)
         report.profile = profile.name
-        report.precision = result.precision(spec)
+        report.precision = precision
         report.backend = spec.backend
         if demo:
             report.notes.append(DEMO_WARNING)
@@ -179,6 +200,7 @@ def run(args: argparse.Namespace) -> int:
         log.warning("no scan of %s has ground truth: no evaluation report", ", ".join(sequences))
 
     if result.failed:
+        recorder.finish(failures=result.failed, precision=precision)
         raise CommandError(
             f"{len(result.failed)} of {len(entries)} scans could not be predicted "
             f"(every other scan was written to {args.out})",
@@ -209,6 +231,7 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.quiet,
         )
         print(check.summary())
+    recorder.finish(precision=precision)
     return 0
 
 

@@ -49,8 +49,14 @@ class ScanWorker:
         return self.spec_predictor.profile
 
     def info(self) -> dict:
-        """Who this worker is: process, device and model, for health checks."""
-        return {"pid": os.getpid(), **self.spec_predictor.describe()}
+        """Who this worker is: process, torch threads, device and model, for health checks."""
+        import torch
+
+        return {
+            "pid": os.getpid(),
+            "threads": torch.get_num_threads(),
+            **self.spec_predictor.describe(),
+        }
 
     def predict(
         self, scans: Sequence[np.ndarray], knn: bool = True, confidence: bool = False

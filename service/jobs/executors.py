@@ -1,9 +1,11 @@
 """Running a job's scans through the network, and zipping the predictions it wrote.
 
-`LocalExecutor` runs `predict_tree` in this process; `RayExecutor` sends the scans through the Ray
-pipeline of the connected cluster. Both read the scans with the served profile's layout and point
-record, and skip the scans whose prediction is already written, so an interrupted job resumes
-where it stopped.
+A `JobExecutor` predicts a job's scans: `LocalExecutor` runs `predict_tree` in this process;
+`service.jobs.ray_jobs.RayJobExecutor` submits each job to a Ray cluster through its Jobs API.
+Both read the scans with the served profile's layout and point record, and skip the scans whose
+prediction is already written, so an interrupted job resumes where it stopped. The runner hands
+each `predict` a `JobControl`, which it sets when the job must stop running here and which tells
+a cancelled job from a gateway that stops.
 """
 
 from __future__ import annotations
@@ -11,20 +13,58 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 from rangeret.atomic import atomic_path
 from rangeret.inference import Predictor, PredictorSpec
 from rangeret.layout import ScanEntry, prediction_path
-from rangeret.predict import is_complete, predict_tree
+from rangeret.predict import predict_tree
 from rangeret.profiles import DEFAULT_PROFILE, DatasetProfile, load_profile
 from rangeret.submission import TEST_SEQUENCES, required_directories
 from rangeret.zipfiles import ReproducibleZip
+from service.jobs.store import JobRecord, JobStore
+from service.schemas import JobState
 
-if TYPE_CHECKING:
-    from workers.pool import ScanPool
-
+#: `progress(seen, failed, pending)`: of the scans a `predict` call had to predict, `seen` are
+#: through and `failed` of them failed.
 Progress = Callable[[int, int, int], None]
+
+
+class JobError(Exception):
+    """A job that cannot go on, with the one sentence that becomes its reason."""
+
+
+class JobControl(threading.Event):
+    """The runner's hold on one running job: set when the job must stop running here.
+
+    Set either because the job was cancelled (`cancelled`: work it started elsewhere is stopped)
+    or because the gateway stops (work that runs elsewhere goes on and is found again when the
+    gateway starts). It also reads and counts the job's submissions in the store.
+    """
+
+    def __init__(self, job_id: str, store: JobStore) -> None:
+        super().__init__()
+        self.job_id = job_id
+        self.store = store
+
+    def record(self) -> JobRecord | None:
+        """The job's stored record (None once it is forgotten)."""
+        return self.store.get(self.job_id)
+
+    @property
+    def cancelled(self) -> bool:
+        """Whether the job was cancelled (or forgotten), rather than paused by a gateway stop."""
+        record = self.record()
+        return record is None or record.state is JobState.cancelled
+
+    def submission(self) -> int:
+        """The number of the job's latest submission (0: never submitted)."""
+        record = self.record()
+        return record.submission if record is not None else 0
+
+    def next_submission(self) -> int:
+        """Count a new submission and return its number, stored before it is made."""
+        return self.store.next_submission(self.job_id)
 
 
 class JobExecutor(Protocol):
@@ -43,9 +83,12 @@ class JobExecutor(Protocol):
         sequences: list[str],
         out: Path,
         progress: Progress,
-        cancel: threading.Event,
+        cancel: JobControl,
     ) -> dict[str, str]:
-        """Write the predictions of the scans not done yet; return failures by scan key."""
+        """Write the predictions of the scans not done yet; return failures by scan key.
+
+        Returns early once `cancel` is set; `JobError` when the job cannot go on.
+        """
         ...
 
 
@@ -75,7 +118,8 @@ class LocalExecutor:
         progress: Progress,
         cancel: threading.Event,
     ) -> dict[str, str]:
-        """Predict the dataset's sequences into `out`, skipping scans already done."""
+        """Predict the dataset's sequences into `out`, skipping scans already done; a cancel
+        or a gateway stop both stop it after the batch in flight."""
         if self._predictor is None:
             self._predictor = self.spec.build()
         self.precision = self._predictor.precision
@@ -90,66 +134,6 @@ class LocalExecutor:
             cancel=cancel,
         )
         return summary.failed
-
-
-class RayExecutor:
-    """`workers.pipeline.run_pipeline` on the connected Ray cluster.
-
-    Given the gateway's `pool` of GPU actors, jobs run on those actors (single-scan requests wait
-    behind at most two of a job's batches), since the pool holds one actor per GPU and a job would
-    find none free. Otherwise each job starts its own model actors (`actors`, or the pipeline's
-    default: one per free GPU, or per free CPU of a CPU cluster).
-    """
-
-    backend = "ray"
-
-    def __init__(
-        self,
-        spec: PredictorSpec,
-        profile: DatasetProfile,
-        batch_size: int = 1,
-        actors: int | None = None,
-        pool: ScanPool | None = None,
-    ) -> None:
-        self.spec = spec
-        self.profile = profile
-        self.batch_size = batch_size
-        self.actors = actors
-        self.pool = pool
-        self.precision: str | None = None
-
-    @property
-    def inference_backend(self) -> str:
-        """The backend the spec runs the network with."""
-        return self.spec.backend
-
-    def predict(
-        self,
-        entries: list[ScanEntry],
-        dataset: Path,
-        sequences: list[str],
-        out: Path,
-        progress: Progress,
-        cancel: threading.Event,
-    ) -> dict[str, str]:
-        """Send the scans without a finished prediction through the pipeline."""
-        from workers.pipeline import PipelineOptions, run_pipeline
-
-        pending = [e for e in entries if not is_complete(e, out, self.profile.points)]
-        options = PipelineOptions(batch_size=self.batch_size, actors=self.actors)
-        shared = self.pool.actors if self.pool is not None and self.pool.use_gpu else None
-        result = run_pipeline(
-            self.spec,
-            self.profile,
-            pending,
-            out,
-            options,
-            progress=progress,
-            cancel=cancel,
-            model_actors=shared,
-        )
-        self.precision = result.precision(self.spec) or self.precision
-        return result.failed
 
 
 def write_predictions_zip(

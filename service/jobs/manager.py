@@ -29,7 +29,7 @@ from rangeret.plots import write_plots
 from rangeret.predict import is_complete, list_scans
 from rangeret.profiles import DatasetProfile, load_profile
 from service.jobs.capacity import disk_full, folder_bytes, queue_full
-from service.jobs.executors import JobExecutor, write_predictions_zip
+from service.jobs.executors import JobControl, JobError, JobExecutor, write_predictions_zip
 from service.jobs.store import JobRecord, JobStore
 from service.paths import escaping_scans, outside_roots_sentence
 from service.schemas import JobState
@@ -38,6 +38,10 @@ log = logging.getLogger(__name__)
 
 #: A job interrupted this many times by gateway restarts is failed rather than resumed again.
 MAX_ATTEMPTS = 3
+#: The same for a job submitted to a Ray cluster, which a gateway restart does not interrupt
+#: (the next gateway follows it again), so only a gateway that keeps failing while it finishes
+#: the job (zip, report) stops it.
+MAX_FOLLOWS = 10
 PREDICTIONS_ZIP = "predictions.zip"
 REPORT_JSON = "report.json"
 #: The folder of a labelled job's report PNGs (those of `rangeret evaluate --plots`).
@@ -95,7 +99,7 @@ class JobManager:
         )
         self._wake = threading.Event()
         self._stop = threading.Event()
-        self._running: dict[str, threading.Event] = {}
+        self._running: dict[str, JobControl] = {}
         self._running_lock = threading.Lock()
         self._admit_lock = threading.Lock()
         #: Bytes each queued or running job is expected to write (see `capacity`).
@@ -206,7 +210,7 @@ class JobManager:
 
     def stop(self, timeout: float = 30.0) -> None:
         """Stop after the batches in flight; running jobs are queued again and resume at the next
-        start."""
+        start (a job on a Ray cluster runs on there, and is followed again)."""
         self._stop.set()
         self._wake.set()
         with self._running_lock:
@@ -219,7 +223,7 @@ class JobManager:
     def recover(self) -> None:
         """Requeue jobs a stopped gateway left running (or fail them, with the reason); tidy folders."""
         for job in self.store.list(JobState.running):
-            if job.attempts >= MAX_ATTEMPTS:
+            if job.attempts >= (MAX_FOLLOWS if job.submission else MAX_ATTEMPTS):
                 self.store.finish(
                     job.id,
                     JobState.failed,
@@ -279,11 +283,14 @@ class JobManager:
 
     def _run(self, job: JobRecord) -> None:
         """Run one claimed job to a final state (or back to queued when the gateway stops)."""
-        cancel = threading.Event()
+        cancel = JobControl(job.id, self.store)
         with self._running_lock:
             self._running[job.id] = cancel
         try:
             self._execute(job, cancel)
+        except JobError as exc:
+            log.warning("job %s failed: %s", job.id, exc)
+            self.store.finish(job.id, JobState.failed, reason=_sentence(exc))
         except Exception as exc:
             log.exception("job %s failed", job.id)
             self.store.finish(job.id, JobState.failed, reason=_sentence(exc))
@@ -296,7 +303,7 @@ class JobManager:
         if latest is not None and latest.state is JobState.cancelled:
             self.remove_files(job.id)
 
-    def _execute(self, job: JobRecord, cancel: threading.Event) -> None:
+    def _execute(self, job: JobRecord, cancel: JobControl) -> None:
         dataset = Path(job.dataset)
         folder = self.job_dir(job.id)
         out = folder / "predictions"

@@ -2,8 +2,11 @@
 
 Every job's state, progress, errors and results live in one SQLite file, so a restarted gateway
 knows every job. The file's schema version is kept in `PRAGMA user_version`: a new file is
-stamped with `SCHEMA_VERSION`, a file from before the version was kept is stamped too (its tables
-are those of version 1), and a file of a newer version is refused.
+created at `SCHEMA_VERSION`, an older file is migrated to it when opened (a file from before the
+version was kept has the tables of version 1), and a file of a newer version is refused.
+
+Versions: 1, the jobs table; 2, its `submission` column (the number of the job's latest
+submission to a Ray cluster, stored before the job is submitted).
 """
 
 from __future__ import annotations
@@ -21,7 +24,22 @@ from service.schemas import JobState
 #: Failed scans kept in a job's record (the count is always exact).
 MAX_ERRORS = 1000
 #: The schema this code reads and writes, stored in the database's `PRAGMA user_version`.
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+
+#: The statements that take a file from the version before each one to that version.
+_MIGRATIONS: dict[int, tuple[str, ...]] = {
+    1: (
+        """CREATE TABLE IF NOT EXISTS jobs (
+            id TEXT PRIMARY KEY, kind TEXT NOT NULL, state TEXT NOT NULL,
+            dataset TEXT NOT NULL, sequences TEXT NOT NULL, created REAL NOT NULL,
+            total INTEGER NOT NULL DEFAULT 0, done INTEGER NOT NULL DEFAULT 0,
+            failed INTEGER NOT NULL DEFAULT 0, errors TEXT NOT NULL DEFAULT '[]',
+            reason TEXT, metrics TEXT, predictions TEXT, report TEXT,
+            started REAL, finished REAL, attempts INTEGER NOT NULL DEFAULT 0)""",
+        "CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state, created)",
+    ),
+    2: ("ALTER TABLE jobs ADD COLUMN submission INTEGER NOT NULL DEFAULT 0",),
+}
 
 
 class JobDatabaseVersionError(ValueError):
@@ -80,6 +98,8 @@ class JobRecord:
     started: float | None = None
     finished: float | None = None
     attempts: int = 0
+    #: The number of the job's latest submission to a Ray cluster (0: never submitted).
+    submission: int = 0
 
 
 #: queued -> running: the first start's time is kept when a job resumes.
@@ -91,6 +111,7 @@ _START = (
 _COLUMNS = (
     "id", "kind", "state", "dataset", "sequences", "created", "total", "done", "failed", "errors",
     "reason", "metrics", "predictions", "report", "started", "finished", "attempts",
+    "submission",
 )  # fmt: skip
 
 
@@ -111,29 +132,25 @@ class JobStore:
                 self._db.execute("PRAGMA journal_mode=WAL")
                 self._db.execute("PRAGMA synchronous=NORMAL")
                 if version < SCHEMA_VERSION:
-                    self._create_tables()
+                    self._migrate()
         except BaseException:
             self._db.close()
             raise
 
-    def _create_tables(self) -> None:
-        """Create the tables where missing and stamp the file with `SCHEMA_VERSION`, atomically.
+    def _migrate(self) -> None:
+        """Bring the file to `SCHEMA_VERSION` in one transaction, running the migrations after
+        its version (read again inside the transaction, so two gateways opening an old file at
+        once migrate it once).
 
-        A new file gets its tables; a file from before the version was kept has them already
-        and is only stamped.
+        A new file gets its tables; a file from before the version was kept has those of version
+        1 already (`CREATE ... IF NOT EXISTS`) and goes on from there.
         """
         self._db.execute("BEGIN IMMEDIATE")
         try:
-            self._db.execute(
-                """CREATE TABLE IF NOT EXISTS jobs (
-                    id TEXT PRIMARY KEY, kind TEXT NOT NULL, state TEXT NOT NULL,
-                    dataset TEXT NOT NULL, sequences TEXT NOT NULL, created REAL NOT NULL,
-                    total INTEGER NOT NULL DEFAULT 0, done INTEGER NOT NULL DEFAULT 0,
-                    failed INTEGER NOT NULL DEFAULT 0, errors TEXT NOT NULL DEFAULT '[]',
-                    reason TEXT, metrics TEXT, predictions TEXT, report TEXT,
-                    started REAL, finished REAL, attempts INTEGER NOT NULL DEFAULT 0)"""
-            )
-            self._db.execute("CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state, created)")
+            version = _check_version(self._db, self.path)
+            for target in range(version + 1, SCHEMA_VERSION + 1):
+                for statement in _MIGRATIONS[target]:
+                    self._db.execute(statement)
             self._db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
         except BaseException:
             self._db.execute("ROLLBACK")
@@ -257,6 +274,16 @@ class JobStore:
             )
             == 1
         )
+
+    def next_submission(self, job_id: str) -> int:
+        """Count a new submission of the job to a Ray cluster and return its number, stored
+        before the job is submitted (a cluster refuses a submission id it has seen)."""
+        with self._lock:
+            self._db.execute("UPDATE jobs SET submission = submission + 1 WHERE id = ?", (job_id,))
+            row = self._db.execute("SELECT submission FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        if row is None:
+            raise KeyError(job_id)
+        return int(row[0])
 
     def requeue(self, job_id: str) -> bool:
         """running -> queued, to be resumed."""

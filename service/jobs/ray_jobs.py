@@ -1,0 +1,462 @@
+"""Gateway jobs as Ray jobs: each one submitted through a cluster's Jobs API and followed there.
+
+`RayJobExecutor` submits the entrypoint `ray job submit` runs, `python -m workers.predict_job`,
+with the gateway's network options, writing into the job's predictions folder (on storage every
+node mounts; the nodes run the installed package). It follows the job through its progress record
+in that folder (`workers.progress`) and its status in the Jobs API, and the gateway then writes
+the predictions zip and the report from those files, as for a job run in-process.
+
+- The submission id is `<job id>-<n>`, `n` counted in the job store before each submission, as
+  the Jobs API refuses an id it has seen.
+- A job is finished once its final progress record is written: the scans it lists as failed fail
+  the gateway job, as in-process (the Ray job then ends FAILED, which alone means nothing).
+- A job died when its Ray job ended without a final record, or the Jobs API no longer knows it:
+  it is submitted again, and skips the scans already written, up to `MAX_SUBMISSIONS` times.
+- A cancelled job's Ray job is stopped. A gateway that stops leaves its Ray jobs running; the
+  next one re-attaches to the stored submission when it is still pending or running.
+- A Jobs API that does not answer is a pause of up to `UNREACHABLE_S` seconds, then the job fails
+  with a sentence naming the address; one that refuses the gateway fails the job at once.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import shlex
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from rangeret.layout import ScanEntry
+from rangeret.options import network_argv
+from rangeret.predict import is_complete
+from rangeret.profiles import DatasetProfile
+from service.jobs.executors import JobControl, JobError, Progress
+from workers.progress import JobProgress, progress_path, read_progress
+
+if TYPE_CHECKING:
+    from ray.job_submission import JobSubmissionClient
+
+log = logging.getLogger(__name__)
+
+#: Submissions of one job (the first and the re-submissions after it died) before it fails.
+MAX_SUBMISSIONS = 3
+#: Seconds between two looks at a job's progress record and its status in the Jobs API.
+POLL_S = 1.0
+#: Longest the Jobs API may go without answering before the jobs that wait on it fail.
+UNREACHABLE_S = 60.0
+#: Longest one request to the Jobs API may take.
+REQUEST_TIMEOUT_S = 10.0
+#: Longest a cancel waits for its Ray job to end once it is asked to stop.
+STOP_WAIT_S = 30.0
+#: Characters of a dead job's log kept in the failed job's reason.
+LOG_TAIL_CHARS = 300
+
+#: Ray job statuses of a job that has not ended.
+WAITING_STATUSES = frozenset({"PENDING", "RUNNING"})
+#: Ray job statuses of a job that has ended.
+ENDED_STATUSES = frozenset({"SUCCEEDED", "FAILED", "STOPPED"})
+
+
+class JobsApiError(Exception):
+    """The Jobs API refused a request or gave an answer the gateway cannot use."""
+
+
+class JobsApiUnreachable(JobsApiError):
+    """The Jobs API did not answer (not listening, timed out, or a server error)."""
+
+
+class Verdict(enum.Enum):
+    """Where a Ray job stands: running on, finished (final record written), or died."""
+
+    running = "running"
+    finished = "finished"
+    died = "died"
+
+
+def verdict(status: str | None, record: JobProgress | None) -> Verdict:
+    """Decide from the Ray job's `status` (None: the Jobs API does not know the submission) and
+    its progress `record`: finished once the final record is written, whatever the status (a
+    job with failed scans ends FAILED); died when it ended, or is unknown, without one."""
+    if record is not None and record.finished:
+        return Verdict.finished
+    if status is None or status in ENDED_STATUSES:
+        return Verdict.died
+    return Verdict.running
+
+
+def submission_id(job_id: str, number: int) -> str:
+    """The Ray submission id of a gateway job's `number`th submission."""
+    return f"{job_id}-{number}"
+
+
+class JobsApi:
+    """The Ray Jobs API at `address` through Ray's own `JobSubmissionClient`, which sends the Ray
+    token (RAY_AUTH_TOKEN, RAY_AUTH_TOKEN_PATH or ~/.ray/auth_token) when RAY_AUTH_MODE=token.
+
+    Every request is bounded by `timeout` seconds, and every failure is a `JobsApiError` (or
+    `JobsApiUnreachable`) with one sentence that names the address.
+    """
+
+    def __init__(self, address: str, timeout: float = REQUEST_TIMEOUT_S) -> None:
+        self.address = address
+        self.timeout = timeout
+        self._client: JobSubmissionClient | None = None
+
+    def status(self, sid: str) -> str | None:
+        """The Ray job's status (PENDING, RUNNING, SUCCEEDED, FAILED, STOPPED); None when the
+        Jobs API does not know the submission id."""
+        try:
+            info = self._call(lambda c: c.get_job_info(sid))
+        except _NotFound:
+            return None
+        return str(getattr(info.status, "value", info.status))
+
+    def submit(self, sid: str, entrypoint: str, metadata: dict[str, str]) -> None:
+        """Submit `entrypoint` as the Ray job `sid`, with no runtime environment to upload."""
+        self._call(
+            lambda c: c.submit_job(entrypoint=entrypoint, submission_id=sid, metadata=metadata)
+        )
+
+    def stop(self, sid: str) -> bool:
+        """Ask the Ray job to stop; False when it had ended or the Jobs API does not know it."""
+        try:
+            return bool(self._call(lambda c: c.stop_job(sid)))
+        except _NotFound:
+            return False
+
+    def log_tail(self, sid: str, chars: int = LOG_TAIL_CHARS) -> str:
+        """The end of the Ray job's log on one line ("" when it cannot be read)."""
+        try:
+            text = self._call(lambda c: c.get_job_logs(sid))
+        except JobsApiError:
+            return ""
+        lines = [line.strip() for line in str(text).splitlines() if line.strip()]
+        tail = " | ".join(lines[-3:])
+        return tail[-chars:]
+
+    def _connect(self) -> JobSubmissionClient:
+        """The client, made on first use (it checks the cluster's Ray version, so it needs the
+        Jobs API to answer)."""
+        if self._client is None:
+            self._client = _bounded_client(self.address, self.timeout)
+        return self._client
+
+    def _call(self, request: Callable[[JobSubmissionClient], Any]) -> Any:
+        """Run one request, its failures turned into `JobsApiError`s naming the address."""
+        from ray.exceptions import AuthenticationError
+
+        try:
+            return request(self._connect())
+        except AuthenticationError as exc:
+            raise JobsApiError(
+                f"the Ray Jobs API at {self.address} refused the gateway's Ray token "
+                f"({_first_line(exc.message)}; set RAY_AUTH_MODE=token and the cluster's token "
+                "in RAY_AUTH_TOKEN or RAY_AUTH_TOKEN_PATH)"
+            ) from exc
+        except OSError as exc:  # requests' errors and the client's ConnectionError
+            raise JobsApiUnreachable(
+                f"the Ray Jobs API at {self.address} does not answer ({_first_line(str(exc))})"
+            ) from exc
+        except RuntimeError as exc:
+            text = _first_line(str(exc))
+            if "status code 404" in text:
+                raise _NotFound(text) from exc
+            if "status code 5" in text:
+                raise JobsApiUnreachable(
+                    f"the Ray Jobs API at {self.address} failed a request ({text})"
+                ) from exc
+            raise JobsApiError(
+                f"the Ray Jobs API at {self.address} refused a request ({text})"
+            ) from exc
+
+
+class _NotFound(JobsApiError):
+    """The Jobs API does not know the submission id."""
+
+
+def _bounded_client(address: str, timeout: float) -> JobSubmissionClient:
+    """A `JobSubmissionClient` whose every request gives up after `timeout` seconds (Ray's own
+    client waits for ever on a server that accepts the connection and never answers)."""
+    from ray.job_submission import JobSubmissionClient
+
+    class BoundedClient(JobSubmissionClient):
+        def __init__(self) -> None:
+            self._request_timeout = timeout
+            super().__init__(address)
+
+        def _do_request(self, method: str, endpoint: str, **kwargs: Any) -> Any:
+            kwargs.setdefault("timeout", self._request_timeout)
+            return super()._do_request(method, endpoint, **kwargs)
+
+    return BoundedClient()
+
+
+def _first_line(text: str) -> str:
+    """The first non-empty line of `text`, whitespace collapsed and cut to 300 characters."""
+    for line in text.splitlines():
+        if line.strip():
+            return " ".join(line.split())[:300].rstrip(".")
+    return "no details"
+
+
+class RayJobExecutor:
+    """Runs each gateway job as a Ray job through the Jobs API at `address` (see the module).
+
+    `values` are the gateway's network options by name (`rangeret.options.network_values`),
+    given to the entrypoint as flags with `batch_size`; a checkpoint or profile file named by a
+    relative path is named by its absolute path, as are the job's folders, since the Ray job runs
+    elsewhere. `profile` is the served profile, whose point record tells which predictions are
+    already whole. `api`, `poll_s`, `unreachable_s` and `max_submissions` default to the module's
+    constants.
+    """
+
+    backend = "ray-jobs"
+
+    def __init__(
+        self,
+        address: str,
+        values: dict[str, object],
+        profile: DatasetProfile,
+        batch_size: int = 1,
+        *,
+        api: JobsApi | None = None,
+        poll_s: float = POLL_S,
+        unreachable_s: float = UNREACHABLE_S,
+        max_submissions: int = MAX_SUBMISSIONS,
+    ) -> None:
+        self.address = address
+        self.values = {**values, "batch_size": batch_size}
+        for name in ("checkpoint", "profile"):
+            value = self.values.get(name)
+            if isinstance(value, str) and not Path(value).is_absolute() and Path(value).exists():
+                self.values[name] = str(Path(value).absolute())
+        self.network = network_argv(self.values)  # bad options fail the gateway at start
+        self.profile = profile
+        self.api = api or JobsApi(address)
+        self.poll_s = poll_s
+        self.unreachable_s = unreachable_s
+        self.max_submissions = max_submissions
+        self.precision: str | None = None
+        self.inference_backend = str(values.get("backend") or "torch")
+
+    def entrypoint(self, dataset: Path, sequences: list[str], out: Path) -> str:
+        """The shell command of a job's Ray job: `python -m workers.predict_job` on the dataset's
+        sequences into `out`, with the gateway's network options."""
+        argv = ["python", "-m", "workers.predict_job", "--dataset", str(Path(dataset).absolute())]
+        argv += ["--sequences", *sequences, "--out", str(Path(out).absolute()), *self.network]
+        return shlex.join(argv)
+
+    def predict(
+        self,
+        entries: list[ScanEntry],
+        dataset: Path,
+        sequences: list[str],
+        out: Path,
+        progress: Progress,
+        cancel: JobControl,
+    ) -> dict[str, str]:
+        """Submit the job (or re-attach to its stored submission) and follow it until its final
+        record, submitting it again when it dies; failures by scan key, as in-process.
+
+        Returns early when `cancel` is set: a cancelled job's Ray job is stopped first, one
+        paused by a gateway stop is left running. `JobError` when it cannot go on.
+        """
+        before = sum(is_complete(e, out, self.profile.points) for e in entries)
+        follow = _Follow(self, entries, dataset, sequences, out, progress, cancel, before)
+        return follow.run()
+
+
+class _Follow:
+    """One `RayJobExecutor.predict` call: the submission it follows and what it has seen."""
+
+    def __init__(
+        self,
+        executor: RayJobExecutor,
+        entries: list[ScanEntry],
+        dataset: Path,
+        sequences: list[str],
+        out: Path,
+        progress: Progress,
+        control: JobControl,
+        before: int,
+    ) -> None:
+        self.executor = executor
+        self.api = executor.api
+        self.entries = entries
+        self.dataset = dataset
+        self.sequences = sequences
+        self.out = out
+        self.progress = progress
+        self.control = control
+        self.before = before
+        self.reported: tuple[int, int] | None = None
+        self.number = control.submission()
+
+    @property
+    def sid(self) -> str:
+        """The Ray submission id of the submission followed now."""
+        return submission_id(self.control.job_id, self.number)
+
+    def run(self) -> dict[str, str]:
+        """Submit or re-attach, then poll the progress record and the Ray job's status until the
+        job finishes, dies past the limit, or the runner sets the control."""
+        if self.number == 0:
+            if not self._submit():
+                return {}
+        else:
+            log.info("job %s: following its Ray job %s again", self.control.job_id, self.sid)
+        silent_since: float | None = None
+        ended_once = False
+        while True:
+            record = read_progress(self.out)
+            if record is not None:
+                self._report(record)
+                if record.finished:
+                    return self._finished(record)
+            if self.control.is_set():
+                self._leave()
+                return {}
+            try:
+                status = self.api.status(self.sid)
+            except JobsApiUnreachable as exc:
+                now = time.monotonic()
+                if silent_since is None:
+                    silent_since = now
+                    log.warning("job %s: %s; waiting for it", self.control.job_id, exc)
+                elif now - silent_since > self.executor.unreachable_s:
+                    raise JobError(
+                        f"{exc} for {self.executor.unreachable_s:g} s while the job's Ray job "
+                        f"{self.sid} ran"
+                    ) from exc
+                self.control.wait(self.executor.poll_s)
+                continue
+            except JobsApiError as exc:
+                raise JobError(str(exc)) from exc
+            silent_since = None
+            if verdict(status, record) is Verdict.died:
+                if ended_once:  # its final record was looked for after it ended, twice
+                    self._died(status)
+                    if not self._submit():
+                        return {}
+                    ended_once = False
+                    continue
+                ended_once = True
+            else:
+                ended_once = False
+            self.control.wait(self.executor.poll_s)
+
+    def _report(self, record: JobProgress) -> None:
+        """Pass the record's counts on to the runner, as scans of this `predict` call."""
+        pending = len(self.entries) - self.before
+        written = min(max(0, record.done - self.before), pending)
+        counts = (written + record.failed, record.failed)
+        if counts != self.reported:
+            self.reported = counts
+            self.progress(counts[0], counts[1], pending)
+
+    def _finished(self, record: JobProgress) -> dict[str, str]:
+        """The outcome of a final record: its failures, or a `JobError` for bad input."""
+        if record.precision:
+            self.executor.precision = record.precision
+        if record.error:
+            raise JobError(f"{record.error} (Ray job {self.sid})")
+        log.info("job %s: its Ray job %s finished", self.control.job_id, self.sid)
+        return dict(record.failures)
+
+    def _died(self, status: str | None) -> None:
+        """Fail the job once its last submission died, naming it; else log the death."""
+        how = (
+            f"ended {status}" if status else f"is unknown to the Ray Jobs API at {self.api.address}"
+        )
+        if self.number >= self.executor.max_submissions:
+            tail = self.api.log_tail(self.sid) if status else ""
+            raise JobError(
+                f"the job's Ray job {self.sid} {how} without finishing, after "
+                f"{self.number} submissions (the limit)"
+                + (f"; its log ends: {tail}" if tail else "")
+            )
+        log.warning(
+            "job %s: its Ray job %s %s without finishing; submitting it again",
+            self.control.job_id,
+            self.sid,
+            how,
+        )
+
+    def _submit(self) -> bool:
+        """Store the next submission's number, then submit it (a stale progress record removed
+        first); False when the job was cancelled or the gateway stops meanwhile."""
+        self.number = self.control.next_submission()
+        progress_path(self.out).unlink(missing_ok=True)
+        entrypoint = self.executor.entrypoint(self.dataset, self.sequences, self.out)
+        metadata = {"rangeret_job": self.control.job_id}
+        since: float | None = None
+        while True:
+            try:
+                self.api.submit(self.sid, entrypoint, metadata)
+                log.info("job %s: submitted as Ray job %s", self.control.job_id, self.sid)
+                return True
+            except JobsApiUnreachable as exc:
+                if since is None:
+                    since = time.monotonic()
+                    log.warning("job %s: %s; trying again", self.control.job_id, exc)
+                elif time.monotonic() - since > self.executor.unreachable_s:
+                    raise JobError(f"the job could not be submitted: {exc}") from exc
+            except JobsApiError as exc:
+                if self._known():  # an earlier try that seemed to fail went through
+                    return True
+                raise JobError(f"the job could not be submitted: {exc}") from exc
+            if self.control.wait(self.executor.poll_s):
+                if self.control.cancelled and self._known():
+                    self._stop()
+                return False
+            if self._known():
+                return True
+
+    def _known(self) -> bool:
+        """Whether the Jobs API knows the current submission id (False when it does not answer)."""
+        try:
+            return self.api.status(self.sid) is not None
+        except JobsApiError:
+            return False
+
+    def _leave(self) -> None:
+        """Stop following: stop the Ray job of a cancelled job, leave it running otherwise."""
+        if self.control.cancelled:
+            self._stop()
+        else:
+            log.info(
+                "job %s: the gateway stops; its Ray job %s runs on", self.control.job_id, self.sid
+            )
+
+    def _stop(self) -> None:
+        """Stop the Ray job and wait (bounded) until it has ended, so that no file of the
+        cancelled job appears after its folder is removed."""
+        try:
+            self.api.stop(self.sid)
+            deadline = time.monotonic() + STOP_WAIT_S
+            while time.monotonic() < deadline:
+                status = self.api.status(self.sid)
+                if status is None or status in ENDED_STATUSES:
+                    log.info(
+                        "job %s: cancelled, its Ray job %s %s",
+                        self.control.job_id,
+                        self.sid,
+                        status,
+                    )
+                    return
+                time.sleep(0.2)
+            log.warning(
+                "job %s: its Ray job %s did not stop within %g s",
+                self.control.job_id,
+                self.sid,
+                STOP_WAIT_S,
+            )
+        except JobsApiError as exc:
+            log.warning(
+                "job %s: its Ray job %s could not be stopped: %s",
+                self.control.job_id,
+                self.sid,
+                exc,
+            )
