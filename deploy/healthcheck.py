@@ -1,6 +1,7 @@
 """Container health check: the gateway answers /healthz; on a Ray node the raylet is alive.
 
-The container's role is read from its first process's arguments (the entrypoint's mode).
+The container's role is read from its first process's arguments: the entrypoint's mode, or a
+command that runs `ray start` (KubeRay's `/bin/bash -c -- "... ray start ... --block"`).
 """
 
 from __future__ import annotations
@@ -12,15 +13,16 @@ import urllib.request
 from pathlib import Path
 
 
-def role() -> str:
-    """`gateway`, `ray-head` or `ray-worker`, from the container's command line."""
+def role(cmdline: Path = Path("/proc/1/cmdline")) -> str:
+    """`gateway` or `ray` (a head or worker node), from the container's command line."""
     try:
-        args = Path("/proc/1/cmdline").read_bytes().decode().split("\0")
+        args = cmdline.read_bytes().decode().split("\0")
     except OSError:
         args = []
-    for mode in ("ray-head", "ray-worker"):
-        if mode in args:
-            return mode
+    if any(mode in args for mode in ("ray-head", "ray-worker")) or any(
+        "ray start" in arg for arg in args
+    ):
+        return "ray"
     return "gateway"
 
 

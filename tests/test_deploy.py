@@ -984,3 +984,26 @@ def test_the_readmes_ray_job_submit_recipe_runs_as_written(tmp_path, token_exist
     assert (home / ".ray" / "auth_token").read_text() != "" and (
         not token_exists or (home / ".ray" / "auth_token").read_text() == "a" * 64
     )
+
+
+def test_the_health_check_tells_a_ray_pod_from_the_gateway(tmp_path):
+    """The image's HEALTHCHECK reads the first process's command line: the ones KubeRay gives the
+    Ray containers run `ray start`, the gateway's is the entrypoint's mode."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("healthcheck", DEPLOY / "healthcheck.py")
+    healthcheck = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(healthcheck)
+    service = _service()
+    secrets = secret_values(load_manifests(DEPLOY / "kuberay" / "secrets.example.yaml"))
+    commands = [compose(service, group, secrets=secrets).argv for group in ray_groups(service)]
+    gateway = deployment_container(
+        find(load_manifests(DEPLOY / "kuberay" / "gateway.yaml"), "Deployment"), secrets=secrets
+    )
+    commands.append(["tini", "--", "/app/deploy/entrypoint.sh", *gateway.args])
+    roles = []
+    for i, argv in enumerate(commands):
+        cmdline = tmp_path / f"cmdline-{i}"
+        cmdline.write_bytes("\0".join(argv).encode() + b"\0")
+        roles.append(healthcheck.role(cmdline))
+    assert roles == ["ray"] * (len(commands) - 1) + ["gateway"]

@@ -105,8 +105,11 @@ def test_the_final_record_of_a_job_stopped_on_bad_input_holds_one_sentence(tmp_p
 
 
 def test_predict_job_writes_a_final_record_when_its_input_is_bad(tmp_path):
-    """The job stops on a CommandError before it joins a cluster, and says why in the record."""
+    """The job stops on a CommandError before it joins a cluster, and says why in the record of
+    its output folder (which the gateway makes before it submits); without that folder, the
+    refused job leaves none behind."""
     out = tmp_path / "pred"
+    out.mkdir()
     data = build_tree(tmp_path / "data", labelled=1, unlabelled=0)
     weights = small_weights(tmp_path)
     cmd = [sys.executable, "-m", "workers.predict_job", "--dataset", str(data)]
@@ -117,6 +120,9 @@ def test_predict_job_writes_a_final_record_when_its_input_is_bad(tmp_path):
     final = read_progress(out)
     assert final is not None and final.finished, run.stderr
     assert "42" in final.error and final.error in run.stderr.replace("\n", " ")
+    cmd[cmd.index(str(out))] = str(tmp_path / "absent")
+    run = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=120, check=False)
+    assert run.returncode == 1 and not (tmp_path / "absent").exists(), run.stderr
 
 
 # The finished/died decision -----------------------------------------------------------------

@@ -116,12 +116,14 @@ def connect(address: str | None) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the job for parsed arguments; returns the exit code. The final progress record is
     written last, also when failed scans or bad input (the errors `run_command` reports as one
-    line) end the job; a job stopped by anything else leaves none."""
+    line) end the job, except that input refused before the output folder exists leaves no folder
+    behind; a job stopped by anything else leaves none."""
     recorder = ProgressWriter(args.out)
+    existed = Path(args.out).is_dir()
     try:
         return _run(args, recorder)
     except (CommandError, *USER_ERRORS) as exc:
-        if not recorder.finished:
+        if not recorder.finished and (existed or Path(args.out).is_dir()):
             try:
                 recorder.finish(error=exc.reason if isinstance(exc, CommandError) else str(exc))
             except OSError as problem:  # the error itself is what the user must see

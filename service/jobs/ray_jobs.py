@@ -388,6 +388,9 @@ class _Follow:
         """Store the next submission's number, then submit it (a stale progress record removed
         first); False when the job was cancelled or the gateway stops meanwhile."""
         self.number = self.control.next_submission()
+        self.out.mkdir(
+            parents=True, exist_ok=True
+        )  # where the Ray job's records go, even early ones
         progress_path(self.out).unlink(missing_ok=True)
         entrypoint = self.executor.entrypoint(self.dataset, self.sequences, self.out)
         metadata = {"rangeret_job": self.control.job_id}
