@@ -166,10 +166,12 @@ def run_demo(
         "  rangeret evaluate --dataset ROOT --predictions PRED --split valid --json report.json --plots plots"
     )
     print(
-        "  ray job submit --working-dir . -- python -m workers.predict_job --dataset ROOT --split test \\"
+        "  RAY_AUTH_MODE=token ray job submit --working-dir . -- python -m workers.predict_job "
+        "--dataset ROOT --split test \\"
     )
     print("      --out PRED --submission submission.zip --checkpoint rangeret-kitti-657")
     print("  rangeret validate-submission submission.zip --dataset ROOT")
+    print("(a Ray cluster needs its token: see the README's Ray job recipe)")
     return out
 
 
