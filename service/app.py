@@ -109,6 +109,8 @@ def create_app(
             f"({gateway.profile.points.describe()}), labels its raw ids."
         ),
         lifespan=lifespan,
+        # No trailing-slash redirects: Starlette builds their Location from the request's Host.
+        redirect_slashes=False,
     )
     app.state.gateway = gateway
     app.add_middleware(MetricsMiddleware, metrics=lambda: gateway.metrics)

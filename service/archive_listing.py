@@ -139,7 +139,8 @@ def _zip64_end(f: IO[bytes], location: int) -> tuple[int, int, int] | None:
 def count_zip_entries(path: Path, max_members: int) -> int:
     """The zip's entry count, walking its central directory from the file header by header, so
     that zipfile reads no more than `max_members` entries: 413 as soon as the declared or the
-    walked count passes it, 400 for a damaged directory."""
+    walked count passes it, 400 for a damaged directory or a name with a NUL byte (checked on its
+    raw bytes, which zipfile would cut at the NUL)."""
     with open(path, "rb", buffering=1 << 16) as f:
         directory = _central_directory(f)
         if directory is None:
@@ -180,7 +181,13 @@ def count_zip_entries(path: Path, max_members: int) -> int:
                     f"Entry {count:,} of the zip archive's central directory runs past its end; "
                     "the archive is damaged."
                 )
-            f.seek(name + extra + comment, os.SEEK_CUR)
+            raw = f.read(name)
+            if b"\0" in raw:  # zipfile would cut the name there, before any check sees the rest
+                shown = raw.split(b"\0", 1)[0].decode("utf-8", "replace")[:200]
+                raise ArchiveError(
+                    f"Entry {count:,} of the zip archive ({shown!r}) has a NUL byte in its name."
+                )
+            f.seek(extra + comment, os.SEEK_CUR)
     return count
 
 

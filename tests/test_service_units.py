@@ -477,13 +477,14 @@ def test_recovery_after_a_crash(tmp_path):
     for _ in range(2):
         store.requeue(tired)
         store.start(tired)
-    orphan = manager.jobs_dir / ("0" * 32)
-    orphan.mkdir()
+    orphan = manager.job_dir(manager.new_job()[0])  # an upload cut short: the gateway's, unrecorded
+    lookalike = manager.jobs_dir / ("0" * 32)  # a job id's name, but not made by the gateway
+    lookalike.mkdir()
     manager.recover()
     assert store.get(resumable).state is JobState.queued
     assert store.get(gone).state is JobState.failed and "no longer exists" in store.get(gone).reason
     assert store.get(tired).state is JobState.failed and "3 times" in store.get(tired).reason
-    assert not orphan.exists() and manager.job_dir(resumable).exists()
+    assert not orphan.exists() and manager.job_dir(resumable).exists() and lookalike.is_dir()
 
 
 def test_retention_removes_old_finished_jobs_only(tmp_path):

@@ -15,6 +15,7 @@ and records are removed after the retention time.
 from __future__ import annotations
 
 import logging
+import re
 import shutil
 import threading
 import time
@@ -36,7 +37,8 @@ from service.schemas import JobState
 
 log = logging.getLogger(__name__)
 
-#: A job interrupted this many times by gateway restarts is failed rather than resumed again.
+#: A job interrupted this many times by a gateway that was killed (a clean stop does not count)
+#: is failed rather than resumed again.
 MAX_ATTEMPTS = 3
 #: The same for a job submitted to a Ray cluster, which a gateway restart does not interrupt
 #: (the next gateway follows it again), so only a gateway that keeps failing while it finishes
@@ -48,6 +50,10 @@ REPORT_JSON = "report.json"
 PLOTS_DIR = "plots"
 #: The file in a job's folder that names the profile the job was accepted for.
 PROFILE_FILE = "profile.txt"
+#: The file the gateway puts in every job folder it makes: the proof that it may delete it.
+MARKER_FILE = ".rangeret-job"
+#: The name of a job folder: the job's id, 32 lowercase hex digits.
+JOB_ID = re.compile(r"[0-9a-f]{32}")
 
 
 def labelled_sequences(
@@ -115,11 +121,21 @@ class JobManager:
         return self.jobs_dir / job_id
 
     def new_job(self) -> tuple[str, Path]:
-        """A fresh job id and its (new, empty) folder."""
+        """A fresh job id and its new folder, marked as the gateway's own (`MARKER_FILE`)."""
         job_id = uuid.uuid4().hex
         folder = self.job_dir(job_id)
         folder.mkdir(parents=True)
+        (folder / MARKER_FILE).write_text(job_id + "\n")
         return job_id, folder
+
+    def owns(self, folder: Path) -> bool:
+        """Whether `folder` is one the gateway made: a job id's name and the marker naming it."""
+        if not (JOB_ID.fullmatch(folder.name) and folder.is_dir() and not folder.is_symlink()):
+            return False
+        try:
+            return (folder / MARKER_FILE).read_text().strip() == folder.name
+        except OSError:
+            return False
 
     def remove_files(self, job_id: str) -> None:
         """Delete a job's folder."""
@@ -227,7 +243,8 @@ class JobManager:
                 self.store.finish(
                     job.id,
                     JobState.failed,
-                    reason=f"the gateway stopped {job.attempts} times while this job ran, so it is not resumed again",
+                    reason=f"the gateway was killed {job.attempts} times while this job ran (clean "
+                    "stops do not count), so it is not resumed again",
                 )
             elif not Path(job.dataset).is_dir():
                 self.store.finish(
@@ -241,11 +258,28 @@ class JobManager:
         for job in self.store.list(JobState.cancelled):
             self.remove_files(job.id)
         known = {job.id for job in self.store.list()}
+        foreign: list[str] = []
         if self.jobs_dir.is_dir():
-            for folder in self.jobs_dir.iterdir():
-                if folder.is_dir() and folder.name not in known:
-                    log.info("removing %s: no job owns it (an upload cut short)", folder)
-                    shutil.rmtree(folder, ignore_errors=True)
+            for entry in sorted(self.jobs_dir.iterdir()):
+                if entry.name in known:
+                    continue
+                if self.owns(entry):
+                    log.info("removing %s: no job owns it (an upload cut short)", entry)
+                    shutil.rmtree(entry, ignore_errors=True)
+                else:
+                    foreign.append(entry.name)
+        if foreign:
+            shown = ", ".join(foreign[:10]) + (
+                f" and {len(foreign) - 10} more" if len(foreign) > 10 else ""
+            )
+            log.warning(
+                "the jobs folder %s holds %d entr%s the gateway did not make (%s): left alone; "
+                "give the gateway a folder of its own (RANGERET_JOBS_DIR)",
+                self.jobs_dir,
+                len(foreign),
+                "y" if len(foreign) == 1 else "ies",
+                shown,
+            )
 
     def sweep(self, now: float | None = None) -> int:
         """Remove the files and records of jobs finished longer than the retention time ago."""
@@ -337,7 +371,7 @@ class JobManager:
 
         failures = self.executor.predict(entries, dataset, job.sequences, out, progress, cancel)
         if cancel.is_set():
-            if self._stop.is_set() and self.store.requeue(job.id):
+            if self._stop.is_set() and self.store.requeue(job.id, graceful=True):
                 log.info(
                     "job %s paused by the gateway stopping; it resumes at the next start", job.id
                 )

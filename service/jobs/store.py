@@ -285,11 +285,13 @@ class JobStore:
             raise KeyError(job_id)
         return int(row[0])
 
-    def requeue(self, job_id: str) -> bool:
-        """running -> queued, to be resumed."""
+    def requeue(self, job_id: str, graceful: bool = False) -> bool:
+        """running -> queued, to be resumed. A `graceful` requeue (the gateway stopped cleanly)
+        takes back the start it counted, so that only unclean stops count towards the limit."""
+        counted = "MAX(attempts - 1, 0)" if graceful else "attempts"
         return (
             self._execute(
-                "UPDATE jobs SET state = ? WHERE id = ? AND state = ?",
+                f"UPDATE jobs SET state = ?, attempts = {counted} WHERE id = ? AND state = ?",
                 (JobState.queued.value, job_id, JobState.running.value),
             )
             == 1
