@@ -166,10 +166,11 @@ class LabelConfig:
 
     @classmethod
     def from_official_yaml(cls, path: Path | str) -> LabelConfig:
-        """Load a configuration in the official `semantic-kitti.yaml` layout."""
-        import yaml
+        """Load a configuration in the official `semantic-kitti.yaml` layout (read within the
+        bounds of `rangeret.bounded_yaml`)."""
+        from rangeret.bounded_yaml import load_yaml
 
-        data = yaml.safe_load(Path(path).read_text())
+        data = load_yaml(path)
         inv = {int(k): int(v) for k, v in data["learning_map_inv"].items()}
         n = len(inv)
         if sorted(inv) != list(range(n)):

@@ -231,16 +231,26 @@ def _builtin(name: str) -> DatasetProfile:
     return _read(PROFILES_DIR / f"{name}.yaml")
 
 
+#: The most characters of an error about a profile file (values it quotes are cut short).
+MAX_ERROR_CHARS = 400
+
+
 def _read(path: Path) -> DatasetProfile:
-    import yaml
+    from rangeret.bounded_yaml import YamlLimitError, load_yaml
 
     try:
-        data = yaml.safe_load(path.read_text())
+        data = load_yaml(path)
     except (OSError, UnicodeDecodeError) as exc:
         raise ProfileError(f"cannot read the profile {path}: {exc}") from exc
-    except yaml.YAMLError as exc:
-        raise ProfileError(f"{path} is not valid YAML: {str(exc).splitlines()[0]}") from exc
-    return DatasetProfile.from_dict(data, str(path))
+    except YamlLimitError as exc:
+        raise ProfileError(str(exc)) from exc
+    try:
+        return DatasetProfile.from_dict(data, str(path))
+    except ProfileError as exc:
+        text = " ".join(str(exc).split())
+        if len(text) <= MAX_ERROR_CHARS:
+            raise
+        raise ProfileError(text[: MAX_ERROR_CHARS - 3] + "...") from exc
 
 
 def profile_of_record(record: Mapping[str, Any] | None, source: str) -> DatasetProfile:

@@ -15,8 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
+from rangeret.bounded_yaml import YamlLimitError, load_yaml
 from rangeret.profiles import DatasetProfile, load_profile
 
 BUILTIN_REGISTRY = Path(__file__).with_name("data") / "models.yaml"
@@ -102,8 +101,8 @@ def _entry(name: str, data: Any, source: Path) -> PublishedModel:
 
 def _read(path: Path) -> dict[str, PublishedModel]:
     try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
+        data = load_yaml(path)
+    except (OSError, YamlLimitError) as exc:
         raise RegistryError(f"cannot read the model registry {path}: {exc}") from exc
     if not isinstance(data, dict):
         raise RegistryError(f"{path} is not a mapping of model names to entries")

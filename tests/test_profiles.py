@@ -295,3 +295,41 @@ def test_the_semantickitti_profile_holds_the_bundled_label_configuration() -> No
     from rangeret.labels import semantickitti
 
     assert load_profile("semantickitti").labels == semantickitti()
+
+
+# Hostile YAML ---------------------------------------------------------------------------------
+
+_LAUGHS = 'a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]\n' + "".join(
+    f"{b}: &{b} [{', '.join(['*' + a] * 9)}]\n" for a, b in zip("abcdefgh", "bcdefghi", strict=True)
+)
+
+
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [
+        (_LAUGHS, "expands to more than 1,000,000 values through its aliases"),
+        ("a: " + "[" * 5000 + "]" * 5000 + "\n", "nests deeper than 64 levels"),
+        ("name: x\nsensor: " + "y" * 300_000 + "\n", None),  # a bad value quoted only in part
+        ("a: [unclosed\n", "is not valid YAML"),
+    ],
+    ids=["billion-laughs", "deep-nesting", "huge-value", "not-yaml"],
+)
+def test_a_hostile_profile_file_is_one_short_line(tmp_path, capsys, text, problem):
+    path = tmp_path / "hostile.yaml"
+    path.write_text(text)
+    assert main(["profile", "show", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and len(err) < 600 and str(path) in err, err[:600]
+    if problem:
+        assert problem in err, err
+
+
+def test_a_hostile_label_configuration_is_one_short_line(tmp_path, capsys):
+    path = tmp_path / "semantic-kitti.yaml"
+    path.write_text(_LAUGHS)
+    pred = tmp_path / "pred"
+    pred.mkdir()
+    argv = ["evaluate", "--dataset", str(tmp_path), "--predictions", str(pred), "--split", "valid"]
+    assert main([*argv, "--label-config", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "expands to more than" in err, err[:600]
