@@ -143,6 +143,24 @@ def build_executor(
     return LocalExecutor(served, settings.batch_size)
 
 
+def check_state(settings: Settings) -> None:
+    """The state folder, the jobs folder and the job database can be used; else a `CommandError`
+    naming the path and the problem in one sentence."""
+    from service.jobs import JobDatabaseError, check_schema_version
+
+    try:
+        settings.jobs_folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CommandError(
+            f"cannot use the jobs folder {settings.jobs_folder} (RANGERET_STATE_DIR or "
+            f"RANGERET_JOBS_DIR): {exc.strerror or exc}"
+        ) from exc
+    try:
+        check_schema_version(settings.database_path)
+    except JobDatabaseError as exc:
+        raise CommandError(str(exc)) from exc
+
+
 def run_serve(args: argparse.Namespace) -> int:
     """Run the gateway until it is stopped (Ctrl-C or SIGTERM); returns the exit code."""
     import uvicorn
@@ -154,9 +172,7 @@ def run_serve(args: argparse.Namespace) -> int:
     problem = settings.address_problem()
     if problem:
         raise CommandError(problem)
-    from service.jobs import check_schema_version
-
-    check_schema_version(settings.database_path)  # before minutes of loading weights and workers
+    check_state(settings)  # before minutes of loading weights
     args.batch_size = settings.batch_size
     spec = spec_from_args(args)
     facts = checkpoint_facts(spec)

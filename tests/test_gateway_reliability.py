@@ -1,13 +1,18 @@
 """Against real `rangeret serve` processes: start-up removes only the job folders the gateway
 made, trailing-slash requests are never redirected to another host, a zip member whose name
-holds a NUL byte is refused, and clean stops do not count towards the restarts a job survives."""
+holds a NUL byte is refused, clean stops do not count towards the restarts a job survives, and a
+job store or state folder that cannot be used is one line before any weights load."""
 
 from __future__ import annotations
 
 import io
+import os
 import signal
+import subprocess
+import sys
 import time
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -113,3 +118,57 @@ def test_clean_stops_do_not_count_towards_the_restarts_a_job_survives(tmp_path):
         gw.stop()
     assert final["state"] == "succeeded", final
     assert (final["total"], final["done"], final["failed"]) == (60, 60, 0)
+
+
+def _damaged_page(path: Path) -> None:
+    """A real job database with one of its pages overwritten by garbage."""
+    from service.jobs import JobStore
+
+    store = JobStore(path)
+    for i in range(300):
+        store.create(f"{i:032x}", "dataset", path.parent, ["08"] * 20)
+    store.close()
+    data = bytearray(path.read_bytes())
+    page = 4096
+    data[2 * page : 3 * page] = os.urandom(page)
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize(
+    "damage",
+    ["random-bytes", "truncated", "damaged-page", "folder-in-its-place", "state-dir-is-a-file"],
+)
+def test_a_job_store_or_state_folder_that_cannot_be_used_is_one_line(tmp_path, damage):
+    """Each is refused before the weights load, naming the file and the problem."""
+    state = tmp_path / "state"
+    database = state / "jobs.sqlite"
+    state.mkdir()
+    if damage == "random-bytes":
+        database.write_bytes(os.urandom(8192))
+        named = database
+    elif damage == "truncated":
+        _damaged_page(database)
+        database.write_bytes(database.read_bytes()[:5000])
+        named = database
+    elif damage == "damaged-page":
+        _damaged_page(database)
+        named = database
+    elif damage == "folder-in-its-place":
+        database.mkdir()
+        named = database
+    else:
+        state.rmdir()
+        state.write_text("not a folder")
+        named = state
+    env = gateway_env(state, [tmp_path])
+    run = subprocess.run(
+        [sys.executable, "-m", "service", "--checkpoint", str(tmp_path / "absent.pt")],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert run.returncode == 1, run.stderr[-2000:]
+    assert "Traceback" not in run.stderr and run.stderr.count("\n") == 1, run.stderr[-2000:]
+    assert str(named) in run.stderr and "absent.pt" not in run.stderr, run.stderr

@@ -21,6 +21,7 @@ from service.jobs.executors import (
 from service.jobs.manager import JobManager
 from service.jobs.store import (
     SCHEMA_VERSION,
+    JobDatabaseError,
     JobDatabaseVersionError,
     JobRecord,
     JobStore,
@@ -30,6 +31,7 @@ from service.jobs.store import (
 __all__ = [
     "SCHEMA_VERSION",
     "JobControl",
+    "JobDatabaseError",
     "JobDatabaseVersionError",
     "JobError",
     "JobExecutor",

@@ -12,6 +12,7 @@ submission to a Ray cluster, stored before the job is submitted).
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
 import threading
 import time
@@ -42,7 +43,12 @@ _MIGRATIONS: dict[int, tuple[str, ...]] = {
 }
 
 
-class JobDatabaseVersionError(ValueError):
+class JobDatabaseError(ValueError):
+    """The job database, or the folder it lives in, cannot be used; the message names the file
+    and the problem in one sentence."""
+
+
+class JobDatabaseVersionError(JobDatabaseError):
     """The job database was written by a newer gateway, with a schema this code does not know."""
 
     def __init__(self, path: Path, found: int) -> None:
@@ -56,17 +62,42 @@ class JobDatabaseVersionError(ValueError):
 
 
 def check_schema_version(path: Path) -> None:
-    """Raise `JobDatabaseVersionError` when the database at `path` is newer than this code.
+    """Raise `JobDatabaseError` when the database at `path` cannot be used: a newer schema than
+    this code's (`JobDatabaseVersionError`), something else than a file in its place, a folder
+    that cannot be made, or a file that is not an intact SQLite database.
 
-    Lets the gateway refuse such a file before it starts serving; a missing file passes.
+    Lets the gateway refuse it in one sentence before it loads weights; a missing file passes
+    when its folder can be made. Checking creates nothing.
     """
+    if path.exists() and not path.is_file():
+        raise JobDatabaseError(f"the job database {path} is not a file: set RANGERET_DATABASE")
     if not path.is_file():
+        folder = path.parent
+        while not folder.exists() and folder != folder.parent:
+            folder = folder.parent
+        if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+            raise JobDatabaseError(
+                f"the job database {path} cannot be made: {folder} is not a folder this gateway "
+                "may write"
+            )
         return
-    db = sqlite3.connect(path, timeout=30)
     try:
-        _check_version(db, path)
-    finally:
-        db.close()
+        db = sqlite3.connect(path, timeout=30)
+        try:
+            _check_version(db, path)
+            problems = [row[0] for row in db.execute("PRAGMA quick_check(5)").fetchall()]
+        finally:
+            db.close()
+    except sqlite3.DatabaseError as exc:
+        raise JobDatabaseError(
+            f"the job database {path} cannot be read ({exc}): move the file away, or set "
+            "RANGERET_DATABASE to another one"
+        ) from exc
+    if problems != ["ok"]:
+        raise JobDatabaseError(
+            f"the job database {path} is damaged ({' '.join('; '.join(problems).split())[:200]}): "
+            "move the file away, or set RANGERET_DATABASE to another one"
+        )
 
 
 def _check_version(db: sqlite3.Connection, path: Path) -> int:
