@@ -19,7 +19,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from rangeret.onnx_export import INPUT_NAME, OUTPUT_NAME, onnx_metadata, write_export
+from rangeret.onnx_export import (
+    INPUT_NAME,
+    OUTPUT_NAME,
+    onnx_metadata,
+    read_metadata,
+    write_export,
+)
 from rangeret.onnx_session import make_session
 from rangeret.profiles import DatasetProfile
 
@@ -62,15 +68,44 @@ def export_path(network: torch.nn.Module, profile: DatasetProfile, sha: str) -> 
     )
 
 
+#: What a cached export must record as asked for before it runs: the weights, the network, the
+#: sensor's projection and the profile.
+CHECKED_FIELDS = ("checkpoint_sha256", "network", "network_config", "projection", "profile")
+
+
+def export_mismatch(path: Path, expected: dict) -> str | None:
+    """Why the export at `path` is not the one `expected` describes (its weights' SHA-256 named,
+    with the one asked for), or None when its metadata agrees on `CHECKED_FIELDS`."""
+    try:
+        found = read_metadata(path)
+    except ValueError as exc:
+        return str(exc)
+    if found.get("checkpoint_sha256") != expected["checkpoint_sha256"]:
+        return (
+            f"was made from checkpoint sha256 {found.get('checkpoint_sha256')}, not from "
+            f"sha256 {expected['checkpoint_sha256']}"
+        )
+    for field in CHECKED_FIELDS[1:]:
+        if found.get(field) != expected[field]:
+            return f"records another {field.replace('_', ' ')} than the one asked for"
+    return None
+
+
 def cached_export(
     network: torch.nn.Module, profile: DatasetProfile, checkpoint_sha256: str | None
 ) -> Path:
-    """The cached export of `network` for `profile`, made (and checked) first if missing; weights
-    that come from no file are known by `state_sha256`."""
+    """The cached export of `network` for `profile`, made (and checked) first if missing, and
+    made again when the file there records other weights, network, projection or profile than
+    these (a file copied over another); weights that come from no file are known by
+    `state_sha256`."""
     sha = checkpoint_sha256 or state_sha256(network)
     path = export_path(network, profile, sha)
     if path.exists():
-        return path
+        expected = onnx_metadata(network, profile, dynamic_batch=True, checkpoint_sha256=sha)
+        problem = export_mismatch(path, expected)
+        if problem is None:
+            return path
+        log.warning("the cached export %s %s: exporting it again", path, problem)
     log.info("exporting %s to ONNX for onnxruntime, once, into %s", network.config.name, path)
     check = write_export(network, profile, path, dynamic_batch=True, checkpoint_sha256=sha)
     log.info("%s", check.text())

@@ -306,3 +306,45 @@ def test_read_metadata_refuses_a_file_that_is_not_an_export(tmp_path):
     path.write_bytes(b"not a model")
     with pytest.raises(ValueError, match=r"not\.onnx is not an ONNX model"):
         read_metadata(path)
+
+
+def test_a_cached_export_of_other_weights_is_made_again(setup, tmp_path, monkeypatch, caplog):
+    """The export of one checkpoint copied over the cache file of another: the run exports its
+    own again (naming both hashes) and labels as torch does with its own weights."""
+    import logging
+    import shutil
+
+    from rangeret.hub import file_sha256
+    from rangeret.onnx_backend import cached_export
+    from rangeret.onnx_export import read_metadata
+
+    monkeypatch.setenv(CACHE_VARIABLE, str(tmp_path))
+    first = PredictorSpec(
+        checkpoint=str(setup["weights"]["rangeret-cir"]), height=32, width=256, device="cpu"
+    )
+    other = tmp_path / "other.pt"
+    state = torch.load(first.checkpoint, weights_only=True)
+    torch.manual_seed(1)
+    torch.save(
+        {
+            k: v + 0.05 * torch.randn_like(v) if v.is_floating_point() else v
+            for k, v in state.items()
+        },
+        other,
+    )
+    second = PredictorSpec(checkpoint=str(other), height=32, width=256, device="cpu")
+    made = []
+    for spec in (first, second):
+        predictor = spec.build()
+        made.append(
+            cached_export(predictor.network, predictor.profile, file_sha256(Path(spec.checkpoint)))
+        )
+    shutil.copyfile(made[0], made[1])  # the first checkpoint's export in the second's place
+    with caplog.at_level(logging.WARNING, logger="rangeret.onnx_backend"):
+        predictor = PredictorSpec(**{**vars(second), "backend": "onnxruntime"}).build()
+    warned = " ".join(r.getMessage() for r in caplog.records)
+    assert file_sha256(other) in warned and file_sha256(Path(first.checkpoint)) in warned, warned
+    assert read_metadata(made[1])["checkpoint_sha256"] == file_sha256(other)
+    scan = read_scan(data_path("semantickitti-scan", "000000.bin"))
+    torch_labels = second.build().predict(scan).labels
+    assert np.array_equal(predictor.predict(scan).labels, torch_labels)
