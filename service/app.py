@@ -25,6 +25,7 @@ from service.errors import error_responses
 from service.gateway import Gateway, ScanLabeller
 from service.jobs import JobExecutor, check_schema_version
 from service.metrics import MetricsMiddleware
+from service.origins import OriginGuard
 from service.routes.health import router as health_router
 from service.routes.jobs import router as jobs_router
 from service.routes.page import router as page_router
@@ -114,6 +115,7 @@ def create_app(
     )
     app.state.gateway = gateway
     app.add_middleware(MetricsMiddleware, metrics=lambda: gateway.metrics)
+    app.add_middleware(OriginGuard, allowed_hosts=settings.host_allow_list())
     install_error_handlers(app)
     # The token guard is added only when a token is set, so the API description shows the bearer
     # scheme and the 401 answers exactly when they apply.

@@ -30,6 +30,8 @@ RANGERET_SERVE_TIMEOUT_S   longest a single scan may wait for the Serve applicat
 RANGERET_JOBS_ADDRESS      the Ray dashboard whose Jobs API runs the gateway's jobs
                            (e.g. http://rangeret-head-svc:8265); unset: jobs run in-process
 RANGERET_ROOT_PATH         path prefix a reverse proxy serves the gateway under (e.g. /rangeret)
+RANGERET_ALLOWED_HOSTS     Host names the gateway answers to, separated by ','; default: any with a
+                           token, the loopback names and the bound address without one
 
 docs/http-api.md describes every setting with the endpoints and answers it shapes.
 """
@@ -45,6 +47,8 @@ from typing import Annotated
 
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+from service.origins import default_allowed_hosts
 
 MIB = 1 << 20
 GIB = 1 << 30
@@ -83,6 +87,18 @@ class Settings(BaseSettings):
     serve_timeout_s: float = Field(default=300.0, gt=0)
     jobs_address: str | None = None
     root_path: str = ""
+    allowed_hosts: Annotated[list[str] | None, NoDecode] = None
+
+    @field_validator("allowed_hosts", mode="before")
+    @classmethod
+    def _split_hosts(cls, value: object) -> object:
+        """Accept `a,b` (or a JSON list) as well as a list; empty counts as unset."""
+        if isinstance(value, str):
+            text = value.strip()
+            if text.startswith("["):
+                return json.loads(text)
+            return [part.strip() for part in text.split(",") if part.strip()] or None
+        return value
 
     @field_validator("data_roots", mode="before")
     @classmethod
@@ -152,6 +168,13 @@ class Settings(BaseSettings):
     def database_path(self) -> Path:
         """The SQLite file holding the job records."""
         return self.database or self.state_dir / "jobs.sqlite"
+
+    def host_allow_list(self) -> list[str] | None:
+        """The Host names the gateway answers to (None: any): `allowed_hosts` where set, else
+        the loopback names and the bound address on a gateway without a token."""
+        if self.allowed_hosts:
+            return list(self.allowed_hosts)
+        return None if self.token else list(default_allowed_hosts(self.host))
 
     @property
     def token(self) -> str | None:

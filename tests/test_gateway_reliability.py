@@ -14,6 +14,7 @@ import time
 import zipfile
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 from conftest import data_path
@@ -172,3 +173,52 @@ def test_a_job_store_or_state_folder_that_cannot_be_used_is_one_line(tmp_path, d
     assert run.returncode == 1, run.stderr[-2000:]
     assert "Traceback" not in run.stderr and run.stderr.count("\n") == 1, run.stderr[-2000:]
     assert str(named) in run.stderr and "absent.pt" not in run.stderr, run.stderr
+
+
+def _hosted(gw, path: str, host: str, method: str = "GET", **headers: str) -> httpx.Response:
+    with gw.client() as client:
+        return client.request(method, path, headers={"Host": host, **headers}, json={})
+
+
+def test_a_gateway_without_a_token_answers_only_its_own_names_and_origin(tmp_path):
+    """DNS rebinding and other origins' pages: the Host allow-list, /healthz for probes, and
+    state-changing requests refused when the browser says (or the Origin shows) another origin
+    sent them; scripts without those headers go on as before."""
+    env = gateway_env(tmp_path / "state", [tmp_path], token=None)
+    gw = start_gateway(small_weights(tmp_path), env, tmp_path / "gateway.log")
+    port = gw.url.rsplit(":", 1)[1]
+    try:
+        assert "RANGERET_ALLOWED_HOSTS" in assert_error(
+            _hosted(gw, "/v1/jobs", "attacker.example"), 400
+        )
+        assert _hosted(gw, "/healthz", "10.1.2.3:8000").status_code == 200
+        for host in (f"localhost:{port}", f"127.0.0.1:{port}", f"[::1]:{port}"):
+            assert _hosted(gw, "/v1/jobs", host).status_code == 200, host
+        own = f"127.0.0.1:{port}"
+        for headers in (
+            {"Origin": "http://evil.example"},
+            {"Origin": "null"},
+            {"Sec-Fetch-Site": "cross-site", "Origin": f"http://{own}"},
+            {"Sec-Fetch-Site": "same-site"},
+        ):
+            answer = _hosted(gw, "/v1/jobs", own, "POST", **headers)
+            assert "another origin" in assert_error(answer, 403), headers
+        for headers in ({}, {"Origin": f"http://{own}"}, {"Sec-Fetch-Site": "same-origin"}):
+            answer = _hosted(gw, "/v1/jobs", own, "POST", **headers)  # on to the app: no dataset
+            assert answer.status_code == 400 and "another origin" not in answer.text, headers
+        with gw.client() as client:
+            assert client.get("/v1/jobs").json()["jobs"] == []
+    finally:
+        gw.stop()
+
+
+def test_a_gateway_with_a_token_takes_any_host_unless_given_a_list(gateway, tmp_path):
+    assert _hosted(gateway, "/v1/jobs", "rangeret-gateway").status_code == 200
+    env = gateway_env(tmp_path / "state", [tmp_path], RANGERET_ALLOWED_HOSTS="rangeret.example")
+    listed = start_gateway(small_weights(tmp_path), env, tmp_path / "gateway.log")
+    try:
+        assert _hosted(listed, "/v1/jobs", "rangeret.example").status_code == 200
+        assert_error(_hosted(listed, "/v1/jobs", "rangeret-gateway"), 400)
+        assert _hosted(listed, "/healthz", "10.1.2.3").status_code == 200
+    finally:
+        listed.stop()
