@@ -222,3 +222,33 @@ def test_a_gateway_with_a_token_takes_any_host_unless_given_a_list(gateway, tmp_
         assert _hosted(listed, "/healthz", "10.1.2.3").status_code == 200
     finally:
         listed.stop()
+
+
+def test_a_job_whose_folder_is_removed_fails_naming_no_server_path(tmp_path):
+    """The job's predictions are deleted while it runs: it fails saying so, its `done` counts the
+    files that are really there, and neither its reason nor its errors quote the state folder."""
+    import shutil
+
+    points = read_scan(data_path("semantickitti-scan", "000000.bin"))
+    for i in range(40):
+        write_scan(velodyne_dir(tmp_path / "long", "42") / f"{i:06d}.bin", points[i % 3 :: 3])
+    state = tmp_path / "state"
+    env = gateway_env(state, [tmp_path], RANGERET_BATCH_SIZE="1")
+    gw = start_gateway(small_weights(tmp_path), env, tmp_path / "gateway.log")
+    try:
+        with gw.client() as client:
+            job_id = client.post("/v1/jobs", json={"dataset": "long", "sequences": ["42"]}).json()[
+                "id"
+            ]
+            out = state / "jobs" / job_id / "predictions"
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and len(list(out.rglob("*.label"))) < 3:
+                time.sleep(0.05)
+            shutil.rmtree(out)
+            status = wait_job(client, job_id, timeout=300)
+    finally:
+        gw.stop()
+    assert status["state"] == "failed", status
+    text = " ".join([status["reason"], *status["errors"]])
+    assert str(tmp_path) not in text and "Errno" not in text, text
+    assert status["done"] == len(list(out.rglob("*.label"))) < 40, status

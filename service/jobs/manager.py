@@ -24,7 +24,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from rangeret.evaluation import evaluate_predictions
-from rangeret.layout import KITTI_LAYOUT, SequenceLayout, discover
+from rangeret.layout import KITTI_LAYOUT, SequenceLayout, discover, prediction_path
 from rangeret.leaderboard import LeaderboardEntry, description_text
 from rangeret.plots import write_plots
 from rangeret.predict import is_complete, list_scans
@@ -52,6 +52,8 @@ PLOTS_DIR = "plots"
 PROFILE_FILE = "profile.txt"
 #: The file the gateway puts in every job folder it makes: the proof that it may delete it.
 MARKER_FILE = ".rangeret-job"
+#: The `[Errno N] ` that OS errors put before their reason.
+_ERRNO = re.compile(r"\[Errno \d+\] ")
 #: The name of a job folder: the job's id, 32 lowercase hex digits.
 JOB_ID = re.compile(r"[0-9a-f]{32}")
 
@@ -324,10 +326,10 @@ class JobManager:
             self._execute(job, cancel)
         except JobError as exc:
             log.warning("job %s failed: %s", job.id, exc)
-            self.store.finish(job.id, JobState.failed, reason=_sentence(exc))
+            self.store.finish(job.id, JobState.failed, reason=_sentence(exc, self.job_dir(job.id)))
         except Exception as exc:
             log.exception("job %s failed", job.id)
-            self.store.finish(job.id, JobState.failed, reason=_sentence(exc))
+            self.store.finish(job.id, JobState.failed, reason=_sentence(exc, self.job_dir(job.id)))
         finally:
             with self._running_lock:
                 self._running.pop(job.id, None)
@@ -381,7 +383,22 @@ class JobManager:
                 job.id,
                 JobState.failed,
                 reason=f"{len(failures)} of {len(entries)} scans could not be predicted (see errors)",
-                errors=[f"{key}: {reason}" for key, reason in failures.items()],
+                errors=[f"{key}: {_scrub(reason, folder)}" for key, reason in failures.items()],
+            )
+            return
+        missing = [e for e in entries if not is_complete(e, out, record)]
+        if missing:
+            self.store.progress(job.id, len(entries), len(entries) - len(missing), 0)
+            shown = ", ".join(
+                prediction_path(out, e.sequence, e.name).relative_to(folder).as_posix()
+                for e in missing[:5]
+            )
+            self.store.finish(
+                job.id,
+                JobState.failed,
+                reason=f"{len(missing)} of {len(entries)} predictions are missing from the job's "
+                f"folder ({shown}{', ...' if len(missing) > 5 else ''}): it was changed or "
+                "removed while the job ran",
             )
             return
         self.store.progress(job.id, len(entries), len(entries), 0)
@@ -431,7 +448,21 @@ def _accepted_profile(folder: Path) -> str | None:
         return None
 
 
-def _sentence(exc: BaseException) -> str:
-    """One readable line for an exception."""
-    text = " ".join(str(exc).split()) or type(exc).__name__
-    return text[:500]
+def _sentence(exc: BaseException, folder: Path | None = None) -> str:
+    """One readable line for an exception: an OS error as its reason and the path within the
+    job's `folder` (never the server's absolute paths nor raw errno text)."""
+    if isinstance(exc, OSError) and exc.strerror:
+        where = ""
+        if exc.filename is not None:
+            name = Path(str(exc.filename))
+            inside = folder is not None and name.is_relative_to(folder)
+            where = f": {name.relative_to(folder).as_posix()}" if inside else f": {name.name}"
+        return f"{exc.strerror.lower()}{where}"[:500]
+    return _scrub(" ".join(str(exc).split()) or type(exc).__name__, folder)[:500]
+
+
+def _scrub(text: str, folder: Path | None) -> str:
+    """`text` with the job's folder made relative and raw errno text dropped."""
+    if folder is not None:
+        text = text.replace(str(folder) + "/", "").replace(str(folder), "the job's folder")
+    return _ERRNO.sub("", text)
