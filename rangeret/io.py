@@ -10,6 +10,7 @@ semantic id, the high 16 bits the instance id. Every reader checks what it reads
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -96,14 +97,36 @@ def parse_scan(
     return points.astype(np.float32, copy=False)
 
 
-def read_scan(path: str | os.PathLike[str], record: PointRecord = KITTI_RECORD) -> np.ndarray:
+def read_scan(
+    path: str | os.PathLike[str],
+    record: PointRecord = KITTI_RECORD,
+    within: Sequence[str | os.PathLike[str]] | None = None,
+) -> np.ndarray:
     """Read a `.bin` scan as a float32 (N, fields) array ((N, 4) x, y, z, remission by default).
 
     Raises `ScanFormatError` when the file is empty, its size is not a whole number of records or
-    it holds non-finite values, and `FileNotFoundError` when it does not exist.
+    it holds non-finite values, and `FileNotFoundError` when it does not exist. With `within`,
+    the file opened must lie under one of those folders once links are resolved (judged on the
+    open file itself, so a link swapped in meanwhile is caught): else `ScanFormatError`.
     """
     path = Path(path)
-    return parse_scan(path.read_bytes(), str(path), record).copy()
+    if within is None:
+        return parse_scan(path.read_bytes(), str(path), record).copy()
+    with open(path, "rb") as f:
+        opened = _opened_path(f.fileno(), path)
+        roots = [os.path.realpath(r) for r in within]
+        if not any(opened == r or opened.startswith(r.rstrip(os.sep) + os.sep) for r in roots):
+            raise ScanFormatError(path, "it leads outside the folders this run may read")
+        data = f.read()
+    return parse_scan(data, str(path), record).copy()
+
+
+def _opened_path(fd: int, path: Path) -> str:
+    """The real path of the file open as `fd` (from /proc where there is one)."""
+    try:
+        return os.readlink(f"/proc/self/fd/{fd}")
+    except OSError:
+        return os.path.realpath(path)
 
 
 def scan_num_points(path: str | os.PathLike[str], record: PointRecord = KITTI_RECORD) -> int:

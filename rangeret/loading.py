@@ -29,17 +29,19 @@ def load_batch(
     config: ProjectionConfig,
     times: StageTimes,
     record: PointRecord = KITTI_RECORD,
+    within: Sequence[str] | None = None,
 ) -> list[LoadedScan]:
     """Read and project every scan of `entries`, in order; times go to `times` (read, project).
 
-    A file that is not whole records of `record`, or whose points cannot be projected (a laser id
-    off the image), becomes a failure naming the file.
+    A file that is not whole records of `record`, whose points cannot be projected (a laser id
+    off the image), or that leads outside the folders `within` (when given), becomes a failure
+    naming the file.
     """
     loaded = []
     for entry in entries:
         try:
             with times.stage("read"):
-                points = read_scan(entry.scan_path, record)
+                points = read_scan(entry.scan_path, record, within)
         except (ScanFormatError, OSError) as exc:
             loaded.append(LoadedScan(entry, error=str(exc)))
             continue

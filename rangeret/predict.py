@@ -126,12 +126,14 @@ def predict_tree(
     on_progress: Callable[[int, int, int], None] | None = None,
     cancel: threading.Event | None = None,
     save_confidence: bool = False,
+    read_roots: Sequence[str] | None = None,
 ) -> PredictSummary:
     """Write `OUT/sequences/XX/predictions/NNNNNN.label` for every scan of `sequences` (and, with
     `save_confidence`, each point's confidence in `OUT/sequences/XX/confidence/NNNNNN.npy`).
 
     `on_progress(done, failed, total)` is called after every batch; setting `cancel` stops the
-    run after the current batch (files already written stay complete).
+    run after the current batch (files already written stay complete). With `read_roots`, a scan
+    file that leads outside those folders when it is read is that scan's failure.
     """
     if batch_size < 1:
         raise ValueError(f"--batch-size must be at least 1, got {batch_size}")
@@ -160,12 +162,16 @@ def predict_tree(
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="rangeret-read") as pool:
         batches = _batches(pending, batch_size)
         config = predictor.projection_config
-        future = pool.submit(load_batch, next(batches, []), config, times, profile.points)
+        future = pool.submit(
+            load_batch, next(batches, []), config, times, profile.points, read_roots
+        )
         while True:
             loaded = future.result()
             if not loaded or (cancel is not None and cancel.is_set()):
                 break
-            future = pool.submit(load_batch, next(batches, []), config, times, profile.points)
+            future = pool.submit(
+                load_batch, next(batches, []), config, times, profile.points, read_roots
+            )
             results = predictor.label_loaded(loaded, times, with_confidence=save_confidence)
             for scan, (found, error) in zip(loaded, results, strict=True):
                 if found is None:

@@ -136,11 +136,14 @@ def build_executor(
     from service.jobs import LocalExecutor
 
     served = replace(spec, profile=facts.profile)
+    roots = [*settings.data_roots, settings.jobs_folder.resolve()]  # checked again at read time
     if settings.jobs_address:
         from service.jobs.ray_jobs import RayJobExecutor
 
-        return RayJobExecutor(settings.jobs_address, values, facts.profile, settings.batch_size)
-    return LocalExecutor(served, settings.batch_size)
+        return RayJobExecutor(
+            settings.jobs_address, values, facts.profile, settings.batch_size, read_roots=roots
+        )
+    return LocalExecutor(served, settings.batch_size, read_roots=roots)
 
 
 def check_state(settings: Settings) -> None:

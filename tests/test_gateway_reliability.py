@@ -252,3 +252,41 @@ def test_a_job_whose_folder_is_removed_fails_naming_no_server_path(tmp_path):
     text = " ".join([status["reason"], *status["errors"]])
     assert str(tmp_path) not in text and "Errno" not in text, text
     assert status["done"] == len(list(out.rglob("*.label"))) < 40, status
+
+
+def test_a_scan_swapped_for_a_link_out_of_the_roots_while_its_job_runs_is_refused(tmp_path):
+    """The roots are checked when a job starts and again when each scan is read: a scan replaced
+    by a link to a file outside them after the job started is that scan's failure, and nothing
+    of the outside file is labelled."""
+    points = read_scan(data_path("semantickitti-scan", "000000.bin"))
+    roots = tmp_path / "roots"
+    for i in range(40):
+        write_scan(velodyne_dir(roots / "long", "42") / f"{i:06d}.bin", points[i % 3 :: 3])
+    outside = tmp_path / "outside.bin"
+    write_scan(outside, points[::5])
+    state = tmp_path / "state"
+    env = gateway_env(state, [roots], RANGERET_BATCH_SIZE="1")
+    gw = start_gateway(small_weights(tmp_path), env, tmp_path / "gateway.log")
+    last = velodyne_dir(roots / "long", "42") / "000039.bin"
+    try:
+        with gw.client() as client:
+            job_id = client.post("/v1/jobs", json={"dataset": "long", "sequences": ["42"]}).json()[
+                "id"
+            ]
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline:
+                status = client.get(f"/v1/jobs/{job_id}").json()
+                if status["state"] == "running" and status["done"] >= 1:
+                    break
+                time.sleep(0.02)
+            assert status["done"] < 39, status
+            last.unlink()
+            last.symlink_to(outside)
+            status = wait_job(client, job_id, timeout=300)
+    finally:
+        gw.stop()
+    assert status["state"] == "failed" and status["failed"] == 1, status
+    reason = "long/sequences/42/velodyne/000039.bin: it leads outside the folders this run may read"
+    assert status["errors"] == [f"42/000039: {reason}"], status["errors"]
+    out = state / "jobs" / job_id / "predictions" / "sequences" / "42" / "predictions"
+    assert not (out / "000039.label").exists() and len(list(out.glob("*.label"))) == 39

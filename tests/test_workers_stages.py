@@ -69,3 +69,22 @@ def test_the_cpu_stages_start_without_torch():
     code = "import sys, workers.stages; print('torch' in sys.modules)"
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert run.stdout.strip() == "False"
+
+
+def test_readers_given_roots_refuse_a_scan_that_leads_out_of_them(entries, tmp_path):
+    """The Ray job's readers (`--read-roots`) judge each scan when they read it: a link to a file
+    outside the roots is that scan's failure; a link that stays inside is read."""
+    outside = tmp_path / "elsewhere.bin"
+    outside.write_bytes(entries[0].scan_path.read_bytes())
+    inside_copy = entries[0].scan_path.with_name("inside.bin")
+    inside_copy.write_bytes(entries[2].scan_path.read_bytes())
+    entries[0].scan_path.unlink()
+    entries[0].scan_path.symlink_to(outside)
+    entries[2].scan_path.unlink()
+    entries[2].scan_path.symlink_to(inside_copy)
+    roots = (str(tmp_path / "data"),)
+    record = read_and_project(BatchRecord(0, entries), ProjectionConfig(16, 128), within=roots)
+    assert "leads outside the folders this run may read" in record.loaded[0].error
+    assert record.loaded[2].error is None and record.loaded[2].projection.num_points == 500
+    unchecked = read_and_project(BatchRecord(0, entries), ProjectionConfig(16, 128))
+    assert unchecked.loaded[0].error is None

@@ -113,6 +113,8 @@ class PipelineOptions:
     actor_start_timeout: float = 1800.0
     actor_cpus: float | None = None
     progress_interval: float = 10.0
+    #: Folders the readers may read scans from (links resolved); None: anywhere.
+    read_roots: tuple[str, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -300,7 +302,11 @@ def run_pipeline(
     ds = ray.data.from_items(batches, override_num_blocks=len(batches))
     ds = ds.map(
         Reader,
-        fn_constructor_kwargs={"projection": profile.projection, "record": profile.points},
+        fn_constructor_kwargs={
+            "projection": profile.projection,
+            "record": profile.points,
+            "within": options.read_roots,
+        },
         compute=ray.data.ActorPoolStrategy(min_size=1, max_size=layout.readers),
         num_cpus=options.read_cpus,
     )

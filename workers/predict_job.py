@@ -83,6 +83,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--read-cpus", type=float, default=0.25, help="CPU share of each read + project actor"
     )
     p.add_argument(
+        "--read-roots",
+        nargs="+",
+        type=Path,
+        metavar="DIR",
+        help="read scans only from under these folders (links resolved when each scan is "
+        "read); another scan is named as a failure (default: anywhere)",
+    )
+    p.add_argument(
         "--actor-cpus",
         type=float,
         metavar="N",
@@ -164,6 +172,7 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
         read_cpus=args.read_cpus,
         actor_cpus=args.actor_cpus,
         use_gpu=None if args.device == "auto" else args.device == "cuda",
+        read_roots=tuple(str(r.resolve()) for r in args.read_roots) if args.read_roots else None,
     )
     result = run_pipeline(spec, profile, pending, args.out, options, progress=recorder.batch)
     precision = result.precision(spec)

@@ -9,6 +9,7 @@ Ray Data row by `encode` and read back by `BatchRecord.decode`.
 from __future__ import annotations
 
 import pickle
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -62,12 +63,16 @@ class BatchRecord:
 
 
 def read_and_project(
-    record: BatchRecord, projection: ProjectionConfig, points: PointRecord = KITTI_RECORD
+    record: BatchRecord,
+    projection: ProjectionConfig,
+    points: PointRecord = KITTI_RECORD,
+    within: Sequence[str] | None = None,
 ) -> BatchRecord:
-    """Stage 1: read and project every scan of a batch; unreadable scans become named failures.
-    Labelled scans get their points' distance bands from the projection's ranges, so the writer
-    counts them by distance without reading the scan again."""
-    record.loaded = load_batch(record.entries, projection, record.times, points)
+    """Stage 1: read and project every scan of a batch; unreadable scans (and, with `within`,
+    files that lead outside those folders) become named failures. Labelled scans get their
+    points' distance bands from the projection's ranges, so the writer counts them by distance
+    without reading the scan again."""
+    record.loaded = load_batch(record.entries, projection, record.times, points, within)
     record.bands = [
         distance_bands(scan.projection.unproj_range)
         if scan.projection is not None and scan.entry.label_path is not None
@@ -105,12 +110,19 @@ def write_results(record: BatchRecord, out: str, label_config: LabelConfig) -> B
 class Reader:
     """`read_and_project` as a long-lived Ray Data actor: no worker process start per batch."""
 
-    def __init__(self, projection: ProjectionConfig, record: PointRecord) -> None:
+    def __init__(
+        self,
+        projection: ProjectionConfig,
+        record: PointRecord,
+        within: Sequence[str] | None = None,
+    ) -> None:
         self.projection = projection
         self.record = record
+        self.within = within
 
     def __call__(self, row: dict) -> dict:
-        return read_and_project(BatchRecord.decode(row), self.projection, self.record).encode()
+        decoded = BatchRecord.decode(row)
+        return read_and_project(decoded, self.projection, self.record, self.within).encode()
 
 
 class Writer:

@@ -94,13 +94,17 @@ class JobExecutor(Protocol):
 
 class LocalExecutor:
     """`predict_tree` in this process, with its own predictor (built on first use), which reads
-    the dataset in the layout and point record of the profile the spec's network runs with."""
+    the dataset in the layout and point record of the profile the spec's network runs with, and,
+    with `read_roots`, only scans that lie under those folders when they are read."""
 
     backend = "local"
 
-    def __init__(self, spec: PredictorSpec, batch_size: int = 1) -> None:
+    def __init__(
+        self, spec: PredictorSpec, batch_size: int = 1, read_roots: list[Path] | None = None
+    ) -> None:
         self.spec = spec
         self.batch_size = batch_size
+        self.read_roots = read_roots
         self.precision: str | None = None
         self._predictor: Predictor | None = None
 
@@ -132,6 +136,7 @@ class LocalExecutor:
             progress=False,
             on_progress=progress,
             cancel=cancel,
+            read_roots=None if self.read_roots is None else [str(r) for r in self.read_roots],
         )
         return summary.failed
 

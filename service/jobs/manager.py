@@ -383,7 +383,10 @@ class JobManager:
                 job.id,
                 JobState.failed,
                 reason=f"{len(failures)} of {len(entries)} scans could not be predicted (see errors)",
-                errors=[f"{key}: {_scrub(reason, folder)}" for key, reason in failures.items()],
+                errors=[
+                    f"{key}: {_scrub(reason, folder, self.read_roots)}"
+                    for key, reason in failures.items()
+                ],
             )
             return
         missing = [e for e in entries if not is_complete(e, out, record)]
@@ -461,8 +464,11 @@ def _sentence(exc: BaseException, folder: Path | None = None) -> str:
     return _scrub(" ".join(str(exc).split()) or type(exc).__name__, folder)[:500]
 
 
-def _scrub(text: str, folder: Path | None) -> str:
-    """`text` with the job's folder made relative and raw errno text dropped."""
+def _scrub(text: str, folder: Path | None, roots: Sequence[Path] | None = None) -> str:
+    """`text` with the job's folder and the data roots made relative (the server's own paths
+    are not the client's business) and raw errno text dropped."""
     if folder is not None:
         text = text.replace(str(folder) + "/", "").replace(str(folder), "the job's folder")
+    for root in roots or ():
+        text = text.replace(str(root).rstrip("/") + "/", "")
     return _ERRNO.sub("", text)

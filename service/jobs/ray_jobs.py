@@ -209,7 +209,8 @@ class RayJobExecutor:
     relative path is named by its absolute path, as are the job's folders, since the Ray job runs
     elsewhere. `profile` is the served profile, whose point record tells which predictions are
     already whole. `api`, `poll_s`, `unreachable_s` and `max_submissions` default to the module's
-    constants.
+    constants. With `read_roots`, the Ray job reads scans only from under those folders
+    (`--read-roots`: a scan that leads elsewhere when it is read is its failure).
     """
 
     backend = "ray-jobs"
@@ -225,8 +226,10 @@ class RayJobExecutor:
         poll_s: float = POLL_S,
         unreachable_s: float = UNREACHABLE_S,
         max_submissions: int = MAX_SUBMISSIONS,
+        read_roots: list[Path] | None = None,
     ) -> None:
         self.address = address
+        self.read_roots = read_roots
         self.values = {**values, "batch_size": batch_size}
         for name in ("checkpoint", "profile"):
             value = self.values.get(name)
@@ -246,6 +249,8 @@ class RayJobExecutor:
         sequences into `out`, with the gateway's network options."""
         argv = ["python", "-m", "workers.predict_job", "--dataset", str(Path(dataset).absolute())]
         argv += ["--sequences", *sequences, "--out", str(Path(out).absolute()), *self.network]
+        if self.read_roots:
+            argv += ["--read-roots", *(str(Path(r).absolute()) for r in self.read_roots)]
         return shlex.join(argv)
 
     def predict(
