@@ -32,6 +32,7 @@ from service.routes.page import router as page_router
 from service.routes.profile import router as profile_router
 from service.routes.scans import router as scans_router
 from service.schemas import ErrorResponse
+from service.security_headers import NoSniff
 from service.settings import Settings
 
 
@@ -112,10 +113,14 @@ def create_app(
         lifespan=lifespan,
         # No trailing-slash redirects: Starlette builds their Location from the request's Host.
         redirect_slashes=False,
+        # The API page is the gateway's own (`service.routes.page`), with no file from elsewhere.
+        docs_url=None,
+        redoc_url=None,
     )
     app.state.gateway = gateway
     app.add_middleware(MetricsMiddleware, metrics=lambda: gateway.metrics)
     app.add_middleware(OriginGuard, allowed_hosts=settings.host_allow_list())
+    app.add_middleware(NoSniff)
     install_error_handlers(app)
     # The token guard is added only when a token is set, so the API description shows the bearer
     # scheme and the 401 answers exactly when they apply.

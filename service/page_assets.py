@@ -1,7 +1,9 @@
-"""The web page's files: its HTML, its own modules and styles, and the three.js modules it imports.
+"""The web page's files: its HTML, its own modules and styles, the three.js modules it imports,
+and the API page (`/docs`: Swagger UI, from the gateway itself).
 
-The page's own files live in `service/web/src`; three.js comes from the npm package installed
-into `service/web/node_modules` by `make web` (`npm ci`, pinned by `service/web/package-lock.json`).
+The page's own files live in `service/web/src`; three.js and Swagger UI come from the npm packages
+installed into `service/web/node_modules` by `make web` (`npm ci`, pinned by
+`service/web/package-lock.json`).
 Every file is served under `static/<version>/`, where the version is a hash of all their
 contents, so they can be cached for good; the HTML names that version and is never cached. The
 HTML's import map (an inline script) is allowed by its hash in the Content-Security-Policy,
@@ -28,6 +30,8 @@ VENDOR_FILES = (
     "three/build/three.module.js",
     "three/build/three.core.js",
     "three/examples/jsm/controls/OrbitControls.js",
+    "swagger-ui-dist/swagger-ui-bundle.js",
+    "swagger-ui-dist/swagger-ui.css",
 )
 #: Content types of the page's files, by suffix.
 MEDIA_TYPES = {
@@ -60,10 +64,14 @@ class PageAssets:
     html: bytes
     csp: str
     files: dict[str, Asset]
+    #: The API page (`/docs`) and its policy.
+    docs_html: bytes = b""
+    docs_csp: str = ""
 
 
-def content_security_policy(html: str) -> str:
-    """The page's policy: its own origin only, and the import map of `html` by its SHA-256."""
+def content_security_policy(html: str, inline_styles: bool = False) -> str:
+    """The page's policy: its own origin only, and the import map of `html` by its SHA-256;
+    `inline_styles` lets the API page's Swagger UI set the style attributes it renders."""
     scripts = ["'self'"]
     for block in _IMPORT_MAP.findall(html):
         digest = base64.b64encode(hashlib.sha256(block.encode()).digest()).decode()
@@ -72,7 +80,7 @@ def content_security_policy(html: str) -> str:
         [
             "default-src 'self'",
             f"script-src {' '.join(scripts)}",
-            "style-src 'self'",
+            "style-src 'self' 'unsafe-inline'" if inline_styles else "style-src 'self'",
             "img-src 'self' data: blob:",
             "connect-src 'self'",
             "object-src 'none'",
@@ -112,7 +120,15 @@ def load_page_assets(web_dir: Path = WEB_DIR) -> PageAssets:
         digest.update(name.encode() + b"\0" + hashlib.sha256(asset.body).digest())
     version = digest.hexdigest()[:16]
     html = (web_dir / "index.html").read_text(encoding="utf-8").replace(VERSION_MARK, version)
-    return PageAssets(version, html.encode(), content_security_policy(html), files)
+    docs = (web_dir / "docs.html").read_text(encoding="utf-8").replace(VERSION_MARK, version)
+    return PageAssets(
+        version,
+        html.encode(),
+        content_security_policy(html),
+        files,
+        docs.encode(),
+        content_security_policy(docs, inline_styles=True),
+    )
 
 
 class PageFiles:

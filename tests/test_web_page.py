@@ -408,3 +408,26 @@ def test_the_page_works_under_a_path_prefix(setup, page):
         servers = httpx.get(base + "openapi.json").json()["servers"]
         assert servers == [{"url": PREFIX}]
     assert log.errors == [] and log.failed == []
+
+
+def test_the_api_page_comes_from_the_gateway_alone(setup, page):
+    """`/docs` renders the operations with Swagger UI's files served by the gateway: no request
+    leaves its origin, under a same-origin policy; every answer says nosniff."""
+    tab, log = page
+    gw: Gateway = setup["gateway"]
+    requested: list[str] = []
+    tab.on("request", lambda r: requested.append(r.url))
+    tab.goto(gw.url + "/docs")
+    tab.wait_for_selector(".opblock-summary-path", timeout=60_000)
+    tab.wait_for_load_state("networkidle")
+    paths = tab.locator(".opblock-summary-path").all_inner_texts()
+    assert any("/v1/scans" in p for p in paths), paths
+    assert requested and all(url.startswith(gw.url + "/") for url in requested), requested
+    assert not log.errors and not log.failed, (log.errors, log.failed)
+    docs = httpx.get(gw.url + "/docs")
+    assert "default-src 'self'" in docs.headers["content-security-policy"]
+    assert "http" not in docs.text.replace("http-equiv", "")
+    for path in ("/docs", "/", "/healthz", "/v1/jobs", "/openapi.json", "/redoc", "/metrics"):
+        answer = httpx.get(gw.url + path)
+        assert answer.headers.get("x-content-type-options") == "nosniff", path
+    assert httpx.get(gw.url + "/redoc").status_code == 404

@@ -1,4 +1,4 @@
-"""The web page at `/` and its static files under `static/<version>/`.
+"""The web page at `/`, the API page at `/docs`, and their static files under `static/<version>/`.
 
 The page holds no data: it needs no token, and asks for one where the gateway has one (the API
 calls it makes carry it). The HTML is never cached and carries the Content-Security-Policy; the
@@ -43,7 +43,21 @@ async def page(gw: GatewayDep) -> Response:
         headers={
             "Content-Security-Policy": assets.csp,
             "Cache-Control": NO_CACHE,
-            "X-Content-Type-Options": "nosniff",
+            "Referrer-Policy": "no-referrer",
+        },
+    )
+
+
+@router.get("/docs")
+async def api_page(gw: GatewayDep) -> Response:
+    """Swagger UI over the gateway's OpenAPI description, every file from the gateway itself."""
+    assets = await _assets(gw)
+    return Response(
+        assets.docs_html,
+        media_type="text/html; charset=utf-8",
+        headers={
+            "Content-Security-Policy": assets.docs_csp,
+            "Cache-Control": NO_CACHE,
             "Referrer-Policy": "no-referrer",
         },
     )
@@ -60,5 +74,5 @@ async def static_file(version: str, path: str, gw: GatewayDep) -> Response:
     return Response(
         asset.body,
         media_type=asset.media_type,
-        headers={"Cache-Control": IMMUTABLE, "X-Content-Type-Options": "nosniff"},
+        headers={"Cache-Control": IMMUTABLE},
     )
