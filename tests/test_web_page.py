@@ -431,3 +431,50 @@ def test_the_api_page_comes_from_the_gateway_alone(setup, page):
         answer = httpx.get(gw.url + path)
         assert answer.headers.get("x-content-type-options") == "nosniff", path
     assert httpx.get(gw.url + "/redoc").status_code == 404
+
+
+def test_another_origins_page_cannot_start_a_job_on_a_gateway_without_a_token(
+    setup, browser, tmp_path
+):
+    """A page served from another origin posts an archive to a loopback gateway without a token
+    (`fetch` with `mode: "no-cors"`, as a form would): the browser marks it cross-site, the
+    gateway answers 403, and no job is made. A script without a browser's headers still can."""
+    import http.server
+    import threading
+
+    env = gateway_env(tmp_path / "state", [tmp_path], token=None)
+    gw = start_gateway(small_weights(tmp_path), env, tmp_path / "gateway.log")
+    archive = setup["archive"].read_bytes()
+    evil = tmp_path / "evil"
+    evil.mkdir()
+    (evil / "index.html").write_text(
+        "<!doctype html><html><body><script>\n"
+        "window.sent = (async () => {\n"
+        f"  const bytes = new Uint8Array({list(archive)});\n"
+        "  const form = new FormData();\n"
+        "  form.append('archive', new Blob([bytes]), 'evil.zip');\n"
+        f"  await fetch('{gw.url}/v1/jobs', {{method: 'POST', mode: 'no-cors', body: form}});\n"
+        "  return 'sent';\n"
+        "})();\n"
+        "</script></body></html>\n"
+    )
+    handler = lambda *a: http.server.SimpleHTTPRequestHandler(*a, directory=str(evil))  # noqa: E731
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    context = browser.new_context()
+    try:
+        tab = context.new_page()
+        statuses: list[int] = []
+        tab.on("response", lambda r: statuses.append(r.status) if "/v1/jobs" in r.url else None)
+        tab.goto(f"http://localhost:{server.server_address[1]}/index.html")
+        assert tab.evaluate("() => window.sent") == "sent"
+        tab.wait_for_timeout(500)
+        with gw.client(auth=False) as client:
+            assert client.get("/v1/jobs").json()["jobs"] == []
+            made = client.post("/v1/jobs", files={"archive": ("a.zip", archive, "application/zip")})
+            assert made.status_code == 202, made.text  # curl and scripts send no Origin
+        assert statuses == [403], statuses
+    finally:
+        context.close()
+        server.shutdown()
+        gw.stop()
