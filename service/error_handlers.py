@@ -1,12 +1,15 @@
 """The app's exception handlers: every error is answered as `{"detail": "<one sentence>"}`.
 
 `ApiError` keeps its status, sentence and headers; Starlette's own errors (404, 405) get readable
-sentences; request validation errors become 400 (not FastAPI's 422); anything else is a logged 500.
+sentences; request validation errors become 400 (not FastAPI's 422); a full disk (the job
+database's, or where an upload is written) is 507 naming it; anything else is a logged 500.
 """
 
 from __future__ import annotations
 
+import errno
 import logging
+from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -14,7 +17,8 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
-from service.errors import ApiError, default_sentence, validation_sentence
+from service.errors import ApiError, default_sentence, sentence, validation_sentence
+from service.jobs import JobDatabaseFull
 from service.schemas import ErrorResponse
 
 log = logging.getLogger(__name__)
@@ -71,8 +75,21 @@ async def invalid_request(_: Request, exc: RequestValidationError) -> JSONRespon
     return error_response(400, validation_sentence(exc.errors()))
 
 
+async def database_full(_: Request, exc: JobDatabaseFull) -> JSONResponse:
+    """The job database's disk is full: 507 naming it."""
+    log.warning("%s", exc)
+    return error_response(507, sentence(f"Insufficient storage: {exc}"))
+
+
 async def unexpected(_: Request, exc: Exception) -> JSONResponse:
-    """Any other exception: logged with its traceback, answered with a 500 sentence."""
+    """Any other exception: logged with its traceback, answered with a 500 sentence; a disk
+    that is full (ENOSPC, EDQUOT) is a 507 naming the folder instead."""
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        where = Path(str(exc.filename)).parent if exc.filename else "the gateway's state folder"
+        log.warning("no space left on the disk of %s: %s", where, exc)
+        return error_response(
+            507, sentence(f"Insufficient storage: the disk of {where} is full; free space there")
+        )
     log.error("unexpected error", exc_info=exc)
     return error_response(500, "The gateway failed unexpectedly; the error is in its log.")
 
@@ -82,4 +99,5 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(ApiError, api_error)
     app.add_exception_handler(StarletteHTTPException, http_error)
     app.add_exception_handler(RequestValidationError, invalid_request)
+    app.add_exception_handler(JobDatabaseFull, database_full)
     app.add_exception_handler(Exception, unexpected)

@@ -34,7 +34,7 @@ _DESCRIPTIONS = {
     429: "Too many jobs are waiting (RANGERET_MAX_QUEUED_JOBS)",
     503: "The labelling backend is unavailable or overloaded, or the single-scan queue is full",
     504: "The Serve application did not answer in time (RANGERET_SERVE_TIMEOUT_S)",
-    507: "The job folders' disk limit (RANGERET_MAX_JOB_BYTES) leaves no room for the job",
+    507: "No room: the job folders' limit (RANGERET_MAX_JOB_BYTES) or disk, or a full disk under the job database",
 }
 
 

@@ -290,3 +290,98 @@ def test_a_scan_swapped_for_a_link_out_of_the_roots_while_its_job_runs_is_refuse
     assert status["errors"] == [f"42/000039: {reason}"], status["errors"]
     out = state / "jobs" / job_id / "predictions" / "sequences" / "42" / "predictions"
     assert not (out / "000039.label").exists() and len(list(out.glob("*.label"))) == 39
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 1 MiB tmpfs of the test's own (mounting one needs root), and a way to fill it."""
+    if os.geteuid() != 0:
+        pytest.skip("a full disk is made with a tmpfs, which only root may mount")
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(disk)], check=True)
+
+    def fill() -> Path:
+        filler = disk / "filler"
+        f = open(filler, "ab", buffering=0)  # noqa: SIM115
+        try:
+            while True:
+                f.write(b"\0" * 4096)
+        except OSError:
+            pass
+        finally:
+            f.close()
+        return filler
+
+    try:
+        yield disk, fill
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)
+
+
+def _long_dataset(root: Path, scans: int = 60, stride: int = 3) -> None:
+    points = read_scan(data_path("semantickitti-scan", "000000.bin"))
+    for i in range(scans):
+        write_scan(velodyne_dir(root, "42") / f"{i:06d}.bin", points[i % stride :: stride])
+
+
+def test_a_full_disk_under_the_job_database_is_507_and_fails_the_running_job(tmp_path, small_disk):
+    disk, fill = small_disk
+    _long_dataset(tmp_path / "long", scans=100)
+    database = disk / "jobs.sqlite"
+    env = gateway_env(
+        tmp_path / "state", [tmp_path], RANGERET_DATABASE=str(database), RANGERET_BATCH_SIZE="1"
+    )
+    gw = start_gateway(small_weights(tmp_path), env, tmp_path / "gateway.log")
+    try:
+        with gw.client() as client:
+            job = {"dataset": "long", "sequences": ["42"]}
+            job_id = client.post("/v1/jobs", json=job).json()["id"]
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline:
+                status = client.get(f"/v1/jobs/{job_id}").json()
+                if status["state"] == "running" and status["done"] >= 1:
+                    break
+                time.sleep(0.05)
+            filler = fill()
+            detail = assert_error(client.post("/v1/jobs", json=job), 507)
+            assert str(database) in detail and "full disk" in detail, detail
+            time.sleep(1)  # the running job's next progress record meets the full disk
+            assert client.get(f"/v1/jobs/{job_id}").json()["done"] < 100
+            filler.unlink()  # the space comes back
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline:
+                status = client.get(f"/v1/jobs/{job_id}").json()
+                if status["state"] != "running":
+                    break
+                time.sleep(0.2)
+    finally:
+        gw.stop()
+    assert status["state"] == "failed" and str(database) in status["reason"], status
+    assert "Traceback" not in gw.output()
+
+
+def test_an_upload_or_a_job_that_does_not_fit_the_jobs_disk_is_507(tmp_path, small_disk):
+    disk, _ = small_disk
+    _long_dataset(tmp_path / "long", scans=20)
+    env = gateway_env(tmp_path / "state", [tmp_path], RANGERET_JOBS_DIR=str(disk / "jobs"))
+    gw = start_gateway(small_weights(tmp_path), env, tmp_path / "gateway.log")
+    try:
+        with gw.client() as client:
+            answer = client.post("/v1/jobs", json={"dataset": "long", "sequences": ["42"]})
+            detail = assert_error(answer, 507)
+            assert "bytes free" in detail and str(disk / "jobs") in detail, detail
+            points = read_scan(data_path("semantickitti-scan", "000000.bin"))
+            buf = io.BytesIO()
+            with zipfile.ZipFile(buf, "w") as zf:  # about 2.6 MB, stored
+                for i in range(8):
+                    name = f"sequences/11/velodyne/{i:06d}.bin"
+                    zf.writestr(name, points[i % 6 :: 6].tobytes())
+            answer = client.post(
+                "/v1/jobs", files={"archive": ("big.zip", buf.getvalue(), "application/zip")}
+            )
+            detail = assert_error(answer, 507)
+            assert str(disk) in detail, detail
+            assert client.get("/v1/jobs").json()["jobs"] == []
+    finally:
+        gw.stop()

@@ -22,6 +22,7 @@ from service.jobs.manager import JobManager
 from service.jobs.store import (
     SCHEMA_VERSION,
     JobDatabaseError,
+    JobDatabaseFull,
     JobDatabaseVersionError,
     JobRecord,
     JobStore,
@@ -32,6 +33,7 @@ __all__ = [
     "SCHEMA_VERSION",
     "JobControl",
     "JobDatabaseError",
+    "JobDatabaseFull",
     "JobDatabaseVersionError",
     "JobError",
     "JobExecutor",

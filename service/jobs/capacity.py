@@ -56,6 +56,15 @@ def queue_full(max_queued: int) -> JobRefused:
     )
 
 
+def disk_short(need: int, free: int, folder: Path) -> JobRefused:
+    """The 507 answer when a job's `need` is more than the disk of the job folders has free."""
+    return JobRefused(
+        507,
+        f"The job needs about {need:,} bytes of disk and the disk of the job folders ({folder}) "
+        f"has {free:,} bytes free; free space there, or try again later.",
+    )
+
+
 def disk_full(need: int, used: int, max_bytes: int) -> JobRefused:
     """The 507 answer when a job's `need` does not fit beside the `used` bytes."""
     return JobRefused(

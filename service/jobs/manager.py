@@ -29,9 +29,9 @@ from rangeret.leaderboard import LeaderboardEntry, description_text
 from rangeret.plots import write_plots
 from rangeret.predict import is_complete, list_scans
 from rangeret.profiles import DatasetProfile, load_profile
-from service.jobs.capacity import disk_full, folder_bytes, queue_full
+from service.jobs.capacity import disk_full, disk_short, folder_bytes, queue_full
 from service.jobs.executors import JobControl, JobError, JobExecutor, write_predictions_zip
-from service.jobs.store import JobRecord, JobStore
+from service.jobs.store import JobDatabaseFull, JobRecord, JobStore
 from service.paths import escaping_scans, outside_roots_sentence
 from service.schemas import JobState
 
@@ -52,6 +52,8 @@ PLOTS_DIR = "plots"
 PROFILE_FILE = "profile.txt"
 #: The file the gateway puts in every job folder it makes: the proof that it may delete it.
 MARKER_FILE = ".rangeret-job"
+#: How often a failure the job database refused (a full disk) is tried again.
+UNRECORDED_RETRY_S = 2.0
 #: The `[Errno N] ` that OS errors put before their reason.
 _ERRNO = re.compile(r"\[Errno \d+\] ")
 #: The name of a job folder: the job's id, 32 lowercase hex digits.
@@ -115,6 +117,10 @@ class JobManager:
         #: Sizes of finished jobs' folders, which no longer change.
         self._finished_sizes: dict[str, int] = {}
         self._threads: list[threading.Thread] = []
+        #: Failures the job database refused to record (a full disk), by job id.
+        self._unrecorded: dict[str, str] = {}
+        #: Wakes the sweeper early: to retry those failures, or to stop.
+        self._sweep_wake = threading.Event()
 
     # Folders ------------------------------------------------------------------------------
 
@@ -184,6 +190,9 @@ class JobManager:
                 used = self.disk_usage()
                 if used + expected_bytes > self.max_bytes:
                     raise disk_full(expected_bytes, used, self.max_bytes)
+            free = shutil.disk_usage(self.jobs_dir).free
+            if expected_bytes > free:
+                raise disk_short(expected_bytes, free, self.jobs_dir)
             (self.job_dir(job_id) / PROFILE_FILE).write_text(self.profile.name + "\n")
             record = self.store.create(job_id, kind, dataset, sequences)
             self._expected[job_id] = expected_bytes
@@ -231,6 +240,7 @@ class JobManager:
         start (a job on a Ray cluster runs on there, and is followed again)."""
         self._stop.set()
         self._wake.set()
+        self._sweep_wake.set()
         with self._running_lock:
             for cancel in self._running.values():
                 cancel.set()
@@ -299,11 +309,44 @@ class JobManager:
 
     def _sweep_loop(self) -> None:
         interval = min(60.0, max(0.5, self.retention_s / 4))
-        while not self._stop.wait(interval):
+        swept = time.monotonic()
+        while not self._stop.is_set():
+            self._sweep_wake.wait(
+                min(interval, UNRECORDED_RETRY_S) if self._unrecorded else interval
+            )
+            self._sweep_wake.clear()
+            if self._stop.is_set():
+                return
+            self._record_unrecorded()
+            if time.monotonic() - swept < interval:
+                continue
+            swept = time.monotonic()
             try:
                 self.sweep()
             except Exception:
                 log.exception("the retention sweep failed")
+
+    def _fail(self, job_id: str, reason: str) -> None:
+        """Mark a job failed; when the job database takes no writes (a full disk), keep the
+        reason and write it as soon as it does (`_record_unrecorded`)."""
+        try:
+            self.store.finish(job_id, JobState.failed, reason=reason)
+        except JobDatabaseFull as exc:
+            log.warning(
+                "job %s failed (%s) and %s; recorded once it takes writes", job_id, reason, exc
+            )
+            self._unrecorded[job_id] = reason
+            self._sweep_wake.set()
+
+    def _record_unrecorded(self) -> None:
+        """Write the failures the job database refused, now that it may take them."""
+        for job_id, reason in list(self._unrecorded.items()):
+            try:
+                self.store.finish(job_id, JobState.failed, reason=reason)
+            except JobDatabaseFull:
+                return
+            self._unrecorded.pop(job_id, None)
+            log.info("job %s is recorded as failed: %s", job_id, reason)
 
     def _run_loop(self) -> None:
         while not self._stop.is_set():
@@ -326,10 +369,13 @@ class JobManager:
             self._execute(job, cancel)
         except JobError as exc:
             log.warning("job %s failed: %s", job.id, exc)
-            self.store.finish(job.id, JobState.failed, reason=_sentence(exc, self.job_dir(job.id)))
+            self._fail(job.id, _sentence(exc, self.job_dir(job.id)))
+        except JobDatabaseFull as exc:
+            log.warning("job %s stopped: %s", job.id, exc)
+            self._fail(job.id, _sentence(exc, self.job_dir(job.id)))
         except Exception as exc:
             log.exception("job %s failed", job.id)
-            self.store.finish(job.id, JobState.failed, reason=_sentence(exc, self.job_dir(job.id)))
+            self._fail(job.id, _sentence(exc, self.job_dir(job.id)))
         finally:
             with self._running_lock:
                 self._running.pop(job.id, None)

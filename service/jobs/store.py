@@ -48,6 +48,18 @@ class JobDatabaseError(ValueError):
     and the problem in one sentence."""
 
 
+class JobDatabaseFull(JobDatabaseError):
+    """A write to the job database failed for want of disk space: 507 to requests, and the job
+    that was writing is failed as soon as the database takes writes again."""
+
+    def __init__(self, path: Path) -> None:
+        super().__init__(
+            f"the job database {path} is on a full disk: free space there, or set "
+            "RANGERET_DATABASE to another disk"
+        )
+        self.path = path
+
+
 class JobDatabaseVersionError(JobDatabaseError):
     """The job database was written by a newer gateway, with a schema this code does not know."""
 
@@ -194,9 +206,17 @@ class JobStore:
             self._db.close()
 
     def _execute(self, sql: str, params: Sequence = ()) -> int:
-        """Run one statement; the number of rows it changed."""
+        """Run one statement; the number of rows it changed (`JobDatabaseFull` when the disk
+        under the database is full)."""
         with self._lock:
-            return self._db.execute(sql, params).rowcount
+            try:
+                return self._db.execute(sql, params).rowcount
+            except sqlite3.OperationalError as exc:
+                if _is_full(exc):
+                    if self._db.in_transaction:  # give up the write lock the failed write held
+                        self._db.rollback()
+                    raise JobDatabaseFull(self.path) from exc
+                raise
 
     def _query(self, sql: str, params: Sequence = ()) -> list[JobRecord]:
         with self._lock:
@@ -353,6 +373,13 @@ class JobStore:
         """Finished jobs whose end is older than `when` (unix time)."""
         states = [JobState.succeeded.value, JobState.failed.value, JobState.cancelled.value]
         return self._query("WHERE state IN (?, ?, ?) AND finished < ?", [*states, when])
+
+
+def _is_full(exc: sqlite3.Error) -> bool:
+    """Whether SQLite failed for want of disk space (SQLITE_FULL, or an I/O error on a full
+    disk)."""
+    code = getattr(exc, "sqlite_errorname", "")
+    return code.startswith("SQLITE_FULL") or "disk is full" in str(exc)
 
 
 def _record(row: Sequence) -> JobRecord:

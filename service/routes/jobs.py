@@ -9,6 +9,7 @@ the event loop.
 from __future__ import annotations
 
 import asyncio
+import errno
 import json
 import re
 from collections.abc import Sequence
@@ -317,6 +318,15 @@ async def _archive_job(request: Request, gw: Gateway, jobs: JobManager) -> JobRe
             list_scans, found.root, found.sequences, layout=gw.profile.layout
         )
         return await _submit(jobs, job_id, "archive", found.root, found.sequences, entries, gw)
+    except OSError as exc:
+        await asyncio.to_thread(jobs.remove_files, job_id)
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise ApiError(
+                507,
+                f"Insufficient storage: the disk of the jobs folder {jobs.jobs_dir} is full; "
+                "free space there, or upload a smaller archive.",
+            ) from exc
+        raise
     except BaseException:
         await asyncio.to_thread(jobs.remove_files, job_id)
         raise
