@@ -1,8 +1,10 @@
 """A gateway process for the HTTP benchmarks: `python -m service` on a free loopback port, with
-its own RANGERET_* environment and log, started once it answers /healthz and stopped with SIGTERM."""
+its own RANGERET_* environment and log, started once it answers /healthz and stopped with SIGTERM;
+and the single-scan load the benchmarks put on it."""
 
 from __future__ import annotations
 
+import asyncio
 import os
 import signal
 import socket
@@ -79,3 +81,29 @@ def start_gateway(
         time.sleep(0.2)
     gw.stop()
     sys.exit(f"the gateway did not answer /healthz within {START_TIMEOUT_S} s:\n{gw.log_tail()}")
+
+
+OCTET = {"Content-Type": "application/octet-stream"}
+
+
+async def load(
+    url: str, body: bytes, clients: int, scans: int, timeout: float = 600, warmup: int = 2
+) -> tuple[float, list[float]]:
+    """Wall time and per-request latencies of `clients` clients each sending `scans` requests
+    one after another (after `warmup` requests that are not counted)."""
+    latencies: list[float] = []
+    limits = httpx.Limits(max_connections=clients)
+    async with httpx.AsyncClient(base_url=url, timeout=timeout, limits=limits) as client:
+
+        async def one_client() -> None:
+            for _ in range(scans):
+                start = time.perf_counter()
+                answer = await client.post("/v1/scans", content=body, headers=OCTET)
+                answer.raise_for_status()
+                latencies.append(time.perf_counter() - start)
+
+        for _ in range(warmup):
+            (await client.post("/v1/scans", content=body, headers=OCTET)).raise_for_status()
+        start = time.perf_counter()
+        await asyncio.gather(*(one_client() for _ in range(clients)))
+        return time.perf_counter() - start, latencies

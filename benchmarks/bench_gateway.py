@@ -14,18 +14,15 @@ import asyncio
 import os
 import statistics
 import tempfile
-import time
 from pathlib import Path
 
 import httpx
 import numpy as np
 import torch
 from _common import REAL_SCAN, require_real_scan, small_state_dict
-from _gateway import StartedGateway, start_gateway
+from _gateway import StartedGateway, load, start_gateway
 
 from rangeret.io import read_scan
-
-OCTET = {"Content-Type": "application/octet-stream"}
 
 
 def launch(weights: Path, state: Path, batch: int, wait_ms: float, device: str) -> StartedGateway:
@@ -37,28 +34,6 @@ def launch(weights: Path, state: Path, batch: int, wait_ms: float, device: str) 
         "RANGERET_BATCH_WAIT_MS": str(wait_ms),
     }
     return start_gateway([*options, "--device", device], settings, state / "gateway.log", "")
-
-
-async def load(
-    url: str, body: bytes, clients: int, scans: int, timeout: float
-) -> tuple[float, list[float]]:
-    """Wall time and per-request latencies of `clients` x `scans` sequential requests."""
-    latencies: list[float] = []
-    limits = httpx.Limits(max_connections=clients)
-    async with httpx.AsyncClient(base_url=url, timeout=timeout, limits=limits) as client:
-
-        async def one_client() -> None:
-            for _ in range(scans):
-                start = time.perf_counter()
-                r = await client.post("/v1/scans", content=body, headers=OCTET)
-                r.raise_for_status()
-                latencies.append(time.perf_counter() - start)
-
-        for _ in range(3):  # warm-up
-            (await client.post("/v1/scans", content=body, headers=OCTET)).raise_for_status()
-        start = time.perf_counter()
-        await asyncio.gather(*(one_client() for _ in range(clients)))
-        return time.perf_counter() - start, latencies
 
 
 def percentile(values: list[float], q: float) -> float:
@@ -74,7 +49,7 @@ def run_config(
         gw = launch(weights, Path(state), batch, wait_ms, args.device)
         try:
             wall, latencies = asyncio.run(
-                load(gw.url, body, args.clients, args.scans, args.timeout)
+                load(gw.url, body, args.clients, args.scans, args.timeout, warmup=3)
             )
             metrics = httpx.get(gw.url + "/metrics", timeout=10).text
         finally:

@@ -29,13 +29,12 @@ import numpy as np
 import torch
 import yaml
 from _common import REAL_SCAN, require_real_scan
-from _gateway import StartedGateway, free_port, start_gateway
+from _gateway import StartedGateway, free_port, load, start_gateway
 
 from rangeret.models import build_model
 from rangeret.models.checkpoint import save_checkpoint
 from rangeret.profiles import load_profile
 
-OCTET = {"Content-Type": "application/octet-stream"}
 HEIGHT, WIDTH = 64, 512
 
 
@@ -134,26 +133,6 @@ def deploy(folder: Path, dashboard: str, env: dict, args: dict, cpus: int, port:
             pass
         time.sleep(1)
     sys.exit("the Serve application did not answer in 300 s")
-
-
-async def load(url: str, body: bytes, clients: int, scans: int) -> tuple[float, list[float]]:
-    """Wall time and latencies of `clients` clients each sending `scans` requests in turn."""
-    latencies: list[float] = []
-    limits = httpx.Limits(max_connections=clients)
-    async with httpx.AsyncClient(base_url=url, timeout=600, limits=limits) as client:
-
-        async def one_client() -> None:
-            for _ in range(scans):
-                start = time.perf_counter()
-                answer = await client.post("/v1/scans", content=body, headers=OCTET)
-                answer.raise_for_status()
-                latencies.append(time.perf_counter() - start)
-
-        for _ in range(2):  # warm-up
-            (await client.post("/v1/scans", content=body, headers=OCTET)).raise_for_status()
-        start = time.perf_counter()
-        await asyncio.gather(*(one_client() for _ in range(clients)))
-        return time.perf_counter() - start, latencies
 
 
 def figures(wall: float, latencies: list[float]) -> dict[str, float]:

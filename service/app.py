@@ -23,7 +23,7 @@ from service.dependencies import require_token
 from service.error_handlers import install_error_handlers
 from service.errors import error_responses
 from service.gateway import Gateway, ScanLabeller
-from service.jobs import JobExecutor, check_schema_version
+from service.jobs import JobExecutor, check_job_database
 from service.metrics import MetricsMiddleware
 from service.origins import OriginGuard
 from service.routes.health import router as health_router
@@ -81,7 +81,7 @@ def create_app(
     problem = settings.address_problem()
     if problem:
         raise ValueError(problem)
-    check_schema_version(settings.database_path)
+    check_job_database(settings.database_path)
     gateway = Gateway(
         settings,
         labeller,

@@ -13,8 +13,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
-import numpy as np
-
 from rangeret.profiles import DatasetProfile
 from service.admission import ScanAdmission
 from service.errors import ApiError
@@ -24,6 +22,8 @@ from service.page_assets import PageFiles, PageNotBuilt
 from service.settings import Settings
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from workers.scans import LabelledScan
 
 log = logging.getLogger(__name__)

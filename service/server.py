@@ -115,7 +115,6 @@ def checkpoint_facts(spec: PredictorSpec) -> CheckpointFacts:
 def build_labeller(settings: Settings, spec: PredictorSpec, facts: CheckpointFacts) -> ScanLabeller:
     """What labels single scans: the Serve application at `serve_url` (once it answers with the
     same checkpoint and profile), or else the network in this process behind the local batcher."""
-    served = replace(spec, profile=facts.profile)
     if settings.serve_url:
         from service.serve_client import ServeLabeller
 
@@ -124,6 +123,7 @@ def build_labeller(settings: Settings, spec: PredictorSpec, facts: CheckpointFac
         return labeller
     from service.local_labeller import LocalLabeller, LocalPool
 
+    served = replace(spec, profile=facts.profile)
     return LocalLabeller(LocalPool(served), settings.batch_size, settings.batch_wait_ms / 1000)
 
 
@@ -149,7 +149,7 @@ def build_executor(
 def check_state(settings: Settings) -> None:
     """The state folder, the jobs folder and the job database can be used; else a `CommandError`
     naming the path and the problem in one sentence."""
-    from service.jobs import JobDatabaseError, check_schema_version
+    from service.jobs import JobDatabaseError, check_job_database
 
     try:
         settings.jobs_folder.mkdir(parents=True, exist_ok=True)
@@ -159,7 +159,7 @@ def check_state(settings: Settings) -> None:
             f"RANGERET_JOBS_DIR): {exc.strerror or exc}"
         ) from exc
     try:
-        check_schema_version(settings.database_path)
+        check_job_database(settings.database_path)
     except JobDatabaseError as exc:
         raise CommandError(str(exc)) from exc
 

@@ -93,23 +93,13 @@ class Settings(BaseSettings):
     @classmethod
     def _split_hosts(cls, value: object) -> object:
         """Accept `a,b` (or a JSON list) as well as a list; empty counts as unset."""
-        if isinstance(value, str):
-            text = value.strip()
-            if text.startswith("["):
-                return json.loads(text)
-            return [part.strip() for part in text.split(",") if part.strip()] or None
-        return value
+        return _split_list(value, ",") or None
 
     @field_validator("data_roots", mode="before")
     @classmethod
     def _split_roots(cls, value: object) -> object:
         """Accept `a:b` (os.pathsep-separated) or a JSON list, as well as a list."""
-        if isinstance(value, str):
-            text = value.strip()
-            if text.startswith("["):
-                return json.loads(text)
-            return [part for part in text.split(os.pathsep) if part.strip()]
-        return value
+        return _split_list(value, os.pathsep)
 
     @field_validator("retention", mode="before")
     @classmethod
@@ -189,6 +179,17 @@ class Settings(BaseSettings):
             f"refusing to serve on {self.host} without RANGERET_API_TOKEN: without a token the "
             "gateway serves only on a loopback address such as 127.0.0.1"
         )
+
+
+def _split_list(value: object, separator: str) -> object:
+    """A variable's list: a JSON list, or items between `separator`s (blank ones dropped); any
+    other value as it is."""
+    if not isinstance(value, str):
+        return value
+    text = value.strip()
+    if text.startswith("["):
+        return json.loads(text)
+    return [part.strip() for part in text.split(separator) if part.strip()]
 
 
 def is_loopback(host: str) -> bool:

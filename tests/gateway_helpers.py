@@ -91,11 +91,16 @@ def start_gateway(weights: Path, env: dict[str, str], log: Path, *args: str) -> 
     ]
     with open(log, "ab") as out:
         proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT)
-    gw = Gateway(f"http://127.0.0.1:{port}", proc, log)
-    deadline = time.time() + 120
-    while time.time() < deadline:
-        if proc.poll() is not None:
-            pytest.fail(f"the gateway exited with {proc.returncode}:\n{gw.output()}")
+    return wait_healthy(Gateway(f"http://127.0.0.1:{port}", proc, log))
+
+
+def wait_healthy(gw: Gateway, timeout: float = 120) -> Gateway:
+    """`gw` once it answers /healthz with 200; the test fails with its log's end when its process
+    exits first or it does not answer within `timeout` seconds."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if gw.proc.poll() is not None:
+            pytest.fail(f"the gateway exited with {gw.proc.returncode}:\n{gw.output()}")
         try:
             if httpx.get(gw.url + "/healthz", timeout=2).status_code == 200:
                 return gw

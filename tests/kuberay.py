@@ -71,9 +71,9 @@ loopback (ports from `workers_helpers.node_ports`, for instance)::
 `argv` is `["/bin/bash", "-c", "--", script]`: run it with `ray` on PATH (the venv's bin folder;
 the image puts /opt/rangeret/bin there, and `env` holds only what the manifest and the operator
 add), with RAY_START_ULIMIT_OPEN_FILES at or below the machine's hard limit if `ulimit -n 65536`
-is refused (bash goes on regardless), and stop it by its process group (never `ray stop`). A key
-mapped to None in `params` or `resources` is removed before composition, so KubeRay's default for
-it applies. `addresses` maps `host:port` or a bare `host` (its port kept, unless the target names
+is refused (bash goes on regardless), and stop it by its process group only (the Ray CLI's stop
+command would end every Ray node on the machine). A key mapped to None in `params` or
+`resources` is removed before composition, so KubeRay's default for it applies. `addresses` maps `host:port` or a bare `host` (its port kept, unless the target names
 one) to another address, in env values, args and the worker's `address`; `host` matches a whole
 host name only, so map the head service's name and its FQDN each.
 """

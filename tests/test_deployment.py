@@ -36,7 +36,7 @@ from pathlib import Path
 import httpx
 import pytest
 import yaml
-from gateway_helpers import OCTET, Gateway, wait_job
+from gateway_helpers import OCTET, Gateway, wait_healthy, wait_job
 from kuberay import (
     KUBERAY,
     compose,
@@ -133,19 +133,8 @@ class Cluster:
                 start_new_session=True,
             )
         gw = Gateway(f"http://127.0.0.1:{self.gateway_env['RANGERET_PORT']}", proc, log)
-        deadline = time.monotonic() + 180
-        while time.monotonic() < deadline:
-            if proc.poll() is not None:
-                pytest.fail(f"the gateway exited with {proc.returncode}:\n{gw.output()}")
-            try:
-                if httpx.get(gw.url + "/healthz", timeout=2).status_code == 200:
-                    self.gateway = gw
-                    return gw
-            except httpx.TransportError:
-                pass
-            time.sleep(0.5)
-        gw.stop(signal.SIGKILL)
-        pytest.fail(f"the gateway did not answer in time:\n{gw.output()}")
+        self.gateway = wait_healthy(gw, timeout=180)
+        return self.gateway
 
 
 def _mapped(value: str, mounts: dict[str, Path]) -> str:

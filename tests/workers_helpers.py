@@ -121,8 +121,8 @@ class RayNode:
 @contextlib.contextmanager
 def ray_node(folder: Path, head: RayNode | None = None, num_cpus: int = 2, num_gpus: int = 0):
     """`ray start --block` as a head (or, given `head`, a node joining it) with ports and a temp
-    folder of its own, stopped afterwards with its whole process group (never `ray stop`, which
-    would stop every Ray on the machine)."""
+    folder of its own, stopped afterwards by its own process group only (the Ray CLI's stop
+    command would end every Ray node on the machine, other tests' included)."""
     bindir = Path(sys.executable).parent
     env = dict(
         os.environ,

@@ -26,7 +26,7 @@ from service.jobs.store import (
     JobDatabaseVersionError,
     JobRecord,
     JobStore,
-    check_schema_version,
+    check_job_database,
 )
 
 __all__ = [
@@ -42,7 +42,7 @@ __all__ = [
     "JobRefused",
     "JobStore",
     "LocalExecutor",
-    "check_schema_version",
+    "check_job_database",
     "disk_full",
     "expected_output_bytes",
     "write_predictions_zip",

@@ -73,7 +73,7 @@ class JobDatabaseVersionError(JobDatabaseError):
         self.found = found
 
 
-def check_schema_version(path: Path) -> None:
+def check_job_database(path: Path) -> None:
     """Raise `JobDatabaseError` when the database at `path` cannot be used: a newer schema than
     this code's (`JobDatabaseVersionError`), something else than a file in its place, a folder
     that cannot be made, or a file that is not an intact SQLite database.

@@ -34,33 +34,30 @@ async def _assets(gw: GatewayDep) -> PageAssets:
         raise ApiError(503, str(exc)) from exc
 
 
-@router.get("/")
-async def page(gw: GatewayDep) -> Response:
-    assets = await _assets(gw)
+def _html(body: bytes, csp: str) -> Response:
+    """A page's HTML: never cached, under its Content-Security-Policy."""
     return Response(
-        assets.html,
+        body,
         media_type="text/html; charset=utf-8",
         headers={
-            "Content-Security-Policy": assets.csp,
+            "Content-Security-Policy": csp,
             "Cache-Control": NO_CACHE,
             "Referrer-Policy": "no-referrer",
         },
     )
+
+
+@router.get("/")
+async def page(gw: GatewayDep) -> Response:
+    assets = await _assets(gw)
+    return _html(assets.html, assets.csp)
 
 
 @router.get("/docs")
 async def api_page(gw: GatewayDep) -> Response:
     """Swagger UI over the gateway's OpenAPI description, every file from the gateway itself."""
     assets = await _assets(gw)
-    return Response(
-        assets.docs_html,
-        media_type="text/html; charset=utf-8",
-        headers={
-            "Content-Security-Policy": assets.docs_csp,
-            "Cache-Control": NO_CACHE,
-            "Referrer-Policy": "no-referrer",
-        },
-    )
+    return _html(assets.docs_html, assets.docs_csp)
 
 
 @router.get("/static/{version}/{path:path}")
