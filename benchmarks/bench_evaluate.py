@@ -14,11 +14,11 @@ import numpy as np
 from _common import REAL_LABELS, median_time, require_real_scan
 from reference import add_at_confusion, read_mapped, remap_table
 
-from rangeret.evaluation import evaluate_predictions
-from rangeret.io import read_labels, write_labels, write_scan
-from rangeret.labels import semantickitti
-from rangeret.layout import labels_dir, prediction_path, velodyne_dir
-from rangeret.metrics import confusion_counts
+from rangeret.dataset.labels import semantickitti
+from rangeret.dataset.layout import labels_dir, prediction_path, velodyne_dir
+from rangeret.evaluation.evaluate import evaluate_predictions
+from rangeret.evaluation.metrics import confusion_counts
+from rangeret.io.scans import read_labels, write_labels, write_scan
 
 SCANS = 40
 

@@ -22,7 +22,7 @@ import torch
 from _common import REAL_SCAN, require_real_scan, small_state_dict
 from _gateway import StartedGateway, load, start_gateway
 
-from rangeret.io import read_scan
+from rangeret.io.scans import read_scan
 
 
 def launch(weights: Path, state: Path, batch: int, wait_ms: float, device: str) -> StartedGateway:

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from _common import DATA, median_time
 
-from rangeret.knn import refine, refine_batch
+from rangeret.inference.knn import refine, refine_batch
 
 FIXTURE = DATA / "knn-semantickitti-scan.npz"
 INPUTS = ("proj_range", "unproj_range", "proj_argmax", "proj_x", "proj_y")

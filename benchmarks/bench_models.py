@@ -15,8 +15,9 @@ import torch
 from _common import median_time
 from torch.utils.flop_counter import FlopCounterMode
 
-from rangeret.models import build_model, token_mixing
-from rangeret.models.decay import GridCache
+from rangeret.models import build_model
+from rangeret.models.blocks import token_mixing
+from rangeret.models.blocks.decay import GridCache
 
 MODELS = ("rangeret-thesis", "rangeret-cir")
 RESOLUTIONS = ((64, 1024), (64, 2048))

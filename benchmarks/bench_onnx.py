@@ -43,7 +43,9 @@ def main() -> None:
     args = parser.parse_args()
     require_real_scan()
     logging.basicConfig(level=logging.WARNING, format="    %(message)s", stream=sys.stdout)
-    logging.getLogger("rangeret.onnx_backend").setLevel(logging.INFO)  # the export's check
+    logging.getLogger("rangeret.inference.runtime.onnx_backend").setLevel(
+        logging.INFO
+    )  # the export's check
     with tempfile.TemporaryDirectory() as temporary:
         os.environ["RANGERET_CACHE"] = args.cache or temporary
         run(args)
@@ -55,10 +57,10 @@ def run(args: argparse.Namespace) -> None:
     import onnxruntime
     import torch
 
-    from rangeret.inference import Predictor
-    from rangeret.io import read_scan
+    from rangeret.dataset.profiles import load_profile
+    from rangeret.inference.predictor import Predictor
+    from rangeret.io.scans import read_scan
     from rangeret.models import build_model
-    from rangeret.profiles import load_profile
 
     points = read_scan(REAL_SCAN)
     profile = load_profile().with_overrides(height=args.height, width=args.width)

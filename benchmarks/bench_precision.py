@@ -17,10 +17,10 @@ import numpy as np
 import torch
 from _common import REAL_SCAN, require_real_scan
 
-from rangeret.inference import Predictor
-from rangeret.io import read_scan
+from rangeret.dataset.profiles import load_profile
+from rangeret.inference.predictor import Predictor
+from rangeret.io.scans import read_scan
 from rangeret.models import build_model
-from rangeret.profiles import load_profile
 
 
 def main() -> None:

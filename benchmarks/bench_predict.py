@@ -17,12 +17,12 @@ import numpy as np
 import torch
 from _common import REAL_SCAN, require_real_scan
 
-from rangeret.inference import Predictor
-from rangeret.io import read_scan, write_labels, write_scan
-from rangeret.layout import velodyne_dir
+from rangeret.dataset.layout import velodyne_dir
+from rangeret.dataset.profiles import load_profile
+from rangeret.inference.predictor import Predictor
+from rangeret.inference.runner import predict_tree
+from rangeret.io.scans import read_scan, write_labels, write_scan
 from rangeret.models import build_model
-from rangeret.predict import predict_tree
-from rangeret.profiles import load_profile
 
 
 def stage_medians(

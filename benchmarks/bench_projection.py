@@ -9,8 +9,8 @@ import argparse
 
 from _common import REAL_SCAN, median_time, require_real_scan
 
-from rangeret.io import read_scan
-from rangeret.projection import project
+from rangeret.dataset.projection import project
+from rangeret.io.scans import read_scan
 
 TARGET_MS = 20.0
 

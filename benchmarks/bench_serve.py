@@ -31,9 +31,9 @@ import yaml
 from _common import REAL_SCAN, require_real_scan
 from _gateway import StartedGateway, free_port, load, start_gateway
 
+from rangeret.dataset.profiles import load_profile
 from rangeret.models import build_model
-from rangeret.models.checkpoint import save_checkpoint
-from rangeret.profiles import load_profile
+from rangeret.models.weights.checkpoint import save_checkpoint
 
 HEIGHT, WIDTH = 64, 512
 

@@ -20,12 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
-from rangeret.atomic import atomic_path
-from rangeret.io import LABEL_BYTES, write_labels
-from rangeret.labels import semantickitti
-from rangeret.layout import prediction_path, velodyne_dir
-from rangeret.submission import write_submission
-from rangeret.zipfiles import ReproducibleZip, available_cpus
+from rangeret.dataset.labels import semantickitti
+from rangeret.dataset.layout import prediction_path, velodyne_dir
+from rangeret.io.atomic import atomic_path
+from rangeret.io.scans import LABEL_BYTES, write_labels
+from rangeret.io.zipfiles import ReproducibleZip, available_cpus
+from rangeret.submission.archives import write_submission
 
 SEQUENCE = "11"
 POINT_BYTES = 16

@@ -39,9 +39,9 @@ def measure(model: str, steps: int) -> dict:
     """Time `steps` training steps of `model` in this process; returns the figures as a dict."""
     import torch
 
-    from rangeret.layout import labels_dir, velodyne_dir
+    from rangeret.dataset.layout import labels_dir, velodyne_dir
     from rangeret.training import TrainConfig, Trainer
-    from rangeret.training.dataset import collate
+    from rangeret.training.data import collate
 
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "data"

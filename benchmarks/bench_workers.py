@@ -19,12 +19,12 @@ from pathlib import Path
 import torch
 from _common import REAL_SCAN, require_real_scan, small_state_dict
 
-from rangeret.inference import PredictorSpec, checkpoint_profile
-from rangeret.io import read_scan, write_scan
-from rangeret.layout import velodyne_dir
+from rangeret.dataset.layout import velodyne_dir
+from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
+from rangeret.inference.runner import list_scans, predict_tree
+from rangeret.inference.timing import StageTimes
+from rangeret.io.scans import read_scan, write_scan
 from rangeret.models import build_model
-from rangeret.predict import list_scans, predict_tree
-from rangeret.timing import StageTimes
 from workers.pipeline import PipelineOptions, run_pipeline
 
 SIZES = {"kitti": (64, 1024), "small": (32, 256)}

@@ -41,17 +41,17 @@ import numpy as np
 import torch
 from _common import REAL_SCAN, REPO, SMALL_VECTORS
 
-from rangeret.atomic import atomic_write_text
-from rangeret.inference import Predictor, PredictorSpec
-from rangeret.io import read_scan, write_labels
-from rangeret.knn import refine
-from rangeret.layout import ScanEntry, discover, prediction_path
-from rangeret.loading import LoadedScan, load_batch
+from rangeret.dataset.layout import ScanEntry, discover, prediction_path
+from rangeret.dataset.profiles import DatasetProfile, load_profile
+from rangeret.dataset.projection import project
+from rangeret.inference.knn import refine
+from rangeret.inference.loading import LoadedScan, load_batch
+from rangeret.inference.predictor import Predictor, PredictorSpec
+from rangeret.inference.runtime.precision import forward_precision
+from rangeret.inference.timing import StageTimes
+from rangeret.io.atomic import atomic_write_text
+from rangeret.io.scans import read_scan, write_labels
 from rangeret.models import build_model, load_checkpoint
-from rangeret.precision import forward_precision
-from rangeret.profiles import DatasetProfile, load_profile
-from rangeret.projection import project
-from rangeret.timing import StageTimes
 
 NETWORKS = ("rangeret-thesis", "rangeret-cir")
 PRECISIONS = ("fp32", "fp16", "bf16")
@@ -65,7 +65,7 @@ SEED = 0
 
 SIMULATE = """\
 import sys
-from rangeret.profiles import load_profile
+from rangeret.dataset.profiles import load_profile
 from rangeret.sim import simulate_dataset
 root, sequence, scans, height, width = sys.argv[1:]
 profile = load_profile().with_overrides(height=int(height), width=int(width))

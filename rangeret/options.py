@@ -13,16 +13,16 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from rangeret.backends import BACKENDS, check_backend
-from rangeret.errors import CommandError
-from rangeret.labels import LabelConfig, load_label_config
-from rangeret.layout import resolve_sequences
-from rangeret.leaderboard import DEFAULT_NAME, DEFAULT_URL, LeaderboardEntry
-from rangeret.precision import PRECISIONS
-from rangeret.profiles import BUILTIN_PROFILES, DatasetProfile, load_profile
+from rangeret.commands import CommandError
+from rangeret.dataset.labels import LabelConfig, load_label_config
+from rangeret.dataset.layout import resolve_sequences
+from rangeret.dataset.profiles import BUILTIN_PROFILES, DatasetProfile, load_profile
+from rangeret.inference.runtime.backends import BACKENDS, check_backend
+from rangeret.inference.runtime.precision import PRECISIONS
+from rangeret.submission.leaderboard import DEFAULT_NAME, DEFAULT_URL, LeaderboardEntry
 
 if TYPE_CHECKING:
-    from rangeret.inference import PredictorSpec
+    from rangeret.inference.predictor import PredictorSpec
 
 #: The splits every label configuration names.
 SPLITS = ("train", "valid", "test")
@@ -228,7 +228,7 @@ def add_network_options(parser: argparse.ArgumentParser) -> None:
 
 def spec_from_args(args: argparse.Namespace) -> PredictorSpec:
     """A `PredictorSpec` from the shared network options (checked, not loaded yet)."""
-    from rangeret.inference import KnnSettings, TtaSettings
+    from rangeret.inference.settings import KnnSettings, TtaSettings
 
     if args.batch_size < 1:
         raise CommandError(f"--batch-size must be at least 1, got {args.batch_size}")
@@ -256,8 +256,9 @@ def spec_from_args(args: argparse.Namespace) -> PredictorSpec:
 def weights_spec_from_args(args: argparse.Namespace) -> PredictorSpec:
     """A `PredictorSpec` of the weights options (a published model's name fetched, with its
     profile, network and resolution), the run's own settings left at their defaults."""
-    from rangeret.hub import resolve_weights
-    from rangeret.inference import PredictorSpec, resolve_checkpoint
+    from rangeret.inference.predictor import PredictorSpec
+    from rangeret.models.weights.demo import resolve_checkpoint
+    from rangeret.models.weights.hub import resolve_weights
 
     weights = resolve_weights(
         args.checkpoint if args.checkpoint is not None else resolve_checkpoint(None),

@@ -7,7 +7,7 @@ import logging
 import sys
 from collections.abc import Sequence
 
-from rangeret.errors import run_command
+from rangeret.commands import run_command
 from service.server import add_serve_arguments, run_serve
 
 

@@ -18,7 +18,7 @@ from typing import Any
 from fastapi import Depends, FastAPI
 from fastapi.openapi.utils import get_openapi
 
-from rangeret.profiles import DatasetProfile, load_profile
+from rangeret.dataset.profiles import DatasetProfile, load_profile
 from service.dependencies import require_token
 from service.error_handlers import install_error_handlers
 from service.errors import error_responses

@@ -27,8 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
-from rangeret.io import KITTI_RECORD, LABEL_BYTES, PointRecord, ScanFormatError, parse_scan
-from rangeret.layout import KITTI_LAYOUT, SequenceLayout, sequence_dir
+from rangeret.dataset.layout import KITTI_LAYOUT, SequenceLayout, sequence_dir
+from rangeret.io.scans import KITTI_RECORD, LABEL_BYTES, PointRecord, ScanFormatError, parse_scan
 from service.archive_listing import (
     MAX_NAME,
     ArchiveError,

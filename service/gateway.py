@@ -13,7 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
-from rangeret.profiles import DatasetProfile
+from rangeret.dataset.profiles import DatasetProfile
 from service.admission import ScanAdmission
 from service.errors import ApiError
 from service.jobs import JobExecutor, JobManager, JobStore

@@ -15,7 +15,7 @@ from typing import Protocol
 
 import numpy as np
 
-from rangeret.inference import PredictorSpec
+from rangeret.inference.predictor import PredictorSpec
 from service.batching import ScanBackend, ScanBatcher
 from workers.scans import LabelledScan, ScanWorker
 

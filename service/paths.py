@@ -11,7 +11,7 @@ import os
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-from rangeret.layout import ScanEntry
+from rangeret.dataset.layout import ScanEntry
 
 
 def is_inside(path: Path, roots: Sequence[Path]) -> bool:

@@ -17,8 +17,8 @@ import time
 import httpx
 import numpy as np
 
-from rangeret.errors import CommandError
-from rangeret.profiles import DatasetProfile
+from rangeret.commands import CommandError
+from rangeret.dataset.profiles import DatasetProfile
 from service.batching import BackendError, BackendTimeout, ScanRejected
 from workers.scan_wire import INFO_PATH, OCTET, SCANS_PATH, decode_labels, options_query
 from workers.scans import LabelledScan

@@ -16,10 +16,10 @@ from dataclasses import dataclass, replace
 
 from pydantic import ValidationError
 
-from rangeret.errors import CommandError
-from rangeret.inference import PredictorSpec, checkpoint_profile
+from rangeret.commands import CommandError
+from rangeret.dataset.profiles import DatasetProfile
+from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
 from rangeret.options import add_network_options, network_values, spec_from_args
-from rangeret.profiles import DatasetProfile
 from service.errors import validation_sentence
 from service.gateway import ScanLabeller
 from service.jobs import JobExecutor

@@ -55,9 +55,9 @@ def make_tree(
     Labels are random raw ids of the label configuration (with instance bits set on some) and
     are returned per sequence, in scan order.
     """
-    from rangeret.io import write_labels, write_scan
-    from rangeret.labels import semantickitti
-    from rangeret.layout import labels_dir, velodyne_dir
+    from rangeret.dataset.labels import semantickitti
+    from rangeret.dataset.layout import labels_dir, velodyne_dir
+    from rangeret.io.scans import write_labels, write_scan
 
     rng = np.random.default_rng(seed)
     raw_ids = np.array(sorted(semantickitti().raw_to_class), dtype=np.uint32)

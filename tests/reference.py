@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rangeret.labels import LabelConfig
+from rangeret.dataset.labels import LabelConfig
 
 
 def remap_table(config: LabelConfig) -> np.ndarray:

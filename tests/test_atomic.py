@@ -9,8 +9,8 @@ import zlib
 import numpy as np
 import pytest
 
-from rangeret.atomic import atomic_path, atomic_write_bytes, atomic_write_text
-from rangeret.zipfiles import ZIP_EPOCH, ReproducibleZip, map_ahead
+from rangeret.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text
+from rangeret.io.zipfiles import ZIP_EPOCH, ReproducibleZip, map_ahead
 
 
 def test_atomic_write_leaves_nothing_on_failure(tmp_path):
@@ -32,7 +32,7 @@ def test_failed_body_keeps_the_previous_file_and_no_temporary(tmp_path):
 def test_atomic_files_get_the_mode_a_plain_open_gives(tmp_path):
     import os
 
-    from rangeret.atomic import _UMASK
+    from rangeret.io.atomic import _UMASK
 
     atomic_write_bytes(tmp_path / "a.bin", b"x")
     with open(tmp_path / "b.bin", "wb") as f:

@@ -9,14 +9,14 @@ import pytest
 from conftest import make_tree
 from reference import add_at_confusion, read_mapped, remap_table, scores
 
-from rangeret.cli import main as rangeret_main
-from rangeret.distance import NUM_BANDS, distance_bands
-from rangeret.evaluation import evaluate_predictions
-from rangeret.io import read_scan, write_labels, write_scan
-from rangeret.labels import semantickitti
-from rangeret.layout import discover, labels_dir, prediction_path, velodyne_dir
-from rangeret.metrics import EvaluationReport
-from rangeret.profiles import load_profile
+from rangeret.cli.main import main as rangeret_main
+from rangeret.dataset.distance import NUM_BANDS, distance_bands
+from rangeret.dataset.labels import semantickitti
+from rangeret.dataset.layout import discover, labels_dir, prediction_path, velodyne_dir
+from rangeret.dataset.profiles import load_profile
+from rangeret.evaluation.evaluate import evaluate_predictions
+from rangeret.evaluation.metrics import EvaluationReport
+from rangeret.io.scans import read_scan, write_labels, write_scan
 from workers.pipeline import count_labels
 from workers.stages import BatchRecord, read_and_project, write_results
 

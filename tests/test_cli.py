@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 from conftest import make_tree
 
-from rangeret.cli import main
-from rangeret.io import write_labels
-from rangeret.labels import semantickitti
-from rangeret.layout import discover, prediction_path, velodyne_dir
-from rangeret.submission import TEST_SEQUENCES
+from rangeret.cli.main import main
+from rangeret.dataset.labels import semantickitti
+from rangeret.dataset.layout import discover, prediction_path, velodyne_dir
+from rangeret.io.scans import write_labels
+from rangeret.submission.archives import TEST_SEQUENCES
 
 
 def _copy_truth_as_predictions(data, preds, sequences):
@@ -160,7 +160,7 @@ def test_submission_and_validation_commands(tmp_path, capsys):
 
 def test_light_commands_start_without_torch():
     code = (
-        "import sys; from rangeret.cli import build_parser; "
+        "import sys; from rangeret.cli.main import build_parser; "
         "build_parser('evaluate').parse_args(['evaluate', '--dataset', 'd', '--predictions', 'p', '--split', 'valid']); "
         "print('torch' in sys.modules)"
     )

@@ -9,11 +9,11 @@ import torch
 from conftest import data_path
 from workers_helpers import small_weights
 
-from rangeret.cli import main as rangeret_main
-from rangeret.inference import PredictorSpec
-from rangeret.io import read_confidence, read_labels, read_scan, write_scan
-from rangeret.layout import confidence_path, prediction_path, velodyne_dir
-from rangeret.point_labels import point_confidences
+from rangeret.cli.main import main as rangeret_main
+from rangeret.dataset.layout import confidence_path, prediction_path, velodyne_dir
+from rangeret.inference.point_labels import point_confidences
+from rangeret.inference.predictor import PredictorSpec
+from rangeret.io.scans import read_confidence, read_labels, read_scan, write_scan
 
 
 def test_a_confidence_is_the_softmax_of_the_final_class_at_the_pixel():
@@ -68,7 +68,7 @@ def test_predict_saves_one_confidence_per_point_beside_each_prediction(tmp_path)
 
 
 def test_calibration_bins_add_up_and_give_the_expected_calibration_error():
-    from rangeret.calibration import Calibration
+    from rangeret.evaluation.calibration import Calibration
 
     confidence = np.array([0.05, 0.15, 0.95, 0.95, 1.0, 0.55])
     correct = np.array([False, True, True, False, True, True])
@@ -95,8 +95,8 @@ def test_evaluate_reports_calibration_where_every_scan_has_confidences(tmp_path)
 
     from conftest import make_tree
 
-    from rangeret.calibration import Calibration
-    from rangeret.metrics import EvaluationReport
+    from rangeret.evaluation.calibration import Calibration
+    from rangeret.evaluation.metrics import EvaluationReport
 
     weights = small_weights(tmp_path)
     data = tmp_path / "data"

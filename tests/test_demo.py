@@ -8,8 +8,8 @@ import zipfile
 
 import pytest
 
-from rangeret.leaderboard import LeaderboardEntry
-from rangeret.submission import validate_submission
+from rangeret.submission.archives import validate_submission
+from rangeret.submission.leaderboard import LeaderboardEntry
 
 pytestmark = pytest.mark.slow
 
@@ -49,7 +49,7 @@ def test_demo_end_to_end(tmp_path, capsys):
 
 
 def test_demo_on_another_profile_needs_its_network(tmp_path, capsys):
-    from rangeret.cli import main
+    from rangeret.cli.main import main
 
     assert main(["demo", "-q", "--out", str(tmp_path / "d"), "--profile", "pandaset"]) == 1
     err = capsys.readouterr().err
@@ -61,8 +61,8 @@ def test_demo_on_pandaset_with_a_pandaset_network(tmp_path, capsys):
     pytest.importorskip("ray")
     import torch
 
+    from rangeret.dataset.profiles import load_profile
     from rangeret.models import build_model
-    from rangeret.profiles import load_profile
     from workers.demo import run_demo
 
     torch.manual_seed(0)

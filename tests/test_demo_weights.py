@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from rangeret.distance import scan_bands
-from rangeret.inference import DEMO_CHECKPOINT, Predictor, is_demo_checkpoint
-from rangeret.io import read_labels, read_scan
-from rangeret.labels import semantickitti
-from rangeret.layout import discover
-from rangeret.metrics import RawLabelEvaluator
+from rangeret.dataset.distance import scan_bands
+from rangeret.dataset.labels import semantickitti
+from rangeret.dataset.layout import discover
+from rangeret.evaluation.metrics import RawLabelEvaluator
+from rangeret.inference.predictor import Predictor
+from rangeret.io.scans import read_labels, read_scan
+from rangeret.models.weights.demo import DEMO_CHECKPOINT, is_demo_checkpoint
 from rangeret.sim import SensorConfig, simulate_dataset
 
 

@@ -35,7 +35,7 @@ from kuberay import (
 )
 from workers_helpers import small_weights
 
-from rangeret.submission import validate_submission
+from rangeret.submission.archives import validate_submission
 from workers.predict_job import build_parser as job_parser
 
 REPO = Path(__file__).resolve().parent.parent
@@ -475,7 +475,7 @@ def test_the_gateway_reaches_the_rayservice(monkeypatch):
 def test_gateway_manifest_names_the_serve_command_and_settings():
     """The gateway's args parse with `rangeret serve`'s parser, name the Serve application's
     network options, and its RANGERET_* variables are settings that exist."""
-    from rangeret.cli import build_parser
+    from rangeret.cli.main import build_parser
     from rangeret.options import network_values
     from service.settings import Settings
 

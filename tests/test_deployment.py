@@ -51,8 +51,8 @@ from kuberay import (
 )
 from workers_helpers import build_tree, free_ports, small_weights, tree_bytes
 
-from rangeret.cli import main as rangeret_main
-from rangeret.submission import validate_submission
+from rangeret.cli.main import main as rangeret_main
+from rangeret.submission.archives import validate_submission
 
 pytestmark = pytest.mark.slow
 

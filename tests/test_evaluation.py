@@ -7,10 +7,10 @@ import pytest
 from conftest import make_tree
 from reference import add_at_confusion, read_mapped, remap_table, scores
 
-from rangeret.evaluation import EvaluationError, evaluate_predictions
-from rangeret.io import write_labels
-from rangeret.labels import semantickitti
-from rangeret.layout import discover, prediction_path
+from rangeret.dataset.labels import semantickitti
+from rangeret.dataset.layout import discover, prediction_path
+from rangeret.evaluation.evaluate import EvaluationError, evaluate_predictions
+from rangeret.io.scans import write_labels
 
 
 def _predict_noisily(dataset, preds, sequences, seed=0):

@@ -29,8 +29,8 @@ from gateway_helpers import (
 )
 from workers_helpers import small_weights
 
-from rangeret.io import read_scan, write_scan
-from rangeret.layout import velodyne_dir
+from rangeret.dataset.layout import velodyne_dir
+from rangeret.io.scans import read_scan, write_scan
 from service.schemas import ErrorResponse
 
 #: Scans of the long sequence (hard links of the real scan, so they cost no disk).

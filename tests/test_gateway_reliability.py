@@ -21,8 +21,8 @@ from conftest import data_path
 from gateway_helpers import assert_error, gateway_env, start_gateway, wait_job
 from workers_helpers import small_weights
 
-from rangeret.io import read_scan, write_scan
-from rangeret.layout import velodyne_dir
+from rangeret.dataset.layout import velodyne_dir
+from rangeret.io.scans import read_scan, write_scan
 
 pytestmark = pytest.mark.slow
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rangeret.io import (
+from rangeret.io.scans import (
     ScanFormatError,
     parse_scan,
     read_labels,

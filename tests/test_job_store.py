@@ -18,8 +18,8 @@ import pytest
 from conftest import make_tree
 from fastapi.testclient import TestClient
 
-from rangeret.io import write_labels
-from rangeret.layout import prediction_path
+from rangeret.dataset.layout import prediction_path
+from rangeret.io.scans import write_labels
 from service.app import create_app
 from service.jobs import SCHEMA_VERSION, JobDatabaseVersionError, JobStore
 from service.schemas import JobState

@@ -1,4 +1,4 @@
-"""kNN refinement (`rangeret.knn.refine`): the published output, the rule itself, types, errors.
+"""kNN refinement (`rangeret.inference.knn.refine`): the published output, the rule itself, types, errors.
 
 The published post-processing's output on a real scan (`tests/data/knn-semantickitti-scan.npz`)
 is the main check; a slow per-point version of the rule written directly from the rule checks
@@ -17,7 +17,7 @@ import pytest
 import torch
 from conftest import data_path
 
-from rangeret.knn import gaussian_kernel, pixel_classes, refine, refine_batch, to_device
+from rangeret.inference.knn import gaussian_kernel, pixel_classes, refine, refine_batch, to_device
 
 FIXTURE = "knn-semantickitti-scan.npz"
 INPUTS = ("proj_range", "unproj_range", "proj_argmax", "proj_x", "proj_y")

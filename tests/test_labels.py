@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from conftest import data_path
 
-from rangeret.labels import LabelConfig, load_label_config, semantickitti
+from rangeret.dataset.labels import LabelConfig, load_label_config, semantickitti
 
 
 def test_bundled_config_equals_official_yaml():

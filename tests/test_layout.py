@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from conftest import make_tree
 
-from rangeret.layout import (
+from rangeret.dataset.layout import (
     DatasetLayoutError,
     discover,
     labels_dir,

@@ -8,19 +8,19 @@ import zipfile
 import pytest
 from conftest import make_tree
 
-from rangeret.cli import build_parser, main
-from rangeret.io import read_labels, write_labels
-from rangeret.labels import semantickitti
-from rangeret.layout import discover, prediction_path
-from rangeret.leaderboard import (
+from rangeret.cli.main import build_parser, main
+from rangeret.dataset.labels import semantickitti
+from rangeret.dataset.layout import discover, prediction_path
+from rangeret.io.run_info import write_run_info
+from rangeret.io.scans import read_labels, write_labels
+from rangeret.options import leaderboard_from_args
+from rangeret.submission.archives import TEST_SEQUENCES, validate_submission
+from rangeret.submission.leaderboard import (
     LeaderboardEntry,
     LeaderboardError,
     description_problems,
     description_text,
 )
-from rangeret.options import leaderboard_from_args
-from rangeret.run_info import write_run_info
-from rangeret.submission import TEST_SEQUENCES, validate_submission
 
 SHA = "ab" * 32
 

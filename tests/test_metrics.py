@@ -8,11 +8,16 @@ import numpy as np
 import pytest
 from reference import add_at_confusion, scores
 
-from rangeret.distance import scan_bands
-from rangeret.io import read_labels, read_scan
-from rangeret.labels import semantickitti
-from rangeret.metrics import ConfusionMatrix, EvaluationReport, RawLabelEvaluator, confusion_counts
-from rangeret.plots import write_plots
+from rangeret.dataset.distance import scan_bands
+from rangeret.dataset.labels import semantickitti
+from rangeret.evaluation.metrics import (
+    ConfusionMatrix,
+    EvaluationReport,
+    RawLabelEvaluator,
+    confusion_counts,
+)
+from rangeret.evaluation.plots import write_plots
+from rangeret.io.scans import read_labels, read_scan
 
 
 def test_hand_computed_case():

@@ -19,14 +19,14 @@ from rangeret.models import (
     CheckpointError,
     ModelConfig,
     build_model,
-    kernels,
     list_models,
     load_checkpoint,
     save_checkpoint,
 )
-from rangeret.models import decay as decay_module
-from rangeret.models import token_mixing as mixing
-from rangeret.models.decay import (
+from rangeret.models.blocks import decay as decay_module
+from rangeret.models.blocks import kernels
+from rangeret.models.blocks import token_mixing as mixing
+from rangeret.models.blocks.decay import (
     DECAYS,
     GridCache,
     decay_rates,
@@ -34,7 +34,7 @@ from rangeret.models.decay import (
     expand_table,
     grid_distance,
 )
-from rangeret.models.retention import MultiScaleRetention
+from rangeret.models.blocks.retention import MultiScaleRetention
 
 CIR_PARAMETERS = 3_761_876
 THESIS_PARAMETERS = 1_699_220
@@ -712,7 +712,7 @@ def test_choice_is_measured_once_checked_and_logged(measured_cpu, caplog):
         raise RuntimeError("no kernel")
 
     candidates = {"slow": slow, "inexact": inexact, "broken": broken, "fast": fast}
-    with caplog.at_level(logging.INFO, logger="rangeret.models.kernels"):
+    with caplog.at_level(logging.INFO, logger="rangeret.models.blocks.kernels"):
         assert kernels.choose("op", candidates, "slow", q, v) == "fast"
     assert "fast" in caplog.text and "inexact differs" in caplog.text
     assert "broken failed: RuntimeError" in caplog.text

@@ -21,18 +21,23 @@ from conftest import data_path
 from gateway_helpers import NET, OCTET, gateway_env, start_gateway
 from workers_helpers import small_weights
 
-from rangeret.cli import main as rangeret_main
-from rangeret.inference import PredictorSpec, checkpoint_profile
-from rangeret.io import read_labels, read_scan, write_scan
-from rangeret.labels import semantickitti
-from rangeret.layout import prediction_path, velodyne_dir
+from rangeret.cli.main import main as rangeret_main
+from rangeret.dataset.labels import semantickitti
+from rangeret.dataset.layout import prediction_path, velodyne_dir
+from rangeret.dataset.projection import CHANNEL_MEANS, CHANNEL_STDS
+from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
+from rangeret.inference.runtime.onnx_backend import CACHE_VARIABLE
+from rangeret.inference.runtime.onnx_export import (
+    INPUT_NAME,
+    MAX_LOGIT_DIFFERENCE,
+    OUTPUT_NAME,
+    read_metadata,
+)
+from rangeret.inference.runtime.onnx_session import make_session, providers_for
+from rangeret.inference.runtime.precision import resolve_precision
+from rangeret.io.scans import read_labels, read_scan, write_scan
 from rangeret.models import build_model
-from rangeret.onnx_backend import CACHE_VARIABLE
-from rangeret.onnx_export import INPUT_NAME, MAX_LOGIT_DIFFERENCE, OUTPUT_NAME, read_metadata
-from rangeret.onnx_session import make_session, providers_for
 from rangeret.options import spec_from_args
-from rangeret.precision import resolve_precision
-from rangeret.projection import CHANNEL_MEANS, CHANNEL_STDS
 
 SIZE = ["--height", "32", "--width", "256"]
 
@@ -155,7 +160,7 @@ def test_a_batch_one_model_takes_batch_one_only(exports):
 
 
 def test_an_export_takes_the_default_form_without_fixing_the_batch(monkeypatch):
-    from rangeret.models import kernels
+    from rangeret.models.blocks import kernels
 
     monkeypatch.setattr(kernels, "MEASURED", ("cpu",))
     monkeypatch.setattr(torch.compiler, "is_exporting", lambda: True)
@@ -314,9 +319,9 @@ def test_a_cached_export_of_other_weights_is_made_again(setup, tmp_path, monkeyp
     import logging
     import shutil
 
-    from rangeret.hub import file_sha256
-    from rangeret.onnx_backend import cached_export
-    from rangeret.onnx_export import read_metadata
+    from rangeret.inference.runtime.onnx_backend import cached_export
+    from rangeret.inference.runtime.onnx_export import read_metadata
+    from rangeret.models.weights.hub import file_sha256
 
     monkeypatch.setenv(CACHE_VARIABLE, str(tmp_path))
     first = PredictorSpec(
@@ -340,7 +345,7 @@ def test_a_cached_export_of_other_weights_is_made_again(setup, tmp_path, monkeyp
             cached_export(predictor.network, predictor.profile, file_sha256(Path(spec.checkpoint)))
         )
     shutil.copyfile(made[0], made[1])  # the first checkpoint's export in the second's place
-    with caplog.at_level(logging.WARNING, logger="rangeret.onnx_backend"):
+    with caplog.at_level(logging.WARNING, logger="rangeret.inference.runtime.onnx_backend"):
         predictor = PredictorSpec(**{**vars(second), "backend": "onnxruntime"}).build()
     warned = " ".join(r.getMessage() for r in caplog.records)
     assert file_sha256(other) in warned and file_sha256(Path(first.checkpoint)) in warned, warned

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from rangeret.profiles import load_profile
+from rangeret.dataset.profiles import load_profile
 from service.app import create_app
 from service.local_labeller import LocalLabeller
 from service.page_assets import (
@@ -196,7 +196,7 @@ def test_the_root_path_setting(monkeypatch):
     with pytest.raises(ValueError, match="starts with '/'"):
         Settings(root_path="rangeret")
     monkeypatch.setenv("RANGERET_ROOT_PATH", "/from-env")
-    from rangeret.cli import build_parser
+    from rangeret.cli.main import build_parser
 
     args = build_parser().parse_args(["serve", "--root-path", "/proxy/rangeret"])
     assert settings_from_args(args).root_path == "/proxy/rangeret"

@@ -8,7 +8,7 @@ import subprocess
 import sys
 
 from rangeret import plugins
-from rangeret.cli import BUILTIN_COMMANDS, build_parser, subcommands
+from rangeret.cli.main import BUILTIN_COMMANDS, build_parser, subcommands
 from rangeret.plugins import COMMANDS_GROUP, TRAIN_BACKENDS_GROUP, Subcommand, load_plugins
 
 
@@ -27,7 +27,7 @@ def test_the_layers_contribute_serve_demo_and_train_on_ray():
 
 def test_light_commands_load_no_torch_ray_or_web_stack():
     code = (
-        "import sys; from rangeret.cli import build_parser; "
+        "import sys; from rangeret.cli.main import build_parser; "
         "build_parser('evaluate').parse_args(['evaluate', '--dataset', 'd', '--predictions', 'p', "
         "'--split', 'valid']); "
         "print(sorted(m for m in ('torch', 'ray', 'fastapi', 'uvicorn') if m in sys.modules))"

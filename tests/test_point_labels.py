@@ -8,7 +8,8 @@ import torch
 from conftest import data_path
 from test_knn import SYNCS_PER_BATCH, host_syncs
 
-from rangeret.point_labels import DEFAULT_KNN, KnnSettings, point_classes, point_classes_batch
+from rangeret.inference.point_labels import point_classes, point_classes_batch
+from rangeret.inference.settings import DEFAULT_KNN, KnnSettings
 
 
 @pytest.fixture(scope="module")
@@ -79,9 +80,9 @@ def test_a_batch_gives_each_scans_classes(scan, knn):
 
 
 def _predictor(knn):
-    from rangeret import inference
+    from rangeret.dataset.profiles import load_profile
+    from rangeret.inference import predictor as inference
     from rangeret.models import build_model
-    from rangeret.profiles import load_profile
 
     torch.manual_seed(0)
     network = build_model("rangeret-cir", 32, 256, layers=1)
@@ -90,8 +91,8 @@ def _predictor(knn):
 
 
 def test_predictor_labels_go_through_this_step(monkeypatch, real_scan_path):
-    from rangeret import inference
-    from rangeret.io import read_scan
+    from rangeret.inference import predictor as inference
+    from rangeret.io.scans import read_scan
 
     calls = []
 
@@ -115,7 +116,7 @@ def test_predictor_labels_go_through_this_step(monkeypatch, real_scan_path):
 @pytest.mark.parametrize("knn", [None, DEFAULT_KNN])
 def test_a_predictor_batch_waits_on_the_host_a_fixed_number_of_times(real_scan_path, knn):
     """`Predictor.refine_batch` as `finish_batch` runs it: per batch, not per scan or chunk."""
-    from rangeret.io import read_scan
+    from rangeret.io.scans import read_scan
 
     predictor = _predictor(knn)
     points = read_scan(real_scan_path)

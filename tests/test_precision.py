@@ -9,10 +9,11 @@ import pytest
 import torch
 from conftest import make_tree
 
-from rangeret.cli import main
-from rangeret.inference import DEMO_CHECKPOINT, Predictor
-from rangeret.io import read_scan
-from rangeret.precision import PRECISIONS, forward_precision, resolve_precision
+from rangeret.cli.main import main
+from rangeret.inference.predictor import Predictor
+from rangeret.inference.runtime.precision import PRECISIONS, forward_precision, resolve_precision
+from rangeret.io.scans import read_scan
+from rangeret.models.weights.demo import DEMO_CHECKPOINT
 
 
 def test_auto_is_fp16_on_cuda_and_fp32_on_the_cpu():

@@ -9,13 +9,15 @@ import pytest
 import torch
 from conftest import load_vectors
 
-from rangeret.cli import main
-from rangeret.inference import KnnSettings, Predictor, TtaSettings, _transform
-from rangeret.io import read_labels, read_scan, write_scan
-from rangeret.labels import semantickitti
-from rangeret.layout import prediction_path, velodyne_dir
+from rangeret.cli.main import main
+from rangeret.dataset.labels import semantickitti
+from rangeret.dataset.layout import prediction_path, velodyne_dir
+from rangeret.dataset.projection import ProjectionConfig, project
+from rangeret.inference.predictor import Predictor
+from rangeret.inference.settings import KnnSettings, TtaSettings
+from rangeret.inference.tta import transformed_view
+from rangeret.io.scans import read_labels, read_scan, write_scan
 from rangeret.models import build_model
-from rangeret.projection import ProjectionConfig, project
 
 VALID_RAW = np.array(semantickitti().class_raw_ids)
 
@@ -92,13 +94,13 @@ def test_batches_give_the_same_labels_as_single_scans(small_weights, scan):
         np.testing.assert_array_equal(predictor.predict(pts).labels, result.labels)
 
 
-def test_tta_views_look_like_transformed_scans(scan):
+def test_tta_views_look_liketransformed_viewed_scans(scan):
     pts = scan[::3]
     base = torch.from_numpy(project(pts, 64, 1024).image)[None]
     mirrored = pts.copy()
     mirrored[:, 1] *= -1
     expected = torch.from_numpy(project(mirrored, 64, 1024).image)[None]
-    view = _transform(base, True, 0, ProjectionConfig())
+    view = transformed_view(base, True, 0, ProjectionConfig())
     same = (view - expected).abs().amax(dim=1) < 1e-3
     assert same.float().mean() > 0.9
 
@@ -107,7 +109,7 @@ def test_tta_views_look_like_transformed_scans(scan):
     rotated[:, 0] = np.cos(angle) * pts[:, 0] - np.sin(angle) * pts[:, 1]
     rotated[:, 1] = np.sin(angle) * pts[:, 0] + np.cos(angle) * pts[:, 1]
     expected = torch.from_numpy(project(rotated, 64, 1024).image)[None]
-    view = _transform(base, False, 256, ProjectionConfig())
+    view = transformed_view(base, False, 256, ProjectionConfig())
     same = (view - expected).abs().amax(dim=1) < 1e-3
     assert same.float().mean() > 0.9
 
@@ -198,7 +200,7 @@ def test_knn_settings_defaults_are_the_release_ones():
 
 
 def test_each_run_reports_only_its_own_stage_times(tree, tmp_path, small_weights):
-    from rangeret.predict import predict_tree
+    from rangeret.inference.runner import predict_tree
 
     predictor = Predictor.from_checkpoint(small_weights, height=32, width=256, device="cpu")
     first = predict_tree(predictor, tree, ["08"], tmp_path / "a", progress=False)

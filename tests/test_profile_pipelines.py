@@ -19,11 +19,11 @@ import pytest
 import torch
 import yaml
 
-from rangeret.cli import main
-from rangeret.knn import gaussian_kernel
-from rangeret.layout import discover, prediction_path
+from rangeret.cli.main import main
+from rangeret.dataset.layout import discover, prediction_path
+from rangeret.dataset.profiles import load_profile
+from rangeret.inference.knn import gaussian_kernel
 from rangeret.models import build_model, save_checkpoint
-from rangeret.profiles import load_profile
 from rangeret.sim import SensorConfig, simulate_dataset
 
 PROFILES = ("semantickitti", "semantic-poss", "pandaset")
@@ -197,7 +197,7 @@ def test_a_profile_file_equal_to_a_builtin_gives_identical_labels(tmp_path):
     data = _tree(tmp_path / "data", profile)
     _weights(tmp_path / "w.pt", profile)
     shown = subprocess.run(
-        [sys.executable, "-m", "rangeret.cli", "profile", "show", "semantic-poss"],
+        [sys.executable, "-m", "rangeret.cli.main", "profile", "show", "semantic-poss"],
         capture_output=True,
         text=True,
         check=True,

@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 import yaml
 
-from rangeret.cli import main
-from rangeret.io import read_scan
-from rangeret.layout import discover
-from rangeret.profile_stats import profile_stats
-from rangeret.profiles import BUILTIN_PROFILES, DatasetProfile, ProfileError, load_profile
-from rangeret.projection import project_with
+from rangeret.cli.main import main
+from rangeret.dataset.layout import discover
+from rangeret.dataset.profile_stats import profile_stats
+from rangeret.dataset.profiles import BUILTIN_PROFILES, DatasetProfile, ProfileError, load_profile
+from rangeret.dataset.projection import project_with
+from rangeret.io.scans import read_scan
 from rangeret.sim import SensorConfig, simulate_dataset
 
 SEQUENCES = {"1": 3, "2": 2}
@@ -164,7 +164,7 @@ def test_stats_command_names_a_laser_id_off_the_image(
     ("where", "quiet"), [("before", True), ("after", True), ("nowhere", False)]
 )
 def test_quiet_before_or_after_the_action(where: str, quiet: bool) -> None:
-    from rangeret.cli import build_parser
+    from rangeret.cli.main import build_parser
 
     options = ["--dataset", "d", "--profile", "pandaset", "--split", "train"]
     argv = {
@@ -292,7 +292,7 @@ def test_an_unknown_profile_names_the_builtins(capsys: pytest.CaptureFixture[str
 
 def test_the_semantickitti_profile_holds_the_bundled_label_configuration() -> None:
     """The profile's labels and `labels.semantickitti()` come from two files that must agree."""
-    from rangeret.labels import semantickitti
+    from rangeret.dataset.labels import semantickitti
 
     assert load_profile("semantickitti").labels == semantickitti()
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from conftest import data_path
 
-from rangeret.io import read_labels, read_scan
-from rangeret.projection import CHANNEL_MEANS, CHANNEL_STDS, project
+from rangeret.dataset.projection import CHANNEL_MEANS, CHANNEL_STDS, project
+from rangeret.io.scans import read_labels, read_scan
 
 
 @pytest.fixture(scope="module")

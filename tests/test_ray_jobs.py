@@ -31,10 +31,10 @@ from conftest import REPO, make_tree
 from gateway_helpers import Gateway, gateway_env, start_gateway, wait_job
 from workers_helpers import build_tree, ray_node, small_weights, tree_bytes
 
-from rangeret.cli import main as rangeret_main
-from rangeret.layout import velodyne_dir
-from rangeret.predict import list_scans
-from rangeret.profiles import load_profile
+from rangeret.cli.main import main as rangeret_main
+from rangeret.dataset.layout import velodyne_dir
+from rangeret.dataset.profiles import load_profile
+from rangeret.inference.runner import list_scans
 from service.jobs import JobControl, JobError, JobManager, JobStore
 from service.jobs.ray_jobs import (
     JobsApi,

@@ -21,9 +21,9 @@ import yaml
 from gateway_helpers import AUTH, OCTET, assert_error, gateway_env, start_gateway
 from workers_helpers import build_tree, free_ports, ray_node, small_weights
 
-from rangeret.cli import main as rangeret_main
-from rangeret.hub import file_sha256 as checkpoint_sha256
-from rangeret.io import read_labels, read_scan
+from rangeret.cli.main import main as rangeret_main
+from rangeret.io.scans import read_labels, read_scan
+from rangeret.models.weights.hub import file_sha256 as checkpoint_sha256
 from service.serve_client import ServeLabeller
 from workers.scan_wire import (
     CONFIDENCE_HEADER,
@@ -291,7 +291,7 @@ def test_a_late_busy_broken_or_gone_serve_application_is_a_json_503_or_504(tmp_p
 def test_a_serve_url_that_never_answers_stops_the_gateway_with_one_sentence(tmp_path):
     (port,) = free_ports(1)
     labeller = ServeLabeller(f"http://127.0.0.1:{port}/rangeret", None, 1.0)  # type: ignore[arg-type]
-    from rangeret.errors import CommandError
+    from rangeret.commands import CommandError
 
     with pytest.raises(CommandError, match=r"did not answer within 0.5 s \(ConnectError"):
         labeller.check_serves("0" * 64, wait_s=0.5)

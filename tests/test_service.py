@@ -39,12 +39,12 @@ from gateway_helpers import (
 )
 from workers_helpers import build_tree, small_weights
 
-from rangeret.cli import main as rangeret_main
-from rangeret.inference import PredictorSpec
-from rangeret.io import read_labels, read_scan, write_scan
-from rangeret.labels import semantickitti
-from rangeret.layout import prediction_path, velodyne_dir
-from rangeret.submission import validate_submission
+from rangeret.cli.main import main as rangeret_main
+from rangeret.dataset.labels import semantickitti
+from rangeret.dataset.layout import prediction_path, velodyne_dir
+from rangeret.inference.predictor import PredictorSpec
+from rangeret.io.scans import read_labels, read_scan, write_scan
+from rangeret.submission.archives import validate_submission
 from service.jobs import SCHEMA_VERSION, JobStore
 
 try:

@@ -30,11 +30,11 @@ from gateway_helpers import (
 )
 from workers_helpers import small_weights
 
-from rangeret.cli import main as rangeret_main
-from rangeret.io import read_labels, read_scan
-from rangeret.layout import prediction_path
+from rangeret.cli.main import main as rangeret_main
+from rangeret.dataset.layout import prediction_path
+from rangeret.dataset.profiles import load_profile
+from rangeret.io.scans import read_labels, read_scan
 from rangeret.models import build_model
-from rangeret.profiles import load_profile
 from rangeret.sim import simulate_dataset
 
 OCTET = {"Content-Type": "application/octet-stream"}

@@ -17,12 +17,12 @@ import numpy as np
 import pytest
 from conftest import make_tree
 
-from rangeret.io import write_labels
-from rangeret.layout import prediction_path
-from rangeret.predict import list_scans
-from rangeret.profiles import load_profile
+from rangeret.dataset.layout import prediction_path
+from rangeret.dataset.profiles import load_profile
+from rangeret.inference.runner import list_scans
+from rangeret.io.scans import write_labels
 from rangeret.sim import simulate_dataset
-from rangeret.submission import required_directories
+from rangeret.submission.archives import required_directories
 from service.archives import ArchiveError, ArchiveLimits, ArchiveTooLarge, extract_archive
 from service.batching import BackendError, ScanBatcher, ScanRejected
 from service.errors import validation_sentence

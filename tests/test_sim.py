@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rangeret.io import read_labels, read_scan
-from rangeret.labels import semantickitti
-from rangeret.layout import discover, labels_dir, velodyne_dir
-from rangeret.profiles import BUILTIN_PROFILES, DatasetProfile, load_profile
-from rangeret.projection import project, project_with
+from rangeret.dataset.labels import semantickitti
+from rangeret.dataset.layout import discover, labels_dir, velodyne_dir
+from rangeret.dataset.profiles import BUILTIN_PROFILES, DatasetProfile, load_profile
+from rangeret.dataset.projection import project, project_with
+from rangeret.io.scans import read_labels, read_scan
 from rangeret.sim import (
     Boxes,
     Cylinders,

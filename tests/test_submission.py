@@ -12,19 +12,19 @@ import numpy as np
 import pytest
 from conftest import make_tree
 
-from rangeret.cli import main
-from rangeret.io import write_labels, write_scan
-from rangeret.labels import semantickitti
-from rangeret.layout import discover, prediction_path, velodyne_dir
-from rangeret.leaderboard import LeaderboardEntry, description_text
-from rangeret.submission import (
+from rangeret.cli.main import main
+from rangeret.dataset.labels import semantickitti
+from rangeret.dataset.layout import discover, prediction_path, velodyne_dir
+from rangeret.io.scans import write_labels, write_scan
+from rangeret.io.zipfiles import deflate_file
+from rangeret.submission.archives import (
     TEST_SCAN_COUNTS,
     TEST_SEQUENCES,
     SubmissionError,
     validate_submission,
     write_submission,
 )
-from rangeret.zipfiles import deflate_file
+from rangeret.submission.leaderboard import LeaderboardEntry, description_text
 
 
 def official_checks(archive: Path, dataset: Path) -> None:
@@ -128,7 +128,7 @@ def test_a_failing_compression_leaves_no_archive(small_test_set, tmp_path, monke
             raise MemoryError("no memory for this one")
         return deflate_file(name, content)
 
-    monkeypatch.setattr("rangeret.submission.deflate_file", deflate)
+    monkeypatch.setattr("rangeret.submission.archives.deflate_file", deflate)
     with pytest.raises(MemoryError):
         write_submission(preds, data, out, allow_partial=True, workers=2)
     assert out.read_bytes() == b"previous"
@@ -144,7 +144,7 @@ def test_nothing_is_compressed_after_a_problem(small_test_set, tmp_path, monkeyp
         deflated.append(name)
         return deflate_file(name, content)
 
-    monkeypatch.setattr("rangeret.submission.deflate_file", deflate)
+    monkeypatch.setattr("rangeret.submission.archives.deflate_file", deflate)
     with pytest.raises(SubmissionError, match="is missing"):
         write_submission(preds, data, tmp_path / "s.zip", allow_partial=True, workers=1)
     assert deflated == []

@@ -20,21 +20,16 @@ import torch
 from conftest import data_path
 from torch.nn.parallel import DistributedDataParallel
 
-from rangeret.inference import Predictor
-from rangeret.io import read_scan
-from rangeret.labels import LabelConfig, semantickitti
-from rangeret.layout import discover, labels_dir, velodyne_dir
+from rangeret.cli.train import add_train_arguments, config_from_args, parse_override, run_train
+from rangeret.dataset.labels import LabelConfig, semantickitti
+from rangeret.dataset.layout import discover, labels_dir, velodyne_dir
+from rangeret.dataset.profiles import load_profile
+from rangeret.dataset.projection import CHANNEL_MEANS, CHANNEL_STDS, ProjectionConfig
+from rangeret.inference.predictor import Predictor
+from rangeret.io.scans import read_scan
 from rangeret.models import CheckpointError, build_model, load_checkpoint
-from rangeret.profiles import load_profile
-from rangeret.projection import CHANNEL_MEANS, CHANNEL_STDS, ProjectionConfig
 from rangeret.sim import SensorConfig, simulate_dataset
-from rangeret.training import (
-    TrainConfig,
-    Trainer,
-    add_train_arguments,
-    config_from_args,
-    run_train,
-)
+from rangeret.training import TrainConfig, Trainer
 from rangeret.training.augment import (
     JITTER_RATE,
     augment_points,
@@ -43,8 +38,7 @@ from rangeret.training.augment import (
     random_jitter,
     random_scale,
 )
-from rangeret.training.command import parse_override
-from rangeret.training.dataset import EpochSampler, RangeDataset, collate, steps_per_epoch
+from rangeret.training.data import EpochSampler, RangeDataset, collate, steps_per_epoch
 from rangeret.training.logs import CsvLog
 from rangeret.training.losses import (
     SegmentationLoss,

@@ -9,11 +9,11 @@ import yaml
 from conftest import data_path
 from PIL import Image
 
-from rangeret.cli import main
-from rangeret.io import read_labels, read_scan, write_labels, write_scan
-from rangeret.ply import PlyFormatError, read_ply
-from rangeret.profiles import load_profile
-from rangeret.view import IGNORED_RGB, RIGHT_RGB, WRONG_RGB
+from rangeret.cli.main import main
+from rangeret.dataset.profiles import load_profile
+from rangeret.evaluation.view import IGNORED_RGB, RIGHT_RGB, WRONG_RGB
+from rangeret.io.ply import PlyFormatError, read_ply
+from rangeret.io.scans import read_labels, read_scan, write_labels, write_scan
 
 
 @pytest.fixture(scope="module")

@@ -25,9 +25,9 @@ from PIL import Image
 from playwright.sync_api import Browser, Page, sync_playwright
 from workers_helpers import build_tree, small_weights
 
-from rangeret.io import read_labels, read_scan, write_scan
-from rangeret.labels import semantickitti
-from rangeret.metrics import ConfusionMatrix
+from rangeret.dataset.labels import semantickitti
+from rangeret.evaluation.metrics import ConfusionMatrix
+from rangeret.io.scans import read_labels, read_scan, write_scan
 
 pytestmark = pytest.mark.slow
 

@@ -26,10 +26,10 @@ import yaml
 from conftest import REPO, data_path
 from workers_helpers import small_weights
 
-from rangeret.io import read_labels, read_scan, write_scan
-from rangeret.layout import prediction_path, velodyne_dir
-from rangeret.profiles import load_profile
-from rangeret.registry import load_registry, profile_for_published
+from rangeret.dataset.layout import prediction_path, velodyne_dir
+from rangeret.dataset.profiles import load_profile
+from rangeret.io.scans import read_labels, read_scan, write_scan
+from rangeret.models.weights.registry import load_registry, profile_for_published
 
 REPO_ID = "test-org/tiny-rangeret"
 COMMIT = "0123456789abcdef0123456789abcdef01234567"
@@ -171,7 +171,7 @@ def env(tmp_path, weights, hub) -> dict[str, str]:
 
 def rangeret(env: dict[str, str], *args: str) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "rangeret.cli", *args],
+        [sys.executable, "-m", "rangeret.cli.main", *args],
         cwd=REPO,
         env=env,
         capture_output=True,

@@ -12,9 +12,9 @@ import pytest
 import torch
 from workers_helpers import build_tree, kill_actor_when, small_weights, tree_bytes
 
-from rangeret.cli import main as rangeret_main
-from rangeret.inference import PredictorSpec
-from rangeret.io import read_scan
+from rangeret.cli.main import main as rangeret_main
+from rangeret.inference.predictor import PredictorSpec
+from rangeret.io.scans import read_scan
 from workers.predict_job import main as job_main
 
 pytestmark = pytest.mark.slow
@@ -307,9 +307,9 @@ def test_readers_and_writers_beside_gpu_actors_grow_with_the_free_cores():
 def test_model_actors_warm_up_before_their_first_batch(setup):
     """The pipeline's model actors and the single-scan worker run the network once when they are
     built: a real batch then finds every decay table made and builds none."""
-    from rangeret.inference import checkpoint_profile
-    from rangeret.layout import discover
-    from rangeret.models.decay import GridCache
+    from rangeret.dataset.layout import discover
+    from rangeret.inference.predictor import checkpoint_profile
+    from rangeret.models.blocks.decay import GridCache
     from workers.pipeline import ModelWorker
     from workers.scans import ScanWorker
     from workers.stages import ROW_COLUMN, BatchRecord, read_and_project
@@ -353,8 +353,8 @@ def test_model_actors_warm_up_before_their_first_batch(setup):
 def test_pandaset_scans_go_through_the_ray_job(ray_local, tmp_path, capsys):
     """5-float records, rows from laser ids, ROOT/NNN, class 0 car: the job equals rangeret
     predict, and its report ignores class 14."""
+    from rangeret.dataset.profiles import load_profile
     from rangeret.models import build_model
-    from rangeret.profiles import load_profile
     from rangeret.sim import SensorConfig, simulate_dataset
 
     profile = load_profile("pandaset")

@@ -14,9 +14,9 @@ import time
 import pytest
 from workers_helpers import build_tree, small_weights, tree_bytes
 
-from rangeret.cli import main as rangeret_main
-from rangeret.inference import PredictorSpec, checkpoint_profile
-from rangeret.layout import discover
+from rangeret.cli.main import main as rangeret_main
+from rangeret.dataset.layout import discover
+from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
 from workers.pipeline import PipelineOptions, run_pipeline
 
 pytestmark = pytest.mark.slow

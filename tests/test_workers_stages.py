@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from conftest import make_tree
 
-from rangeret.distance import scan_bands
-from rangeret.io import read_labels, read_scan
-from rangeret.labels import semantickitti
-from rangeret.layout import discover, prediction_path, velodyne_dir
-from rangeret.projection import ProjectionConfig
+from rangeret.dataset.distance import scan_bands
+from rangeret.dataset.labels import semantickitti
+from rangeret.dataset.layout import discover, prediction_path, velodyne_dir
+from rangeret.dataset.projection import ProjectionConfig
+from rangeret.io.scans import read_labels, read_scan
 from workers.stages import BatchRecord, read_and_project, write_results
 
 

@@ -18,8 +18,8 @@ from pathlib import Path
 import torch
 from conftest import data_path, load_vectors
 
-from rangeret.io import read_labels, read_scan, write_labels, write_scan
-from rangeret.layout import labels_dir, velodyne_dir
+from rangeret.dataset.layout import labels_dir, velodyne_dir
+from rangeret.io.scans import read_labels, read_scan, write_labels, write_scan
 
 
 def small_weights(folder: Path) -> Path:

@@ -16,22 +16,17 @@ from pathlib import Path
 
 import numpy as np
 
-from rangeret.evaluation import evaluate_predictions
-from rangeret.inference import (
-    DEMO_CHECKPOINT,
-    DEMO_WARNING,
-    PredictorSpec,
-    checkpoint_profile,
-    resolve_checkpoint,
-)
-from rangeret.io import read_labels, read_scan
-from rangeret.layout import discover, prediction_path
-from rangeret.leaderboard import LeaderboardEntry, description_text
-from rangeret.plots import plot_range_image, write_plots
-from rangeret.profiles import DEFAULT_PROFILE, DatasetProfile
-from rangeret.projection import project_with
+from rangeret.dataset.layout import discover, prediction_path
+from rangeret.dataset.profiles import DEFAULT_PROFILE, DatasetProfile
+from rangeret.dataset.projection import project_with
+from rangeret.evaluation.evaluate import evaluate_predictions
+from rangeret.evaluation.plots import plot_range_image, write_plots
+from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
+from rangeret.io.scans import read_labels, read_scan
+from rangeret.models.weights.demo import DEMO_CHECKPOINT, DEMO_WARNING, resolve_checkpoint
 from rangeret.sim import SensorConfig, simulate_dataset
-from rangeret.submission import TEST_SEQUENCES, validate_submission, write_submission
+from rangeret.submission.archives import TEST_SEQUENCES, validate_submission, write_submission
+from rangeret.submission.leaderboard import LeaderboardEntry, description_text
 from workers.pipeline import PipelineOptions, run_pipeline
 
 log = logging.getLogger(__name__)

@@ -37,15 +37,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rangeret.evaluation import count_scan
-from rangeret.layout import ScanEntry, prediction_path
-from rangeret.metrics import RawLabelEvaluator
-from rangeret.profiles import DatasetProfile
-from rangeret.timing import StageTimes
+from rangeret.dataset.layout import ScanEntry, prediction_path
+from rangeret.dataset.profiles import DatasetProfile
+from rangeret.evaluation.evaluate import count_scan
+from rangeret.evaluation.metrics import RawLabelEvaluator
+from rangeret.inference.timing import StageTimes
 from workers.stages import ROW_COLUMN, BatchRecord, Reader, Writer
 
 if TYPE_CHECKING:  # torch stays out of the driver until a model actor needs it
-    from rangeret.inference import Predictor, PredictorSpec
+    from rangeret.inference.predictor import Predictor, PredictorSpec
 
 log = logging.getLogger(__name__)
 
@@ -164,7 +164,7 @@ class PipelineResult:
         type, as each model actor resolved it), comma-separated; None when no batch ran."""
         import torch
 
-        from rangeret.precision import resolve_precision
+        from rangeret.inference.runtime.precision import resolve_precision
 
         kinds = {d.split("@")[0].split(":")[0] for d in self.devices}
         if not kinds:
@@ -268,7 +268,7 @@ def run_pipeline(
     """Predict `entries` into the tree at `out` on the connected Ray cluster.
 
     `profile` must be the one `spec`'s predictor runs with
-    (`rangeret.inference.profile_for_checkpoint`): the readers take its point record and
+    (`rangeret.models.weights.run_profile.profile_for_checkpoint`): the readers take its point record and
     projection, the writers its labels.
     `progress(done, failed, total)` is called after every batch; setting `cancel` stops the run
     after the batch in flight (files already written stay complete).

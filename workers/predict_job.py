@@ -21,16 +21,14 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from rangeret.errors import USER_ERRORS, CommandError, run_command
-from rangeret.inference import (
-    DEMO_WARNING,
-    PredictorSpec,
-    checkpoint_profile,
-    describe_network,
-    is_demo_checkpoint,
-)
-from rangeret.leaderboard import description_text
-from rangeret.models.checkpoint_info import CheckpointInfo
+from rangeret.commands import USER_ERRORS, CommandError, run_command
+from rangeret.dataset.profiles import DEFAULT_PROFILE, DatasetProfile
+from rangeret.inference.description import describe_network
+from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
+from rangeret.inference.runner import PredictSummary, is_complete, list_scans
+from rangeret.io.run_info import write_run_info
+from rangeret.models.weights.checkpoint_info import CheckpointInfo
+from rangeret.models.weights.demo import DEMO_WARNING, is_demo_checkpoint
 from rangeret.options import (
     add_leaderboard_options,
     add_network_options,
@@ -39,9 +37,7 @@ from rangeret.options import (
     selected_sequences,
     spec_from_args,
 )
-from rangeret.predict import PredictSummary, is_complete, list_scans
-from rangeret.profiles import DEFAULT_PROFILE, DatasetProfile
-from rangeret.run_info import write_run_info
+from rangeret.submission.leaderboard import description_text
 from workers.pipeline import PipelineOptions, count_labels, run_pipeline
 from workers.progress import ProgressWriter
 
@@ -200,7 +196,7 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
             report.notes.append(DEMO_WARNING)
         print(report.table())
         if args.report:
-            from rangeret.plots import write_plots
+            from rangeret.evaluation.plots import write_plots
 
             report.write_json(args.report)
             plots = write_plots(
@@ -223,7 +219,7 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
             "profile has no such archive (every prediction was written)"
         )
     if args.submission:
-        from rangeret.submission import write_submission
+        from rangeret.submission.archives import write_submission
 
         check = write_submission(
             args.out,

@@ -16,7 +16,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from rangeret.atomic import atomic_write_text
+from rangeret.io.atomic import atomic_write_text
 
 #: The record's name in the job's output folder.
 PROGRESS_FILE = "progress.json"

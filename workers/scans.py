@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rangeret.inference import PredictorSpec
-from rangeret.projection import Projection
+from rangeret.dataset.projection import Projection
+from rangeret.inference.predictor import PredictorSpec
 from workers.pipeline import warm_up
 
 

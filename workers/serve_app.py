@@ -26,8 +26,8 @@ from ray import serve
 from starlette.requests import Request
 from starlette.responses import JSONResponse, Response
 
-from rangeret.errors import CommandError
-from rangeret.io import ScanFormatError, parse_scan
+from rangeret.commands import CommandError
+from rangeret.io.scans import ScanFormatError, parse_scan
 from rangeret.options import NETWORK_OPTIONS, network_args, spec_from_values
 from workers.scan_wire import (
     INFO_PATH,

@@ -14,14 +14,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rangeret.distance import distance_bands
-from rangeret.io import KITTI_RECORD, PointRecord, ScanFormatError, read_labels, write_labels
-from rangeret.labels import LabelConfig
-from rangeret.layout import ScanEntry, prediction_path
-from rangeret.loading import LoadedScan, load_batch
-from rangeret.metrics import RawLabelEvaluator
-from rangeret.projection import ProjectionConfig
-from rangeret.timing import StageTimes
+from rangeret.dataset.distance import distance_bands
+from rangeret.dataset.labels import LabelConfig
+from rangeret.dataset.layout import ScanEntry, prediction_path
+from rangeret.dataset.projection import ProjectionConfig
+from rangeret.evaluation.metrics import RawLabelEvaluator
+from rangeret.inference.loading import LoadedScan, load_batch
+from rangeret.inference.timing import StageTimes
+from rangeret.io.scans import KITTI_RECORD, PointRecord, ScanFormatError, read_labels, write_labels
 
 #: The one column of a pipeline row: the pickled `BatchRecord`.
 ROW_COLUMN = "record"

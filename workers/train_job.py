@@ -28,10 +28,10 @@ from typing import Any
 
 import torch
 
-from rangeret.errors import run_command
-from rangeret.precision import resolve_precision
-from rangeret.training import TrainConfig, Trainer, config_from_args
-from rangeret.training.command import add_training_options
+from rangeret.cli.train import add_training_options, config_from_args
+from rangeret.commands import run_command
+from rangeret.inference.runtime.precision import resolve_precision
+from rangeret.training import TrainConfig, Trainer
 from rangeret.training.config import profile_reference
 from rangeret.training.trainer import STATE, find_scans, read_state, training_profile
 from workers.predict_job import connect

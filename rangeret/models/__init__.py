@@ -2,25 +2,35 @@
 
 `build_model(name, height, width, num_classes, **overrides)` builds one by name (`list_models()`);
 `load_checkpoint(path, ...)` loads a published state_dict or the project's own self-describing
-checkpoint, which `save_checkpoint` writes. Modules map to the thesis: `stem` (REM), `embedding`
-(VEM), `decay`, `position`, `token_mixing`, `kernels` and `retention` (multi-scale retention),
-`ffn`, `backbone` (RetNet blocks), `head` (Semantic Head), `rangeret` (the whole network and
-`build_model`), `configs`, `checkpoint` (reading and writing files) and `checkpoint_info` (what a
-file held).
+checkpoint, which `save_checkpoint` writes. `blocks/` holds the network's blocks, `network` the
+whole network, `configs` its named configurations, and `weights/` everything about weight files.
+
+The names below load on first use, so that torch-free parts of `weights/` (the registry, the
+demo weights' description) import without torch.
 """
 
-from rangeret.models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from rangeret.models.checkpoint_info import CheckpointInfo
-from rangeret.models.configs import ModelConfig, list_models
-from rangeret.models.rangeret import RangeRet, build_model
+from __future__ import annotations
 
-__all__ = [
-    "CheckpointError",
-    "CheckpointInfo",
-    "ModelConfig",
-    "RangeRet",
-    "build_model",
-    "list_models",
-    "load_checkpoint",
-    "save_checkpoint",
-]
+import importlib
+from typing import Any
+
+_EXPORTS = {
+    "CheckpointError": "rangeret.models.weights.checkpoint",
+    "load_checkpoint": "rangeret.models.weights.checkpoint",
+    "save_checkpoint": "rangeret.models.weights.checkpoint",
+    "CheckpointInfo": "rangeret.models.weights.checkpoint_info",
+    "ModelConfig": "rangeret.models.configs",
+    "list_models": "rangeret.models.configs",
+    "RangeRet": "rangeret.models.network",
+    "build_model": "rangeret.models.network",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'rangeret.models' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_EXPORTS[name]), name)
+    globals()[name] = value
+    return value

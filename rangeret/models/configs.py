@@ -31,8 +31,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from rangeret.models.decay import DECAYS
-from rangeret.models.embedding import patch_grid
+from rangeret.models.blocks.decay import DECAYS
+from rangeret.models.blocks.embedding import patch_grid
 
 FAMILIES = ("thesis", "cir")
 MIXERS = ("retention", "attention")

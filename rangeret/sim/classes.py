@@ -14,10 +14,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rangeret.labels import SEMANTIC_MASK, semantickitti
+from rangeret.dataset.labels import SEMANTIC_MASK, semantickitti
 
 if TYPE_CHECKING:
-    from rangeret.profiles import DatasetProfile
+    from rangeret.dataset.profiles import DatasetProfile
 
 #: SemanticKITTI class -> the class that stands for it in each built-in profile other than
 #: SemanticKITTI's; classes left out (riders on PandaSet) have no counterpart.

@@ -12,11 +12,11 @@ from collections.abc import Iterable, Mapping
 
 import numpy as np
 
-from rangeret.atomic import atomic_write_bytes
-from rangeret.io import write_labels, write_scan
-from rangeret.labels import SEMANTIC_MASK
-from rangeret.layout import labels_dir, velodyne_dir
-from rangeret.profiles import DatasetProfile, load_profile
+from rangeret.dataset.labels import SEMANTIC_MASK
+from rangeret.dataset.layout import labels_dir, velodyne_dir
+from rangeret.dataset.profiles import DatasetProfile, load_profile
+from rangeret.io.atomic import atomic_write_bytes
+from rangeret.io.scans import write_labels, write_scan
 from rangeret.sim.classes import raw_label_map
 from rangeret.sim.raycast import SensorConfig, simulate_scan
 from rangeret.sim.scene import make_scene

@@ -27,7 +27,7 @@ from rangeret.sim.scene import (
 )
 
 if TYPE_CHECKING:
-    from rangeret.profiles import DatasetProfile
+    from rangeret.dataset.profiles import DatasetProfile
 
 #: Per-point remission noise, and the share of returns that are spurious (dust, multipath).
 REMISSION_NOISE = 0.04

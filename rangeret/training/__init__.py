@@ -2,7 +2,7 @@
 
 - `config`: `TrainConfig`, the run as plain data, with its dataset profile (SemanticKITTI by
   default; any profile's layout, point record, projection, labels and kNN rule).
-- `dataset`: a profile's scans as range images with per-pixel training classes, seeded per
+- `data`: a profile's scans as range images with per-pixel training classes, seeded per
   (epoch, scan) so runs and resumes are reproducible.
 - `augment`: the thesis's point augmentations (scale, rotation, shift, flip of x and y).
 - `range_mixes`: RangeFormer's range-image mixes (RangeMix, RangeUnion, RangePaste, RangeShift).
@@ -10,12 +10,10 @@
 - `schedule`: AdamW with OneCycle or warm-up + cosine.
 - `trainer`: the loop, validation (range image, points, points + kNN), checkpoints, exact resume,
   and data-parallel ranks under torch.distributed.
-- `command`: `add_train_arguments` and `run_train`, the `rangeret train` subcommand.
 
-The library never imports Ray: `workers.train_job` runs `Trainer` on Ray Train workers.
+The `rangeret train` command lives in `rangeret.cli.train`. The library never imports Ray: `workers.train_job` runs `Trainer` on Ray Train workers.
 """
 
-from rangeret.training.command import add_train_arguments, config_from_args, run_train
 from rangeret.training.config import TrainConfig
 from rangeret.training.trainer import Trainer, TrainResult
 
@@ -23,7 +21,4 @@ __all__ = [
     "TrainConfig",
     "TrainResult",
     "Trainer",
-    "add_train_arguments",
-    "config_from_args",
-    "run_train",
 ]

@@ -4,7 +4,7 @@ It travels to Ray workers as a dict, is stored in every checkpoint's metadata an
 state, and a resumed run must agree with it on every field that changes the arithmetic
 (`RUNTIME_FIELDS` are the ones that may differ). The dataset profile is held by name (a built-in)
 or by absolute file path; `dataset_profile()` resolves it with the explicit options in its place.
-`precision` is one of `rangeret.precision.PRECISIONS`; the trainer records the one it resolves to
+`precision` is one of `rangeret.inference.runtime.precision.PRECISIONS`; the trainer records the one it resolves to
 (`auto` is fp16 on CUDA, fp32 on the CPU), so a resumed run keeps the arithmetic it started with.
 """
 
@@ -16,10 +16,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rangeret.labels import LabelConfig, load_label_config
-from rangeret.precision import PRECISIONS
-from rangeret.profiles import BUILTIN_PROFILES, DEFAULT_PROFILE, DatasetProfile, load_profile
-from rangeret.projection import ProjectionConfig
+from rangeret.dataset.labels import LabelConfig, load_label_config
+from rangeret.dataset.profiles import (
+    BUILTIN_PROFILES,
+    DEFAULT_PROFILE,
+    DatasetProfile,
+    load_profile,
+)
+from rangeret.dataset.projection import ProjectionConfig
+from rangeret.inference.runtime.precision import PRECISIONS
 from rangeret.training.losses import LOSSES, WEIGHTINGS
 from rangeret.training.range_mixes import MIXES
 from rangeret.training.schedule import SCHEDULES

@@ -16,11 +16,11 @@
 
 Every epoch ends with validation: the loss, and mIoU / accuracy on the range image (labelled
 pixels), on the points (each point takes its pixel's class) and on the points after kNN refinement
-with the profile's voting rule (`rangeret.point_labels.point_classes`), with the official
-semantics of `rangeret.metrics`.
+with the profile's voting rule (`rangeret.inference.point_labels.point_classes`), with the official
+semantics of `rangeret.evaluation.metrics`.
 
 The training step and the validation forward run at the config's `precision`
-(`rangeret.precision`; auto is fp16 on CUDA, fp32 on the CPU), with a gradient scaler for fp16
+(`rangeret.inference.runtime.precision`; auto is fp16 on CUDA, fp32 on the CPU), with a gradient scaler for fp16
 only. The precision used is logged at the start, recorded in the checkpoints and the resume
 state, and a resume at another precision is refused. A step reads back from the device once: its
 losses, as one list (`Trainer.train_step`); confusion counts stay on the device until the epoch
@@ -54,17 +54,18 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from rangeret.atomic import atomic_path
-from rangeret.inference import select_device
-from rangeret.labels import LabelConfig
-from rangeret.layout import DatasetLayoutError, ScanEntry, discover, resolve_sequences
-from rangeret.metrics import ConfusionMatrix
+from rangeret.dataset.labels import LabelConfig
+from rangeret.dataset.layout import DatasetLayoutError, ScanEntry, discover, resolve_sequences
+from rangeret.dataset.profiles import DatasetProfile, ProfileError, profile_of_record
+from rangeret.evaluation.metrics import ConfusionMatrix
+from rangeret.inference.point_labels import point_classes
+from rangeret.inference.runtime.device import select_device
+from rangeret.inference.runtime.precision import forward_precision, resolve_precision
+from rangeret.inference.settings import KnnSettings
+from rangeret.io.atomic import atomic_path
 from rangeret.models import RangeRet, build_model, save_checkpoint
-from rangeret.point_labels import KnnSettings, point_classes
-from rangeret.precision import forward_precision, resolve_precision
-from rangeret.profiles import DatasetProfile, ProfileError, profile_of_record
 from rangeret.training.config import TrainConfig
-from rangeret.training.dataset import EpochSampler, RangeDataset, collate, steps_per_epoch
+from rangeret.training.data import EpochSampler, RangeDataset, collate, steps_per_epoch
 from rangeret.training.logs import CsvLog, plot_curves
 from rangeret.training.losses import SegmentationLoss, class_weights
 from rangeret.training.range_mixes import MixSettings, rare_classes

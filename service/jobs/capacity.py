@@ -12,8 +12,8 @@ import os
 from collections.abc import Iterable
 from pathlib import Path
 
-from rangeret.io import LABEL_BYTES, PointRecord
-from rangeret.layout import ScanEntry
+from rangeret.dataset.layout import ScanEntry
+from rangeret.io.scans import LABEL_BYTES, PointRecord
 
 
 class JobRefused(Exception):

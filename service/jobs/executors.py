@@ -15,13 +15,13 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Protocol
 
-from rangeret.atomic import atomic_path
-from rangeret.inference import Predictor, PredictorSpec
-from rangeret.layout import ScanEntry, prediction_path
-from rangeret.predict import predict_tree
-from rangeret.profiles import DEFAULT_PROFILE, DatasetProfile, load_profile
-from rangeret.submission import TEST_SEQUENCES, required_directories
-from rangeret.zipfiles import ReproducibleZip
+from rangeret.dataset.layout import ScanEntry, prediction_path
+from rangeret.dataset.profiles import DEFAULT_PROFILE, DatasetProfile, load_profile
+from rangeret.inference.predictor import Predictor, PredictorSpec
+from rangeret.inference.runner import predict_tree
+from rangeret.io.atomic import atomic_path
+from rangeret.io.zipfiles import ReproducibleZip
+from rangeret.submission.archives import TEST_SEQUENCES, required_directories
 from service.jobs.store import JobRecord, JobStore
 from service.schemas import JobState
 

@@ -28,10 +28,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from rangeret.layout import ScanEntry
+from rangeret.dataset.layout import ScanEntry
+from rangeret.dataset.profiles import DatasetProfile
+from rangeret.inference.runner import is_complete
 from rangeret.options import network_argv
-from rangeret.predict import is_complete
-from rangeret.profiles import DatasetProfile
 from service.jobs.executors import JobControl, JobError, Progress
 from workers.progress import JobProgress, progress_path, read_progress
 

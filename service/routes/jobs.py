@@ -20,8 +20,8 @@ from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse, JSONResponse
 from pydantic import ValidationError
 
-from rangeret.layout import DatasetLayoutError, ScanEntry, resolve_sequences
-from rangeret.predict import list_scans
+from rangeret.dataset.layout import DatasetLayoutError, ScanEntry, resolve_sequences
+from rangeret.inference.runner import list_scans
 from service.archives import ArchiveError, ArchiveLimits, extract_archive
 from service.dependencies import GatewayDep, JobsDep
 from service.errors import ApiError, error_responses, validation_sentence
@@ -93,7 +93,7 @@ def job_status(record: JobRecord) -> JobStatus:
     )
 
 
-#: A report PNG's name, as `rangeret.plots.write_plots` names them.
+#: A report PNG's name, as `rangeret.evaluation.plots.write_plots` names them.
 _PLOT_NAME = re.compile(r"^[a-z][a-z-]{0,63}\.png$")
 
 

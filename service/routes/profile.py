@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from rangeret.profiles import DatasetProfile
+from rangeret.dataset.profiles import DatasetProfile
 from service.dependencies import GatewayDep
 from service.schemas import ProfileClass, ServedProfile
 

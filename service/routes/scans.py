@@ -12,8 +12,8 @@ import numpy as np
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, Response
 
-from rangeret.io import ScanFormatError, parse_scan
-from rangeret.labels import LabelConfig
+from rangeret.dataset.labels import LabelConfig
+from rangeret.io.scans import ScanFormatError, parse_scan
 from service.admission import RETRY_AFTER_S, QueueFull
 from service.batching import BackendError, BackendTimeout, ScanRejected
 from service.dependencies import GatewayDep

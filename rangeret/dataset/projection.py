@@ -1,0 +1,216 @@
+"""Spherical projection of a LiDAR scan into a range image, and back to the points.
+
+The convention is the one the published checkpoints were trained with (RangeNet++'s):
+yaw = -atan2(y, x), pitch = asin(z / |p|), u = floor(0.5 (yaw / pi + 1) W),
+v = floor((1 - (pitch + |fov_down|) / fov) H), both clamped into the image, computed in float32.
+Sensors that give each point its laser (PandaSet's Pandar64) take the row from that id instead
+(`row="laser_id"`: v = the point's fifth value as an integer, which must be a row of the image).
+Where several points fall on one pixel the closest wins (equal depths: the lower point index).
+Each point keeps its (u, v), so per-pixel predictions go back to every point losslessly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from rangeret.dataset.distance import point_ranges
+
+#: Normalisation of the five input channels (range, x, y, z, remission) on SemanticKITTI.
+CHANNEL_MEANS = (12.12, 10.88, 0.23, -1.04, 0.21)
+CHANNEL_STDS = (12.32, 11.47, 6.91, 0.86, 0.16)
+
+#: Where a point's row comes from: its pitch, or its laser id (the fifth value of its record).
+ROW_SOURCES = ("pitch", "laser_id")
+
+
+@dataclass(frozen=True)
+class ProjectionConfig:
+    """Resolution, vertical field of view (degrees), channel normalisation and row source of a
+    range image."""
+
+    height: int = 64
+    width: int = 1024
+    fov_up: float = 3.0
+    fov_down: float = -25.0
+    means: tuple[float, ...] = CHANNEL_MEANS
+    stds: tuple[float, ...] = CHANNEL_STDS
+    row: str = "pitch"
+
+    def __post_init__(self) -> None:
+        if self.height < 1 or self.width < 1:
+            raise ValueError(f"image size must be positive, got {self.height} x {self.width}")
+        if abs(self.fov_up) + abs(self.fov_down) <= 0:
+            raise ValueError("the vertical field of view is empty (fov_up and fov_down are 0)")
+        if len(self.means) != 5 or len(self.stds) != 5:
+            raise ValueError("means and stds need one value per channel (5)")
+        if any(not s > 0 for s in self.stds):
+            raise ValueError(f"stds must be positive, got {list(self.stds)}")
+        if self.row not in ROW_SOURCES:
+            raise ValueError(f"row must be one of {', '.join(ROW_SOURCES)}, got {self.row!r}")
+
+    def to_dict(self) -> dict:
+        """Plain-data form, for checkpoints and reports."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+
+@dataclass
+class Projection:
+    """A scan projected into a range image, with each point's pixel.
+
+    image: (5, H, W) float32 normalised (range, x, y, z, remission), 0 on empty pixels.
+    mask: (H, W) bool, True where a point landed.
+    proj_range: (H, W) float32 range of the winning point, -1 where empty.
+    proj_idx: (H, W) int64 index of the winning point, -1 where empty.
+    proj_x, proj_y: (N,) int64 column and row of every point, -1 for points not projected.
+    unproj_range: (N,) float32 range of every point (0 for points not projected).
+    """
+
+    image: np.ndarray
+    mask: np.ndarray
+    proj_range: np.ndarray
+    proj_idx: np.ndarray
+    proj_x: np.ndarray
+    proj_y: np.ndarray
+    unproj_range: np.ndarray
+
+    @property
+    def num_points(self) -> int:
+        """Number of points of the scan, projected or not."""
+        return int(self.proj_x.shape[0])
+
+    @property
+    def valid(self) -> np.ndarray:
+        """(N,) bool, True for points that have a pixel."""
+        return self.proj_x >= 0
+
+    def to_points(self, pixel_values: np.ndarray, fill: int | float = 0) -> np.ndarray:
+        """Per-point values read from an (H, W) per-pixel map; points without a pixel get `fill`."""
+        pixel_values = np.asarray(pixel_values)
+        out = np.full(self.num_points, fill, dtype=pixel_values.dtype)
+        valid = self.valid
+        out[valid] = pixel_values[self.proj_y[valid], self.proj_x[valid]]
+        return out
+
+    def to_image(self, point_values: np.ndarray, fill: int | float = 0) -> np.ndarray:
+        """(H, W) map of per-point values taken from each pixel's winning point; `fill` elsewhere."""
+        point_values = np.asarray(point_values)
+        out = np.full(self.mask.shape, fill, dtype=point_values.dtype)
+        out[self.mask] = point_values[self.proj_idx[self.mask]]
+        return out
+
+
+def _laser_rows(lasers: np.ndarray, idx: np.ndarray, height: int) -> np.ndarray:
+    """Rows of the projected points `idx` from their laser ids; ValueError for an id off the image."""
+    rows = lasers[idx].astype(np.int32).astype(np.int64)
+    bad = np.flatnonzero((rows < 0) | (rows >= height))
+    if bad.size:
+        first = int(idx[bad[0]])
+        raise ValueError(
+            f"{bad.size} point(s) have a laser id outside the image's rows 0..{height - 1}, "
+            f"the first at point index {first} (laser id {lasers[first]:g})"
+        )
+    return rows
+
+
+def project(
+    points: np.ndarray,
+    height: int = 64,
+    width: int = 1024,
+    fov_up: float = 3.0,
+    fov_down: float = -25.0,
+    means: tuple[float, ...] = CHANNEL_MEANS,
+    stds: tuple[float, ...] = CHANNEL_STDS,
+) -> Projection:
+    """Project (N, 4) points (x, y, z, remission) into a (5, H, W) normalised range image.
+
+    Points at the origin or with non-finite coordinates get no pixel (proj_x = proj_y = -1).
+    """
+    config = ProjectionConfig(height, width, fov_up, fov_down, tuple(means), tuple(stds))
+    return project_with(points, config)
+
+
+def project_with(points: np.ndarray, config: ProjectionConfig) -> Projection:
+    """`project` with its parameters gathered in a `ProjectionConfig`.
+
+    With `row="laser_id"` the points are (N, 5) and a laser id outside the image's rows (for a
+    projected point) is a ValueError naming the first such point.
+    """
+    pts = np.asarray(points)
+    columns = 5 if config.row == "laser_id" else 4
+    if pts.ndim != 2 or pts.shape[1] < columns:
+        raise ValueError(f"points must have shape (N, {columns}), got {pts.shape}")
+    lasers = pts[:, 4] if config.row == "laser_id" else None
+    pts = pts[:, :4].astype(np.float32, copy=False)
+    h, w = config.height, config.width
+    n = pts.shape[0]
+
+    # Channel-major copy: contiguous columns make every later gather and ufunc cheaper.
+    cols = np.ascontiguousarray(pts.T)
+    with np.errstate(invalid="ignore", over="ignore"):
+        depth = point_ranges(cols[0], cols[1], cols[2])
+    valid = np.isfinite(depth) & (depth > 0) & np.isfinite(cols[3])
+    if valid.all():
+        idx = np.arange(n)
+        d = depth
+    else:
+        idx = np.flatnonzero(valid)
+        cols, d = cols[:, idx], depth[idx]
+    x, y, z = cols[0], cols[1], cols[2]
+
+    fov_up = abs(config.fov_up) / 180.0 * np.pi
+    fov_down = abs(config.fov_down) / 180.0 * np.pi
+    fov = np.float32(fov_down + fov_up)
+    yaw = -np.arctan2(y, x)
+    pitch = np.arcsin(np.clip(z / d, np.float32(-1), np.float32(1)))
+    u = np.float32(0.5) * (yaw / np.float32(np.pi) + np.float32(1.0)) * np.float32(w)
+    v = (np.float32(1.0) - (pitch + np.float32(fov_down)) / fov) * np.float32(h)
+    u = np.clip(np.floor(u), 0, w - 1).astype(np.int64)
+    v = np.clip(np.floor(v), 0, h - 1).astype(np.int64)
+    if lasers is not None:
+        v = _laser_rows(lasers, idx, h)
+
+    # Closest point wins, among equal depths the lower index: two scatter-minimum passes, first
+    # over depths, then over the indices of the points that reach their pixel's minimum.
+    pixel = v * w + u
+    nearest = np.full(h * w, np.inf, dtype=np.float32)
+    np.minimum.at(nearest, pixel, d)
+    candidates = np.flatnonzero(d == nearest[pixel])
+    first = np.full(h * w, idx.size, dtype=np.int64)
+    np.minimum.at(first, pixel[candidates], candidates)
+    win_pixel = np.flatnonzero(first < idx.size)
+    winners = first[win_pixel]
+
+    proj_idx = np.full(h * w, -1, dtype=np.int64)
+    proj_idx[win_pixel] = idx[winners]
+    proj_range = np.full(h * w, -1.0, dtype=np.float32)
+    proj_range[win_pixel] = d[winners]
+
+    # Pixel-major while scattering (one 20-byte row per pixel), channel-major in the result.
+    means = np.asarray(config.means, dtype=np.float32)
+    stds = np.asarray(config.stds, dtype=np.float32)
+    channels = np.empty((winners.size, 5), dtype=np.float32)
+    channels[:, 0] = d[winners]
+    channels[:, 1:] = cols[:, winners].T
+    channels -= means
+    channels /= stds
+    image = np.zeros((h * w, 5), dtype=np.float32)
+    image[win_pixel] = channels
+
+    proj_x = np.full(n, -1, dtype=np.int64)
+    proj_y = np.full(n, -1, dtype=np.int64)
+    proj_x[idx] = u
+    proj_y[idx] = v
+    unproj_range = np.zeros(n, dtype=np.float32)
+    unproj_range[idx] = d
+
+    return Projection(
+        image=np.ascontiguousarray(image.T).reshape(5, h, w),
+        mask=(proj_idx >= 0).reshape(h, w),
+        proj_range=proj_range.reshape(h, w),
+        proj_idx=proj_idx.reshape(h, w),
+        proj_x=proj_x,
+        proj_y=proj_y,
+        unproj_range=unproj_range,
+    )

@@ -1,0 +1,129 @@
+"""Evaluating a predictions tree against a dataset's ground truth, scan by scan.
+
+Every scan of the chosen sequences must have ground truth and a prediction of the same length;
+anything missing or malformed is listed by file before any number is given, so a result is never
+computed on a silent subset. Each scan file is read for its points' ranges, which place every
+point in a distance band of the report's breakdown. Where every scan has a confidence file
+beside its prediction (`rangeret predict --save-confidence`), the report adds the calibration of
+those confidences.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from rangeret.dataset.distance import scan_bands
+from rangeret.dataset.labels import LabelConfig
+from rangeret.dataset.layout import ScanEntry, confidence_path, discover, prediction_path
+from rangeret.dataset.profiles import DatasetProfile, load_profile
+from rangeret.evaluation.calibration import Calibration
+from rangeret.evaluation.metrics import EvaluationReport, RawLabelEvaluator
+from rangeret.io.scans import PointRecord, ScanFormatError, read_confidence, read_labels, read_scan
+
+log = logging.getLogger(__name__)
+
+
+class EvaluationError(ValueError):
+    """Predictions or ground truth that cannot be evaluated; `problems` names every file."""
+
+    def __init__(self, problems: Sequence[str]) -> None:
+        self.problems = list(problems)
+        shown = "; ".join(self.problems[:5])
+        more = f" (and {len(self.problems) - 5} more)" if len(self.problems) > 5 else ""
+        super().__init__(f"{len(self.problems)} problem(s): {shown}{more}")
+
+
+def count_scan(
+    evaluator: RawLabelEvaluator,
+    entry: ScanEntry,
+    prediction: Path,
+    record: PointRecord,
+    calibration: Calibration | None = None,
+    confidence: Path | None = None,
+) -> None:
+    """Count one labelled scan's prediction file against its label file, each point in the
+    distance band its scan file gives it, and with `calibration` its `confidence` file too;
+    `ScanFormatError` names a file that does not fit."""
+    if entry.label_path is None:
+        raise ValueError(f"scan {entry.key} has no ground-truth label file")
+    bands = scan_bands(read_scan(entry.scan_path, record))
+    gt_raw = read_labels(entry.label_path, num_points=bands.size)
+    pred_raw = read_labels(prediction, num_points=bands.size)
+    evaluator.add(pred_raw, gt_raw, entry.sequence, bands)
+    if calibration is not None and confidence is not None:
+        config = evaluator.config
+        values = read_confidence(confidence, num_points=bands.size)
+        gt = config.to_class(gt_raw)
+        evaluated = ~np.asarray(config.ignored)[gt]
+        correct = config.to_class(pred_raw) == gt
+        calibration.add(values[evaluated], correct[evaluated])
+
+
+def evaluate_predictions(
+    dataset: Path | str,
+    predictions: Path | str,
+    sequences: Sequence[str],
+    config: LabelConfig | None = None,
+    checkpoint_sha256: str | None = None,
+    progress: bool = False,
+    profile: DatasetProfile | None = None,
+) -> EvaluationReport:
+    """Evaluate `PRED/sequences/XX/predictions` against the dataset's labels, overall, per
+    sequence and per distance band.
+
+    The profile (default semantickitti) gives the dataset's layout, point record and labels;
+    `config` replaces its labels. Raises `EvaluationError` listing every missing label or
+    prediction file and every file whose length does not match its scan.
+    """
+    profile = profile or load_profile(None)
+    config = config or profile.labels
+    found = discover(dataset, sequences, with_labels=True, layout=profile.layout)
+    problems = list(found.problems)
+    pairs = []
+    for entry in found.scans:
+        pred = prediction_path(predictions, entry.sequence, entry.name)
+        if not pred.is_file():
+            problems.append(f"{pred} is missing (no prediction for scan {entry.key})")
+        elif entry.label_path is not None:
+            pairs.append((entry, pred))
+    if problems:
+        raise EvaluationError(problems)
+    if not pairs:
+        raise EvaluationError([f"no labelled scan found in sequences {', '.join(sequences)}"])
+
+    evaluator = RawLabelEvaluator(config)
+    confidences = [confidence_path(predictions, e.sequence, e.name) for e, _ in pairs]
+    have = sum(path.is_file() for path in confidences)
+    calibration = Calibration() if have == len(pairs) else None
+    for (entry, pred), confidence in tqdm(
+        list(zip(pairs, confidences, strict=True)),
+        desc="evaluate",
+        unit="scan",
+        disable=not progress,
+    ):
+        try:
+            count_scan(evaluator, entry, pred, profile.points, calibration, confidence)
+        except ScanFormatError as exc:
+            problems.append(str(exc))
+    if problems:
+        raise EvaluationError(problems)
+    report = evaluator.report(found.sequences, checkpoint_sha256)
+    report.profile = profile.name
+    report.calibration = calibration
+    if 0 < have < len(pairs):
+        report.notes.append(
+            f"only {have} of {len(pairs)} scans have confidence files, so no calibration is "
+            "reported (rangeret predict --save-confidence writes them for every scan)"
+        )
+    log.info(
+        "evaluated %d scans (%d points): mIoU %.4f",
+        report.num_scans,
+        report.num_points,
+        report.miou,
+    )
+    return report

@@ -1,0 +1,417 @@
+"""Confusion matrices and the SemanticKITTI benchmark's IoU, mIoU and accuracy.
+
+The semantics are the official evaluator's: C[pred, gt] over the training classes; the columns of
+ignored ground-truth classes are zeroed; TP = diagonal, FP = row sum - TP, FN = column sum - TP;
+IoU_c = TP / (TP + FP + FN + 1e-15); mIoU averages every evaluated class, so a class absent from
+both prediction and ground truth counts as 0; accuracy = sum TP / (TP + FP over evaluated classes).
+Matrices are plain counts, so partial results from many workers merge by addition. The evaluator
+keeps one matrix per sequence and distance band (`rangeret.dataset.distance`); the report's matrices by
+sequence, by band and overall are sums of those, so the parts add up to the whole exactly.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from rangeret.dataset.distance import NUM_BANDS, band_limits, band_name
+from rangeret.dataset.labels import LabelConfig, semantickitti
+from rangeret.evaluation.calibration import Calibration
+
+EPS = 1e-15
+
+
+def confusion_counts(pred: np.ndarray, gt: np.ndarray, num_classes: int) -> np.ndarray:
+    """(C, C) int64 counts of (pred, gt) pairs of training classes, built with one bincount."""
+    pred = np.asarray(pred).reshape(-1)
+    gt = np.asarray(gt).reshape(-1)
+    if pred.shape != gt.shape:
+        raise ValueError(f"{pred.size} predictions for {gt.size} ground-truth labels")
+    cells = num_classes * num_classes
+    # With gt in range, a negative prediction gives a negative index (bincount refuses it) and a
+    # prediction >= C an index past the last cell, so only gt needs an explicit range check.
+    if gt.size and (gt.max() >= num_classes or (gt.dtype.kind == "i" and gt.min() < 0)):
+        raise ValueError(f"ground-truth class ids must lie in 0..{num_classes - 1}")
+    # uint8 classes (what the label lookup tables give) combine in uint16 without a wide copy.
+    narrow = pred.dtype == gt.dtype == np.uint8 and cells <= 1 << 16
+    wide = np.uint16 if narrow else np.intp
+    try:
+        counts = np.bincount(pred.astype(wide) * wide(num_classes) + gt, minlength=cells)
+    except ValueError:
+        counts = np.empty(0)
+    if counts.size != cells:
+        raise ValueError(f"predicted class ids must lie in 0..{num_classes - 1}")
+    return counts.reshape(num_classes, num_classes).astype(np.int64, copy=False)
+
+
+@dataclass
+class ConfusionMatrix:
+    """An accumulating confusion matrix C[pred, gt] with the official IoU semantics."""
+
+    num_classes: int = 20
+    ignore: tuple[int, ...] = (0,)
+    matrix: np.ndarray = field(default=None)  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        if self.matrix is None:
+            self.matrix = np.zeros((self.num_classes, self.num_classes), dtype=np.int64)
+        self.matrix = np.asarray(self.matrix, dtype=np.int64)
+        if self.matrix.shape != (self.num_classes, self.num_classes):
+            raise ValueError(
+                f"confusion matrix must be {self.num_classes}x{self.num_classes}, "
+                f"got {self.matrix.shape}"
+            )
+        self.ignore = tuple(int(c) for c in self.ignore)
+
+    @classmethod
+    def for_config(cls, config: LabelConfig | None = None) -> ConfusionMatrix:
+        """An empty matrix shaped for a label configuration."""
+        config = config or semantickitti()
+        return cls(
+            config.num_classes, tuple(c for c in range(config.num_classes) if config.ignored[c])
+        )
+
+    @property
+    def include(self) -> list[int]:
+        """The classes that count in mIoU and accuracy."""
+        return [c for c in range(self.num_classes) if c not in self.ignore]
+
+    def add(self, pred: np.ndarray, gt: np.ndarray) -> None:
+        """Count pairs of predicted and ground-truth training classes."""
+        self.matrix += confusion_counts(pred, gt, self.num_classes)
+
+    def merge(self, other: ConfusionMatrix | np.ndarray) -> None:
+        """Add another matrix's counts (how results from several workers are reduced)."""
+        counts = other.matrix if isinstance(other, ConfusionMatrix) else np.asarray(other)
+        if counts.shape != self.matrix.shape:
+            raise ValueError(f"cannot merge a {counts.shape} matrix into {self.matrix.shape}")
+        self.matrix += counts.astype(np.int64, copy=False)
+
+    def __add__(self, other: ConfusionMatrix) -> ConfusionMatrix:
+        out = ConfusionMatrix(self.num_classes, self.ignore, self.matrix.copy())
+        out.merge(other)
+        return out
+
+    def stats(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """TP, FP and FN per class after zeroing the ignored ground-truth columns."""
+        conf = self.matrix.copy()
+        conf[:, list(self.ignore)] = 0
+        tp = np.diag(conf)
+        fp = conf.sum(axis=1) - tp
+        fn = conf.sum(axis=0) - tp
+        return tp, fp, fn
+
+    def iou(self) -> np.ndarray:
+        """IoU of every class (ignored ones included, as the official evaluator returns them)."""
+        tp, fp, fn = self.stats()
+        return tp / (tp + fp + fn + EPS)
+
+    def miou(self) -> float:
+        """Mean IoU over the evaluated classes; absent classes count as 0."""
+        return float(self.iou()[self.include].mean())
+
+    def accuracy(self) -> float:
+        """Point accuracy: all TP over TP + FP of the evaluated classes."""
+        tp, fp, _ = self.stats()
+        inc = self.include
+        return float(tp.sum() / (tp[inc].sum() + fp[inc].sum() + EPS))
+
+    def evaluated_points(self) -> int:
+        """Points whose ground truth is an evaluated class: those the scores are computed on."""
+        return int(self.matrix[:, self.include].sum())
+
+
+@dataclass
+class EvaluationReport:
+    """The result of an evaluation: the numbers of the benchmark and what they were computed on."""
+
+    confusion: ConfusionMatrix
+    class_names: tuple[str, ...]
+    num_scans: int = 0
+    num_points: int = 0
+    sequences: list[str] = field(default_factory=list)
+    unknown_prediction_ids: int = 0
+    checkpoint_sha256: str | None = None
+    notes: list[str] = field(default_factory=list)
+    profile: str | None = None
+    precision: str | None = None
+    #: The inference backend the predictions came from (torch or onnxruntime), where known.
+    backend: str | None = None
+    by_sequence: dict[str, ConfusionMatrix] = field(default_factory=dict)
+    by_distance: list[ConfusionMatrix] = field(default_factory=list)
+    #: The calibration of the predictions' confidences, where every scan had them.
+    calibration: Calibration | None = None
+
+    @property
+    def miou(self) -> float:
+        return self.confusion.miou()
+
+    @property
+    def accuracy(self) -> float:
+        return self.confusion.accuracy()
+
+    def iou_by_name(self, confusion: ConfusionMatrix | None = None) -> dict[str, float]:
+        """IoU (0..1) of each evaluated class, by class name (of `confusion`, default overall)."""
+        confusion = confusion or self.confusion
+        iou = confusion.iou()
+        return {self.class_names[c]: float(iou[c]) for c in confusion.include}
+
+    def part_dict(self, confusion: ConfusionMatrix) -> dict:
+        """The scores of one part of the data (a sequence, a distance band) for the JSON report."""
+        return {
+            "miou": confusion.miou(),
+            "accuracy": confusion.accuracy(),
+            "iou": self.iou_by_name(confusion),
+            "points": confusion.evaluated_points(),
+            "confusion": confusion.matrix.tolist(),
+        }
+
+    def to_dict(self) -> dict:
+        """The JSON report: miou, accuracy, iou by name, the raw confusion[pred][gt], context, and
+        the same scores per sequence and per distance band."""
+        out: dict = {
+            "miou": self.miou,
+            "accuracy": self.accuracy,
+            "iou": self.iou_by_name(),
+            "confusion": self.confusion.matrix.tolist(),
+            "class_names": list(self.class_names),
+            "num_scans": self.num_scans,
+            "num_points": self.num_points,
+            "sequences": list(self.sequences),
+            "unknown_prediction_ids": self.unknown_prediction_ids,
+        }
+        if self.by_sequence:
+            out["per_sequence"] = {seq: self.part_dict(cm) for seq, cm in self.by_sequence.items()}
+        if self.by_distance:
+            out["per_distance"] = [
+                dict(zip(("min_m", "max_m"), band_limits(band), strict=True), **self.part_dict(cm))
+                for band, cm in enumerate(self.by_distance)
+            ]
+        if self.calibration is not None:
+            out["calibration"] = self.calibration.to_dict()
+        if self.checkpoint_sha256:
+            out["checkpoint_sha256"] = self.checkpoint_sha256
+        if self.profile:
+            out["profile"] = self.profile
+        if self.precision:
+            out["precision"] = self.precision
+        if self.backend:
+            out["backend"] = self.backend
+        if self.notes:
+            out["notes"] = list(self.notes)
+        return out
+
+    def write_json(self, path: Path | str) -> None:
+        """Write the JSON report, creating its folder."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+
+    @classmethod
+    def from_dict(cls, data: dict, config: LabelConfig | None = None) -> EvaluationReport:
+        """Rebuild a report from its JSON form."""
+        config = config or semantickitti()
+        ignore = tuple(c for c in range(config.num_classes) if config.ignored[c])
+
+        def matrix(counts: list) -> ConfusionMatrix:
+            counts = np.asarray(counts, dtype=np.int64)
+            return ConfusionMatrix(counts.shape[0], ignore, counts)
+
+        return cls(
+            confusion=matrix(data["confusion"]),
+            class_names=tuple(data.get("class_names", config.class_names)),
+            num_scans=int(data.get("num_scans", 0)),
+            num_points=int(data.get("num_points", 0)),
+            sequences=list(data.get("sequences", [])),
+            unknown_prediction_ids=int(data.get("unknown_prediction_ids", 0)),
+            checkpoint_sha256=data.get("checkpoint_sha256"),
+            notes=list(data.get("notes", [])),
+            profile=data.get("profile"),
+            precision=data.get("precision"),
+            backend=data.get("backend"),
+            by_sequence={
+                seq: matrix(part["confusion"]) for seq, part in data.get("per_sequence", {}).items()
+            },
+            by_distance=[matrix(part["confusion"]) for part in data.get("per_distance", [])],
+            calibration=Calibration.from_dict(data["calibration"])
+            if "calibration" in data
+            else None,
+        )
+
+    def table(self) -> str:
+        """A readable per-class table with IoU in percent, followed by mIoU and accuracy."""
+        tp, fp, fn = self.confusion.stats()
+        iou = self.confusion.iou()
+        width = max(len(n) for n in self.class_names)
+        lines = [f"{'class':<{width}}  {'IoU %':>6}  {'gt points':>11}  {'predicted':>11}"]
+        for c in self.confusion.include:
+            lines.append(
+                f"{self.class_names[c]:<{width}}  {100 * iou[c]:6.2f}  {tp[c] + fn[c]:>11,}  "
+                f"{tp[c] + fp[c]:>11,}"
+            )
+        lines.append("-" * len(lines[0]))
+        lines.append(f"{'mIoU':<{width}}  {100 * self.miou:6.2f}")
+        lines.append(f"{'accuracy':<{width}}  {100 * self.accuracy:6.2f}")
+        lines.append(f"{self.num_scans:,} scans, {self.num_points:,} points")
+        parts = [
+            ("sequence", list(self.by_sequence.items())),
+            ("distance", [(band_name(b), cm) for b, cm in enumerate(self.by_distance)]),
+        ]
+        for title, rows in parts:
+            if rows:
+                lines.append("")
+                lines.extend(_parts_table(title, rows))
+        if self.calibration is not None:
+            lines.append("")
+            lines.append(
+                f"confidence calibration: ECE {100 * self.calibration.ece():.2f} % over "
+                f"{self.calibration.points:,} points"
+            )
+        return "\n".join(lines)
+
+
+def _parts_table(title: str, rows: list[tuple[str, ConfusionMatrix]]) -> list[str]:
+    """Lines of points, mIoU and accuracy (percent) per part, headed by `title`."""
+    width = max(len(title), *(len(name) for name, _ in rows))
+    lines = [f"{title:<{width}}  {'points':>13}  {'mIoU %':>6}  {'accuracy %':>10}"]
+    for name, cm in rows:
+        lines.append(
+            f"{name:<{width}}  {cm.evaluated_points():>13,}  {100 * cm.miou():6.2f}  "
+            f"{100 * cm.accuracy():10.2f}"
+        )
+    return lines
+
+
+class RawLabelEvaluator:
+    """Accumulates raw-id label arrays (as read from `.label` files) into confusion matrices.
+
+    Both arrays are masked to their low 16 bits and mapped through the learning map; ids the map
+    does not know count as the unlabeled class (0 for SemanticKITTI, as in the official
+    evaluator), and unknown predicted ids are counted so a report can say so. Each point is counted
+    in the matrix of its scan's sequence and its distance band; every other matrix (by sequence,
+    by band, overall) is a sum of those.
+    """
+
+    def __init__(self, config: LabelConfig | None = None) -> None:
+        self.config = config or semantickitti()
+        n = self.config.num_classes
+        self._n = n
+        # Unknown ids map to the extra class n, folded into the unlabeled class when read.
+        lut = np.full(1 << 16, n, dtype=np.uint8)
+        for raw, cls in self.config.raw_to_class.items():
+            lut[raw] = cls
+        self._lut = lut
+        #: Counts per sequence: (NUM_BANDS, (n + 1) ** 2), cell band, pred * (n + 1) + gt.
+        self._counts: dict[str, np.ndarray] = {}
+        self.num_scans = 0
+        self.num_points = 0
+
+    def add(
+        self, pred_raw: np.ndarray, gt_raw: np.ndarray, sequence: str, bands: np.ndarray
+    ) -> None:
+        """Count one scan's raw predicted and ground-truth labels (same length) in its sequence,
+        each point in its distance band (`rangeret.dataset.distance.distance_bands`)."""
+        if pred_raw.shape != gt_raw.shape:
+            raise ValueError(f"{pred_raw.size} predictions for {gt_raw.size} ground-truth labels")
+        bands = np.asarray(bands).reshape(-1)
+        if bands.size != pred_raw.size:
+            raise ValueError(f"{bands.size} distance bands for {pred_raw.size} labels")
+        if bands.size and (bands.min() < 0 or bands.max() >= NUM_BANDS):
+            raise ValueError(f"distance bands must lie in 0..{NUM_BANDS - 1}")
+        m = self._n + 1
+        cells = NUM_BANDS * m * m
+        # The lookup gives uint8 classes; all three indices combine in uint16 where they fit.
+        wide = np.uint16 if cells <= 1 << 16 else np.intp
+        p = self._lut.take(_low16(pred_raw)).astype(wide)
+        g = self._lut.take(_low16(gt_raw))
+        index = bands.astype(wide) * wide(m * m) + p * wide(m) + g
+        counts = np.bincount(index.reshape(-1), minlength=cells).reshape(NUM_BANDS, m * m)
+        if sequence in self._counts:
+            self._counts[sequence] += counts
+        else:
+            self._counts[sequence] = counts.astype(np.int64)
+        self.num_scans += 1
+        self.num_points += int(pred_raw.size)
+
+    def merge(self, other: RawLabelEvaluator) -> None:
+        """Add the counts of another evaluator over the same label configuration."""
+        for sequence, counts in other._counts.items():
+            if sequence in self._counts:
+                self._counts[sequence] += counts
+            else:
+                self._counts[sequence] = counts.copy()
+        self.num_scans += other.num_scans
+        self.num_points += other.num_points
+
+    def _band_totals(self) -> np.ndarray:
+        """(NUM_BANDS, (n + 1) ** 2) counts summed over the sequences."""
+        m = self._n + 1
+        return sum(self._counts.values(), np.zeros((NUM_BANDS, m * m), dtype=np.int64))
+
+    @property
+    def unknown_prediction_ids(self) -> int:
+        """How many predicted labels held a raw id the label configuration does not know."""
+        n = self._n
+        return int(self._band_totals().sum(axis=0).reshape(n + 1, n + 1)[n].sum())
+
+    def _fold(self, counts: np.ndarray) -> ConfusionMatrix:
+        """The confusion matrix of (n + 1) ** 2 counts, unknown ids counted as unlabeled."""
+        n, u = self._n, self.config.unlabeled_class
+        full = counts.reshape(n + 1, n + 1).copy()
+        full[u] += full[n]
+        full[:, u] += full[:, n]
+        cm = ConfusionMatrix.for_config(self.config)
+        cm.merge(full[:n, :n])
+        return cm
+
+    def confusion(self) -> ConfusionMatrix:
+        """The confusion matrix, unknown ids counted as the unlabeled class."""
+        return self._fold(self._band_totals().sum(axis=0))
+
+    def by_sequence(self) -> dict[str, ConfusionMatrix]:
+        """The confusion matrix of each sequence counted, in sequence order."""
+        return {seq: self._fold(self._counts[seq].sum(axis=0)) for seq in sorted(self._counts)}
+
+    def by_distance(self) -> list[ConfusionMatrix]:
+        """The confusion matrix of each distance band, nearest first."""
+        return [self._fold(counts) for counts in self._band_totals()]
+
+    def report(
+        self, sequences: Sequence[str] = (), checkpoint_sha256: str | None = None
+    ) -> EvaluationReport:
+        """The evaluation report of everything added so far."""
+        notes = []
+        if self.unknown_prediction_ids:
+            notes.append(
+                f"{self.unknown_prediction_ids} predicted labels held raw ids the label "
+                "configuration does not know; they were counted as unlabeled"
+            )
+        return EvaluationReport(
+            confusion=self.confusion(),
+            class_names=self.config.class_names,
+            num_scans=self.num_scans,
+            num_points=self.num_points,
+            sequences=list(sequences),
+            unknown_prediction_ids=self.unknown_prediction_ids,
+            checkpoint_sha256=checkpoint_sha256,
+            notes=notes,
+            by_sequence=self.by_sequence(),
+            by_distance=self.by_distance(),
+        )
+
+
+def _low16(raw: np.ndarray) -> np.ndarray:
+    """The low 16 bits of uint32 labels as a uint16 view (little-endian) or a masked copy."""
+    raw = np.asarray(raw)
+    if (
+        np.little_endian
+        and raw.dtype == np.uint32
+        and raw.dtype.isnative
+        and raw.flags.c_contiguous
+    ):
+        return raw.view(np.uint16)[::2]
+    return (raw.astype(np.int64) & 0xFFFF).astype(np.uint16)

@@ -1,0 +1,41 @@
+"""The plain-data description of a network and its options that logs, reports and `run.json`
+carry, written once for every runner."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+
+from rangeret.dataset.projection import ProjectionConfig
+from rangeret.inference.settings import KnnSettings, TtaSettings
+from rangeret.models.weights.demo import is_demo_checkpoint
+
+
+def describe_network(
+    *,
+    model: str,
+    checkpoint: str | None,
+    sha256: str | None,
+    profile: str,
+    projection: ProjectionConfig,
+    knn: KnnSettings | None,
+    tta: TtaSettings | None,
+    device: str,
+    precision: str,
+    backend: str = "torch",
+) -> dict:
+    """The description of a network and its options that logs, reports and `run.json` carry;
+    `device` and `precision` are those used, or those asked for where the network runs
+    elsewhere; `backend` is where its forward pass runs (torch or onnxruntime)."""
+    return {
+        "model": model,
+        "checkpoint": checkpoint,
+        "checkpoint_sha256": sha256,
+        "demo_weights": is_demo_checkpoint(sha256),
+        "profile": profile,
+        "projection": projection.to_dict(),
+        "knn": asdict(knn) if knn else None,
+        "tta": asdict(tta) if tta else None,
+        "device": device,
+        "precision": precision,
+        "backend": backend,
+    }

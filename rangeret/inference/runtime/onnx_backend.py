@@ -1,0 +1,141 @@
+"""The onnxruntime backend: a network's forward pass in a session of its export, made once.
+
+The first run of a set of weights exports the network (dynamic batch, the profile's resolution)
+through `rangeret.inference.runtime.onnx_export.write_export`, which checks it against torch and writes it
+atomically into the cache folder (`$RANGERET_CACHE/onnx`, else `~/.cache/rangeret/onnx`) under a
+name keyed by the checkpoint's SHA-256, the network, the resolution, the batch and the rest of
+what the file records; later runs, other processes and other actors load that file. Everything
+around the forward pass (projection, kNN, raw ids) is the predictor's one code path.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from rangeret.dataset.profiles import DatasetProfile
+from rangeret.inference.runtime.onnx_export import (
+    INPUT_NAME,
+    OUTPUT_NAME,
+    onnx_metadata,
+    read_metadata,
+    write_export,
+)
+from rangeret.inference.runtime.onnx_session import make_session
+
+log = logging.getLogger(__name__)
+
+#: The environment variable naming the cache folder (its `onnx/` holds the exports).
+CACHE_VARIABLE = "RANGERET_CACHE"
+
+
+def cache_dir() -> Path:
+    """Where exports are cached: `$RANGERET_CACHE/onnx`, else `~/.cache/rangeret/onnx` (under
+    `$XDG_CACHE_HOME` when set)."""
+    root = os.environ.get(CACHE_VARIABLE, "").strip()
+    if root:
+        return Path(root).expanduser() / "onnx"
+    base = os.environ.get("XDG_CACHE_HOME", "").strip() or "~/.cache"
+    return Path(base).expanduser() / "rangeret" / "onnx"
+
+
+def state_sha256(network: torch.nn.Module) -> str:
+    """SHA-256 of a network's weights, in key order: the key of networks that come from no file."""
+    digest = hashlib.sha256()
+    for key, value in network.state_dict().items():
+        digest.update(key.encode())
+        digest.update(value.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()
+
+
+def export_path(network: torch.nn.Module, profile: DatasetProfile, sha: str) -> Path:
+    """The cache file of the dynamic-batch export of `network` (weights of SHA-256 `sha`) for
+    `profile`."""
+    record = onnx_metadata(network, profile, dynamic_batch=True, checkpoint_sha256=sha)
+    key = hashlib.sha256(
+        json.dumps({**record, "torch": torch.__version__}, sort_keys=True).encode()
+    ).hexdigest()
+    p = profile.projection
+    return (
+        cache_dir()
+        / f"{network.config.name}-{p.height}x{p.width}-nbatch-{sha[:16]}-{key[:12]}.onnx"
+    )
+
+
+#: What a cached export must record as asked for before it runs: the weights, the network, the
+#: sensor's projection and the profile.
+CHECKED_FIELDS = ("checkpoint_sha256", "network", "network_config", "projection", "profile")
+
+
+def export_mismatch(path: Path, expected: dict) -> str | None:
+    """Why the export at `path` is not the one `expected` describes (its weights' SHA-256 named,
+    with the one asked for), or None when its metadata agrees on `CHECKED_FIELDS`."""
+    try:
+        found = read_metadata(path)
+    except ValueError as exc:
+        return str(exc)
+    if found.get("checkpoint_sha256") != expected["checkpoint_sha256"]:
+        return (
+            f"was made from checkpoint sha256 {found.get('checkpoint_sha256')}, not from "
+            f"sha256 {expected['checkpoint_sha256']}"
+        )
+    for field in CHECKED_FIELDS[1:]:
+        if found.get(field) != expected[field]:
+            return f"records another {field.replace('_', ' ')} than the one asked for"
+    return None
+
+
+def cached_export(
+    network: torch.nn.Module, profile: DatasetProfile, checkpoint_sha256: str | None
+) -> Path:
+    """The cached export of `network` for `profile`, made (and checked) first if missing, and
+    made again when the file there records other weights, network, projection or profile than
+    these (a file copied over another); weights that come from no file are known by
+    `state_sha256`."""
+    sha = checkpoint_sha256 or state_sha256(network)
+    path = export_path(network, profile, sha)
+    if path.exists():
+        expected = onnx_metadata(network, profile, dynamic_batch=True, checkpoint_sha256=sha)
+        problem = export_mismatch(path, expected)
+        if problem is None:
+            return path
+        log.warning("the cached export %s %s: exporting it again", path, problem)
+    log.info("exporting %s to ONNX for onnxruntime, once, into %s", network.config.name, path)
+    check = write_export(network, profile, path, dynamic_batch=True, checkpoint_sha256=sha)
+    log.info("%s", check.text())
+    return path
+
+
+class OnnxForward:
+    """A network's forward pass in onnxruntime on `device`: (B, 5, H, W) -> (B, C, H, W) logits,
+    float32, on the input's device."""
+
+    def __init__(
+        self,
+        network: torch.nn.Module,
+        profile: DatasetProfile,
+        device: torch.device,
+        checkpoint_sha256: str | None,
+    ) -> None:
+        self.path = cached_export(network, profile, checkpoint_sha256)
+        try:
+            self.session = make_session(self.path, device)
+        except ValueError:
+            raise
+        except Exception as exc:  # onnxruntime's load errors have no common base class
+            raise ValueError(
+                f"onnxruntime cannot load the cached export {self.path} ({exc}); delete it to "
+                "export again"
+            ) from exc
+
+    def __call__(self, batch: torch.Tensor) -> torch.Tensor:
+        """Logits of a batch of normalised range images."""
+        image = np.ascontiguousarray(batch.detach().cpu().numpy(), dtype=np.float32)
+        logits = self.session.run([OUTPUT_NAME], {INPUT_NAME: image})[0]
+        return torch.from_numpy(logits).to(batch.device)

@@ -1,0 +1,60 @@
+"""`run.json`: how a predictions tree was made, written beside it by every runner the same way.
+
+It records the network (model, checkpoint and its SHA-256, whether these are the demo weights,
+projection, kNN, test-time augmentation, device), the data (dataset, sequences), the batch size,
+the runner and the start time, so that any tree can be traced back to what produced it.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from rangeret.io.atomic import atomic_write_text
+
+RUN_INFO = "run.json"
+
+
+def write_run_info(
+    out: Path | str,
+    network: Mapping[str, Any],
+    *,
+    runner: str,
+    dataset: Path | str,
+    sequences: Sequence[str],
+    batch_size: int,
+) -> Path:
+    """Write `OUT/run.json` atomically and return its path.
+
+    `network` is the description of the network and its options (`Predictor.describe()`, or
+    `describe_network` where no predictor is loaded in this process).
+    """
+    record = {
+        **network,
+        "batch_size": batch_size,
+        "dataset": str(dataset),
+        "sequences": list(sequences),
+        "runner": runner,
+        "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+    path = Path(out) / RUN_INFO
+    atomic_write_text(path, json.dumps(record, indent=2) + "\n")
+    return path
+
+
+def read_run_info(out: Path | str) -> dict[str, Any]:
+    """`OUT/run.json` as a dict, or {} when the tree has none; a file that is not a JSON object
+    is a ValueError naming it."""
+    path = Path(out) / RUN_INFO
+    try:
+        record = json.loads(path.read_text())
+    except FileNotFoundError:
+        return {}
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path} is not a readable run record ({exc})") from exc
+    if not isinstance(record, dict):
+        raise ValueError(f"{path} is not a run record (a JSON object)")
+    return record

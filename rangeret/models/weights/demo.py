@@ -1,0 +1,49 @@
+"""The bundled demo weights: trained on simulated scenes only (see `data/DEMO_WEIGHTS.md`), so
+every run on them says so. Torch-free: reports and descriptions ask about them cheaply."""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import logging
+from pathlib import Path
+
+from rangeret import DATA_DIR
+from rangeret.models.weights.hub import resolve_weights
+
+log = logging.getLogger(__name__)
+
+#: The file of the bundled demo weights.
+DEMO_CHECKPOINT = DATA_DIR / "demo-weights.pt"
+DEMO_WARNING = (
+    "using the bundled demo weights, trained on simulated street scenes only: their labels on "
+    "real scans are not meaningful; pass --checkpoint with real weights such as "
+    "rangeret-kitti-657 (`rangeret weights list`)"
+)
+
+
+def resolve_checkpoint(path: str | Path | None) -> Path:
+    """The checkpoint to load: `path`, a published model's file when `path` is its registered
+    name (`rangeret-kitti-657`, fetched from the cache or the hub), or the bundled demo weights
+    (announced loudly) when None."""
+    if path is not None:
+        return resolve_weights(path).path
+    if not DEMO_CHECKPOINT.exists():
+        raise FileNotFoundError(
+            f"no --checkpoint given and the bundled demo weights {DEMO_CHECKPOINT} are missing"
+        )
+    log.warning(DEMO_WARNING)
+    return DEMO_CHECKPOINT
+
+
+def is_demo_checkpoint(sha256: str | None) -> bool:
+    """Whether a checkpoint hash is that of the bundled demo weights."""
+    return bool(sha256) and sha256 == _demo_sha256()
+
+
+@functools.cache
+def _demo_sha256() -> str | None:
+    """The bundled demo weights' SHA-256, read once (every description of a run asks for it)."""
+    if not DEMO_CHECKPOINT.exists():
+        return None
+    return hashlib.sha256(DEMO_CHECKPOINT.read_bytes()).hexdigest()

@@ -1,0 +1,177 @@
+"""Published weights from the model hub: the local cache first, else a download.
+
+Downloads go through `huggingface_hub`, so `HF_ENDPOINT` (a mirror), `HF_HOME` and
+`HF_HUB_CACHE` (where the cache lies), `HF_HUB_OFFLINE` and the hub's tokens (`HF_TOKEN`,
+`huggingface-cli login`) behave as users of that ecosystem expect. A download is written to a
+temporary file and moved into place only once whole, so a partial file is never used; a file
+whose SHA-256 differs from the registry's pin is refused and removed. A hub that cannot be
+reached gets one sentence naming the URL and where to put the file by hand.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from rangeret.dataset.profiles import DatasetProfile
+from rangeret.models.weights.registry import PublishedModel, lookup, profile_for_published
+
+log = logging.getLogger(__name__)
+
+
+class WeightsError(RuntimeError):
+    """Published weights that cannot be had: the hub unreachable, the file wrong or missing."""
+
+
+def weights_url(model: PublishedModel) -> str:
+    """The file's download URL on the hub `HF_ENDPOINT` names (by default huggingface.co)."""
+    from huggingface_hub import hf_hub_url
+
+    return hf_hub_url(model.repo, model.file, revision=model.revision)
+
+
+def cached_weights(model: PublishedModel) -> Path | None:
+    """The model's file in the local hub cache, or None when it was never downloaded."""
+    from huggingface_hub import try_to_load_from_cache
+
+    found = try_to_load_from_cache(model.repo, model.file, revision=model.revision)
+    return Path(found) if isinstance(found, str) else None
+
+
+def file_sha256(path: Path) -> str:
+    """The SHA-256 of a file, read in chunks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def fetch_weights(model: PublishedModel, to: Path | None = None) -> Path:
+    """The model's file: from the cache when it is there (no network), else downloaded, into the
+    hub cache or, with `to`, into that folder; checked against the registry's SHA-256 pin."""
+    path = None if to is not None else cached_weights(model)
+    if path is None:
+        path = _download(model, to)
+    else:
+        log.info("%s: in the local cache at %s", model.name, path)
+    sha256 = file_sha256(path)
+    if model.sha256 is not None and sha256 != model.sha256:
+        _remove(path)
+        raise WeightsError(
+            f"the file downloaded for {model.name} has SHA-256 {sha256}, but the registry pins "
+            f"{model.sha256}: it is not the published file, so it was removed; check the hub at "
+            f"{weights_url(model)}"
+        )
+    log.info("%s: %s (sha256 %s)", model.name, path, sha256)
+    return path
+
+
+def _download(model: PublishedModel, to: Path | None) -> Path:
+    """Download the file with a progress bar; `WeightsError` with one sentence when it fails."""
+    from huggingface_hub import hf_hub_download
+
+    url = weights_url(model)
+    if _offline():
+        raise WeightsError(_by_hand(model, url, "HF_HUB_OFFLINE is set and it is not in the cache"))
+    log.info("%s: downloading %s", model.name, url)
+    # The hub library logs each failed attempt; the one sentence below says it all.
+    logging.getLogger("huggingface_hub.utils._http").setLevel(logging.ERROR)
+    try:
+        found = hf_hub_download(
+            model.repo,
+            model.file,
+            revision=model.revision,
+            local_dir=str(to) if to is not None else None,
+        )
+    except Exception as exc:  # the hub's, httpx's and the OS's errors all end the same way
+        raise WeightsError(_by_hand(model, url, _reason(exc))) from exc
+    return Path(found)
+
+
+def _offline() -> bool:
+    """Whether `HF_HUB_OFFLINE` forbids the network, read as huggingface_hub reads it."""
+    from huggingface_hub import constants
+
+    return bool(constants.HF_HUB_OFFLINE)
+
+
+def _by_hand(model: PublishedModel, url: str, reason: str) -> str:
+    """The sentence for weights that could not be downloaded: why, and what to do instead."""
+    return (
+        f"cannot get {model.name} from {url} ({reason}); download that file where the hub is "
+        f"reachable and pass --checkpoint /path/to/{model.file}, or copy the hub cache "
+        "(HF_HOME) of a machine that ran `rangeret weights download "
+        f"{model.name}`"
+    )
+
+
+def _reason(exc: BaseException) -> str:
+    """A short reason for a failed download: the HTTP status the hub answered, else the first
+    line of the error at the root of the chain (the hub library wraps connection errors)."""
+    chain = [exc]
+    while (cause := chain[-1].__cause__ or chain[-1].__context__) is not None and len(chain) < 10:
+        chain.append(cause)
+    for error in chain:
+        status = getattr(getattr(error, "response", None), "status_code", None)
+        if status is not None:
+            return f"the hub answered HTTP {status}"
+    root = chain[-1]
+    text = " ".join(str(root).split()) or type(root).__name__
+    return text[:200]
+
+
+def _remove(path: Path) -> None:
+    """Delete a refused file, and the cache blob a cache link points to."""
+    target = path.resolve()
+    for p in {path, target}:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(p)
+
+
+def published_name(value: str | Path) -> PublishedModel | None:
+    """The registered model a `--checkpoint` value names (`rangeret-kitti-657`, or the file name
+    `rangeret-kitti-657.pt` when no such file exists here), or None for a path."""
+    text = str(value)
+    if Path(text).exists() or os.sep in text:
+        return None
+    return lookup(text) or lookup(text.removesuffix(".pt"))
+
+
+@dataclass(frozen=True)
+class ResolvedWeights:
+    """Where a `--checkpoint` value leads, and the profile, network and resolution to load it
+    with (what was asked for, completed by a published model's registry entry)."""
+
+    path: Path
+    profile: DatasetProfile | None
+    model: str | None
+    height: int | None
+    width: int | None
+
+
+def resolve_weights(
+    value: str | Path,
+    profile: DatasetProfile | None = None,
+    model: str | None = None,
+    height: int | None = None,
+    width: int | None = None,
+) -> ResolvedWeights:
+    """The file a `--checkpoint` value leads to: a path as it is; for a published model's name
+    its file (from the cache or the hub), with its profile (another requested one is refused
+    before any download), network and resolution wherever those were not given."""
+    published = published_name(value)
+    if published is None:
+        return ResolvedWeights(Path(value), profile, model, height, width)
+    profile = profile_for_published(published, profile)
+    return ResolvedWeights(
+        fetch_weights(published),
+        profile,
+        model or published.model,
+        height or published.height or None,
+        width or published.width or None,
+    )

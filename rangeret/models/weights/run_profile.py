@@ -1,0 +1,77 @@
+"""The dataset profile a loaded checkpoint runs with: the one it records (project files) or the
+one asked for (published files), at the network's resolution, with its class count checked."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from rangeret.dataset.labels import LabelConfig
+from rangeret.dataset.profiles import DatasetProfile, load_profile, profile_of_record
+from rangeret.dataset.projection import ProjectionConfig
+from rangeret.models.weights.checkpoint import CheckpointError
+from rangeret.models.weights.checkpoint_info import CheckpointInfo
+
+
+def profile_for_checkpoint(
+    info: CheckpointInfo,
+    requested: DatasetProfile | None = None,
+    fov_up: float | None = None,
+    fov_down: float | None = None,
+) -> DatasetProfile:
+    """The profile a loaded network runs with, its projection at the network's resolution.
+
+    The project's own files give their recorded profile (files from before profiles: the
+    `semantickitti` profile with the stored projection and labels); a `requested` profile of
+    another name is a CheckpointError naming both. Published files take `requested` or the
+    default. A class count that differs from the profile's is a CheckpointError naming both.
+    """
+    if info.published:
+        profile = requested or load_profile(None)
+        projection = profile.projection
+    else:
+        profile = _recorded_profile(info)
+        if requested is not None and requested.name != profile.name:
+            raise CheckpointError(
+                f"{info.path} was trained for the {profile.name} profile and cannot run with the "
+                f"{requested.name} profile; leave --profile out or pass --profile {profile.name}"
+            )
+        projection = _stored_projection(info.projection) or profile.projection
+    projection = replace(projection, height=info.config["height"], width=info.config["width"])
+    profile = replace(profile, projection=projection).with_overrides(
+        fov_up=fov_up, fov_down=fov_down
+    )
+    classes = int(info.config["num_classes"])
+    if classes != profile.num_classes:
+        raise CheckpointError(
+            f"{info.path} predicts {classes} classes but the {profile.name} profile has "
+            f"{profile.num_classes}: the network was not made for this dataset "
+            "(choose its profile with --profile)"
+        )
+    return profile
+
+
+def _recorded_profile(info: CheckpointInfo) -> DatasetProfile:
+    """The profile a project checkpoint records; SemanticKITTI's for files from before profiles,
+    with the label configuration they stored."""
+    if info.profile:
+        return profile_of_record(info.profile, info.path)
+    profile = load_profile(None)
+    if info.label_config:
+        profile = replace(profile, labels=LabelConfig.from_dict(info.label_config))
+    return profile
+
+
+def _stored_projection(record: dict | None) -> ProjectionConfig | None:
+    """The projection stored in a project checkpoint, if any."""
+    if not record:
+        return None
+    stored = dict(record)
+    for key in ("means", "stds"):
+        if key in stored:
+            stored[key] = tuple(stored[key])
+    return ProjectionConfig(**stored)
+
+
+def default_resolution(profile: DatasetProfile | None) -> tuple[int, int]:
+    base = (profile or load_profile(None)).projection
+    return base.height, base.width

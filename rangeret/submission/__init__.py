@@ -1,0 +1,1 @@
+"""Benchmark submissions: SemanticKITTI archives and the leaderboard description they carry."""
