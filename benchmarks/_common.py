@@ -14,10 +14,6 @@ REAL_SCAN = DATA / "semantickitti-scan" / "000000.bin"
 REAL_LABELS = DATA / "semantickitti-scan" / "000000.label"
 SMALL_VECTORS = DATA / "rangeret-cir-32x256-2block.pt"
 
-sys.path.insert(
-    0, str(REPO / "tests")
-)  # the slow, direct reference formulations live with the tests
-
 
 def median_time(
     fn: Callable[[], object], repeat: int = 7, number: int = 1, warmup: int = 1

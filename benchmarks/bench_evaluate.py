@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 from _common import REAL_LABELS, median_time, require_real_scan
-from reference import add_at_confusion, read_mapped, remap_table
+from _official import add_at_confusion, read_mapped, remap_table
 
 from rangeret.dataset.labels import semantickitti
 from rangeret.dataset.layout import labels_dir, prediction_path, velodyne_dir

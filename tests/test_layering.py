@@ -10,7 +10,8 @@ import ast
 from pathlib import Path
 
 import pytest
-from conftest import REPO
+
+from tests.support.paths import REPO
 
 PACKAGES = ("rangeret", "workers", "service")
 

@@ -1,0 +1,297 @@
+"""Single scans on the Serve application: `serve deploy` of `workers.serve_app:build_app` on a
+real `ray start --head`, and a real gateway process (`--serve-url`) in front of it; a Serve
+application that is late, overloaded or gone (a real HTTP server that misbehaves) is a JSON 503
+or 504, never a hang."""
+
+from __future__ import annotations
+
+import http.server
+import json
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import yaml
+
+from rangeret.cli.main import main as rangeret_main
+from rangeret.io.scans import read_labels, read_scan
+from rangeret.models.weights.hub import file_sha256 as checkpoint_sha256
+from service.serve_client import ServeLabeller
+from tests.support.gateway import AUTH, OCTET, assert_error, gateway_env, start_gateway
+from tests.support.workers import build_tree, free_ports, ray_node, small_weights
+from workers.scan_wire import (
+    CONFIDENCE_HEADER,
+    POINTS_HEADER,
+    decode_labels,
+    encode_labels,
+    query_flag,
+)
+from workers.scans import LabelledScan
+
+NET_ARGS = {"height": 32, "width": 256, "device": "cpu"}
+
+
+# The exchange and the builder, without a cluster ----------------------------------------------
+
+
+def test_the_exchange_round_trips_labels_and_confidences():
+    labels = np.array([0, 10, 40, 252, 65536 + 10], np.uint32)
+    for confidence in (None, np.linspace(0, 1, 5, dtype=np.float32)):
+        body, headers = encode_labels(LabelledScan(labels, confidence))
+        back = decode_labels(body, headers, len(labels))
+        assert np.array_equal(back.labels, labels)
+        assert (back.confidence is None) == (confidence is None)
+        if confidence is not None:
+            assert np.array_equal(back.confidence, confidence)
+    body, headers = encode_labels(LabelledScan(labels))
+    with pytest.raises(ValueError, match=r"answered 20 bytes for 5 points, not the 24 bytes"):
+        decode_labels(body, headers, 6)
+    with pytest.raises(ValueError, match=r"not the 40 bytes"):
+        decode_labels(body, {**headers, CONFIDENCE_HEADER: "1"}, 5)
+    assert headers[POINTS_HEADER] == "5"
+    assert query_flag("False", True, "knn") is False and query_flag(None, True, "knn") is True
+    with pytest.raises(ValueError, match="the query parameter knn is true or false"):
+        query_flag("maybe", True, "knn")
+
+
+def test_the_builder_names_a_bad_argument_before_any_replica_starts():
+    from workers.serve_app import DEPLOYMENT, build_app
+
+    with pytest.raises(ValueError, match=r"unknown argument\(s\) heigth .* takes checkpoint"):
+        build_app({"heigth": 32})
+    with pytest.raises(ValueError, match=r"--device: invalid choice: 'tpu'"):
+        build_app({"device": "tpu"})
+    with pytest.raises(ValueError, match=r"the network option knn is true or false"):
+        build_app({"knn": "no", "device": "cpu"})
+    app = build_app({"batch_size": 4, "device": "cpu", "knn": False})
+    deployment = app._bound_deployment
+    assert deployment.name == DEPLOYMENT
+    assert deployment.max_ongoing_requests == 8  # one batch running, one gathering
+    assert deployment.ray_actor_options["num_gpus"] == 0
+    cuda = build_app({"device": "cuda"})._bound_deployment
+    assert cuda.ray_actor_options["num_gpus"] == 1
+
+
+# A real Serve application behind a real gateway -----------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def deployed(tmp_path_factory) -> Iterator[dict]:
+    """A head node with the Serve application deployed from a config file, as an operator does."""
+    tmp = tmp_path_factory.mktemp("serve")
+    weights = small_weights(tmp)
+    (port,) = free_ports(1)
+    config = {
+        "http_options": {"host": "127.0.0.1", "port": port},
+        "applications": [
+            {
+                "name": "rangeret",
+                "route_prefix": "/rangeret",
+                "import_path": "workers.serve_app:build_app",
+                "args": {"checkpoint": str(weights), **NET_ARGS, "batch_size": 2},
+                "deployments": [{"name": "ScanModel", "num_replicas": 1}],
+            }
+        ],
+    }
+    path = tmp / "serve.yaml"
+    path.write_text(yaml.safe_dump(config))
+    with ray_node(tmp, num_cpus=3) as head:
+        serve = str(head.bindir / "serve")
+        subprocess.run([serve, "deploy", str(path), "-a", head.dashboard], env=head.env, check=True)
+        url = f"http://127.0.0.1:{port}/rangeret"
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline:
+            try:
+                if httpx.get(url + "/info", timeout=5).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            time.sleep(1)
+        else:
+            status = subprocess.run(
+                [serve, "status", "-a", head.dashboard], env=head.env, capture_output=True
+            )
+            pytest.fail(f"the Serve application did not start:\n{status.stdout.decode()}")
+        yield {"url": url, "weights": weights, "tmp": tmp, "head": head}
+
+
+@pytest.fixture(scope="module")
+def gateway(deployed):
+    tmp = deployed["tmp"]
+    env = gateway_env(tmp / "state", [tmp], RANGERET_SERVE_URL=deployed["url"])
+    gw = start_gateway(deployed["weights"], env, tmp / "gateway.log")
+    yield gw
+    gw.stop()
+
+
+@pytest.mark.slow
+def test_scans_through_serve_get_rangeret_predicts_labels(deployed, gateway, tmp_path):
+    data = build_tree(tmp_path / "data", labelled=2, unlabelled=1)
+    argv = ["predict", "-q", "--dataset", str(data), "--out", str(tmp_path / "pred")]
+    net = ["--checkpoint", str(deployed["weights"]), "--height", "32", "--width", "256"]
+    assert rangeret_main([*argv, "--sequences", "08", "11", *net, "--device", "cpu"]) == 0
+    scans = sorted(data.rglob("*.bin"))
+    with gateway.client() as client:
+        for scan in scans:
+            answer = client.post("/v1/scans", content=scan.read_bytes(), headers=OCTET)
+            assert answer.status_code == 200, answer.text
+            seq = scan.parent.parent.name
+            expected = tmp_path / "pred" / "sequences" / seq / "predictions" / f"{scan.stem}.label"
+            assert answer.content == expected.read_bytes()
+
+        # Concurrent requests share the replica's batches (of 2) and keep their own labels.
+        bodies = [s.read_bytes() for s in scans] * 2
+        with httpx.Client(base_url=gateway.url, headers=AUTH, timeout=120) as other:
+            results: list[bytes] = [b""] * len(bodies)
+
+            def send(i: int) -> None:
+                results[i] = other.post("/v1/scans", content=bodies[i], headers=OCTET).content
+
+            threads = [threading.Thread(target=send, args=(i,)) for i in range(len(bodies))]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join(120)
+        for body, result in zip(bodies, results, strict=True):
+            alone = client.post("/v1/scans", content=body, headers=OCTET).content
+            assert result == alone
+
+        sure = client.post(
+            "/v1/scans?confidence=true",
+            content=scans[0].read_bytes(),
+            headers={**OCTET, "Accept": "application/json"},
+        ).json()
+        first = tmp_path / "pred" / "sequences" / "08" / "predictions" / f"{scans[0].stem}.label"
+        assert sure["labels"] == read_labels(first).tolist()
+        confidence = np.asarray(sure["confidence"])
+        assert confidence.shape == (len(read_scan(scans[0])),)
+        assert (confidence >= 0).all() and (confidence <= 1).all()
+
+        health = client.get("/healthz").json()
+        assert health.get("backend") == "serve" and health["status"] == "ok", health
+        assert health["workers"][0]["checkpoint_sha256"] == health["checkpoint_sha256"], health
+
+
+@pytest.mark.slow
+def test_a_gateway_with_other_weights_than_serves_refuses_to_start(deployed, tmp_path):
+    other = tmp_path / "other.pt"
+    raw = Path(deployed["weights"]).read_bytes()
+    other.write_bytes(raw)
+    import torch
+
+    state = torch.load(other, weights_only=True)
+    first = next(iter(state))
+    state[first] = state[first] + 1
+    torch.save(state, other)
+    env = gateway_env(tmp_path / "state", [tmp_path], RANGERET_SERVE_URL=deployed["url"])
+    run = subprocess.run(
+        [
+            *(sys.executable, "-m", "service", "--checkpoint", str(other), "--port", "0"),
+            *("--height", "32", "--width", "256", "--device", "cpu"),
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert run.returncode == 1, run.stderr[-2000:]
+    message = run.stderr.strip().splitlines()[-1]
+    served = checkpoint_sha256(deployed["weights"])
+    assert served in message and checkpoint_sha256(other) in message, message
+    assert "Traceback" not in run.stderr
+
+
+# A Serve application that misbehaves ----------------------------------------------------------
+
+
+class Misbehaving(http.server.ThreadingHTTPServer):
+    """An HTTP server that answers `/info` as the application would, and scans as `mode` says:
+    "slow" never in time, "busy" 503, "broken" 500."""
+
+    daemon_threads = True
+
+    def __init__(self, info: dict) -> None:
+        self.info = info
+        self.mode = "slow"
+        super().__init__(("127.0.0.1", 0), _Handler)
+
+
+class _Handler(http.server.BaseHTTPRequestHandler):
+    server: Misbehaving
+
+    def log_message(self, *args) -> None:
+        pass
+
+    def _send(self, status: int, body: bytes) -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def do_GET(self) -> None:
+        self._send(200, json.dumps(self.server.info).encode())
+
+    def do_POST(self) -> None:
+        self.rfile.read(int(self.headers["Content-Length"]))
+        if self.server.mode == "slow":
+            time.sleep(5)
+            self._send(200, b"")
+        elif self.server.mode == "busy":
+            self._send(503, b"Service Unavailable")
+        else:
+            self._send(500, json.dumps({"detail": "CUDA error: out of memory"}).encode())
+
+
+@pytest.mark.slow
+def test_a_late_busy_broken_or_gone_serve_application_is_a_json_503_or_504(tmp_path):
+    weights = small_weights(tmp_path)
+    server = Misbehaving(
+        {"checkpoint_sha256": checkpoint_sha256(weights), "profile": "semantickitti"}
+    )
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    url = f"http://127.0.0.1:{server.server_address[1]}/rangeret"
+    env = gateway_env(
+        tmp_path / "state", [tmp_path], RANGERET_SERVE_URL=url, RANGERET_SERVE_TIMEOUT_S="1"
+    )
+    gw = start_gateway(weights, env, tmp_path / "gateway.log")
+    scan = np.zeros((50, 4), np.float32).tobytes()
+    try:
+        with gw.client() as client:
+            started = time.monotonic()
+            detail = assert_error(client.post("/v1/scans", content=scan, headers=OCTET), 504)
+            assert time.monotonic() - started < 4
+            assert "did not answer within 1 s" in detail and url in detail
+            server.mode = "busy"
+            answer = client.post("/v1/scans", content=scan, headers=OCTET)
+            assert "overloaded or has no replica ready" in assert_error(answer, 503)
+            assert answer.headers["Retry-After"] == "1"
+            server.mode = "broken"
+            answer = client.post("/v1/scans", content=scan, headers=OCTET)
+            assert "answered 500: CUDA error: out of memory" in assert_error(answer, 503)
+            server.shutdown()
+            server.server_close()
+            answer = client.post("/v1/scans", content=scan, headers=OCTET)
+            assert "cannot be reached" in assert_error(answer, 503)
+            assert answer.headers["Retry-After"] == "1"
+            health = client.get("/healthz")
+            assert health.status_code == 503 and health.json()["backend"] == "serve"
+    finally:
+        gw.stop()
+    assert "Traceback" not in gw.output()
+
+
+def test_a_serve_url_that_never_answers_stops_the_gateway_with_one_sentence(tmp_path):
+    (port,) = free_ports(1)
+    labeller = ServeLabeller(f"http://127.0.0.1:{port}/rangeret", None, 1.0)  # type: ignore[arg-type]
+    from rangeret.commands import CommandError
+
+    with pytest.raises(CommandError, match=r"did not answer within 0.5 s \(ConnectError"):
+        labeller.check_serves("0" * 64, wait_s=0.5)

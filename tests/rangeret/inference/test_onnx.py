@@ -1,0 +1,355 @@
+"""ONNX exports (`rangeret export`) and the onnxruntime backend (`--backend onnxruntime`).
+
+Small networks (32 x 256, 2 blocks) of both kinds, exported through the command line; the
+backend's labels on the real scan against torch's, in `rangeret predict` and in the gateway.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import io
+import json
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from rangeret.cli.main import main as rangeret_main
+from rangeret.dataset.labels import semantickitti
+from rangeret.dataset.layout import prediction_path, velodyne_dir
+from rangeret.dataset.projection import CHANNEL_MEANS, CHANNEL_STDS
+from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
+from rangeret.inference.runtime.onnx_backend import CACHE_VARIABLE
+from rangeret.inference.runtime.onnx_export import (
+    INPUT_NAME,
+    MAX_LOGIT_DIFFERENCE,
+    OUTPUT_NAME,
+    read_metadata,
+)
+from rangeret.inference.runtime.onnx_session import make_session, providers_for
+from rangeret.inference.runtime.precision import resolve_precision
+from rangeret.io.scans import read_labels, read_scan, write_scan
+from rangeret.models import build_model
+from rangeret.options import spec_from_args
+from tests.support.gateway import NET, OCTET, gateway_env, start_gateway
+from tests.support.paths import data_path
+from tests.support.workers import small_weights
+
+SIZE = ["--height", "32", "--width", "256"]
+
+
+def thesis_weights(folder: Path) -> Path:
+    """A random 2-block rangeret-thesis state_dict (32 x 256), saved alone like a release file."""
+    torch.manual_seed(0)
+    network = build_model("rangeret-thesis", 32, 256, layers=2)
+    path = folder / "thesis-small.pt"
+    torch.save(network.state_dict(), path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory) -> Iterator[dict]:
+    """Weights of both networks, a tree holding the real scan, and a cache folder of this module."""
+    base = tmp_path_factory.mktemp("onnx")
+    real = base / "real"
+    write_scan(
+        velodyne_dir(real, "08") / "000000.bin",
+        read_scan(data_path("semantickitti-scan", "000000.bin")),
+    )
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv(CACHE_VARIABLE, str(base / "cache"))
+        yield {
+            "base": base,
+            "weights": {
+                "rangeret-cir": small_weights(base),
+                "rangeret-thesis": thesis_weights(base),
+            },
+            "real": real,
+            "cache": base / "cache",
+        }
+
+
+@pytest.fixture(scope="module")
+def exports(setup) -> dict:
+    """Each network exported by `rangeret export`: cir with a dynamic batch, thesis for batch 1;
+    the path and what the command printed."""
+    done = {}
+    for name, dynamic in (("rangeret-cir", True), ("rangeret-thesis", False)):
+        out = setup["base"] / f"{name}.onnx"
+        args = ["export", "--checkpoint", str(setup["weights"][name]), *SIZE, "--out", str(out)]
+        printed, errors = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(errors):
+            code = rangeret_main([*args, "--dynamic-batch"] if dynamic else args)
+        assert code == 0, errors.getvalue()
+        done[name] = {"path": out, "stdout": printed.getvalue(), "dynamic": dynamic}
+    return done
+
+
+def _predict(setup, out: Path, *options: str) -> Path:
+    args = ["predict", "-q", "--dataset", str(setup["real"]), "--sequences", "08", "--out"]
+    weights = setup["weights"]["rangeret-cir"]
+    code = rangeret_main([*args, str(out), "--checkpoint", str(weights), *NET, *options])
+    assert code == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def predictions(setup) -> dict[str, Path]:
+    """`rangeret predict` of the real scan with each backend."""
+    base = setup["base"]
+    return {
+        "torch": _predict(setup, base / "pred-torch"),
+        "onnxruntime": _predict(setup, base / "pred-ort", "--backend", "onnxruntime"),
+    }
+
+
+# Export --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["rangeret-cir", "rangeret-thesis"])
+def test_export_is_checked_and_carries_its_metadata(setup, exports, name):
+    export = exports[name]
+    found = re.search(r"max \|logit difference\| (\S+), argmax equal on (\S+) %", export["stdout"])
+    assert found, export["stdout"]
+    assert float(found.group(1)) <= MAX_LOGIT_DIFFERENCE
+    assert float(found.group(2)) >= 99.9
+    meta = read_metadata(export["path"])
+    labels = semantickitti()
+    assert meta["profile"] == "semantickitti"
+    assert meta["class_names"] == list(labels.class_names)
+    assert meta["class_raw_ids"] == list(labels.class_raw_ids)
+    assert meta["label_config"]["unlabeled_class"] == labels.unlabeled_class
+    assert meta["means"] == list(CHANNEL_MEANS) and meta["stds"] == list(CHANNEL_STDS)
+    assert meta["projection"] == {
+        "height": 32,
+        "width": 256,
+        "fov_up": 3.0,
+        "fov_down": -25.0,
+        "row": "pitch",
+    }
+    weights = setup["weights"][name].read_bytes()
+    assert meta["checkpoint_sha256"] == hashlib.sha256(weights).hexdigest()
+    assert meta["network"] == name and meta["blocks"] == 2
+    batch = "N" if export["dynamic"] else 1
+    assert meta["input"]["name"] == INPUT_NAME and meta["input"]["shape"] == [batch, 5, 32, 256]
+    assert meta["output"]["name"] == OUTPUT_NAME and meta["output"]["shape"] == [batch, 20, 32, 256]
+    assert meta["input"]["layout"] == "N,5,H,W" and meta["output"]["layout"] == "N,C,H,W"
+    assert meta["version"]
+
+
+def test_a_dynamic_batch_model_gives_each_scan_the_rows_of_batch_one(exports):
+    session = make_session(exports["rangeret-cir"]["path"], torch.device("cpu"))
+    images = np.random.default_rng(1).standard_normal((3, 5, 32, 256)).astype(np.float32)
+    alone = [session.run([OUTPUT_NAME], {INPUT_NAME: images[i : i + 1]})[0] for i in range(3)]
+    together = session.run([OUTPUT_NAME], {INPUT_NAME: images})[0]
+    assert together.shape == (3, 20, 32, 256)
+    np.testing.assert_allclose(together, np.concatenate(alone), rtol=0, atol=1e-5)
+    assert not np.allclose(alone[0], alone[1])
+
+
+def test_a_batch_one_model_takes_batch_one_only(exports):
+    session = make_session(exports["rangeret-thesis"]["path"], torch.device("cpu"))
+    image = np.zeros((1, 5, 32, 256), np.float32)
+    assert session.run([OUTPUT_NAME], {INPUT_NAME: image})[0].shape == (1, 20, 32, 256)
+    with pytest.raises(Exception, match="dimension"):
+        session.run([OUTPUT_NAME], {INPUT_NAME: np.zeros((3, 5, 32, 256), np.float32)})
+
+
+def test_an_export_takes_the_default_form_without_fixing_the_batch(monkeypatch):
+    from rangeret.models.blocks import kernels
+
+    monkeypatch.setattr(kernels, "MEASURED", ("cpu",))
+    monkeypatch.setattr(torch.compiler, "is_exporting", lambda: True)
+    kernels.forget()
+    q, v = torch.zeros(2, 1, 4, 2), torch.zeros(2, 1, 4, 2)
+    candidates = {"slow": lambda: q, "fast": lambda: v}
+    assert kernels.choose("op", candidates, "slow", q, v) == "slow"
+    assert kernels.choices() == {}
+
+
+# The onnxruntime backend ---------------------------------------------------------------------
+
+
+def test_onnxruntime_labels_the_real_scan_as_torch_does(setup, predictions):
+    torch_labels = read_labels(prediction_path(predictions["torch"], "08", "000000"))
+    ort_labels = read_labels(prediction_path(predictions["onnxruntime"], "08", "000000"))
+    assert (
+        torch_labels.size
+        == ort_labels.size
+        == len(read_scan(data_path("semantickitti-scan", "000000.bin")))
+    )
+    assert np.mean(torch_labels == ort_labels) >= 0.9999
+    for backend, tree in predictions.items():
+        run = json.loads((tree / "run.json").read_text())
+        assert run["backend"] == backend and run["precision"] == "fp32"
+    assert len(list((setup["cache"] / "onnx").glob("rangeret-cir-32x256-*.onnx"))) == 1
+
+
+def test_a_driver_exports_once_for_the_predictors_its_workers_build(setup, tmp_path, monkeypatch):
+    monkeypatch.setenv(CACHE_VARIABLE, str(tmp_path))
+    spec = PredictorSpec(
+        checkpoint=str(setup["weights"]["rangeret-cir"]),
+        height=32,
+        width=256,
+        device="cpu",
+        backend="onnxruntime",
+    )
+    checkpoint_profile(spec)  # what the Ray job and the gateway do before starting workers
+    exported = list((tmp_path / "onnx").glob("*.onnx"))
+    assert len(exported) == 1
+    predictor = spec.build()
+    assert predictor.onnx is not None and predictor.onnx.path == exported[0]
+    assert predictor.describe()["backend"] == "onnxruntime"
+    without_knn = predictor.with_knn(None)
+    assert without_knn.onnx is predictor.onnx and without_knn.knn is None
+    assert next(predictor.network.parameters()).device.type == "cpu"
+
+
+def test_the_ray_job_and_the_gateway_take_the_backend(setup):
+    import argparse
+
+    from service.server import add_serve_arguments
+    from workers.predict_job import build_parser
+
+    weights = str(setup["weights"]["rangeret-cir"])
+    selection = ["--dataset", "d", "--split", "valid", "--out", "p"]
+    job = build_parser().parse_args(
+        [*selection, "--checkpoint", weights, "--backend", "onnxruntime"]
+    )
+    serve = argparse.ArgumentParser()
+    add_serve_arguments(serve)
+    gateway = serve.parse_args(["--checkpoint", weights, "--backend", "onnxruntime"])
+    gateway.batch_size = 1
+    for args in (job, gateway):
+        assert spec_from_args(args).backend == "onnxruntime"
+    default = serve.parse_args(["--checkpoint", weights, "--batch-size", "1"])
+    assert spec_from_args(default).backend == "torch"
+
+
+def test_the_gateway_labels_with_onnxruntime_as_torch_does(setup, predictions):
+    base = setup["base"]
+    env = gateway_env(base / "state", [setup["real"]], **{CACHE_VARIABLE: str(setup["cache"])})
+    weights = setup["weights"]["rangeret-cir"]
+    gw = start_gateway(weights, env, base / "gateway.log", "--backend", "onnxruntime")
+    try:
+        body = (setup["real"] / "sequences" / "08" / "velodyne" / "000000.bin").read_bytes()
+        with gw.client() as client:
+            answer = client.post("/v1/scans", content=body, headers=OCTET)
+            health = client.get("/healthz").json()
+    finally:
+        gw.stop()
+    assert answer.status_code == 200, answer.text
+    labels = np.frombuffer(answer.content, dtype=np.uint32)
+    expected = read_labels(prediction_path(predictions["torch"], "08", "000000"))
+    assert labels.size == expected.size and np.mean(labels == expected) >= 0.9999
+    assert [w["backend"] for w in health["workers"]] == ["onnxruntime"]
+    assert health["precision"] == "fp32"
+    # the gateway's check of the weights and its worker found the export `rangeret predict` made
+    assert len(list((setup["cache"] / "onnx").glob("*.onnx"))) == 1
+
+
+# Bad input -----------------------------------------------------------------------------------
+
+
+def test_export_formats_other_than_onnx_are_refused(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        rangeret_main(["export", "--format", "tflite", "--out", str(tmp_path / "m.tflite")])
+    assert exit_.value.code == 2
+    assert "invalid choice: 'tflite'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("precision", ["fp16", "bf16"])
+def test_onnxruntime_refuses_half_precision_in_one_sentence(tmp_path, capsys, precision):
+    args = ["predict", "--dataset", str(tmp_path), "--sequences", "08", "--out", str(tmp_path)]
+    code = rangeret_main([*args, "--backend", "onnxruntime", "--precision", precision])
+    err = capsys.readouterr().err
+    assert code == 1 and "Traceback" not in err
+    assert err.strip().splitlines() == [
+        f"rangeret predict: error: --precision {precision} cannot run with --backend onnxruntime: "
+        "its exported graph is fp32 and onnxruntime has no autocast, so it runs fp32 only (pass "
+        "--precision fp32 or auto, or --backend torch for fp16 and bf16)"
+    ]
+
+
+def test_onnxruntime_resolves_auto_to_fp32_on_every_device():
+    for device in ("cpu", "cuda"):
+        assert resolve_precision("auto", torch.device(device), "onnxruntime") == "fp32"
+    assert resolve_precision("auto", torch.device("cuda"), "torch") == "fp16"
+    with pytest.raises(ValueError, match="--backend onnxruntime"):
+        resolve_precision("bf16", torch.device("cpu"), "onnxruntime")
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_cuda_without_a_gpu_keeps_its_error_with_onnxruntime(setup, tmp_path, capsys):
+    args = ["predict", "--dataset", str(setup["real"]), "--sequences", "08", "--out", str(tmp_path)]
+    weights = str(setup["weights"]["rangeret-cir"])
+    code = rangeret_main(
+        [*args, "--checkpoint", weights, *SIZE, "--device", "cuda", "--backend", "onnxruntime"]
+    )
+    err = capsys.readouterr().err
+    assert code == 1 and "Traceback" not in err
+    assert err.strip().splitlines()[-1] == (
+        "rangeret predict: error: --device cuda was asked for but torch sees no CUDA device"
+    )
+
+
+def test_cuda_without_the_gpu_package_names_onnxruntime_gpu(monkeypatch):
+    import onnxruntime
+
+    monkeypatch.setattr(onnxruntime, "get_available_providers", lambda: ["CPUExecutionProvider"])
+    with pytest.raises(ValueError, match="install onnxruntime-gpu in its place"):
+        providers_for(torch.device("cuda"))
+    assert providers_for(torch.device("cpu")) == ["CPUExecutionProvider"]
+
+
+def test_read_metadata_refuses_a_file_that_is_not_an_export(tmp_path):
+    path = tmp_path / "not.onnx"
+    path.write_bytes(b"not a model")
+    with pytest.raises(ValueError, match=r"not\.onnx is not an ONNX model"):
+        read_metadata(path)
+
+
+def test_a_cached_export_of_other_weights_is_made_again(setup, tmp_path, monkeypatch, caplog):
+    """The export of one checkpoint copied over the cache file of another: the run exports its
+    own again (naming both hashes) and labels as torch does with its own weights."""
+    import logging
+    import shutil
+
+    from rangeret.inference.runtime.onnx_backend import cached_export
+    from rangeret.inference.runtime.onnx_export import read_metadata
+    from rangeret.models.weights.hub import file_sha256
+
+    monkeypatch.setenv(CACHE_VARIABLE, str(tmp_path))
+    first = PredictorSpec(
+        checkpoint=str(setup["weights"]["rangeret-cir"]), height=32, width=256, device="cpu"
+    )
+    other = tmp_path / "other.pt"
+    state = torch.load(first.checkpoint, weights_only=True)
+    torch.manual_seed(1)
+    torch.save(
+        {
+            k: v + 0.05 * torch.randn_like(v) if v.is_floating_point() else v
+            for k, v in state.items()
+        },
+        other,
+    )
+    second = PredictorSpec(checkpoint=str(other), height=32, width=256, device="cpu")
+    made = []
+    for spec in (first, second):
+        predictor = spec.build()
+        made.append(
+            cached_export(predictor.network, predictor.profile, file_sha256(Path(spec.checkpoint)))
+        )
+    shutil.copyfile(made[0], made[1])  # the first checkpoint's export in the second's place
+    with caplog.at_level(logging.WARNING, logger="rangeret.inference.runtime.onnx_backend"):
+        predictor = PredictorSpec(**{**vars(second), "backend": "onnxruntime"}).build()
+    warned = " ".join(r.getMessage() for r in caplog.records)
+    assert file_sha256(other) in warned and file_sha256(Path(first.checkpoint)) in warned, warned
+    assert read_metadata(made[1])["checkpoint_sha256"] == file_sha256(other)
+    scan = read_scan(data_path("semantickitti-scan", "000000.bin"))
+    torch_labels = second.build().predict(scan).labels
+    assert np.array_equal(predictor.predict(scan).labels, torch_labels)
