@@ -19,9 +19,9 @@ from pathlib import Path
 import torch
 from _common import REAL_SCAN, require_real_scan, small_state_dict
 
-from rangeret.dataset.layout import velodyne_dir
+from rangeret.dataset.layout import list_scans, velodyne_dir
 from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
-from rangeret.inference.runner import list_scans, predict_tree
+from rangeret.inference.runner import predict_tree
 from rangeret.inference.timing import StageTimes
 from rangeret.io.scans import read_scan, write_scan
 from rangeret.models import build_model

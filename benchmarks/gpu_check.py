@@ -359,7 +359,7 @@ def gpu_test_files() -> list[Path]:
     """The test files that hold tests with the `gpu` marker."""
     return [
         path
-        for path in sorted((REPO / "tests").glob("test_*.py"))
+        for path in sorted((REPO / "tests").rglob("test_*.py"))
         if "mark.gpu" in path.read_text(encoding="utf-8")
     ]
 

@@ -22,10 +22,11 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from rangeret.commands import USER_ERRORS, CommandError, run_command
+from rangeret.dataset.layout import is_complete, list_scans
 from rangeret.dataset.profiles import DEFAULT_PROFILE, DatasetProfile
 from rangeret.inference.description import describe_network
 from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
-from rangeret.inference.runner import PredictSummary, is_complete, list_scans
+from rangeret.inference.runner import PredictSummary
 from rangeret.io.run_info import write_run_info
 from rangeret.models.weights.checkpoint_info import CheckpointInfo
 from rangeret.models.weights.demo import DEMO_WARNING, is_demo_checkpoint

@@ -10,12 +10,22 @@ reported by name rather than silently skipped.
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from rangeret.dataset.labels import LabelConfig, semantickitti
+from rangeret.io.scans import (
+    KITTI_RECORD,
+    LABEL_BYTES,
+    PointRecord,
+    ScanFormatError,
+    scan_num_points,
+)
+
+log = logging.getLogger(__name__)
 
 
 class DatasetLayoutError(ValueError):
@@ -211,3 +221,38 @@ def discover(
         for stem in sorted(scans):
             result.scans.append(ScanEntry(seq, stem, scans[stem], labels.get(stem)))
     return result
+
+
+def is_complete(
+    entry: ScanEntry,
+    out: Path,
+    record: PointRecord = KITTI_RECORD,
+    with_confidence: bool = False,
+) -> bool:
+    """Whether the scan's prediction exists with one label per point (a finished earlier run),
+    and its confidence file too when `with_confidence`."""
+    pred = prediction_path(out, entry.sequence, entry.name)
+    try:
+        whole = pred.stat().st_size == scan_num_points(entry.scan_path, record) * LABEL_BYTES
+    except (OSError, ScanFormatError):
+        return False
+    return whole and (
+        not with_confidence or confidence_path(out, entry.sequence, entry.name).is_file()
+    )
+
+
+def list_scans(
+    dataset: Path | str,
+    sequences: Sequence[str],
+    missing_ok: bool = False,
+    layout: SequenceLayout = KITTI_LAYOUT,
+) -> list[ScanEntry]:
+    """The scans of `sequences`, in order; a missing or empty sequence is an error naming it
+    unless `missing_ok` (a partial local copy, logged)."""
+    found = discover(dataset, sequences, missing_ok=missing_ok, layout=layout)
+    if found.problems:
+        raise DatasetLayoutError("; ".join(found.problems))
+    absent = sorted(set(sequences) - set(found.sequences))
+    if absent:
+        log.warning("sequences %s are not in %s: predicting the others", ", ".join(absent), dataset)
+    return found.scans

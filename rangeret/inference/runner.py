@@ -19,12 +19,10 @@ from pathlib import Path
 from tqdm import tqdm
 
 from rangeret.dataset.layout import (
-    KITTI_LAYOUT,
-    DatasetLayoutError,
     ScanEntry,
-    SequenceLayout,
     confidence_path,
-    discover,
+    is_complete,
+    list_scans,
     prediction_path,
 )
 from rangeret.inference.loading import load_batch
@@ -32,11 +30,6 @@ from rangeret.inference.predictor import Predictor
 from rangeret.inference.timing import StageTimes
 from rangeret.io.run_info import write_run_info
 from rangeret.io.scans import (
-    KITTI_RECORD,
-    LABEL_BYTES,
-    PointRecord,
-    ScanFormatError,
-    scan_num_points,
     write_confidence,
     write_labels,
 )
@@ -74,41 +67,6 @@ class PredictSummary:
         for key, reason in self.failed.items():
             lines.append(f"FAILED {key}: {reason}")
         return "\n".join(lines)
-
-
-def is_complete(
-    entry: ScanEntry,
-    out: Path,
-    record: PointRecord = KITTI_RECORD,
-    with_confidence: bool = False,
-) -> bool:
-    """Whether the scan's prediction exists with one label per point (a finished earlier run),
-    and its confidence file too when `with_confidence`."""
-    pred = prediction_path(out, entry.sequence, entry.name)
-    try:
-        whole = pred.stat().st_size == scan_num_points(entry.scan_path, record) * LABEL_BYTES
-    except (OSError, ScanFormatError):
-        return False
-    return whole and (
-        not with_confidence or confidence_path(out, entry.sequence, entry.name).is_file()
-    )
-
-
-def list_scans(
-    dataset: Path | str,
-    sequences: Sequence[str],
-    missing_ok: bool = False,
-    layout: SequenceLayout = KITTI_LAYOUT,
-) -> list[ScanEntry]:
-    """The scans of `sequences`, in order; a missing or empty sequence is an error naming it
-    unless `missing_ok` (a partial local copy, logged)."""
-    found = discover(dataset, sequences, missing_ok=missing_ok, layout=layout)
-    if found.problems:
-        raise DatasetLayoutError("; ".join(found.problems))
-    absent = sorted(set(sequences) - set(found.sequences))
-    if absent:
-        log.warning("sequences %s are not in %s: predicting the others", ", ".join(absent), dataset)
-    return found.scans
 
 
 def _batches(entries: Sequence[ScanEntry], size: int) -> Iterator[list[ScanEntry]]:

@@ -23,11 +23,17 @@ import uuid
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from rangeret.dataset.layout import KITTI_LAYOUT, SequenceLayout, discover, prediction_path
+from rangeret.dataset.layout import (
+    KITTI_LAYOUT,
+    SequenceLayout,
+    discover,
+    is_complete,
+    list_scans,
+    prediction_path,
+)
 from rangeret.dataset.profiles import DatasetProfile, load_profile
 from rangeret.evaluation.evaluate import evaluate_predictions
 from rangeret.evaluation.plots import write_plots
-from rangeret.inference.runner import is_complete, list_scans
 from rangeret.submission.leaderboard import LeaderboardEntry, description_text
 from service.jobs.capacity import disk_full, disk_short, folder_bytes, queue_full
 from service.jobs.executors import JobControl, JobError, JobExecutor, write_predictions_zip

@@ -28,9 +28,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from rangeret.dataset.layout import ScanEntry
+from rangeret.dataset.layout import ScanEntry, is_complete
 from rangeret.dataset.profiles import DatasetProfile
-from rangeret.inference.runner import is_complete
 from rangeret.options import network_argv
 from service.jobs.executors import JobControl, JobError, Progress
 from workers.progress import JobProgress, progress_path, read_progress

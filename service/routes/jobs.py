@@ -20,8 +20,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse, JSONResponse
 from pydantic import ValidationError
 
-from rangeret.dataset.layout import DatasetLayoutError, ScanEntry, resolve_sequences
-from rangeret.inference.runner import list_scans
+from rangeret.dataset.layout import DatasetLayoutError, ScanEntry, list_scans, resolve_sequences
 from service.archives import ArchiveError, ArchiveLimits, extract_archive
 from service.dependencies import GatewayDep, JobsDep
 from service.errors import ApiError, error_responses, validation_sentence

@@ -29,9 +29,8 @@ from pathlib import Path
 import pytest
 
 from rangeret.cli.main import main as rangeret_main
-from rangeret.dataset.layout import velodyne_dir
+from rangeret.dataset.layout import list_scans, velodyne_dir
 from rangeret.dataset.profiles import load_profile
-from rangeret.inference.runner import list_scans
 from service.jobs import JobControl, JobError, JobManager, JobStore
 from service.jobs.ray_jobs import (
     JobsApi,

@@ -16,9 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rangeret.dataset.layout import prediction_path
+from rangeret.dataset.layout import list_scans, prediction_path
 from rangeret.dataset.profiles import load_profile
-from rangeret.inference.runner import list_scans
 from rangeret.io.scans import write_labels
 from rangeret.sim import simulate_dataset
 from rangeret.submission.archives import required_directories
