@@ -205,7 +205,7 @@ def secret_values(docs: Iterable[dict]) -> dict[str, dict[str, str]]:
 
 @functools.cache
 def _crd(kind: str) -> dict:
-    from tests.support.trees import data_path  # a missing file is a test failure naming it
+    from tests.support.paths import data_path  # a missing file is a test failure naming it
 
     if kind not in CRD_FILES:
         raise ManifestError(f"no CRD for the kind {kind!r}")
