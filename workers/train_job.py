@@ -3,6 +3,9 @@
     ray job submit --working-dir . -- python -m workers.train_job --dataset ROOT \\
         --profile pandaset --model rangeret-thesis --out DIR --workers 4
 
+The training options are those of `rangeret train` (`rangeret.train_options`), `--config
+FILE.yaml` and `--print-config` included.
+
 ROOT is a tree in the layout of the dataset profile (`--profile`, SemanticKITTI by default).
 
 Ray Train's TorchTrainer starts `--workers` training workers (one GPU each when the cluster has
@@ -28,12 +31,14 @@ from typing import Any
 
 import torch
 
-from rangeret.cli.train import add_training_options, config_from_args
 from rangeret.commands import run_command
 from rangeret.inference.runtime.precision import resolve_precision
+from rangeret.train_options import add_training_options, config_from_args
 from rangeret.training import TrainConfig, Trainer
 from rangeret.training.config import profile_reference
-from rangeret.training.trainer import STATE, find_scans, read_state, training_profile
+from rangeret.training.config_file import config_yaml
+from rangeret.training.data import find_scans, training_profile
+from rangeret.training.state import STATE, check_run_folder, read_state
 from workers.predict_job import connect
 from workers.train_options import add_ray_options
 
@@ -88,13 +93,7 @@ def run_ray(config: TrainConfig, workers: int = 2, max_failures: int = 0) -> Pat
         dataset=str(Path(config.dataset).resolve()),
         profile=profile_reference(config.profile),
     )
-    state = out / STATE
-    if config.resume and not state.exists():
-        raise FileNotFoundError(f"cannot resume: {state} does not exist")
-    if not config.resume and state.exists():
-        raise ValueError(
-            f"{out} already holds a training run ({STATE}): pass --resume to continue it, or choose another folder"
-        )
+    state = check_run_folder(out, config.resume)
     profile = training_profile(config)
     if config.resume:
         read_state(state, config, profile)
@@ -157,7 +156,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    out = run_ray(config_from_args(args), workers=args.workers, max_failures=args.max_failures)
+    config = config_from_args(args)
+    if args.print_config:
+        print(config_yaml(config), end="")
+        return 0
+    out = run_ray(config, workers=args.workers, max_failures=args.max_failures)
     print(f"last checkpoint: {out / 'last.pt'}; best checkpoint: {out / 'best.pt'}")
     return 0
 

@@ -1,11 +1,16 @@
-"""`TrainConfig`: everything that defines a training run, as plain data.
+"""`TrainConfig`: everything that defines a training run, as plain data, and its schema.
 
-It travels to Ray workers as a dict, is stored in every checkpoint's metadata and in the resume
-state, and a resumed run must agree with it on every field that changes the arithmetic
+Each field carries its own command-line help in its metadata (`setting`): the `rangeret train`
+options, the YAML configuration file (`rangeret.training.config_file`) and the checks of that
+file are all derived from these fields, so a setting is written once.
+
+A config travels to Ray workers as a dict, is stored in every checkpoint's metadata and in the
+resume state, and a resumed run must agree with it on every field that changes the arithmetic
 (`RUNTIME_FIELDS` are the ones that may differ). The dataset profile is held by name (a built-in)
 or by absolute file path; `dataset_profile()` resolves it with the explicit options in its place.
-`precision` is one of `rangeret.inference.runtime.precision.PRECISIONS`; the trainer records the one it resolves to
-(`auto` is fp16 on CUDA, fp32 on the CPU), so a resumed run keeps the arithmetic it started with.
+`precision` is one of `rangeret.inference.runtime.precision.PRECISIONS`; the trainer records the
+one it resolves to (`auto` is fp16 on CUDA, fp32 on the CPU), so a resumed run keeps the
+arithmetic it started with.
 """
 
 from __future__ import annotations
@@ -25,9 +30,10 @@ from rangeret.dataset.profiles import (
 )
 from rangeret.dataset.projection import ProjectionConfig
 from rangeret.inference.runtime.precision import PRECISIONS
+from rangeret.models.configs import OVERRIDES, list_models
 from rangeret.training.losses import LOSSES, WEIGHTINGS
 from rangeret.training.range_mixes import MIXES
-from rangeret.training.schedule import SCHEDULES
+from rangeret.training.schedule import OPTIMIZERS, SCHEDULES
 
 #: Fields a resumed run may change: where and how it runs, not what it computes.
 RUNTIME_FIELDS = (
@@ -39,53 +45,258 @@ RUNTIME_FIELDS = (
     "device",
     "checkpoint_every",
 )
+DEVICES = ("auto", "cpu", "cuda")
 
 
-@dataclass(frozen=True)
+def profile_reference(name_or_path: str | Path | None) -> str:
+    """How a config holds a profile: a built-in's name as given, a file as its absolute path
+    (workers in other folders and resumed runs read the same file); None is the default."""
+    if name_or_path is None:
+        return DEFAULT_PROFILE
+    text = str(name_or_path)
+    return text if text in BUILTIN_PROFILES else str(Path(text).resolve())
+
+
+def absolute_path(path: str | Path) -> str:
+    """`path` made absolute, so that workers in other folders and resumed runs read the same one."""
+    return str(Path(path).resolve())
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """'name=value' as (name, value): ints, booleans and 'AxB' pairs are converted."""
+    name, sep, value = text.partition("=")
+    name = name.strip().replace("-", "_")
+    if not sep or name not in OVERRIDES:
+        raise ValueError(
+            f"--override takes NAME=VALUE with NAME one of {', '.join(OVERRIDES)}, got {text!r}"
+        )
+    value = value.strip()
+    if value.lower() in ("true", "false"):
+        return name, value.lower() == "true"
+    if value.isdigit():
+        return name, int(value)
+    parts = value.lower().replace(",", "x").split("x")
+    if len(parts) == 2 and all(p.isdigit() for p in parts):
+        return name, (int(parts[0]), int(parts[1]))
+    return name, value
+
+
+def setting(default: Any = dataclasses.MISSING, *, help: str, group: str, **cli: Any) -> Any:
+    """A `TrainConfig` field with its schema: `help` and `group` of its command-line option, and
+    optionally `flag`, `metavar`, `nargs`, `choices` (a sequence or a function giving one),
+    `negate` (a bool option that turns the field off), `required` (to be given on the command
+    line or in the file, even with a default), `resolve` (a function applied to every given
+    value, e.g. `absolute_path`), `parse` (applied to each item given on the command line, which
+    then add to the file's mapping), `keys` (the names of a mapping setting), `default_text` (how
+    the help shows the default) and `flag=None` (no option)."""
+    return dataclasses.field(default=default, metadata={"help": help, "group": group, **cli})
+
+
+@dataclass(frozen=True, kw_only=True)
 class TrainConfig:
     """A training run: data, network, optimisation, augmentation and bookkeeping.
 
     `profile` names the dataset profile (layout, point record, projection, labels, kNN rule);
     `height`, `width`, `fov_up`, `fov_down` and `label_config` of None take the profile's values.
-    `train_sequences` / `val_sequences` of None mean the profile's "train" / "valid" splits; an empty `val_sequences` means no validation (best.pt then follows the training loss).
+    `train_sequences` / `val_sequences` of None mean the profile's "train" / "valid" splits; an
+    empty `val_sequences` means no validation (best.pt then follows the training loss).
     `max_steps` caps the run, and the schedule then spans min(epochs x steps per epoch, max_steps)
     steps. `model_overrides` are the ablation switches of `build_model`.
     """
 
-    dataset: str
-    out: str
-    model: str = "rangeret-thesis"
-    profile: str = DEFAULT_PROFILE
-    height: int | None = None
-    width: int | None = None
-    fov_up: float | None = None
-    fov_down: float | None = None
-    label_config: str | None = None
-    train_sequences: tuple[str, ...] | None = None
-    val_sequences: tuple[str, ...] | None = None
-    model_overrides: tuple[tuple[str, Any], ...] = ()
-    epochs: int = 64
-    max_steps: int | None = None
-    batch_size: int = 1
-    lr: float = 1e-3
-    max_lr: float = 1e-2
-    weight_decay: float = 0.05
-    schedule: str = "onecycle"
-    warmup: float = 0.3
-    losses: tuple[str, ...] = LOSSES
-    class_weighting: str = "inverse-sqrt"
-    focal_gamma: float = 2.0
-    clip_grad: float = 1.0
-    precision: str = "auto"
-    augment: bool = True
-    mixes: tuple[str, ...] = ()
-    mix_probability: float = 0.5
-    seed: int = 0
-    device: str = "auto"
-    loader_workers: int = 2
-    checkpoint_every: int = 0
-    resume: bool = False
-    progress: bool = True
+    dataset: str = setting(
+        help="dataset tree in the profile's layout (SemanticKITTI: ROOT/sequences/XX/{velodyne,labels})",
+        group="data",
+        metavar="ROOT",
+        required=True,
+        resolve=absolute_path,
+    )
+    profile: str = setting(
+        DEFAULT_PROFILE,
+        help=f"dataset profile: {', '.join(BUILTIN_PROFILES)} or a YAML file; "
+        "`rangeret profile show NAME` prints one to start from",
+        group="data",
+        metavar="NAME|FILE",
+        resolve=profile_reference,
+    )
+    train_sequences: tuple[str, ...] | None = setting(
+        None,
+        help="training sequences",
+        group="data",
+        metavar="XX",
+        default_text="the profile's train split",
+    )
+    val_sequences: tuple[str, ...] | None = setting(
+        None,
+        help="validation sequences; give none to skip validation",
+        group="data",
+        metavar="XX",
+        nargs="*",
+        default_text="the valid split",
+    )
+    label_config: str | None = setting(
+        None,
+        help="label configuration (.json of this project or an official .yaml) in place of the "
+        "profile's",
+        group="data",
+        metavar="FILE",
+        resolve=absolute_path,
+    )
+    height: int | None = setting(
+        None, help="range image rows", group="data", metavar="HEIGHT", default_text="the profile's"
+    )
+    width: int | None = setting(
+        None,
+        help="range image columns",
+        group="data",
+        metavar="WIDTH",
+        default_text="the profile's",
+    )
+    fov_up: float | None = setting(
+        None,
+        help="upper vertical field of view",
+        group="data",
+        metavar="DEG",
+        default_text="the profile's",
+    )
+    fov_down: float | None = setting(
+        None,
+        help="lower vertical field of view",
+        group="data",
+        metavar="DEG",
+        default_text="the profile's",
+    )
+    augment: bool = setting(
+        True,
+        help="no point augmentation (scale, rotation, shift, flip)",
+        group="data",
+        flag="--no-augment",
+        negate=True,
+    )
+    mixes: tuple[str, ...] = setting(
+        (),
+        help=f"RangeFormer's range-image mixes to apply ({', '.join(MIXES)})",
+        group="data",
+        metavar="MIX",
+        choices=MIXES,
+    )
+    mix_probability: float = setting(
+        0.5, help="probability of each chosen mix per sample", group="data", metavar="P"
+    )
+    loader_workers: int = setting(
+        2,
+        help="data-loading processes per trainer; 0 loads in the training process",
+        group="data",
+        metavar="N",
+    )
+    model: str = setting(
+        "rangeret-thesis",
+        help="network to train",
+        group="network",
+        choices=list_models,
+        required=True,
+    )
+    model_overrides: tuple[tuple[str, Any], ...] = setting(
+        (),
+        help=f"ablation switch of the network ({', '.join(OVERRIDES)}), e.g. decay=manhattan; "
+        "repeatable",
+        group="network",
+        flag="--override",
+        metavar="NAME=VALUE",
+        parse=parse_override,
+        keys=OVERRIDES,
+    )
+    epochs: int = setting(64, help="training epochs", group="optimisation", metavar="N")
+    max_steps: int | None = setting(
+        None,
+        help="stop after N steps; the schedule then spans min(epochs x steps per epoch, N)",
+        group="optimisation",
+        metavar="N",
+    )
+    batch_size: int = setting(
+        1,
+        help="scans per step and per trainer, 1 in the thesis",
+        group="optimisation",
+        metavar="N",
+    )
+    optimizer: str = setting(
+        "adamw", help="the optimiser", group="optimisation", choices=tuple(OPTIMIZERS)
+    )
+    lr: float = setting(
+        1e-3, help="learning rate, where the schedule starts", group="optimisation", metavar="LR"
+    )
+    max_lr: float = setting(
+        1e-2, help="peak of the schedule", group="optimisation", metavar="MAX_LR"
+    )
+    weight_decay: float = setting(
+        0.05, help="weight decay", group="optimisation", metavar="WEIGHT_DECAY"
+    )
+    schedule: str = setting(
+        "onecycle",
+        help="onecycle (the thesis's) or linear warm-up + cosine",
+        group="optimisation",
+        choices=SCHEDULES,
+    )
+    warmup: float = setting(
+        0.3,
+        help="share of the steps spent warming up; chapter 5 used 0.02",
+        group="optimisation",
+        metavar="SHARE",
+    )
+    losses: tuple[str, ...] = setting(
+        LOSSES,
+        help="losses to sum with equal weights",
+        group="optimisation",
+        flag="--loss",
+        choices=LOSSES,
+        default_text="all three",
+    )
+    class_weighting: str = setting(
+        "inverse-sqrt",
+        help="cross-entropy class weights from class frequencies; inverse-sqrt is 1/sqrt(f + 1e-3)",
+        group="optimisation",
+        flag="--class-weights",
+        choices=WEIGHTINGS,
+    )
+    focal_gamma: float = setting(
+        2.0, help="focusing exponent of the focal loss", group="optimisation", metavar="FOCAL_GAMMA"
+    )
+    clip_grad: float = setting(
+        1.0,
+        help="clip the gradient norm; 0 turns clipping off",
+        group="optimisation",
+        metavar="NORM",
+    )
+    precision: str = setting(
+        "auto",
+        help="precision of the training step and validation; auto is fp16 on CUDA and fp32 on "
+        "the CPU",
+        group="optimisation",
+        choices=PRECISIONS,
+    )
+    seed: int = setting(
+        0,
+        help="seed of initialisation, order and augmentation",
+        group="optimisation",
+        metavar="SEED",
+    )
+    out: str = setting(
+        help="writes last.pt, best.pt, last.state.pt, metrics.csv, steps.csv, curves.png",
+        group="run",
+        metavar="DIR",
+        required=True,
+        resolve=absolute_path,
+    )
+    resume: bool = setting(False, help="continue the run saved in DIR exactly", group="run")
+    checkpoint_every: int = setting(
+        0,
+        help="also save last.pt and the state every N steps",
+        group="run",
+        metavar="N",
+        default_text="at epoch ends",
+    )
+    device: str = setting("auto", help="auto picks CUDA when present", group="run", choices=DEVICES)
+    progress: bool = setting(True, help="progress bars (-q turns them off)", group="run", flag=None)
 
     def __post_init__(self) -> None:
         checks = [
@@ -95,6 +306,10 @@ class TrainConfig:
                 f"max_steps must be at least 1, got {self.max_steps}",
             ),
             (self.batch_size >= 1, f"batch_size must be at least 1, got {self.batch_size}"),
+            (
+                self.optimizer in OPTIMIZERS,
+                f"optimizer must be one of {tuple(OPTIMIZERS)}, got {self.optimizer!r}",
+            ),
             (
                 self.lr > 0 and self.max_lr >= self.lr,
                 f"need 0 < lr <= max_lr, got {self.lr} and {self.max_lr}",
@@ -196,11 +411,7 @@ class TrainConfig:
             if values.get(key) is not None:
                 values[key] = tuple(values[key])
         if "model_overrides" in values:
-            overrides = values["model_overrides"]
-            items = overrides.items() if isinstance(overrides, Mapping) else overrides
-            values["model_overrides"] = tuple(
-                (k, tuple(v) if isinstance(v, list) else v) for k, v in items
-            )
+            values["model_overrides"] = override_pairs(values["model_overrides"])
         return cls(**values)
 
     def differences(self, other: TrainConfig) -> list[str]:
@@ -213,10 +424,8 @@ class TrainConfig:
         ]
 
 
-def profile_reference(name_or_path: str | Path | None) -> str:
-    """How a config holds a profile: a built-in's name as given, a file as its absolute path
-    (workers in other folders and resumed runs read the same file); None is the default."""
-    if name_or_path is None:
-        return DEFAULT_PROFILE
-    text = str(name_or_path)
-    return text if text in BUILTIN_PROFILES else str(Path(text).resolve())
+def override_pairs(overrides: Mapping[str, Any] | Any) -> tuple[tuple[str, Any], ...]:
+    """Model overrides as `TrainConfig` holds them, from a mapping or (name, value) pairs, with
+    lists (a patch size read from a file) as tuples."""
+    items = overrides.items() if isinstance(overrides, Mapping) else overrides
+    return tuple((k, tuple(v) if isinstance(v, list) else v) for k, v in items)

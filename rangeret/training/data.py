@@ -11,12 +11,19 @@ Randomness is a function of (seed, epoch, scan index) only: the sampler hands th
 `(epoch, index)` keys, and every draw for that sample (augmentation, mix partner, mix parameters)
 comes from a generator seeded with them. The same run therefore sees the same samples whatever
 the number of loader processes, and a resumed run continues exactly where it stopped.
+
+`find_scans` lists a split's labelled scans in the profile's layout, `training_profile` is the
+profile a `TrainConfig` trains with, and `run_datasets` gives a run its training and validation
+sets.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -24,11 +31,15 @@ import torch
 from torch.utils.data import Dataset, Sampler
 
 from rangeret.dataset.labels import LabelConfig
-from rangeret.dataset.layout import ScanEntry
+from rangeret.dataset.layout import DatasetLayoutError, ScanEntry, discover, resolve_sequences
+from rangeret.dataset.profiles import DatasetProfile, ProfileError, profile_of_record
 from rangeret.dataset.projection import ProjectionConfig, project_with
 from rangeret.io.scans import KITTI_RECORD, PointRecord, read_labels, read_scan
 from rangeret.training.augment import augment_points
-from rangeret.training.range_mixes import MixSettings, RangeImage
+from rangeret.training.config import TrainConfig
+from rangeret.training.range_mixes import MixSettings, RangeImage, rare_classes
+
+log = logging.getLogger("rangeret.training")
 
 #: Keys of a sample that are per-point arrays (validation only), kept as lists when batching.
 POINT_KEYS = ("proj_x", "proj_y", "unproj_range", "point_labels")
@@ -199,3 +210,97 @@ class EpochSampler(Sampler):
 def steps_per_epoch(size: int, batch_size: int, world_size: int = 1) -> int:
     """Optimiser steps in one epoch over `size` scans on each of `world_size` ranks."""
     return math.ceil(math.ceil(size / world_size) / batch_size)
+
+
+def training_profile(
+    config: TrainConfig, label_config: LabelConfig | None = None
+) -> DatasetProfile:
+    """The profile `config` trains with (`label_config` in place of its labels when given),
+    checked to read back from the plain data that the checkpoints will record."""
+    profile = config.dataset_profile(label_config)
+    try:
+        profile_of_record(profile.to_dict(), profile.name)
+    except ProfileError as exc:
+        raise ProfileError(
+            f"the {profile.name} profile with these options cannot be recorded in a checkpoint: {exc}"
+        ) from exc
+    return profile
+
+
+def find_scans(
+    root: Path | str, sequences: Sequence[str] | None, split: str, profile: DatasetProfile
+) -> list[ScanEntry]:
+    """The labelled scans of `sequences` (or of the profile's `split`) under `root`, in the
+    profile's layout (ids normalised by it: "1" is "001" for PandaSet).
+
+    Every missing folder, scan or label is reported in one DatasetLayoutError: training never runs
+    on a silent subset.
+    """
+    if sequences is not None and len(sequences) == 0:
+        return []
+    layout = profile.layout
+    names = (
+        resolve_sequences(sequences=sequences, config=profile.labels, layout=layout)
+        if sequences is not None
+        else [layout.normalise(s) for s in resolve_sequences(split=split, config=profile.labels)]
+    )
+    found = discover(root, names, with_labels=True, layout=layout)
+    if found.problems:
+        hint = (
+            ""
+            if sequences is not None
+            else f" (the {split!r} split; choose sequences with --{split.replace('valid', 'val')}-sequences)"
+        )
+        raise DatasetLayoutError(
+            f"{len(found.problems)} problem(s) with the {split} data under {root}{hint}: "
+            + "; ".join(found.problems[:5])
+            + (" ..." if len(found.problems) > 5 else "")
+        )
+    return found.scans
+
+
+@dataclass(frozen=True)
+class RunData:
+    """A run's training and validation sets, and the class frequencies its losses weigh by."""
+
+    train: RangeDataset
+    valid: RangeDataset
+    frequencies: np.ndarray
+
+
+def run_datasets(config: TrainConfig, profile: DatasetProfile) -> RunData:
+    """The training set (augmented and mixed as `config` says) and the validation set (with
+    what point-level validation needs) of `config`'s scans; no training scan is an error."""
+    train_scans = find_scans(config.dataset, config.train_sequences, "train", profile)
+    val_scans = find_scans(config.dataset, config.val_sequences, "valid", profile)
+    if not train_scans:
+        raise DatasetLayoutError(f"no labelled training scan under {config.dataset}")
+    frequencies = class_frequencies(train_scans, profile)
+    mixing = None
+    if config.mixes:
+        paste = rare_classes(frequencies, profile.labels.ignored)
+        mixing = MixSettings(tuple(config.mixes), config.mix_probability, paste)
+    common = {
+        "projection": profile.projection,
+        "label_config": profile.labels,
+        "seed": config.seed,
+        "points": profile.points,
+    }
+    return RunData(
+        RangeDataset(train_scans, augment=config.augment, mixing=mixing, **common),
+        RangeDataset(val_scans, with_points=True, **common),
+        frequencies,
+    )
+
+
+def class_frequencies(scans: Sequence[ScanEntry], profile: DatasetProfile) -> np.ndarray:
+    """Shares of points per class: the label configuration's, or counted over the labels of
+    `scans` when the configuration has none (data from another sensor)."""
+    labels = profile.labels
+    freq = labels.class_frequencies()
+    evaluated = [c for c in range(labels.num_classes) if not labels.ignored[c]]
+    if freq[evaluated].sum() > 0:
+        return freq
+    log.info("the label configuration has no class frequencies: counting the training labels")
+    counts = RangeDataset(scans, profile.projection, labels, points=profile.points).class_counts()
+    return counts / max(counts.sum(), 1)

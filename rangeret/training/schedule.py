@@ -12,6 +12,9 @@ fall along a cosine to lr / 1e4 at the last step:
 - `cosine`: a linear warm-up, then the cosine; betas stay as AdamW sets them.
 
 Unlike OneCycleLR, any number of steps from 1 up is valid (short test runs included).
+
+A run names its optimiser (`OPTIMIZERS`) and schedule (`SCHEDULES`) in its `TrainConfig`; the
+checkpoints record them under the names of `OPTIMIZERS` and `SCHEDULE_NAMES`.
 """
 
 from __future__ import annotations
@@ -22,7 +25,11 @@ from typing import Any
 
 import torch
 
-SCHEDULES = ("onecycle", "cosine")
+#: The optimisers a run may name, with the name its checkpoints record.
+OPTIMIZERS = {"adamw": "AdamW"}
+#: The schedules a run may name, with the name its checkpoints record.
+SCHEDULE_NAMES = {"onecycle": "OneCycleLR", "cosine": "warmup-cosine"}
+SCHEDULES = tuple(SCHEDULE_NAMES)
 #: The schedules end at lr / FINAL_DIV (OneCycleLR's default final_div_factor).
 FINAL_DIV = 1e4
 #: beta1 of AdamW at the start and end (high) and at the peak of the learning rate (low), onecycle.
@@ -30,11 +37,17 @@ BETA1_RANGE = (0.95, 0.85)
 
 
 def build_optimizer(
-    parameters: Iterable[torch.nn.Parameter], lr: float = 1e-3, weight_decay: float = 0.05
-) -> torch.optim.AdamW:
-    """AdamW with the thesis's settings (betas 0.9/0.999, eps 1e-8 as in Algorithm 1), fused:
-    its step counters stay on the device and it takes the fp16 gradient scaler's overflow check
-    there, so a step never waits for the device (torch < 2.4 has no fused CPU kernel)."""
+    parameters: Iterable[torch.nn.Parameter],
+    lr: float = 1e-3,
+    weight_decay: float = 0.05,
+    name: str = "adamw",
+) -> torch.optim.Optimizer:
+    """The optimiser `name` of `OPTIMIZERS`. adamw is AdamW with the thesis's settings (betas
+    0.9/0.999, eps 1e-8 as in Algorithm 1), fused: its step counters stay on the device and it
+    takes the fp16 gradient scaler's overflow check there, so a step never waits for the device
+    (torch < 2.4 has no fused CPU kernel)."""
+    if name not in OPTIMIZERS:
+        raise ValueError(f"unknown optimizer {name!r}; known: {', '.join(OPTIMIZERS)}")
     params = list(parameters)
     try:
         return torch.optim.AdamW(params, lr=lr, weight_decay=weight_decay, fused=True)

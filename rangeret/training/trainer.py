@@ -1,4 +1,4 @@
-"""The training loop: one process, or one rank of a data-parallel group (torch.distributed).
+"""The training loop: one process, or one rank of a data-parallel group (`distributed`).
 
 `Trainer(config).fit()` trains a RangeRet network on a tree of the config's dataset profile
 (its layout, point record, projection, labels and kNN rule) and writes, in `config.out`:
@@ -9,134 +9,73 @@
   the step, the epoch's metrics, the optimiser, schedule and losses, and the whole `TrainConfig`.
   best.pt is the epoch with the highest point mIoU after kNN on the validation scans (the
   benchmark's number), or the lowest training loss when there is no validation set.
-- `last.state.pt`: what an exact resume needs beyond the weights: the model, optimiser, scheduler
-  and gradient-scaler states, epoch, step, the running sums of the current epoch and the random
-  states of python, numpy and torch. It is plain data and tensors (loads with weights_only=True).
+- `last.state.pt`: what an exact resume needs beyond the weights (see `state.py`).
 - `steps.csv`, `metrics.csv` and `curves.png` (see `logs.py`).
 
-Every epoch ends with validation: the loss, and mIoU / accuracy on the range image (labelled
-pixels), on the points (each point takes its pixel's class) and on the points after kNN refinement
-with the profile's voting rule (`rangeret.inference.point_labels.point_classes`), with the official
-semantics of `rangeret.evaluation.metrics`.
-
-The training step and the validation forward run at the config's `precision`
-(`rangeret.inference.runtime.precision`; auto is fp16 on CUDA, fp32 on the CPU), with a gradient scaler for fp16
-only. The precision used is logged at the start, recorded in the checkpoints and the resume
-state, and a resume at another precision is refused. A step reads back from the device once: its
-losses, as one list (`Trainer.train_step`); confusion counts stay on the device until the epoch
-ends, and the fused AdamW takes the fp16 scaler's overflow check on the device.
-
-When torch.distributed is initialised (by Ray Train's TorchTrainer or torchrun) the network is
-wrapped in DistributedDataParallel, each rank trains on its share of every epoch, validation
-confusion matrices are summed across ranks, and rank 0 writes the files. Parameters that take no
-part in the loss (the released network's `g_proj`) are found by one small dry run and logged; DDP
-is told to look for unused parameters (`find_unused_parameters`, a graph walk every step) only
-when there are some (`ddp_find_unused`).
+Every epoch ends with validation (`validation.py`). The training step and the validation forward
+run at the config's `precision` (`rangeret.inference.runtime.precision`; auto is fp16 on CUDA,
+fp32 on the CPU), with a gradient scaler for fp16 only. The precision used is logged at the
+start, recorded in the checkpoints and the resume state, and a resume at another precision is
+refused. A step reads back from the device once: its losses, as one list (`Trainer.train_step`);
+confusion counts stay on the device until the epoch ends, and the fused AdamW takes the fp16
+scaler's overflow check on the device.
 """
 
 from __future__ import annotations
 
 import contextlib
-import copy
 import dataclasses
 import logging
-import random
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
-import torch.distributed as dist
-from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from rangeret.dataset.labels import LabelConfig
-from rangeret.dataset.layout import DatasetLayoutError, ScanEntry, discover, resolve_sequences
-from rangeret.dataset.profiles import DatasetProfile, ProfileError, profile_of_record
 from rangeret.evaluation.metrics import ConfusionMatrix
-from rangeret.inference.point_labels import point_classes
 from rangeret.inference.runtime.device import select_device
 from rangeret.inference.runtime.precision import forward_precision, resolve_precision
 from rangeret.inference.settings import KnnSettings
-from rangeret.io.atomic import atomic_path
 from rangeret.models import RangeRet, build_model, save_checkpoint
 from rangeret.training.config import TrainConfig
-from rangeret.training.data import EpochSampler, RangeDataset, collate, steps_per_epoch
+from rangeret.training.data import (
+    EpochSampler,
+    RangeDataset,
+    collate,
+    run_datasets,
+    steps_per_epoch,
+    training_profile,
+)
+from rangeret.training.distributed import Ranks, wrap_for_ranks
 from rangeret.training.logs import CsvLog, plot_curves
 from rangeret.training.losses import SegmentationLoss, class_weights
-from rangeret.training.range_mixes import MixSettings, rare_classes
 from rangeret.training.schedule import build_optimizer, build_scheduler, load_optimizer_state
+from rangeret.training.state import (
+    BEST,
+    CURVES_PNG,
+    LAST,
+    METRICS_CSV,
+    STATE,
+    STATE_FORMAT,
+    STATE_VERSION,
+    STEPS_CSV,
+    better_epoch,
+    check_run_folder,
+    read_state,
+    rng_state,
+    run_record,
+    save_atomic,
+    seed_everything,
+    set_rng_state,
+)
+from rangeret.training.validation import VAL_METRICS, confusion_matrix, validate
 
 log = logging.getLogger("rangeret.training")
-
-LAST = "last.pt"
-BEST = "best.pt"
-STATE = "last.state.pt"
-STEPS_CSV = "steps.csv"
-METRICS_CSV = "metrics.csv"
-CURVES_PNG = "curves.png"
-STATE_FORMAT = "rangeret-train-state"
-STATE_VERSION = 1
-VAL_METRICS = (
-    "val_loss",
-    "val_miou_image",
-    "val_acc_image",
-    "val_miou_points",
-    "val_acc_points",
-    "val_miou_knn",
-    "val_acc_knn",
-)
-
-
-@dataclass(frozen=True)
-class Ranks:
-    """This process's place in a data-parallel group (rank 0 of 1 when running alone), and the
-    device its collectives run on (the GPU under NCCL, the CPU under gloo)."""
-
-    rank: int = 0
-    world_size: int = 1
-    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
-
-    @classmethod
-    def detect(cls, device: torch.device) -> Ranks:
-        """The torch.distributed group's rank and size, when one is initialised."""
-        if dist.is_available() and dist.is_initialized():
-            nccl = dist.get_backend() == "nccl"
-            return cls(
-                dist.get_rank(), dist.get_world_size(), device if nccl else torch.device("cpu")
-            )
-        return cls()
-
-    @property
-    def main(self) -> bool:
-        """True on the rank that writes files and shows progress."""
-        return self.rank == 0
-
-    def sum(self, tensor: torch.Tensor) -> torch.Tensor:
-        """`tensor` summed over all ranks (a new tensor on the input's device)."""
-        if self.world_size == 1:
-            return tensor
-        work = tensor.to(self.device, copy=True)
-        dist.all_reduce(work, op=dist.ReduceOp.SUM)
-        return work.to(tensor.device)
-
-    def mean_to_host(self, tensor: torch.Tensor) -> list[float]:
-        """`tensor` averaged over all ranks, read back to the host in one transfer."""
-        if self.world_size == 1:
-            return tensor.tolist()
-        work = tensor.to(self.device, copy=True)
-        dist.all_reduce(work, op=dist.ReduceOp.SUM)
-        return (work / self.world_size).tolist()
-
-    def barrier(self) -> None:
-        """Wait for every rank."""
-        if self.world_size > 1:
-            ids = [self.device.index] if self.device.type == "cuda" else None
-            dist.barrier(device_ids=ids)
 
 
 @dataclass
@@ -147,160 +86,6 @@ class TrainResult:
     steps: list[dict[str, float]] = field(default_factory=list)
     epochs: list[dict[str, Any]] = field(default_factory=list)
     best: dict[str, Any] | None = None
-
-
-def seed_everything(seed: int) -> None:
-    """Seed python's, numpy's and torch's global generators."""
-    random.seed(seed)
-    np.random.seed(seed % (1 << 32))
-    torch.manual_seed(seed)
-
-
-def rng_state() -> dict[str, Any]:
-    """The global random states of python, numpy and torch (and CUDA), as plain data and tensors."""
-    version, internal, gauss = random.getstate()
-    name, keys, pos, has_gauss, cached = np.random.get_state()
-    state: dict[str, Any] = {
-        "python": [version, list(internal), gauss],
-        "numpy": [name, keys.tolist(), int(pos), int(has_gauss), float(cached)],
-        "torch": torch.get_rng_state(),
-    }
-    if torch.cuda.is_available():
-        state["cuda"] = torch.cuda.get_rng_state_all()
-    return state
-
-
-def set_rng_state(state: Mapping[str, Any]) -> None:
-    """Restore what `rng_state` returned."""
-    version, internal, gauss = state["python"]
-    random.setstate((version, tuple(internal), gauss))
-    name, keys, pos, has_gauss, cached = state["numpy"]
-    np.random.set_state((name, np.asarray(keys, dtype=np.uint32), pos, has_gauss, cached))
-    torch.set_rng_state(state["torch"])
-    if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
-
-
-def unused_parameters(model: torch.nn.Module) -> list[str]:
-    """Names of parameters that get no gradient from the output (found on a copy, smallest input).
-
-    The input is one patch, so the patch grid is 1 x 1; the copy runs in eval mode so nothing of
-    the original changes, and the generator is a local one so the global random state is kept.
-    """
-    probe = copy.deepcopy(model).eval()
-    config = probe.config
-    size = (1, config.in_channels, config.patch_size[0], config.patch_size[1])
-    device = next(probe.parameters()).device
-    x = torch.randn(size, generator=torch.Generator().manual_seed(0)).to(device)
-    probe(x).float().square().mean().backward()
-    return [name for name, p in probe.named_parameters() if p.requires_grad and p.grad is None]
-
-
-def ddp_find_unused(model: torch.nn.Module) -> bool:
-    """Whether DDP must look for unused parameters (`find_unused_parameters`): only when
-    `unused_parameters` finds some, since the search walks the autograd graph every step."""
-    unused = unused_parameters(model)
-    if unused:
-        log.info(
-            "%d parameters take no part in the loss, DDP will look for unused parameters: %s",
-            len(unused),
-            ", ".join(unused),
-        )
-    else:
-        log.info("every parameter takes part in the loss: DDP runs without find_unused_parameters")
-    return bool(unused)
-
-
-def save_atomic(payload: Any, path: Path) -> None:
-    """torch.save `payload` to `path` atomically."""
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
-
-
-def training_profile(
-    config: TrainConfig, label_config: LabelConfig | None = None
-) -> DatasetProfile:
-    """The profile `config` trains with (`label_config` in place of its labels when given),
-    checked to read back from the plain data that the checkpoints will record."""
-    profile = config.dataset_profile(label_config)
-    try:
-        profile_of_record(profile.to_dict(), profile.name)
-    except ProfileError as exc:
-        raise ProfileError(
-            f"the {profile.name} profile with these options cannot be recorded in a checkpoint: {exc}"
-        ) from exc
-    return profile
-
-
-def find_scans(
-    root: Path | str, sequences: Sequence[str] | None, split: str, profile: DatasetProfile
-) -> list[ScanEntry]:
-    """The labelled scans of `sequences` (or of the profile's `split`) under `root`, in the
-    profile's layout (ids normalised by it: "1" is "001" for PandaSet).
-
-    Every missing folder, scan or label is reported in one DatasetLayoutError: training never runs
-    on a silent subset.
-    """
-    if sequences is not None and len(sequences) == 0:
-        return []
-    layout = profile.layout
-    names = (
-        resolve_sequences(sequences=sequences, config=profile.labels, layout=layout)
-        if sequences is not None
-        else [layout.normalise(s) for s in resolve_sequences(split=split, config=profile.labels)]
-    )
-    found = discover(root, names, with_labels=True, layout=layout)
-    if found.problems:
-        hint = (
-            ""
-            if sequences is not None
-            else f" (the {split!r} split; choose sequences with --{split.replace('valid', 'val')}-sequences)"
-        )
-        raise DatasetLayoutError(
-            f"{len(found.problems)} problem(s) with the {split} data under {root}{hint}: "
-            + "; ".join(found.problems[:5])
-            + (" ..." if len(found.problems) > 5 else "")
-        )
-    return found.scans
-
-
-def read_state(path: Path, config: TrainConfig, profile: DatasetProfile) -> dict[str, Any]:
-    """The resume state at `path`, checked against the run that continues it: same profile
-    (states from before profiles were SemanticKITTI's) and same settings but `RUNTIME_FIELDS`.
-
-    The precision is compared as resolved (the trainer records fp16, fp32 or bf16); `auto` on
-    either side (a state from before precisions were recorded, or a launcher that does not know
-    its workers' device) is left to the check where both are known.
-    """
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        raise ValueError(f"{path} cannot be read as a training state: {exc}") from exc
-    if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
-        raise ValueError(f"{path} is not a training state written by rangeret.training")
-    if state.get("format_version") != STATE_VERSION:
-        raise ValueError(
-            f"{path} has state version {state.get('format_version')!r}; this code reads {STATE_VERSION}"
-        )
-    stored = TrainConfig.from_dict(state["config"])
-    recorded = profile_of_record(state.get("profile"), str(path))
-    if recorded.name != profile.name:
-        raise ValueError(
-            f"cannot resume {path}: the run was started with the {recorded.name} profile and "
-            f"cannot continue with the {profile.name} profile (pass --profile {stored.profile})"
-        )
-    if "auto" in (stored.precision, config.precision):
-        config = dataclasses.replace(config, precision=stored.precision)
-    changed = stored.with_projection(recorded.projection).differences(
-        config.with_projection(profile.projection)
-    )
-    if not changed and "profile" in state and recorded.to_dict() != profile.to_dict():
-        changed = [f"the {recorded.name} profile's contents changed"]
-    if changed:
-        raise ValueError(
-            f"cannot resume {path}: the run was started with other settings ({'; '.join(changed)})"
-        )
-    return state
 
 
 class Trainer:
@@ -336,33 +121,13 @@ class Trainer:
         self.ignored = [c for c in range(self.num_classes) if self.label_config.ignored[c]]
         self.knn = KnnSettings()
 
-        state_path = self.out / STATE
-        if config.resume and not state_path.exists():
-            raise FileNotFoundError(f"cannot resume: {state_path} does not exist")
-        if not config.resume and state_path.exists():
-            raise ValueError(
-                f"{self.out} already holds a training run ({STATE}): pass --resume to continue it, or choose another folder"
-            )
+        state_path = check_run_folder(self.out, config.resume)
         state = read_state(state_path, config, self.profile) if config.resume else None
 
         seed_everything(config.seed)
-        train_scans = find_scans(config.dataset, config.train_sequences, "train", self.profile)
-        val_scans = find_scans(config.dataset, config.val_sequences, "valid", self.profile)
-        if not train_scans:
-            raise DatasetLayoutError(f"no labelled training scan under {config.dataset}")
-        self.frequencies = self._frequencies(train_scans)
-        mixing = None
-        if config.mixes:
-            paste = rare_classes(self.frequencies, self.label_config.ignored)
-            mixing = MixSettings(tuple(config.mixes), config.mix_probability, paste)
-        common = {
-            "projection": self.projection,
-            "label_config": self.label_config,
-            "seed": config.seed,
-            "points": self.profile.points,
-        }
-        self.train_set = RangeDataset(train_scans, augment=config.augment, mixing=mixing, **common)
-        self.val_set = RangeDataset(val_scans, with_points=True, **common)
+        data = run_datasets(config, self.profile)
+        self.frequencies = data.frequencies
+        self.train_set, self.val_set = data.train, data.valid
 
         self.model: RangeRet = build_model(
             config.model,
@@ -375,7 +140,9 @@ class Trainer:
         self.criterion = SegmentationLoss(
             config.losses, weights, config.focal_gamma, ignore_index=self.unlabeled
         ).to(self.device)
-        self.optimizer = build_optimizer(self.model.parameters(), config.lr, config.weight_decay)
+        self.optimizer = build_optimizer(
+            self.model.parameters(), config.lr, config.weight_decay, config.optimizer
+        )
         self.steps_per_epoch = steps_per_epoch(
             len(self.train_set), config.batch_size, self.ranks.world_size
         )
@@ -393,13 +160,7 @@ class Trainer:
         if state is not None:
             self._restore(state_path, state)
 
-        self.network: torch.nn.Module = self.model
-        if self.ranks.world_size > 1:
-            self.network = DistributedDataParallel(
-                self.model,
-                device_ids=[self.device.index] if self.device.type == "cuda" else None,
-                find_unused_parameters=ddp_find_unused(self.model),
-            )
+        self.network = wrap_for_ranks(self.model, self.ranks, self.device)
         self.loss_names = ("loss", *self.criterion.losses)
         self.steps_log = CsvLog(self.out / STEPS_CSV, ["step", "epoch", *self.loss_names, "lr"])
         self.metrics_log = CsvLog(
@@ -418,21 +179,6 @@ class Trainer:
         self._pending_steps: list[dict[str, float]] = []
         self._pending_epochs: list[dict[str, Any]] = []
         self.result = TrainResult(self.out)
-
-    # Setup ---------------------------------------------------------------------------------
-
-    def _frequencies(self, scans: Sequence[ScanEntry]) -> np.ndarray:
-        """Shares of points per class: the label configuration's, or counted over the training
-        labels when the configuration has none (data from another sensor)."""
-        freq = self.label_config.class_frequencies()
-        evaluated = [c for c in range(self.num_classes) if c not in self.ignored]
-        if freq[evaluated].sum() > 0:
-            return freq
-        log.info("the label configuration has no class frequencies: counting the training labels")
-        counts = RangeDataset(
-            scans, self.projection, self.label_config, points=self.profile.points
-        ).class_counts()
-        return counts / max(counts.sum(), 1)
 
     def _reset_epoch_totals(self) -> None:
         self.epoch_loss = torch.zeros(1 + len(self.criterion.losses), dtype=torch.float64)
@@ -618,15 +364,10 @@ class Trainer:
 
     def _matrix(self, flat: torch.Tensor) -> ConfusionMatrix:
         """A ConfusionMatrix of the label configuration from flat C[pred, gt] counts."""
-        cm = ConfusionMatrix.for_config(self.label_config)
-        cm.merge(flat.reshape(self.num_classes, self.num_classes).cpu().numpy())
-        return cm
+        return confusion_matrix(flat, self.label_config)
 
-    @torch.inference_mode()
     def validate(self) -> dict[str, float]:
         """Loss and mIoU / accuracy on the validation scans: range image, points, points + kNN."""
-        self.model.eval()
-        c = self.num_classes
         sampler = EpochSampler(
             len(self.val_set),
             0,
@@ -637,8 +378,6 @@ class Trainer:
             shuffle=False,
             pad=False,
         )
-        counts = torch.zeros(3, c * c, dtype=torch.int64, device=self.device)
-        loss_sum = torch.zeros(2, dtype=torch.float64, device=self.device)
         bar = tqdm(
             total=len(sampler),
             desc="validation",
@@ -646,66 +385,33 @@ class Trainer:
             leave=False,
             disable=not (self.config.progress and self.ranks.main),
         )
-        for batch in self._loader(self.val_set, sampler):
-            images = batch["image"].to(self.device)
-            labels = batch["label"].to(self.device)
-            with forward_precision(self.precision, self.device):
-                logits = self.model(images)
-            loss, _ = self.criterion(logits, labels)
-            loss_sum[0] += loss.double() * len(images)
-            loss_sum[1] += len(images)
-            argmax = logits.argmax(dim=1)
-            counts[0] += torch.bincount((argmax * c + labels).reshape(-1), minlength=c * c)
-            for i in range(len(images)):
-                truth = batch["point_labels"][i].to(self.device)
-                projection = (
-                    batch["proj_x"][i],
-                    batch["proj_y"][i],
-                    batch["proj_range"][i],
-                    batch["unproj_range"][i],
-                )
-                rule = {"votes_from": self.profile.knn.votes_from, "unlabeled": self.unlabeled}
-                points = point_classes(argmax[i], *projection, None, c, **rule)
-                refined = point_classes(argmax[i], *projection, self.knn, c, **rule)
-                counts[1] += torch.bincount(points * c + truth, minlength=c * c)
-                counts[2] += torch.bincount(refined.to(truth.dtype) * c + truth, minlength=c * c)
-            bar.update(len(images))
-        bar.close()
-        counts = self.ranks.sum(counts)
-        loss_sum = self.ranks.sum(loss_sum).cpu()
-        image, points, knn = (self._matrix(counts[i]) for i in range(3))
-        return {
-            "val_loss": float(loss_sum[0] / max(loss_sum[1], 1)),
-            "val_miou_image": image.miou(),
-            "val_acc_image": image.accuracy(),
-            "val_miou_points": points.miou(),
-            "val_acc_points": points.accuracy(),
-            "val_miou_knn": knn.miou(),
-            "val_acc_knn": knn.accuracy(),
-        }
+        try:
+            return validate(
+                self.model,
+                self.criterion,
+                self._loader(self.val_set, sampler),
+                profile=self.profile,
+                knn=self.knn,
+                precision=self.precision,
+                device=self.device,
+                ranks=self.ranks,
+                progress=bar,
+            )
+        finally:
+            bar.close()
 
     # Saving and resuming ---------------------------------------------------------------------
 
     def _improved(self, metrics: Mapping[str, Any]) -> bool:
         """Whether `metrics` beat the best epoch so far (and record them as the best if so)."""
-        if "val_miou_knn" in metrics:
-            name, value, better = "val_miou_knn", metrics["val_miou_knn"], max
-        else:
-            name, value, better = "train_loss", metrics["train_loss"], min
-        if self.best is not None and better(value, self.best["value"]) == self.best["value"]:
-            return False
-        self.best = {
-            "metric": name,
-            "value": value,
-            "epoch": metrics["epoch"],
-            "step": metrics["step"],
-        }
-        return True
+        best = better_epoch(self.best, metrics)
+        if best is not None:
+            self.best = best
+        return best is not None
 
     def _metadata(
         self, epoch: int, complete: bool, metrics: Mapping[str, Any] | None
     ) -> dict[str, Any]:
-        config = self.config
         return {
             "epoch": epoch + 1,
             "epoch_complete": complete,
@@ -713,19 +419,13 @@ class Trainer:
             "total_steps": self.total_steps,
             "metrics": dict(metrics) if metrics else None,
             "best": dict(self.best) if self.best else None,
-            "optimizer": {"name": "AdamW", "lr": config.lr, "weight_decay": config.weight_decay},
-            "scheduler": {
-                "name": "OneCycleLR" if config.schedule == "onecycle" else "warmup-cosine",
-                "max_lr": config.max_lr,
-                "warmup": config.warmup,
-            },
-            "losses": list(self.criterion.losses),
-            "class_weighting": config.class_weighting,
-            "precision": self.precision,
-            "world_size": self.ranks.world_size,
-            "train_scans": len(self.train_set),
-            "val_scans": len(self.val_set),
-            "train_config": config.to_dict(),
+            **run_record(
+                self.config,
+                losses=self.criterion.losses,
+                world_size=self.ranks.world_size,
+                train_scans=len(self.train_set),
+                val_scans=len(self.val_set),
+            ),
         }
 
     def _save(self, epoch: int, complete: bool, metrics: Mapping[str, Any] | None) -> None:

@@ -19,7 +19,7 @@ import pytest
 import torch
 from torch.nn.parallel import DistributedDataParallel
 
-from rangeret.cli.train import add_train_arguments, config_from_args, parse_override, run_train
+from rangeret.cli.train import add_train_arguments, run_train
 from rangeret.dataset.labels import LabelConfig, semantickitti
 from rangeret.dataset.layout import discover, labels_dir, velodyne_dir
 from rangeret.dataset.profiles import load_profile
@@ -28,6 +28,7 @@ from rangeret.inference.predictor import Predictor
 from rangeret.io.scans import read_scan
 from rangeret.models import CheckpointError, build_model, load_checkpoint
 from rangeret.sim import SensorConfig, simulate_dataset
+from rangeret.train_options import config_from_args
 from rangeret.training import TrainConfig, Trainer
 from rangeret.training.augment import (
     JITTER_RATE,
@@ -37,7 +38,15 @@ from rangeret.training.augment import (
     random_jitter,
     random_scale,
 )
-from rangeret.training.data import EpochSampler, RangeDataset, collate, steps_per_epoch
+from rangeret.training.config import parse_override
+from rangeret.training.data import (
+    EpochSampler,
+    RangeDataset,
+    collate,
+    find_scans,
+    steps_per_epoch,
+)
+from rangeret.training.distributed import ddp_find_unused, unused_parameters
 from rangeret.training.logs import CsvLog
 from rangeret.training.losses import (
     SegmentationLoss,
@@ -57,7 +66,7 @@ from rangeret.training.range_mixes import (
     rare_classes,
 )
 from rangeret.training.schedule import build_optimizer, build_scheduler
-from rangeret.training.trainer import STATE, ddp_find_unused, find_scans, unused_parameters
+from rangeret.training.state import STATE
 from tests.support.paths import data_path
 
 SMALL = {"height": 16, "width": 256}
