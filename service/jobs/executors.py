@@ -1,4 +1,4 @@
-"""Running a job's scans through the network, and zipping the predictions it wrote.
+"""Running a job's scans through the network.
 
 A `JobExecutor` predicts a job's scans: `LocalExecutor` runs `predict_tree` in this process;
 `service.jobs.ray_jobs.RayJobExecutor` submits each job to a Ray cluster through its Jobs API.
@@ -11,17 +11,13 @@ a cancelled job from a gateway that stops.
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol
 
-from rangeret.dataset.layout import ScanEntry, prediction_path
-from rangeret.dataset.profiles import DEFAULT_PROFILE, DatasetProfile, load_profile
+from rangeret.dataset.layout import ScanEntry
 from rangeret.inference.predictor import Predictor, PredictorSpec
 from rangeret.inference.runner import predict_tree
-from rangeret.io.atomic import atomic_path
-from rangeret.io.zipfiles import ReproducibleZip
-from rangeret.submission.archives import TEST_SEQUENCES, required_directories
 from service.jobs.store import JobRecord, JobStore
 from service.schemas import JobState
 
@@ -139,44 +135,3 @@ class LocalExecutor:
             read_roots=None if self.read_roots is None else [str(r) for r in self.read_roots],
         )
         return summary.failed
-
-
-def write_predictions_zip(
-    pred_root: Path,
-    entries: Sequence[ScanEntry],
-    sequences: Sequence[str],
-    path: Path,
-    description: str,
-    profile: DatasetProfile | None = None,
-    workers: int | None = None,
-) -> None:
-    """The job's predictions as a reproducible zip with explicit directory entries, as
-    `sequences/<id as on disk>/predictions/NNNNNN.label` for every profile (default semantickitti).
-
-    When the profile is SemanticKITTI's and all the sequences are its test sequences, the archive
-    holds the directory entries of every test sequence, as the benchmark server wants, so it
-    passes the submission validator. The labels are read and deflated in `workers` threads
-    (default: every CPU this process may use); the archive's bytes do not depend on it.
-    """
-    names = list(dict.fromkeys(sequences))
-    benchmark = (profile or load_profile(None)).name == DEFAULT_PROFILE
-    if benchmark and all(s in TEST_SEQUENCES for s in names):
-        directories = list(required_directories())
-    else:
-        directories = ["sequences/"]
-        for seq in sorted(names):
-            directories += [f"sequences/{seq}/", f"sequences/{seq}/predictions/"]
-    with atomic_path(path) as tmp, ReproducibleZip(tmp) as zf:
-        for name in directories:
-            zf.add_directory(name)
-        zf.add_files(
-            (
-                (
-                    f"sequences/{entry.sequence}/predictions/{entry.name}.label",
-                    prediction_path(pred_root, entry.sequence, entry.name).read_bytes,
-                )
-                for entry in entries
-            ),
-            workers,
-        )
-        zf.add_file("description.txt", description.rstrip("\n") + "\n")

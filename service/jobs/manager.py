@@ -1,15 +1,14 @@
-"""The job runner: queue, runner threads, admission, cancellation, recovery and retention.
+"""The job scheduler: queue, runner threads, admission, cancellation, recovery and retention.
 
 Up to `max_running` jobs run at once, each on its own runner thread, and the oldest queued job
 always starts next, so no job waits behind a long one for a free runner for ever. A job is
 admitted only while fewer than `max_queued` jobs wait and its expected output fits in the disk
-the job folders may use (`service.jobs.capacity`). A job predicts every scan of its sequences into `JOBS/<id>/predictions` with its executor, then
-writes the predictions zip and, for sequences with ground truth, the evaluation report. Everything
-is read with the gateway's dataset profile (layout, point record, labels); each job's folder
-records the profile it was accepted for, and a gateway serving another one fails it rather than
-read it wrongly. A restarted gateway queues a job that was running again, and it resumes (finished
-predictions are skipped), or marks it failed with the reason when it cannot. Finished jobs' files
-and records are removed after the retention time.
+the job folders may use (`service.jobs.capacity`); its folder records the profile it was accepted
+for. A runner hands each claimed job to `service.jobs.work.JobWork`, which predicts, zips,
+evaluates and stores the final record; the scheduler records the failures it raises and queues a
+job the gateway's stop interrupted again. A restarted gateway queues a job that was running
+again, and it resumes (finished predictions are skipped), or marks it failed with the reason when
+it cannot. Finished jobs' files and records are removed after the retention time.
 """
 
 from __future__ import annotations
@@ -23,22 +22,12 @@ import uuid
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from rangeret.dataset.layout import (
-    KITTI_LAYOUT,
-    SequenceLayout,
-    discover,
-    is_complete,
-    list_scans,
-    prediction_path,
-)
 from rangeret.dataset.profiles import DatasetProfile, load_profile
-from rangeret.evaluation.evaluate import evaluate_predictions
-from rangeret.evaluation.plots import write_plots
-from rangeret.submission.leaderboard import LeaderboardEntry, description_text
 from service.jobs.capacity import disk_full, disk_short, folder_bytes, queue_full
-from service.jobs.executors import JobControl, JobError, JobExecutor, write_predictions_zip
+from service.jobs.executors import JobControl, JobError, JobExecutor
+from service.jobs.reasons import failure_sentence
 from service.jobs.store import JobDatabaseFull, JobRecord, JobStore
-from service.paths import escaping_scans, outside_roots_sentence
+from service.jobs.work import PROFILE_FILE, JobWork
 from service.schemas import JobState
 
 log = logging.getLogger(__name__)
@@ -50,28 +39,12 @@ MAX_ATTEMPTS = 3
 #: (the next gateway follows it again), so only a gateway that keeps failing while it finishes
 #: the job (zip, report) stops it.
 MAX_FOLLOWS = 10
-PREDICTIONS_ZIP = "predictions.zip"
-REPORT_JSON = "report.json"
-#: The folder of a labelled job's report PNGs (those of `rangeret evaluate --plots`).
-PLOTS_DIR = "plots"
-#: The file in a job's folder that names the profile the job was accepted for.
-PROFILE_FILE = "profile.txt"
 #: The file the gateway puts in every job folder it makes: the proof that it may delete it.
 MARKER_FILE = ".rangeret-job"
 #: How often a failure the job database refused (a full disk) is tried again.
 UNRECORDED_RETRY_S = 2.0
-#: The `[Errno N] ` that OS errors put before their reason.
-_ERRNO = re.compile(r"\[Errno \d+\] ")
 #: The name of a job folder: the job's id, 32 lowercase hex digits.
 JOB_ID = re.compile(r"[0-9a-f]{32}")
-
-
-def labelled_sequences(
-    dataset: Path, sequences: Sequence[str], layout: SequenceLayout = KITTI_LAYOUT
-) -> list[str]:
-    """The sequences every scan of which has a ground-truth label file."""
-    found = discover(dataset, sequences, missing_ok=True, layout=layout).by_sequence()
-    return [s for s, scans in found.items() if scans and all(e.label_path for e in scans)]
 
 
 class JobManager:
@@ -99,19 +72,21 @@ class JobManager:
         if max_running < 1:
             raise ValueError("max_running must be at least 1")
         self.store = store
-        self.executor = executor
         self.jobs_dir = jobs_dir
         self.retention_s = retention_s
         self.profile = profile or load_profile(None)
-        self.checkpoint_sha256 = checkpoint_sha256
-        self.on_scans = on_scans
         self.max_running = max_running
         self.max_queued = max_queued
         self.max_bytes = max_bytes
-        self.read_roots = (
-            None
+        self.work = JobWork(
+            store,
+            executor,
+            self.profile,
+            checkpoint_sha256=checkpoint_sha256,
+            read_roots=None
             if read_roots is None
-            else [Path(r).resolve() for r in read_roots] + [jobs_dir.resolve()]
+            else [Path(r).resolve() for r in read_roots] + [jobs_dir.resolve()],
+            on_scans=on_scans,
         )
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -372,16 +347,20 @@ class JobManager:
         with self._running_lock:
             self._running[job.id] = cancel
         try:
-            self._execute(job, cancel)
+            finished = self.work.run(job, self.job_dir(job.id), cancel)
+            if not finished and self._stop.is_set() and self.store.requeue(job.id, graceful=True):
+                log.info(
+                    "job %s paused by the gateway stopping; it resumes at the next start", job.id
+                )
         except JobError as exc:
             log.warning("job %s failed: %s", job.id, exc)
-            self._fail(job.id, _sentence(exc, self.job_dir(job.id)))
+            self._fail(job.id, failure_sentence(exc, self.job_dir(job.id)))
         except JobDatabaseFull as exc:
             log.warning("job %s stopped: %s", job.id, exc)
-            self._fail(job.id, _sentence(exc, self.job_dir(job.id)))
+            self._fail(job.id, failure_sentence(exc, self.job_dir(job.id)))
         except Exception as exc:
             log.exception("job %s failed", job.id)
-            self._fail(job.id, _sentence(exc, self.job_dir(job.id)))
+            self._fail(job.id, failure_sentence(exc, self.job_dir(job.id)))
         finally:
             with self._running_lock:
                 self._running.pop(job.id, None)
@@ -390,137 +369,3 @@ class JobManager:
             self._expected.pop(job.id, None)
         if latest is not None and latest.state is JobState.cancelled:
             self.remove_files(job.id)
-
-    def _execute(self, job: JobRecord, cancel: JobControl) -> None:
-        dataset = Path(job.dataset)
-        folder = self.job_dir(job.id)
-        out = folder / "predictions"
-        accepted = _accepted_profile(folder)
-        if accepted is not None and accepted != self.profile.name:
-            self.store.finish(
-                job.id,
-                JobState.failed,
-                reason=f"the job was accepted for the {accepted} profile, and the gateway now "
-                f"serves the {self.profile.name} profile",
-            )
-            return
-        layout, record = self.profile.layout, self.profile.points
-        entries = list_scans(dataset, job.sequences, layout=layout)
-        escaping = escaping_scans(entries, self.read_roots) if self.read_roots else []
-        if escaping:
-            self.store.finish(
-                job.id, JobState.failed, reason=outside_roots_sentence(escaping, "The job")
-            )
-            return
-        skipped = sum(is_complete(e, out, record) for e in entries)
-        self.store.progress(job.id, len(entries), skipped, 0)
-        counted = [0]
-
-        def progress(seen: int, failed: int, _pending: int) -> None:
-            written = seen - failed
-            self.store.progress(job.id, len(entries), skipped + written, failed)
-            if self.on_scans is not None and written > counted[0]:
-                self.on_scans(written - counted[0])
-                counted[0] = written
-
-        failures = self.executor.predict(entries, dataset, job.sequences, out, progress, cancel)
-        if cancel.is_set():
-            if self._stop.is_set() and self.store.requeue(job.id, graceful=True):
-                log.info(
-                    "job %s paused by the gateway stopping; it resumes at the next start", job.id
-                )
-            return
-        if failures:
-            self.store.finish(
-                job.id,
-                JobState.failed,
-                reason=f"{len(failures)} of {len(entries)} scans could not be predicted (see errors)",
-                errors=[
-                    f"{key}: {_scrub(reason, folder, self.read_roots)}"
-                    for key, reason in failures.items()
-                ],
-            )
-            return
-        missing = [e for e in entries if not is_complete(e, out, record)]
-        if missing:
-            self.store.progress(job.id, len(entries), len(entries) - len(missing), 0)
-            shown = ", ".join(
-                prediction_path(out, e.sequence, e.name).relative_to(folder).as_posix()
-                for e in missing[:5]
-            )
-            self.store.finish(
-                job.id,
-                JobState.failed,
-                reason=f"{len(missing)} of {len(entries)} predictions are missing from the job's "
-                f"folder ({shown}{', ...' if len(missing) > 5 else ''}): it was changed or "
-                "removed while the job ran",
-            )
-            return
-        self.store.progress(job.id, len(entries), len(entries), 0)
-        zip_path = folder / PREDICTIONS_ZIP
-        write_predictions_zip(
-            out, entries, job.sequences, zip_path, self._description(), self.profile
-        )
-        metrics = report_path = None
-        labelled = labelled_sequences(dataset, job.sequences, layout)
-        if labelled:
-            report = evaluate_predictions(
-                dataset,
-                out,
-                labelled,
-                checkpoint_sha256=self.checkpoint_sha256,
-                profile=self.profile,
-            )
-            report.precision = self.executor.precision
-            report.backend = self.executor.inference_backend
-            report_path = folder / REPORT_JSON
-            report.write_json(report_path)
-            write_plots(report, folder / PLOTS_DIR, self.profile.labels)
-            metrics = {
-                "miou": report.miou,
-                "accuracy": report.accuracy,
-                "iou": report.iou_by_name(),
-            }
-        self.store.finish(
-            job.id, JobState.succeeded, metrics=metrics, predictions=zip_path, report=report_path
-        )
-
-    def _description(self) -> str:
-        """The archive's description.txt: the leaderboard's default lines, then the run's."""
-        return description_text(
-            LeaderboardEntry(),
-            written_by="the rangeret gateway",
-            checkpoint_sha256=self.checkpoint_sha256,
-            profile=self.profile.name,
-        )
-
-
-def _accepted_profile(folder: Path) -> str | None:
-    """The profile name a job's folder records; None for a job from before it was recorded."""
-    try:
-        return (folder / PROFILE_FILE).read_text().strip() or None
-    except FileNotFoundError:
-        return None
-
-
-def _sentence(exc: BaseException, folder: Path | None = None) -> str:
-    """One readable line for an exception: an OS error as its reason and the path within the
-    job's `folder` (never the server's absolute paths nor raw errno text)."""
-    if isinstance(exc, OSError) and exc.strerror:
-        where = ""
-        if exc.filename is not None:
-            name = Path(str(exc.filename))
-            inside = folder is not None and name.is_relative_to(folder)
-            where = f": {name.relative_to(folder).as_posix()}" if inside else f": {name.name}"
-        return f"{exc.strerror.lower()}{where}"[:500]
-    return _scrub(" ".join(str(exc).split()) or type(exc).__name__, folder)[:500]
-
-
-def _scrub(text: str, folder: Path | None, roots: Sequence[Path] | None = None) -> str:
-    """`text` with the job's folder and the data roots made relative (the server's own paths
-    are not the client's business) and raw errno text dropped."""
-    if folder is not None:
-        text = text.replace(str(folder) + "/", "").replace(str(folder), "the job's folder")
-    for root in roots or ():
-        text = text.replace(str(root).rstrip("/") + "/", "")
-    return _ERRNO.sub("", text)

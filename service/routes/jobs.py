@@ -1,18 +1,15 @@
 """/v1/jobs: start a job over whole sequences, list and follow jobs, fetch results, cancel.
 
 A job comes from an uploaded archive (multipart field `archive`) or names a dataset under the data
-roots (JSON). Both are read with the served profile: an archive's scans are its point records, a
-dataset lies in its layout. The job store is only ever called through a worker thread, never on
-the event loop.
+roots (JSON). The routes parse the request and reply; `service.jobs.intake` prepares, checks and
+queues a new job, and `service.jobs.results` names a job's result files. The job store is only
+ever called through a worker thread, never on the event loop.
 """
 
 from __future__ import annotations
 
 import asyncio
-import errno
 import json
-import re
-from collections.abc import Sequence
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -20,14 +17,12 @@ from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse, JSONResponse
 from pydantic import ValidationError
 
-from rangeret.dataset.layout import DatasetLayoutError, ScanEntry, list_scans, resolve_sequences
-from service.archives import ArchiveError, ArchiveLimits, extract_archive
 from service.dependencies import GatewayDep, JobsDep
 from service.errors import ApiError, error_responses, validation_sentence
 from service.gateway import Gateway
-from service.jobs import JobManager, JobRecord, JobRefused, disk_full, expected_output_bytes
-from service.jobs.manager import PLOTS_DIR
-from service.paths import escaping_scans, outside_roots_sentence
+from service.jobs import JobManager, JobRecord
+from service.jobs.intake import JobIntake
+from service.jobs.results import plot_path, report_plots
 from service.schemas import (
     BINARY_CONTENT,
     DatasetJobRequest,
@@ -92,43 +87,6 @@ def job_status(record: JobRecord) -> JobStatus:
     )
 
 
-#: A report PNG's name, as `rangeret.evaluation.plots.write_plots` names them.
-_PLOT_NAME = re.compile(r"^[a-z][a-z-]{0,63}\.png$")
-
-
-def report_plots(record: JobRecord) -> list[str]:
-    """The names of a succeeded labelled job's report PNGs (none for other jobs)."""
-    if record.state is not JobState.succeeded or not record.report:
-        return []
-    folder = Path(record.report).parent / PLOTS_DIR
-    try:
-        return sorted(p.name for p in folder.iterdir() if _PLOT_NAME.fullmatch(p.name))
-    except OSError:
-        return []
-
-
-def resolve_dataset(text: str, roots: Sequence[Path]) -> Path:
-    """The dataset folder named by a job request: 403 outside the data roots, 404 when absent."""
-    if not roots:
-        raise ApiError(
-            403,
-            "No data roots are configured (RANGERET_DATA_ROOTS), so no dataset on the server can be used.",
-        )
-    try:
-        path = Path(text)
-        candidates = [path] if path.is_absolute() else [root / path for root in roots]
-        inside = [c.resolve() for c in candidates]
-    except (ValueError, OSError) as exc:
-        raise ApiError(400, f"The dataset path is not a usable path ({exc}).") from exc
-    inside = [p for p in inside if any(p.is_relative_to(root) for root in roots)]
-    if not inside:
-        raise ApiError(403, "The dataset path is outside the configured data roots.")
-    for candidate in inside:
-        if candidate.is_dir():
-            return candidate
-    raise ApiError(404, "There is no dataset folder at that path under the data roots.")
-
-
 @router.post(
     "/jobs",
     summary="Start a job over sequences",
@@ -146,15 +104,16 @@ def resolve_dataset(text: str, roots: Sequence[Path]) -> Path:
 )
 async def create_job(request: Request, gw: GatewayDep, jobs: JobsDep) -> JSONResponse:
     kind = media_type(request)
+    intake = JobIntake(jobs, gw.settings, gw.profile)
     try:
-        await asyncio.to_thread(jobs.check_queue)
-    except JobRefused as exc:
+        await asyncio.to_thread(intake.check_queue)
+    except ApiError:
         await drain(request, gw.settings.max_body_bytes, timeout=gw.settings.body_timeout_s)
-        raise ApiError(exc.status_code, str(exc)) from exc
+        raise
     if kind == "multipart/form-data":
-        record = await _archive_job(request, gw, jobs)
+        record = await _archive_job(request, gw, intake)
     elif kind == "application/json":
-        record = await _dataset_job(request, gw, jobs)
+        record = await intake.dataset_job(await _dataset_request(request, gw))
     else:
         await drain(request, gw.settings.max_body_bytes, timeout=gw.settings.body_timeout_s)
         raise ApiError(
@@ -240,9 +199,9 @@ async def get_report(job_id: str, jobs: JobsDep) -> FileResponse:
 )
 async def get_plot(job_id: str, name: str, jobs: JobsDep) -> FileResponse:
     record = await _succeeded_or_409(jobs, job_id)
-    if name not in await asyncio.to_thread(report_plots, record):
+    path = await asyncio.to_thread(plot_path, record, name)
+    if path is None:
         raise ApiError(404, f"The job has no plot {name[:64]!r}; its plots are listed in 'plots'.")
-    path = Path(record.report).parent / PLOTS_DIR / name
     return FileResponse(path, media_type="image/png")
 
 
@@ -278,62 +237,23 @@ async def _succeeded_or_409(jobs: JobManager, job_id: str) -> JobRecord:
     return record
 
 
-async def _archive_job(request: Request, gw: Gateway, jobs: JobManager) -> JobRecord:
-    """Receive, check and extract an uploaded archive into a new job's folder; queue the job."""
+async def _archive_job(request: Request, gw: Gateway, intake: JobIntake) -> JobRecord:
+    """Refuse an upload that cannot fit before it is read, else receive it into a new job."""
     settings = gw.settings
-    declared = declared_length(request)
-    if declared is not None:
-        used = await asyncio.to_thread(jobs.disk_usage)
-        if used + declared > settings.max_job_bytes:
-            await drain(request, settings.max_body_bytes, timeout=settings.upload_timeout_s)
-            exc = disk_full(declared, used, settings.max_job_bytes)
-            raise ApiError(exc.status_code, str(exc))
-    job_id, folder = await asyncio.to_thread(jobs.new_job)
     try:
-        upload = folder / "upload.part"
-        await receive_archive(
-            request, upload, settings.max_archive_bytes, settings.upload_timeout_s
-        )
-        limits = ArchiveLimits(
-            settings.max_archive_bytes,
-            settings.max_archive_members,
-            settings.max_points,
-            settings.max_extracted_bytes,
-        )
-        try:
-            found = await asyncio.to_thread(
-                extract_archive,
-                upload,
-                folder / "data",
-                limits,
-                record=gw.profile.points,
-                layout=gw.profile.layout,
-            )
-        except ArchiveError as exc:
-            raise ApiError(exc.status_code, str(exc)) from exc
-        finally:
-            upload.unlink(missing_ok=True)
-        entries = await asyncio.to_thread(
-            list_scans, found.root, found.sequences, layout=gw.profile.layout
-        )
-        return await _submit(jobs, job_id, "archive", found.root, found.sequences, entries, gw)
-    except OSError as exc:
-        await asyncio.to_thread(jobs.remove_files, job_id)
-        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-            raise ApiError(
-                507,
-                f"Insufficient storage: the disk of the jobs folder {jobs.jobs_dir} is full; "
-                "free space there, or upload a smaller archive.",
-            ) from exc
-        raise
-    except BaseException:
-        await asyncio.to_thread(jobs.remove_files, job_id)
+        await asyncio.to_thread(intake.check_upload, declared_length(request))
+    except ApiError:
+        await drain(request, settings.max_body_bytes, timeout=settings.upload_timeout_s)
         raise
 
+    async def receive(path: Path) -> None:
+        await receive_archive(request, path, settings.max_archive_bytes, settings.upload_timeout_s)
 
-async def _dataset_job(request: Request, gw: Gateway, jobs: JobManager) -> JobRecord:
-    """Check a dataset job request (profile, roots, sequences in the profile's layout) and queue
-    the job."""
+    return await intake.archive_job(receive)
+
+
+async def _dataset_request(request: Request, gw: Gateway) -> DatasetJobRequest:
+    """The JSON body of a dataset job: 400 when it is not JSON or not a valid request."""
     body = await read_body(request, gw.settings.max_body_bytes, timeout=gw.settings.body_timeout_s)
     try:
         data = json.loads(body)
@@ -342,47 +262,6 @@ async def _dataset_job(request: Request, gw: Gateway, jobs: JobManager) -> JobRe
     except RecursionError as exc:
         raise ApiError(400, "The request body's JSON is nested too deeply.") from exc
     try:
-        job = DatasetJobRequest.model_validate(data)
+        return DatasetJobRequest.model_validate(data)
     except ValidationError as exc:
         raise ApiError(400, validation_sentence(exc.errors(), "body")) from exc
-    profile = gw.profile
-    if job.profile is not None and job.profile != profile.name:
-        raise ApiError(
-            400,
-            f"The request is for the {job.profile[:64]!r} profile but this gateway serves the "
-            f"{profile.name!r} profile: one gateway serves one network.",
-        )
-    roots = gw.settings.data_roots
-    root = resolve_dataset(job.dataset, roots)
-    try:
-        sequences = resolve_sequences(job.split, job.sequences, profile.labels, profile.layout)
-        entries = await asyncio.to_thread(list_scans, root, sequences, layout=profile.layout)
-    except (DatasetLayoutError, ValueError) as exc:
-        raise ApiError(400, f"The dataset cannot be used: {str(exc)[:400]}") from exc
-    escaping = await asyncio.to_thread(escaping_scans, entries, roots)
-    if escaping:
-        raise ApiError(403, outside_roots_sentence(escaping))
-    job_id, _ = await asyncio.to_thread(jobs.new_job)
-    try:
-        return await _submit(jobs, job_id, "dataset", root, sequences, entries, gw)
-    except BaseException:
-        await asyncio.to_thread(jobs.remove_files, job_id)
-        raise
-
-
-async def _submit(
-    jobs: JobManager,
-    job_id: str,
-    kind: str,
-    root: Path,
-    sequences: list[str],
-    entries: list[ScanEntry],
-    gw: Gateway,
-) -> JobRecord:
-    """Queue a job whose folder is ready, with the output its scans are expected to write; 429
-    or 507 when the gateway cannot take it now."""
-    expected = await asyncio.to_thread(expected_output_bytes, entries, gw.profile.points)
-    try:
-        return await asyncio.to_thread(jobs.submit, job_id, kind, root, sequences, expected)
-    except JobRefused as exc:
-        raise ApiError(exc.status_code, str(exc)) from exc

@@ -278,3 +278,19 @@ def test_routes_never_touch_the_store_on_the_event_loop(tmp_path, monkeypatch):
         )
         assert labelled.content == np.full(7, 40, dtype="<u4").tobytes()
     assert on_loop == []
+
+
+# Claims ----------------------------------------------------------------------------------------
+
+
+def test_claims_take_the_oldest_queued_job_once_and_a_resumed_job_keeps_its_start(tmp_path):
+    store = JobStore(tmp_path / "jobs.sqlite")
+    for name in ("a", "b", "c"):
+        store.create(name, "dataset", tmp_path, ["08"])
+        time.sleep(0.01)
+    claimed = [store.claim_next() for _ in range(4)]
+    assert [r.id if r else None for r in claimed] == ["a", "b", "c", None]
+    assert all(r.state is JobState.running and r.attempts == 1 for r in claimed[:3])
+    first_start = store.get("a").started
+    assert store.requeue("a") and store.start("a")
+    assert store.get("a").started == first_start and store.get("a").attempts == 2

@@ -1,0 +1,199 @@
+"""A new job's intake: its folder prepared from an uploaded archive or a dataset on the server,
+checked, and queued.
+
+An archive job is refused before its upload is read when the queue is full (429) or its declared
+length does not fit in the disk the job folders may use (507); the upload is received into a new
+job folder, checked and extracted there in the served profile's layout (`service.archives`), and
+the folder is removed again whatever stops it on the way. A dataset job names a folder under the
+data roots (403 outside them, 404 when absent) in the served profile, and its scans must stay
+under the roots once links are resolved. Either is queued with the output its scans are expected
+to write (`service.jobs.capacity`). Every refusal is an `ApiError` with its status and sentence;
+the blocking steps run in worker threads, never on the event loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+from collections.abc import Awaitable, Callable, Sequence
+from pathlib import Path
+
+from rangeret.dataset.layout import DatasetLayoutError, ScanEntry, list_scans, resolve_sequences
+from rangeret.dataset.profiles import DatasetProfile
+from service.archives import ArchiveError, ArchiveLimits, extract_archive
+from service.errors import ApiError
+from service.jobs.capacity import JobRefused, disk_full, expected_output_bytes
+from service.jobs.manager import JobManager
+from service.jobs.store import JobRecord
+from service.paths import escaping_scans, outside_roots_sentence
+from service.schemas import DatasetJobRequest
+from service.settings import Settings
+
+#: The file in a new job's folder an upload is received into (removed once it is extracted).
+UPLOAD_FILE = "upload.part"
+#: The folder in a job's folder an uploaded archive is extracted into.
+DATA_DIR = "data"
+
+#: A job's input: the dataset root, its sequences and their scans.
+JobInput = tuple[Path, list[str], list[ScanEntry]]
+
+
+def resolve_dataset(text: str, roots: Sequence[Path]) -> Path:
+    """The dataset folder named by a job request: 403 outside the data roots, 404 when absent."""
+    if not roots:
+        raise ApiError(
+            403,
+            "No data roots are configured (RANGERET_DATA_ROOTS), so no dataset on the server can be used.",
+        )
+    try:
+        path = Path(text)
+        candidates = [path] if path.is_absolute() else [root / path for root in roots]
+        inside = [c.resolve() for c in candidates]
+    except (ValueError, OSError) as exc:
+        raise ApiError(400, f"The dataset path is not a usable path ({exc}).") from exc
+    inside = [p for p in inside if any(p.is_relative_to(root) for root in roots)]
+    if not inside:
+        raise ApiError(403, "The dataset path is outside the configured data roots.")
+    for candidate in inside:
+        if candidate.is_dir():
+            return candidate
+    raise ApiError(404, "There is no dataset folder at that path under the data roots.")
+
+
+def refused(exc: JobRefused) -> ApiError:
+    """The answer to a job the manager cannot take now, with its status and sentence."""
+    return ApiError(exc.status_code, str(exc))
+
+
+class JobIntake:
+    """Prepares, checks and queues new jobs for `jobs`, under the gateway's `settings` and in its
+    served `profile`."""
+
+    def __init__(self, jobs: JobManager, settings: Settings, profile: DatasetProfile) -> None:
+        self.jobs = jobs
+        self.settings = settings
+        self.profile = profile
+
+    # Checks before a body is read ---------------------------------------------------------
+
+    def check_queue(self) -> None:
+        """429 when the queue is full, so a job is refused before its body is read."""
+        try:
+            self.jobs.check_queue()
+        except JobRefused as exc:
+            raise refused(exc) from exc
+
+    def check_upload(self, declared: int | None) -> None:
+        """507 when an upload's `declared` length (None: not declared) does not fit beside what
+        the job folders hold or expect (RANGERET_MAX_JOB_BYTES)."""
+        if declared is None:
+            return
+        limit = self.settings.max_job_bytes
+        used = self.jobs.disk_usage()
+        if used + declared > limit:
+            raise refused(disk_full(declared, used, limit))
+
+    # Archive jobs ---------------------------------------------------------------------------
+
+    def archive_limits(self) -> ArchiveLimits:
+        """What one uploaded archive may hold, from the settings."""
+        settings = self.settings
+        return ArchiveLimits(
+            settings.max_archive_bytes,
+            settings.max_archive_members,
+            settings.max_points,
+            settings.max_extracted_bytes,
+        )
+
+    def extract_upload(self, upload: Path, folder: Path) -> JobInput:
+        """Check and extract the archive at `upload` into the job `folder` in the served profile
+        (400 or 413 when it is not one the gateway takes), removing the upload; its input."""
+        profile = self.profile
+        try:
+            found = extract_archive(
+                upload,
+                folder / DATA_DIR,
+                self.archive_limits(),
+                record=profile.points,
+                layout=profile.layout,
+            )
+        except ArchiveError as exc:
+            raise ApiError(exc.status_code, str(exc)) from exc
+        finally:
+            upload.unlink(missing_ok=True)
+        entries = list_scans(found.root, found.sequences, layout=profile.layout)
+        return found.root, found.sequences, entries
+
+    async def archive_job(self, receive: Callable[[Path], Awaitable[object]]) -> JobRecord:
+        """A new job from an upload: `receive(path)` writes the upload into the new job's folder,
+        which is then extracted and queued; the folder is removed when any step fails, and a
+        full disk is 507 naming the jobs folder."""
+        jobs = self.jobs
+        job_id, folder = await asyncio.to_thread(jobs.new_job)
+        try:
+            upload = folder / UPLOAD_FILE
+            await receive(upload)
+            found = await asyncio.to_thread(self.extract_upload, upload, folder)
+            return await self.submit(job_id, "archive", found)
+        except OSError as exc:
+            await asyncio.to_thread(jobs.remove_files, job_id)
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise ApiError(
+                    507,
+                    f"Insufficient storage: the disk of the jobs folder {jobs.jobs_dir} is full; "
+                    "free space there, or upload a smaller archive.",
+                ) from exc
+            raise
+        except BaseException:
+            await asyncio.to_thread(jobs.remove_files, job_id)
+            raise
+
+    # Dataset jobs ---------------------------------------------------------------------------
+
+    def dataset_input(self, request: DatasetJobRequest) -> JobInput:
+        """The input a dataset job request names, in the served profile and under the data
+        roots: 400 for another profile or a dataset that cannot be used, 403 outside the roots
+        (links resolved), 404 when absent."""
+        profile = self.profile
+        if request.profile is not None and request.profile != profile.name:
+            raise ApiError(
+                400,
+                f"The request is for the {request.profile[:64]!r} profile but this gateway serves "
+                f"the {profile.name!r} profile: one gateway serves one network.",
+            )
+        roots = self.settings.data_roots
+        root = resolve_dataset(request.dataset, roots)
+        try:
+            sequences = resolve_sequences(
+                request.split, request.sequences, profile.labels, profile.layout
+            )
+            entries = list_scans(root, sequences, layout=profile.layout)
+        except (DatasetLayoutError, ValueError) as exc:
+            raise ApiError(400, f"The dataset cannot be used: {str(exc)[:400]}") from exc
+        escaping = escaping_scans(entries, roots)
+        if escaping:
+            raise ApiError(403, outside_roots_sentence(escaping))
+        return root, sequences, entries
+
+    async def dataset_job(self, request: DatasetJobRequest) -> JobRecord:
+        """A new job over the dataset `request` names, checked and queued."""
+        found = await asyncio.to_thread(self.dataset_input, request)
+        job_id, _ = await asyncio.to_thread(self.jobs.new_job)
+        try:
+            return await self.submit(job_id, "dataset", found)
+        except BaseException:
+            await asyncio.to_thread(self.jobs.remove_files, job_id)
+            raise
+
+    # Both -----------------------------------------------------------------------------------
+
+    async def submit(self, job_id: str, kind: str, found: JobInput) -> JobRecord:
+        """Queue a job whose folder is ready, with the output its scans are expected to write;
+        429 or 507 when the gateway cannot take it now."""
+        root, sequences, entries = found
+        jobs = self.jobs
+        expected = await asyncio.to_thread(expected_output_bytes, entries, self.profile.points)
+        try:
+            return await asyncio.to_thread(jobs.submit, job_id, kind, root, sequences, expected)
+        except JobRefused as exc:
+            raise refused(exc) from exc

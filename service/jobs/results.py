@@ -1,0 +1,142 @@
+"""A job's result files in its folder: the predictions zip, the evaluation report and its plots.
+
+A job writes `predictions.zip` (every profile's scans as `sequences/XX/predictions/*.label`, with
+a `description.txt`) and, for the sequences with ground truth, `report.json` and the report's
+PNGs under `plots/`, as `rangeret evaluate --plots` draws them. The routes serve those files.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from pathlib import Path
+
+from rangeret.dataset.layout import (
+    KITTI_LAYOUT,
+    ScanEntry,
+    SequenceLayout,
+    discover,
+    prediction_path,
+)
+from rangeret.dataset.profiles import DEFAULT_PROFILE, DatasetProfile, load_profile
+from rangeret.evaluation.evaluate import evaluate_predictions
+from rangeret.evaluation.plots import write_plots
+from rangeret.io.atomic import atomic_path
+from rangeret.io.zipfiles import ReproducibleZip
+from rangeret.submission.archives import TEST_SEQUENCES, required_directories
+from rangeret.submission.leaderboard import LeaderboardEntry, description_text
+from service.jobs.store import JobRecord
+from service.schemas import JobState
+
+PREDICTIONS_ZIP = "predictions.zip"
+REPORT_JSON = "report.json"
+#: The folder of a labelled job's report PNGs (those of `rangeret evaluate --plots`).
+PLOTS_DIR = "plots"
+#: A report PNG's name, as `rangeret.evaluation.plots.write_plots` names them.
+PLOT_NAME = re.compile(r"^[a-z][a-z-]{0,63}\.png$")
+
+
+def labelled_sequences(
+    dataset: Path, sequences: Sequence[str], layout: SequenceLayout = KITTI_LAYOUT
+) -> list[str]:
+    """The sequences every scan of which has a ground-truth label file."""
+    found = discover(dataset, sequences, missing_ok=True, layout=layout).by_sequence()
+    return [s for s, scans in found.items() if scans and all(e.label_path for e in scans)]
+
+
+def predictions_description(checkpoint_sha256: str | None, profile: DatasetProfile) -> str:
+    """The predictions zip's description.txt: the leaderboard's default lines, then the run's."""
+    return description_text(
+        LeaderboardEntry(),
+        written_by="the rangeret gateway",
+        checkpoint_sha256=checkpoint_sha256,
+        profile=profile.name,
+    )
+
+
+def write_predictions_zip(
+    pred_root: Path,
+    entries: Sequence[ScanEntry],
+    sequences: Sequence[str],
+    path: Path,
+    description: str,
+    profile: DatasetProfile | None = None,
+    workers: int | None = None,
+) -> None:
+    """The job's predictions as a reproducible zip with explicit directory entries, as
+    `sequences/<id as on disk>/predictions/NNNNNN.label` for every profile (default semantickitti).
+
+    When the profile is SemanticKITTI's and all the sequences are its test sequences, the archive
+    holds the directory entries of every test sequence, as the benchmark server wants, so it
+    passes the submission validator. The labels are read and deflated in `workers` threads
+    (default: every CPU this process may use); the archive's bytes do not depend on it.
+    """
+    names = list(dict.fromkeys(sequences))
+    benchmark = (profile or load_profile(None)).name == DEFAULT_PROFILE
+    if benchmark and all(s in TEST_SEQUENCES for s in names):
+        directories = list(required_directories())
+    else:
+        directories = ["sequences/"]
+        for seq in sorted(names):
+            directories += [f"sequences/{seq}/", f"sequences/{seq}/predictions/"]
+    with atomic_path(path) as tmp, ReproducibleZip(tmp) as zf:
+        for name in directories:
+            zf.add_directory(name)
+        zf.add_files(
+            (
+                (
+                    f"sequences/{entry.sequence}/predictions/{entry.name}.label",
+                    prediction_path(pred_root, entry.sequence, entry.name).read_bytes,
+                )
+                for entry in entries
+            ),
+            workers,
+        )
+        zf.add_file("description.txt", description.rstrip("\n") + "\n")
+
+
+def write_report(
+    dataset: Path,
+    pred_root: Path,
+    labelled: Sequence[str],
+    folder: Path,
+    profile: DatasetProfile,
+    checkpoint_sha256: str | None,
+    precision: str | None,
+    backend: str,
+) -> tuple[Path, dict]:
+    """Evaluate the `labelled` sequences' predictions into `folder`'s report and its plots, noting
+    the `precision` and inference `backend` the network ran with; the report's path and the
+    job's metrics (miou, accuracy, iou by class name)."""
+    report = evaluate_predictions(
+        dataset,
+        pred_root,
+        list(labelled),
+        checkpoint_sha256=checkpoint_sha256,
+        profile=profile,
+    )
+    report.precision = precision
+    report.backend = backend
+    path = folder / REPORT_JSON
+    report.write_json(path)
+    write_plots(report, folder / PLOTS_DIR, profile.labels)
+    metrics = {"miou": report.miou, "accuracy": report.accuracy, "iou": report.iou_by_name()}
+    return path, metrics
+
+
+def report_plots(record: JobRecord) -> list[str]:
+    """The names of a succeeded labelled job's report PNGs (none for other jobs)."""
+    if record.state is not JobState.succeeded or not record.report:
+        return []
+    folder = Path(record.report).parent / PLOTS_DIR
+    try:
+        return sorted(p.name for p in folder.iterdir() if PLOT_NAME.fullmatch(p.name))
+    except OSError:
+        return []
+
+
+def plot_path(record: JobRecord, name: str) -> Path | None:
+    """The file of the job's report PNG `name`; None when the job has no such plot."""
+    if name not in report_plots(record):
+        return None
+    return Path(record.report).parent / PLOTS_DIR / name

@@ -1,0 +1,181 @@
+"""A claimed job's work, from its folder to its final record.
+
+`JobWork.run` checks the job may still be read as it was accepted (the profile its folder
+records, scans that stay under the read roots), predicts every scan not yet written into
+`<job>/predictions` with the executor, checks every prediction is there, writes the predictions
+zip and, for the sequences with ground truth, the evaluation report and its plots, then stores
+the job's final record. Everything is read with the gateway's dataset profile (layout, point
+record, labels). When the runner stops the job first (a cancel, or the gateway stopping), it
+returns without a final record and the scheduler decides what becomes of the job.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from rangeret.dataset.layout import ScanEntry, is_complete, list_scans, prediction_path
+from rangeret.dataset.profiles import DatasetProfile
+from service.jobs.executors import JobControl, JobExecutor
+from service.jobs.reasons import scrub
+from service.jobs.results import (
+    PREDICTIONS_ZIP,
+    labelled_sequences,
+    predictions_description,
+    write_predictions_zip,
+    write_report,
+)
+from service.jobs.store import JobRecord, JobStore
+from service.paths import escaping_scans, outside_roots_sentence
+from service.schemas import JobState
+
+#: The file in a job's folder that names the profile the job was accepted for.
+PROFILE_FILE = "profile.txt"
+#: The folder in a job's folder its predictions are written to.
+PREDICTIONS_DIR = "predictions"
+
+
+def accepted_profile(folder: Path) -> str | None:
+    """The profile name a job's folder records; None for a job from before it was recorded."""
+    try:
+        return (folder / PROFILE_FILE).read_text().strip() or None
+    except FileNotFoundError:
+        return None
+
+
+class JobWork:
+    """Does the work of one claimed job at a time (one instance serves every runner thread).
+
+    `read_roots`, when given, are the folders (resolved) the job's scans must lie under when
+    they are read; `on_scans` is told of every batch of newly written predictions.
+    """
+
+    def __init__(
+        self,
+        store: JobStore,
+        executor: JobExecutor,
+        profile: DatasetProfile,
+        checkpoint_sha256: str | None = None,
+        read_roots: Sequence[Path] | None = None,
+        on_scans: Callable[[int], None] | None = None,
+    ) -> None:
+        self.store = store
+        self.executor = executor
+        self.profile = profile
+        self.checkpoint_sha256 = checkpoint_sha256
+        self.read_roots = None if read_roots is None else list(read_roots)
+        self.on_scans = on_scans
+
+    def run(self, job: JobRecord, folder: Path, control: JobControl) -> bool:
+        """Do `job`'s work in its `folder` and store its final record (succeeded or failed);
+        False when `control` was set before the predictions were through (nothing final
+        stored). `JobError` and other exceptions are the caller's to record."""
+        dataset = Path(job.dataset)
+        out = folder / PREDICTIONS_DIR
+        refusal = self._profile_refusal(folder)
+        if refusal is not None:
+            self.store.finish(job.id, JobState.failed, reason=refusal)
+            return True
+        entries = list_scans(dataset, job.sequences, layout=self.profile.layout)
+        escaping = escaping_scans(entries, self.read_roots) if self.read_roots else []
+        if escaping:
+            self.store.finish(
+                job.id, JobState.failed, reason=outside_roots_sentence(escaping, "The job")
+            )
+            return True
+        failures = self._predict(job, entries, out, control)
+        if control.is_set():
+            return False
+        if failures:
+            self.store.finish(
+                job.id,
+                JobState.failed,
+                reason=f"{len(failures)} of {len(entries)} scans could not be predicted (see errors)",
+                errors=[
+                    f"{key}: {scrub(reason, folder, self.read_roots)}"
+                    for key, reason in failures.items()
+                ],
+            )
+            return True
+        missing = self._missing(job, entries, folder, out)
+        if missing is not None:
+            self.store.finish(job.id, JobState.failed, reason=missing)
+            return True
+        self.store.progress(job.id, len(entries), len(entries), 0)
+        self._finish(job, entries, folder, out)
+        return True
+
+    def _profile_refusal(self, folder: Path) -> str | None:
+        """Why a job accepted for another profile than the served one is not read; None when
+        it was accepted for this one (or before profiles were recorded)."""
+        accepted = accepted_profile(folder)
+        if accepted is None or accepted == self.profile.name:
+            return None
+        return (
+            f"the job was accepted for the {accepted} profile, and the gateway now "
+            f"serves the {self.profile.name} profile"
+        )
+
+    def _predict(
+        self, job: JobRecord, entries: list[ScanEntry], out: Path, control: JobControl
+    ) -> dict[str, str]:
+        """Predict the scans not yet written, keeping the job's progress (and the scan count)
+        up to date; the failures by scan key."""
+        record = self.profile.points
+        skipped = sum(is_complete(e, out, record) for e in entries)
+        self.store.progress(job.id, len(entries), skipped, 0)
+        counted = [0]
+
+        def progress(seen: int, failed: int, _pending: int) -> None:
+            written = seen - failed
+            self.store.progress(job.id, len(entries), skipped + written, failed)
+            if self.on_scans is not None and written > counted[0]:
+                self.on_scans(written - counted[0])
+                counted[0] = written
+
+        return self.executor.predict(
+            entries, Path(job.dataset), job.sequences, out, progress, control
+        )
+
+    def _missing(
+        self, job: JobRecord, entries: list[ScanEntry], folder: Path, out: Path
+    ) -> str | None:
+        """Why the job fails when predictions are missing from its folder once they were all
+        written (it was changed meanwhile), with the progress set back; None when all are there."""
+        missing = [e for e in entries if not is_complete(e, out, self.profile.points)]
+        if not missing:
+            return None
+        self.store.progress(job.id, len(entries), len(entries) - len(missing), 0)
+        shown = ", ".join(
+            prediction_path(out, e.sequence, e.name).relative_to(folder).as_posix()
+            for e in missing[:5]
+        )
+        return (
+            f"{len(missing)} of {len(entries)} predictions are missing from the job's "
+            f"folder ({shown}{', ...' if len(missing) > 5 else ''}): it was changed or "
+            "removed while the job ran"
+        )
+
+    def _finish(self, job: JobRecord, entries: list[ScanEntry], folder: Path, out: Path) -> None:
+        """Write the predictions zip and, for labelled sequences, the report and its plots;
+        store the job as succeeded with them."""
+        dataset = Path(job.dataset)
+        zip_path = folder / PREDICTIONS_ZIP
+        description = predictions_description(self.checkpoint_sha256, self.profile)
+        write_predictions_zip(out, entries, job.sequences, zip_path, description, self.profile)
+        metrics = report_path = None
+        labelled = labelled_sequences(dataset, job.sequences, self.profile.layout)
+        if labelled:
+            report_path, metrics = write_report(
+                dataset,
+                out,
+                labelled,
+                folder,
+                self.profile,
+                self.checkpoint_sha256,
+                self.executor.precision,
+                self.executor.inference_backend,
+            )
+        self.store.finish(
+            job.id, JobState.succeeded, metrics=metrics, predictions=zip_path, report=report_path
+        )

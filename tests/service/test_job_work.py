@@ -1,0 +1,162 @@
+"""A claimed job's work on its own (`service.jobs.work.JobWork`), without runner threads: the
+results and final record it writes, and each way it fails or stops."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from rangeret.dataset.profiles import load_profile
+from service.jobs import JobControl, JobStore, JobWork
+from service.jobs.work import PROFILE_FILE, accepted_profile
+from service.schemas import JobState
+from tests.support.jobs import FakeExecutor
+from tests.support.trees import make_tree
+
+KITTI = load_profile(None)
+
+
+@pytest.fixture
+def store(tmp_path: Path):
+    store = JobStore(tmp_path / "jobs.sqlite")
+    yield store
+    store.close()
+
+
+def _claimed(store: JobStore, tmp_path: Path, data: Path, sequences: list[str]):
+    """A running job over `sequences` of `data` and its (empty) folder."""
+    folder = tmp_path / "jobs" / "job1"
+    folder.mkdir(parents=True)
+    store.create("job1", "dataset", data, sequences)
+    store.start("job1")
+    return store.get("job1"), folder
+
+
+class FailingExecutor(FakeExecutor):
+    """Writes every prediction but reports the first scan as failed, naming a server path."""
+
+    def predict(self, entries, dataset, sequences, out, progress, cancel):
+        super().predict(entries, dataset, sequences, out, progress, cancel)
+        return {entries[0].key: f"cannot read {out}/x.label: [Errno 5] Input/output error"}
+
+
+class SilentExecutor(FakeExecutor):
+    """Reports success and writes nothing."""
+
+    def predict(self, entries, dataset, sequences, out, progress, cancel):
+        return {}
+
+
+class StoppingExecutor(FakeExecutor):
+    """Sets the job's control, as a cancel or a gateway stop does, then returns."""
+
+    def predict(self, entries, dataset, sequences, out, progress, cancel):
+        cancel.set()
+        return {}
+
+
+def test_a_labelled_job_succeeds_with_its_zip_report_plots_and_metrics(store, tmp_path):
+    data = tmp_path / "data"
+    make_tree(data, {"08": [30, 40], "11": [20]})
+    job, folder = _claimed(store, tmp_path, data, ["08", "11"])
+    counted: list[int] = []
+    work = JobWork(
+        store, FakeExecutor(), KITTI, checkpoint_sha256="ab" * 32, on_scans=counted.append
+    )
+    assert work.run(job, folder, JobControl(job.id, store)) is True
+    record = store.get(job.id)
+    assert record.state is JobState.succeeded and (record.total, record.done) == (3, 3)
+    assert sum(counted) == 3
+    assert Path(record.predictions) == folder / "predictions.zip"
+    with zipfile.ZipFile(record.predictions) as zf:
+        assert "sequences/11/predictions/000000.label" in zf.namelist()
+        assert "ab" * 32 in zf.read("description.txt").decode()
+    report = json.loads(Path(record.report).read_text())
+    assert report["sequences"] == ["08", "11"] and report["num_scans"] == 3
+    assert (report["precision"], report["backend"]) == ("fp32", "torch")
+    assert set(record.metrics) == {"miou", "accuracy", "iou"}
+    assert any((folder / "plots").glob("*.png"))
+
+
+def test_an_unlabelled_job_succeeds_without_a_report(store, tmp_path):
+    data = tmp_path / "data"
+    make_tree(data, {"08": [30]}, labelled=False)
+    job, folder = _claimed(store, tmp_path, data, ["08"])
+    assert JobWork(store, FakeExecutor(), KITTI).run(job, folder, JobControl(job.id, store))
+    record = store.get(job.id)
+    assert record.state is JobState.succeeded and record.report is None
+    assert record.metrics is None and Path(record.predictions).is_file()
+    assert not (folder / "plots").exists()
+
+
+def test_a_job_stopped_while_it_predicts_is_left_without_a_final_record(store, tmp_path):
+    data = tmp_path / "data"
+    make_tree(data, {"08": [30]}, labelled=False)
+    job, folder = _claimed(store, tmp_path, data, ["08"])
+    control = JobControl(job.id, store)
+    assert JobWork(store, StoppingExecutor(), KITTI).run(job, folder, control) is False
+    assert control.is_set() and store.get(job.id).state is JobState.running
+    assert not (folder / "predictions.zip").exists()
+
+
+def test_failed_scans_fail_the_job_with_errors_free_of_server_paths(store, tmp_path):
+    data = tmp_path / "data"
+    make_tree(data, {"08": [30, 40]}, labelled=False)
+    job, folder = _claimed(store, tmp_path, data, ["08"])
+    assert JobWork(store, FailingExecutor(), KITTI).run(job, folder, JobControl(job.id, store))
+    record = store.get(job.id)
+    assert record.state is JobState.failed
+    assert record.reason == "1 of 2 scans could not be predicted (see errors)"
+    assert record.errors == ["08/000000: cannot read predictions/x.label: Input/output error"]
+
+
+def test_predictions_missing_once_written_fail_the_job_naming_them(store, tmp_path):
+    data = tmp_path / "data"
+    make_tree(data, {"08": [30, 40]}, labelled=False)
+    job, folder = _claimed(store, tmp_path, data, ["08"])
+    assert JobWork(store, SilentExecutor(), KITTI).run(job, folder, JobControl(job.id, store))
+    record = store.get(job.id)
+    assert record.state is JobState.failed and record.done == 0
+    assert record.reason.startswith("2 of 2 predictions are missing from the job's folder")
+    assert "predictions/sequences/08/predictions/000000.label" in record.reason
+    assert str(tmp_path) not in record.reason
+
+
+def test_a_job_accepted_for_another_profile_is_not_read(store, tmp_path):
+    data = tmp_path / "data"
+    make_tree(data, {"08": [30]}, labelled=False)
+    job, folder = _claimed(store, tmp_path, data, ["08"])
+    (folder / PROFILE_FILE).write_text("pandaset\n")
+    assert accepted_profile(folder) == "pandaset"
+    assert JobWork(store, FakeExecutor(), KITTI).run(job, folder, JobControl(job.id, store))
+    record = store.get(job.id)
+    assert record.state is JobState.failed
+    assert record.reason == (
+        "the job was accepted for the pandaset profile, and the gateway now serves the "
+        "semantickitti profile"
+    )
+    assert not (folder / "predictions").exists()
+
+
+def test_a_folder_without_a_profile_file_is_read_in_the_served_profile(store, tmp_path):
+    data = tmp_path / "data"
+    make_tree(data, {"08": [30]}, labelled=False)
+    job, folder = _claimed(store, tmp_path, data, ["08"])
+    assert accepted_profile(folder) is None
+    assert JobWork(store, FakeExecutor(), KITTI).run(job, folder, JobControl(job.id, store))
+    assert store.get(job.id).state is JobState.succeeded
+
+
+def test_scans_outside_the_read_roots_fail_the_job_before_it_predicts(store, tmp_path):
+    data = tmp_path / "data"
+    make_tree(data, {"08": [30]}, labelled=False)
+    job, folder = _claimed(store, tmp_path, data, ["08"])
+    executor = FakeExecutor()
+    work = JobWork(store, executor, KITTI, read_roots=[(tmp_path / "elsewhere").resolve()])
+    assert work.run(job, folder, JobControl(job.id, store))
+    record = store.get(job.id)
+    assert record.state is JobState.failed and "outside the data roots" in record.reason
+    assert record.reason.startswith("The job has 1 scan(s)") and not executor.started.is_set()
