@@ -15,7 +15,7 @@ from rangeret.models import list_models
 from rangeret.models.configs import OVERRIDES
 from rangeret.options import add_precision_option, add_profile_option, add_projection_options
 from rangeret.plugins import TRAIN_BACKENDS_GROUP, TrainBackend, load_plugins
-from rangeret.training.config import TrainConfig, profile_reference
+from rangeret.training.config import TrainConfig, TrainConfigError, profile_reference
 from rangeret.training.losses import LOSSES, WEIGHTINGS
 from rangeret.training.range_mixes import MIXES
 from rangeret.training.schedule import SCHEDULES
@@ -212,7 +212,7 @@ def parse_override(text: str) -> tuple[str, Any]:
     name, sep, value = text.partition("=")
     name = name.strip().replace("-", "_")
     if not sep or name not in OVERRIDES:
-        raise ValueError(
+        raise TrainConfigError(
             f"--override takes NAME=VALUE with NAME one of {', '.join(OVERRIDES)}, got {text!r}"
         )
     value = value.strip()
@@ -232,7 +232,7 @@ def precision_from_args(args: argparse.Namespace) -> str:
     if not args.no_amp:
         return args.precision
     if args.precision not in ("auto", "fp32"):
-        raise ValueError(
+        raise TrainConfigError(
             f"--no-amp means --precision fp32 and contradicts --precision {args.precision}: "
             "give one of them"
         )

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rangeret.exceptions import InputError
 from rangeret.io.atomic import atomic_path, atomic_write_bytes
 
 POINT_BYTES = 16
@@ -63,7 +64,7 @@ class PointRecord:
 KITTI_RECORD = PointRecord()
 
 
-class ScanFormatError(ValueError):
+class ScanFormatError(InputError, ValueError):
     """A scan or label file (or buffer) that is not valid SemanticKITTI data."""
 
     def __init__(self, source: str | os.PathLike[str], problem: str) -> None:

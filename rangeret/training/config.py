@@ -24,6 +24,7 @@ from rangeret.dataset.profiles import (
     load_profile,
 )
 from rangeret.dataset.projection import ProjectionConfig
+from rangeret.exceptions import ConfigError
 from rangeret.inference.runtime.precision import PRECISIONS
 from rangeret.training.losses import LOSSES, WEIGHTINGS
 from rangeret.training.range_mixes import MIXES
@@ -39,6 +40,10 @@ RUNTIME_FIELDS = (
     "device",
     "checkpoint_every",
 )
+
+
+class TrainConfigError(ConfigError, ValueError):
+    """Training settings that cannot be used: out of range, contradictory or unknown."""
 
 
 @dataclass(frozen=True)
@@ -139,7 +144,7 @@ class TrainConfig:
         ]
         for ok, message in checks:
             if not ok:
-                raise ValueError(message)
+                raise TrainConfigError(message)
 
     def dataset_profile(self, labels: LabelConfig | None = None) -> DatasetProfile:
         """The profile this run trains with: `profile` with the explicit projection options and
@@ -191,7 +196,7 @@ class TrainConfig:
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(values) - names)
         if unknown:
-            raise ValueError(f"unknown training settings: {', '.join(unknown)}")
+            raise TrainConfigError(f"unknown training settings: {', '.join(unknown)}")
         for key in ("train_sequences", "val_sequences", "losses", "mixes"):
             if values.get(key) is not None:
                 values[key] = tuple(values[key])

@@ -58,6 +58,7 @@ from rangeret.dataset.labels import LabelConfig
 from rangeret.dataset.layout import DatasetLayoutError, ScanEntry, discover, resolve_sequences
 from rangeret.dataset.profiles import DatasetProfile, ProfileError, profile_of_record
 from rangeret.evaluation.metrics import ConfusionMatrix
+from rangeret.exceptions import InputError
 from rangeret.inference.point_labels import point_classes
 from rangeret.inference.runtime.device import select_device
 from rangeret.inference.runtime.precision import forward_precision, resolve_precision
@@ -90,6 +91,14 @@ VAL_METRICS = (
     "val_miou_knn",
     "val_acc_knn",
 )
+
+
+class TrainingStateError(InputError, ValueError):
+    """A training state that cannot be resumed, or an output folder that already holds a run."""
+
+
+class TrainingStateMissing(InputError, FileNotFoundError):
+    """--resume names an output folder without a training state."""
 
 
 @dataclass(frozen=True)
@@ -275,17 +284,17 @@ def read_state(path: Path, config: TrainConfig, profile: DatasetProfile) -> dict
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:
-        raise ValueError(f"{path} cannot be read as a training state: {exc}") from exc
+        raise TrainingStateError(f"{path} cannot be read as a training state: {exc}") from exc
     if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
-        raise ValueError(f"{path} is not a training state written by rangeret.training")
+        raise TrainingStateError(f"{path} is not a training state written by rangeret.training")
     if state.get("format_version") != STATE_VERSION:
-        raise ValueError(
+        raise TrainingStateError(
             f"{path} has state version {state.get('format_version')!r}; this code reads {STATE_VERSION}"
         )
     stored = TrainConfig.from_dict(state["config"])
     recorded = profile_of_record(state.get("profile"), str(path))
     if recorded.name != profile.name:
-        raise ValueError(
+        raise TrainingStateError(
             f"cannot resume {path}: the run was started with the {recorded.name} profile and "
             f"cannot continue with the {profile.name} profile (pass --profile {stored.profile})"
         )
@@ -297,7 +306,7 @@ def read_state(path: Path, config: TrainConfig, profile: DatasetProfile) -> dict
     if not changed and "profile" in state and recorded.to_dict() != profile.to_dict():
         changed = [f"the {recorded.name} profile's contents changed"]
     if changed:
-        raise ValueError(
+        raise TrainingStateError(
             f"cannot resume {path}: the run was started with other settings ({'; '.join(changed)})"
         )
     return state
@@ -338,9 +347,9 @@ class Trainer:
 
         state_path = self.out / STATE
         if config.resume and not state_path.exists():
-            raise FileNotFoundError(f"cannot resume: {state_path} does not exist")
+            raise TrainingStateMissing(f"cannot resume: {state_path} does not exist")
         if not config.resume and state_path.exists():
-            raise ValueError(
+            raise TrainingStateError(
                 f"{self.out} already holds a training run ({STATE}): pass --resume to continue it, or choose another folder"
             )
         state = read_state(state_path, config, self.profile) if config.resume else None

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from rangeret.exceptions import ModelError
 from rangeret.io.atomic import atomic_write_bytes
 from rangeret.models.configs import OVERRIDES, ModelConfig, list_models, resolve_config
 from rangeret.models.network import RangeRet
@@ -42,7 +43,7 @@ FORMAT_VERSION = 1
 _LISTED = 8
 
 
-class CheckpointError(ValueError):
+class CheckpointError(ModelError, ValueError):
     """A file that is not a loadable RangeRet checkpoint, or does not fit the network asked for."""
 
 
