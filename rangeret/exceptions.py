@@ -32,6 +32,15 @@ class InputError(RangeRetError):
     """A file or value given to a command that cannot be used: a scan, a report, an option."""
 
 
+class InputFileMissing(InputError, FileNotFoundError):
+    """A file a command was given does not exist; reads as the `FileNotFoundError` it replaces."""
+
+    @classmethod
+    def of(cls, exc: FileNotFoundError) -> InputFileMissing:
+        """The same error (number, message, file name) as one a command reports in one line."""
+        return cls(exc.errno, exc.strerror, exc.filename)
+
+
 class DatasetError(RangeRetError):
     """A dataset, predictions tree or submission archive that is incomplete or laid out wrong."""
 

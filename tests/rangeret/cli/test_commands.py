@@ -292,3 +292,10 @@ def test_the_error_path_imports_only_the_error_hierarchy():
         if alias.name.startswith("rangeret")
     }
     assert project == {"rangeret.exceptions"}
+
+
+def test_a_missing_input_file_is_one_line(tmp_path, capsys):
+    missing = tmp_path / "nope.bin"
+    assert main(["view", str(missing), "--out", str(tmp_path / "v.png")]) == 1
+    err = capsys.readouterr().err
+    assert err == f"rangeret view: error: [Errno 2] No such file or directory: '{missing}'\n"
