@@ -16,9 +16,8 @@ import typing
 from pathlib import Path
 from typing import Any
 
-from rangeret.training.config import TrainConfig
+from rangeret.training.config import TrainConfig, TrainConfigError
 from rangeret.training.config_file import (
-    ConfigError,
     field_choices,
     read_config_file,
     split_optional,
@@ -137,7 +136,7 @@ def precision_from_args(args: argparse.Namespace, configured: str | None) -> str
     if not getattr(args, "no_amp", False):
         return given if given is not None else configured
     if given not in (None, "auto", "fp32"):
-        raise ValueError(
+        raise TrainConfigError(
             f"--no-amp means --precision fp32 and contradicts --precision {given}: give one of them"
         )
     return "fp32"
@@ -164,7 +163,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
             values[f.name] = f.metadata["resolve"](values[f.name])
     missing = [f for f in fields if f.metadata.get("required") and f.name not in values]
     if missing:
-        raise ConfigError(
+        raise TrainConfigError(
             f"the following settings are required: {', '.join(option_flag(f) for f in missing)}"
             + (f" (on the command line or in {source})" if source else " (or give --config FILE)")
         )

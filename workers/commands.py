@@ -72,10 +72,11 @@ def _ray_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _train_on_ray(config: TrainConfig, args: argparse.Namespace) -> None:
+    from rangeret.training.config import TrainConfigError
     from workers.train_job import run_ray
 
     if args.workers < 1:
-        raise ValueError(f"--workers must be at least 1, got {args.workers}")
+        raise TrainConfigError(f"--workers must be at least 1, got {args.workers}")
     run_ray(config, workers=args.workers)
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from rangeret.dataset.layout import discover, prediction_path
-from rangeret.dataset.profiles import DEFAULT_PROFILE, DatasetProfile
+from rangeret.dataset.profiles import DEFAULT_PROFILE, DatasetProfile, ProfileError
 from rangeret.dataset.projection import project_with
 from rangeret.evaluation.evaluate import evaluate_predictions
 from rangeret.evaluation.plots import plot_range_image, write_plots
@@ -54,7 +54,7 @@ def run_demo(
     import ray
 
     if profile is not None and profile.name != DEFAULT_PROFILE and checkpoint is None:
-        raise ValueError(
+        raise ProfileError(
             f"the bundled demo weights are SemanticKITTI's: rangeret demo --profile {profile.name} "
             "needs --checkpoint with a network for that profile"
         )

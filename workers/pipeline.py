@@ -41,6 +41,7 @@ from rangeret.dataset.layout import ScanEntry, prediction_path
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.evaluation.evaluate import count_scan
 from rangeret.evaluation.metrics import RawLabelEvaluator
+from rangeret.exceptions import ResourceError
 from rangeret.inference.timing import StageTimes
 from workers.stages import ROW_COLUMN, BatchRecord, Reader, Writer
 
@@ -73,7 +74,7 @@ CORES_PER_GPU_WRITER = 8
 and projecting it about 20 ms, so one writer keeps up with several readers."""
 
 
-class ClusterCapacityError(ValueError):
+class ClusterCapacityError(ResourceError, ValueError):
     """The cluster cannot start the model actors the run asked for."""
 
 
@@ -246,7 +247,7 @@ def plan_layout(options: PipelineOptions) -> Layout:
     gpus = cluster_gpus()
     use_gpu = gpus > 0 if options.use_gpu is None else options.use_gpu
     if use_gpu and not gpus:
-        raise ValueError("GPU actors were asked for but the Ray cluster has no GPU")
+        raise ClusterCapacityError("GPU actors were asked for but the Ray cluster has no GPU")
     if not use_gpu:
         actors, actor_cpus = _cpu_layout(options)
         return Layout("cpu", actors, actor_cpus, max(2, actors), max(2, actors))

@@ -21,9 +21,10 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from rangeret.commands import USER_ERRORS, CommandError, run_command
+from rangeret.commands import CommandError, run_command
 from rangeret.dataset.layout import is_complete, list_scans
 from rangeret.dataset.profiles import DEFAULT_PROFILE, DatasetProfile
+from rangeret.exceptions import RangeRetError
 from rangeret.inference.description import describe_network
 from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
 from rangeret.inference.runner import PredictSummary
@@ -127,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
     existed = Path(args.out).is_dir()
     try:
         return _run(args, recorder)
-    except (CommandError, *USER_ERRORS) as exc:
+    except RangeRetError as exc:
         if not recorder.finished and (existed or Path(args.out).is_dir()):
             try:
                 recorder.finish(error=exc.reason if isinstance(exc, CommandError) else str(exc))

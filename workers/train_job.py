@@ -32,13 +32,15 @@ from typing import Any
 import torch
 
 from rangeret.commands import run_command
+from rangeret.dataset.layout import DatasetLayoutError
 from rangeret.inference.runtime.precision import resolve_precision
 from rangeret.train_options import add_training_options, config_from_args
 from rangeret.training import TrainConfig, Trainer
-from rangeret.training.config import profile_reference
+from rangeret.training.config import TrainConfigError, profile_reference
 from rangeret.training.config_file import config_yaml
 from rangeret.training.data import find_scans, training_profile
 from rangeret.training.state import STATE, check_run_folder, read_state
+from workers.pipeline import ClusterCapacityError
 from workers.predict_job import connect
 from workers.train_options import add_ray_options
 
@@ -67,7 +69,7 @@ def use_gpus(device: str, workers: int) -> bool:
     if device == "cpu" or (device == "auto" and gpus == 0):
         return False
     if gpus < workers:
-        raise ValueError(
+        raise ClusterCapacityError(
             f"the Ray cluster has {gpus} GPU(s) for {workers} workers: pass --workers {gpus or 1}"
             + (" or --device cpu" if device == "auto" else "")
         )
@@ -85,7 +87,7 @@ def run_ray(config: TrainConfig, workers: int = 2, max_failures: int = 0) -> Pat
     from ray.train.torch import TorchConfig, TorchTrainer
 
     if workers < 1:
-        raise ValueError(f"the number of workers must be at least 1, got {workers}")
+        raise TrainConfigError(f"the number of workers must be at least 1, got {workers}")
     out = Path(config.out).resolve()
     config = dataclasses.replace(
         config,
@@ -98,7 +100,7 @@ def run_ray(config: TrainConfig, workers: int = 2, max_failures: int = 0) -> Pat
     if config.resume:
         read_state(state, config, profile)
     if not find_scans(config.dataset, config.train_sequences, "train", profile):
-        raise ValueError(f"no labelled training scan under {config.dataset}")
+        raise DatasetLayoutError(f"no labelled training scan under {config.dataset}")
     find_scans(config.dataset, config.val_sequences, "valid", profile)
 
     connect(None)

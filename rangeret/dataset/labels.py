@@ -15,9 +15,14 @@ from pathlib import Path
 import numpy as np
 
 from rangeret import DATA_DIR
+from rangeret.exceptions import ConfigError
 
 #: Raw labels are the low 16 bits of each uint32 in a `.label` file.
 SEMANTIC_MASK = 0xFFFF
+
+
+class LabelConfigError(ConfigError, ValueError):
+    """A label configuration that cannot be used: unreadable, inconsistent, or without a split."""
 
 
 @dataclass(frozen=True)
@@ -39,22 +44,24 @@ class LabelConfig:
         if len(self.class_names) != len(self.class_raw_ids) or len(self.ignored) != len(
             self.class_names
         ):
-            raise ValueError(
+            raise LabelConfigError(
                 "label configuration: classes, raw ids and ignore flags differ in length"
             )
         if self.unlabeled_class is None:
             default = self.raw_to_class.get(0, self.ignored.index(True) if any(self.ignored) else 0)
             object.__setattr__(self, "unlabeled_class", default)
         if not 0 <= self.unlabeled_class < self.num_classes:
-            raise ValueError(
+            raise LabelConfigError(
                 f"label configuration: the unlabeled class {self.unlabeled_class} is not a class"
             )
         lut = np.full(SEMANTIC_MASK + 1, self.unlabeled_class, dtype=np.uint8)
         for raw, cls in self.raw_to_class.items():
             if not 0 <= raw <= SEMANTIC_MASK:
-                raise ValueError(f"label configuration: raw id {raw} does not fit in 16 bits")
+                raise LabelConfigError(f"label configuration: raw id {raw} does not fit in 16 bits")
             if not 0 <= cls < self.num_classes:
-                raise ValueError(f"label configuration: raw id {raw} maps to unknown class {cls}")
+                raise LabelConfigError(
+                    f"label configuration: raw id {raw} maps to unknown class {cls}"
+                )
             lut[raw] = cls
         object.__setattr__(self, "_lut", lut)
 
@@ -114,7 +121,7 @@ class LabelConfig:
         try:
             return self.splits[name]
         except KeyError:
-            raise ValueError(
+            raise LabelConfigError(
                 f"unknown split {name!r}; the label configuration has {sorted(self.splits)}"
             ) from None
 
@@ -153,7 +160,7 @@ class LabelConfig:
         data = json.loads(Path(path).read_text())
         classes = sorted(data["classes"], key=lambda c: c["id"])
         if [c["id"] for c in classes] != list(range(len(classes))):
-            raise ValueError(f"{path}: training class ids must be 0..N-1 without gaps")
+            raise LabelConfigError(f"{path}: training class ids must be 0..N-1 without gaps")
         raw = data["raw_labels"]
         return cls(
             class_names=tuple(c["name"] for c in classes),
@@ -176,7 +183,7 @@ class LabelConfig:
         inv = {int(k): int(v) for k, v in data["learning_map_inv"].items()}
         n = len(inv)
         if sorted(inv) != list(range(n)):
-            raise ValueError(f"{path}: learning_map_inv must cover classes 0..N-1")
+            raise LabelConfigError(f"{path}: learning_map_inv must cover classes 0..N-1")
         names = data["labels"]
         ignore = data.get("learning_ignore", {0: True})
         return cls(

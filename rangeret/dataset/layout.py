@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from rangeret.dataset.labels import LabelConfig, semantickitti
+from rangeret.exceptions import DatasetError
 from rangeret.io.scans import (
     KITTI_RECORD,
     LABEL_BYTES,
@@ -28,7 +29,7 @@ from rangeret.io.scans import (
 log = logging.getLogger(__name__)
 
 
-class DatasetLayoutError(ValueError):
+class DatasetLayoutError(DatasetError, ValueError):
     """A dataset or predictions tree that does not have the expected layout or is missing files."""
 
 
@@ -45,9 +46,9 @@ class SequenceLayout:
 
     def __post_init__(self) -> None:
         if not self.sequence_folders:
-            raise ValueError("a layout needs at least one sequence folder")
+            raise DatasetLayoutError("a layout needs at least one sequence folder")
         if not 1 <= self.id_digits <= 8:
-            raise ValueError(f"id_digits must be 1 to 8, got {self.id_digits}")
+            raise DatasetLayoutError(f"id_digits must be 1 to 8, got {self.id_digits}")
 
     def sequences_root(self, root: Path | str) -> Path:
         """The folder that holds the sequence folders: the first candidate that exists."""
@@ -161,11 +162,13 @@ def resolve_sequences(
     any official split, so data outside the benchmark is served too.
     """
     if (split is None) == (sequences is None):
-        raise ValueError("give either a split or a list of sequences, not both and not neither")
+        raise DatasetLayoutError(
+            "give either a split or a list of sequences, not both and not neither"
+        )
     if sequences is not None:
         names = [layout.normalise(s) for s in sequences]
         if not names:
-            raise ValueError("the list of sequences is empty")
+            raise DatasetLayoutError("the list of sequences is empty")
         return sorted(dict.fromkeys(names))
     config = config or semantickitti()
     return list(config.split(split))

@@ -21,7 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 from rangeret.dataset.layout import DatasetLayoutError, ScanEntry, discover
-from rangeret.dataset.profiles import DatasetProfile
+from rangeret.dataset.profiles import DatasetProfile, ProfileError
 from rangeret.dataset.projection import ProjectionConfig, project_with
 from rangeret.io.scans import read_scan
 
@@ -189,7 +189,7 @@ def profile_stats(
     (in the profile's layout and point record), with the projection's checks; `max_scans` takes
     that many scans spread evenly over the selection."""
     if max_scans is not None and max_scans < 1:
-        raise ValueError(f"--max-scans must be at least 1, got {max_scans}")
+        raise ProfileError(f"--max-scans must be at least 1, got {max_scans}")
     found = discover(Path(root), sequences, layout=profile.layout)
     if found.problems:
         raise DatasetLayoutError("; ".join(found.problems))
@@ -210,7 +210,7 @@ def profile_stats(
             proj = project_with(points, config)
         except ValueError as exc:
             hint = f" (sensor.height is {config.height})" if laser_rows else ""
-            raise ValueError(f"{entry.scan_path}: {exc}{hint}") from exc
+            raise ProfileError(f"{entry.scan_path}: {exc}{hint}") from exc
         winners = proj.proj_idx[proj.mask]
         values = np.empty((winners.size, 5), dtype=np.float64)
         values[:, 0] = proj.proj_range[proj.mask]

@@ -20,6 +20,7 @@ from rangeret import DATA_DIR
 from rangeret.dataset.labels import LabelConfig
 from rangeret.dataset.layout import SequenceLayout
 from rangeret.dataset.projection import ROW_SOURCES, ProjectionConfig
+from rangeret.exceptions import ConfigError
 from rangeret.io.scans import PointRecord
 
 PROFILES_DIR = DATA_DIR / "profiles"
@@ -27,7 +28,7 @@ DEFAULT_PROFILE = "semantickitti"
 BUILTIN_PROFILES = ("semantickitti", "semantic-poss", "pandaset")
 
 
-class ProfileError(ValueError):
+class ProfileError(ConfigError, ValueError):
     """A profile that cannot be used: unknown name, unreadable file, or a field that is wrong."""
 
 

@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from rangeret.dataset.distance import point_ranges
+from rangeret.exceptions import InputError
 
 #: Normalisation of the five input channels (range, x, y, z, remission) on SemanticKITTI.
 CHANNEL_MEANS = (12.12, 10.88, 0.23, -1.04, 0.21)
@@ -23,6 +24,10 @@ CHANNEL_STDS = (12.32, 11.47, 6.91, 0.86, 0.16)
 
 #: Where a point's row comes from: its pitch, or its laser id (the fifth value of its record).
 ROW_SOURCES = ("pitch", "laser_id")
+
+
+class ProjectionError(InputError, ValueError):
+    """A projection that cannot be made: settings out of range, or points that do not fit it."""
 
 
 @dataclass(frozen=True)
@@ -40,15 +45,15 @@ class ProjectionConfig:
 
     def __post_init__(self) -> None:
         if self.height < 1 or self.width < 1:
-            raise ValueError(f"image size must be positive, got {self.height} x {self.width}")
+            raise ProjectionError(f"image size must be positive, got {self.height} x {self.width}")
         if abs(self.fov_up) + abs(self.fov_down) <= 0:
-            raise ValueError("the vertical field of view is empty (fov_up and fov_down are 0)")
+            raise ProjectionError("the vertical field of view is empty (fov_up and fov_down are 0)")
         if len(self.means) != 5 or len(self.stds) != 5:
-            raise ValueError("means and stds need one value per channel (5)")
+            raise ProjectionError("means and stds need one value per channel (5)")
         if any(not s > 0 for s in self.stds):
-            raise ValueError(f"stds must be positive, got {list(self.stds)}")
+            raise ProjectionError(f"stds must be positive, got {list(self.stds)}")
         if self.row not in ROW_SOURCES:
-            raise ValueError(f"row must be one of {', '.join(ROW_SOURCES)}, got {self.row!r}")
+            raise ProjectionError(f"row must be one of {', '.join(ROW_SOURCES)}, got {self.row!r}")
 
     def to_dict(self) -> dict:
         """Plain-data form, for checkpoints and reports."""
@@ -102,12 +107,12 @@ class Projection:
 
 
 def _laser_rows(lasers: np.ndarray, idx: np.ndarray, height: int) -> np.ndarray:
-    """Rows of the projected points `idx` from their laser ids; ValueError for an id off the image."""
+    """Rows of the projected points `idx` from their laser ids; ProjectionError for an id off the image."""
     rows = lasers[idx].astype(np.int32).astype(np.int64)
     bad = np.flatnonzero((rows < 0) | (rows >= height))
     if bad.size:
         first = int(idx[bad[0]])
-        raise ValueError(
+        raise ProjectionError(
             f"{bad.size} point(s) have a laser id outside the image's rows 0..{height - 1}, "
             f"the first at point index {first} (laser id {lasers[first]:g})"
         )
@@ -140,7 +145,7 @@ def project_with(points: np.ndarray, config: ProjectionConfig) -> Projection:
     pts = np.asarray(points)
     columns = 5 if config.row == "laser_id" else 4
     if pts.ndim != 2 or pts.shape[1] < columns:
-        raise ValueError(f"points must have shape (N, {columns}), got {pts.shape}")
+        raise ProjectionError(f"points must have shape (N, {columns}), got {pts.shape}")
     lasers = pts[:, 4] if config.row == "laser_id" else None
     pts = pts[:, :4].astype(np.float32, copy=False)
     h, w = config.height, config.width

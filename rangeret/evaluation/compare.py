@@ -16,9 +16,10 @@ from pathlib import Path
 import numpy as np
 
 from rangeret.dataset.profiles import DEFAULT_PROFILE
+from rangeret.exceptions import InputError
 
 
-class ComparisonError(ValueError):
+class ComparisonError(InputError, ValueError):
     """Reports that cannot be read or compared; the message names the file."""
 
 

@@ -23,12 +23,13 @@ from rangeret.dataset.layout import ScanEntry, confidence_path, discover, predic
 from rangeret.dataset.profiles import DatasetProfile, load_profile
 from rangeret.evaluation.calibration import Calibration
 from rangeret.evaluation.metrics import EvaluationReport, RawLabelEvaluator
+from rangeret.exceptions import DatasetError
 from rangeret.io.scans import PointRecord, ScanFormatError, read_confidence, read_labels, read_scan
 
 log = logging.getLogger(__name__)
 
 
-class EvaluationError(ValueError):
+class EvaluationError(DatasetError, ValueError):
     """Predictions or ground truth that cannot be evaluated; `problems` names every file."""
 
     def __init__(self, problems: Sequence[str]) -> None:

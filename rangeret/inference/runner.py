@@ -27,6 +27,7 @@ from rangeret.dataset.layout import (
 )
 from rangeret.inference.loading import load_batch
 from rangeret.inference.predictor import Predictor
+from rangeret.inference.runtime.backends import RuntimeChoiceError
 from rangeret.inference.timing import StageTimes
 from rangeret.io.run_info import write_run_info
 from rangeret.io.scans import (
@@ -94,7 +95,7 @@ def predict_tree(
     file that leads outside those folders when it is read is that scan's failure.
     """
     if batch_size < 1:
-        raise ValueError(f"--batch-size must be at least 1, got {batch_size}")
+        raise RuntimeChoiceError(f"--batch-size must be at least 1, got {batch_size}")
     out = Path(out)
     profile = predictor.profile
     entries = list_scans(dataset, sequences, layout=profile.layout)

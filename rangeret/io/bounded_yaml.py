@@ -10,6 +10,8 @@ from pathlib import Path
 
 import yaml
 
+from rangeret.exceptions import ConfigError
+
 #: The largest YAML file read (the built-in profiles are a few KB).
 MAX_BYTES = 1 << 20
 #: The deepest nesting of mappings and sequences.
@@ -18,7 +20,7 @@ MAX_DEPTH = 64
 MAX_VALUES = 1_000_000
 
 
-class YamlLimitError(ValueError):
+class YamlLimitError(ConfigError, ValueError):
     """A YAML file over one of the bounds, or not valid YAML; the message is one short line."""
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rangeret.exceptions import InputError
 from rangeret.io.atomic import atomic_write_bytes
 
 #: The vertex record written: position, colour and raw label.
@@ -39,7 +40,7 @@ PLY_TYPES = {
 _TYPE_NAMES = {"<f4": "float", "u1": "uchar", "<u4": "uint"}
 
 
-class PlyFormatError(ValueError):
+class PlyFormatError(InputError, ValueError):
     """A PLY file this reader cannot read, naming the file and the problem."""
 
     def __init__(self, source: str | os.PathLike[str], problem: str) -> None:

@@ -13,9 +13,14 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from rangeret.exceptions import InputError
 from rangeret.io.atomic import atomic_write_text
 
 RUN_INFO = "run.json"
+
+
+class RunInfoError(InputError, ValueError):
+    """A run record (run.json) that cannot be read."""
 
 
 def write_run_info(
@@ -54,7 +59,7 @@ def read_run_info(out: Path | str) -> dict[str, Any]:
     except FileNotFoundError:
         return {}
     except (OSError, ValueError) as exc:
-        raise ValueError(f"{path} is not a readable run record ({exc})") from exc
+        raise RunInfoError(f"{path} is not a readable run record ({exc})") from exc
     if not isinstance(record, dict):
-        raise ValueError(f"{path} is not a run record (a JSON object)")
+        raise RunInfoError(f"{path} is not a run record (a JSON object)")
     return record

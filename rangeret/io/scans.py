@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rangeret.exceptions import InputError, InputFileMissing
 from rangeret.io.atomic import atomic_path, atomic_write_bytes
 
 POINT_BYTES = 16
@@ -63,7 +64,7 @@ class PointRecord:
 KITTI_RECORD = PointRecord()
 
 
-class ScanFormatError(ValueError):
+class ScanFormatError(InputError, ValueError):
     """A scan or label file (or buffer) that is not valid SemanticKITTI data."""
 
     def __init__(self, source: str | os.PathLike[str], problem: str) -> None:
@@ -110,15 +111,22 @@ def read_scan(
     open file itself, so a link swapped in meanwhile is caught): else `ScanFormatError`.
     """
     path = Path(path)
-    if within is None:
-        return parse_scan(path.read_bytes(), str(path), record).copy()
+    try:
+        data = path.read_bytes() if within is None else _read_within(path, within)
+    except FileNotFoundError as exc:
+        raise InputFileMissing.of(exc) from exc
+    return parse_scan(data, str(path), record).copy()
+
+
+def _read_within(path: Path, within: Sequence[str | os.PathLike[str]]) -> bytes:
+    """The bytes of `path`, which must lie under one of the folders `within` (else
+    `ScanFormatError`), judged on the open file itself."""
     with open(path, "rb") as f:
         opened = _opened_path(f.fileno(), path)
         roots = [os.path.realpath(r) for r in within]
         if not any(opened == r or opened.startswith(r.rstrip(os.sep) + os.sep) for r in roots):
             raise ScanFormatError(path, "it leads outside the folders this run may read")
-        data = f.read()
-    return parse_scan(data, str(path), record).copy()
+        return f.read()
 
 
 def _opened_path(fd: int, path: Path) -> str:
@@ -148,7 +156,10 @@ def read_labels(path: str | os.PathLike[str], num_points: int | None = None) -> 
     With `num_points`, a file with another number of labels raises `ScanFormatError`.
     """
     path = Path(path)
-    size = path.stat().st_size
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError as exc:
+        raise InputFileMissing.of(exc) from exc
     if size % LABEL_BYTES:
         raise ScanFormatError(
             path, f"size {size} bytes is not a multiple of {LABEL_BYTES} (one uint32 per point)"

@@ -31,6 +31,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from rangeret.exceptions import ModelError
 from rangeret.models.blocks.decay import DECAYS
 from rangeret.models.blocks.embedding import patch_grid
 
@@ -38,6 +39,10 @@ FAMILIES = ("thesis", "cir")
 MIXERS = ("retention", "attention")
 REMS = ("conv", "linear")
 OVERRIDES = ("layers", "heads", "dim", "patch_size", "stride", "mixer", "decay", "rem", "residual")
+
+
+class ModelConfigError(ModelError, ValueError):
+    """A network that cannot be configured: an unknown model, override or size."""
 
 
 @dataclass(frozen=True)
@@ -180,10 +185,10 @@ def resolve_config(
 ) -> ModelConfig:
     """The configuration of network `name` at a resolution, with ablation switches applied."""
     if name not in CONFIGS:
-        raise ValueError(f"unknown model {name!r}; known models: {', '.join(list_models())}")
+        raise ModelConfigError(f"unknown model {name!r}; known models: {', '.join(list_models())}")
     unknown = sorted(set(overrides) - set(OVERRIDES))
     if unknown:
-        raise ValueError(
+        raise ModelConfigError(
             f"unknown overrides {', '.join(unknown)}; accepted: {', '.join(OVERRIDES)}"
         )
     values = {**CONFIGS[name], **overrides}
@@ -191,7 +196,7 @@ def resolve_config(
         values[field] = _pair(values[field], field)
     if values["mixer"] == "attention":
         if overrides.get("decay") is not None:
-            raise ValueError(
+            raise ModelConfigError(
                 "mixer 'attention' is softmax attention without decay; drop the decay override"
             )
         values["decay"] = None
@@ -204,7 +209,7 @@ def _pair(value: Any, field: str) -> tuple[int, int]:
         return (value, value)
     if isinstance(value, (list, tuple)) and len(value) == 2 and all(_is_int(v) for v in value):
         return (value[0], value[1])
-    raise ValueError(f"{field} must be an int or a pair of ints, got {value!r}")
+    raise ModelConfigError(f"{field} must be an int or a pair of ints, got {value!r}")
 
 
 def _is_int(value: Any) -> bool:
@@ -213,6 +218,6 @@ def _is_int(value: Any) -> bool:
 
 
 def _check(condition: bool, message: str) -> None:
-    """ValueError(message) unless `condition` holds."""
+    """ModelConfigError(message) unless `condition` holds."""
     if not condition:
-        raise ValueError(message)
+        raise ModelConfigError(message)

@@ -18,7 +18,7 @@ from rangeret.dataset.profiles import DatasetProfile, load_profile
 from rangeret.io.atomic import atomic_write_bytes
 from rangeret.io.scans import write_labels, write_scan
 from rangeret.sim.classes import raw_label_map
-from rangeret.sim.raycast import SensorConfig, simulate_scan
+from rangeret.sim.raycast import SensorConfig, SimulationError, simulate_scan
 from rangeret.sim.scene import make_scene
 
 #: Seconds between two scans (the HDL-64E spins at 10 Hz).
@@ -39,13 +39,13 @@ def _check_profile(profile: DatasetProfile, sensor: SensorConfig) -> None:
     """ValueError when the simulator cannot fill the profile's point record with this sensor."""
     fields = profile.points.fields
     if fields[4:] not in ((), ("laser_id",)):
-        raise ValueError(
+        raise SimulationError(
             f"profile {profile.name}: the simulator fills x, y, z, the reflectance and laser_id, "
             f"not the point field {fields[4]!r}"
         )
     height = profile.projection.height
     if profile.projection.row == "laser_id" and sensor.beams > height:
-        raise ValueError(
+        raise SimulationError(
             f"profile {profile.name} takes rows from laser ids 0..{height - 1}, "
             f"but the sensor has {sensor.beams} beams"
         )
@@ -83,14 +83,14 @@ def simulate_dataset(
     label_map = raw_label_map(profile)
     counts = {layout.normalise(name): int(n) for name, n in sequences.items()}
     if any(n < 0 for n in counts.values()):
-        raise ValueError(f"numbers of scans must be >= 0, got {counts}")
+        raise SimulationError(f"numbers of scans must be >= 0, got {counts}")
     if isinstance(labelled, bool):
         with_labels = set(counts) if labelled else set()
     else:
         with_labels = {layout.normalise(name) for name in labelled}
         unknown = sorted(with_labels - set(counts))
         if unknown:
-            raise ValueError(f"labelled sequences {unknown} are not among the sequences")
+            raise SimulationError(f"labelled sequences {unknown} are not among the sequences")
 
     bar = None
     if progress:

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Literal, overload
 
 import numpy as np
 
+from rangeret.exceptions import InputError
 from rangeret.sim.scene import (
     OUTLIER,
     REMISSION,
@@ -39,6 +40,10 @@ for _raw, _value in REMISSION.items():
     _REMISSION_LUT[_raw] = _value
 
 
+class SimulationError(InputError, ValueError):
+    """A simulation that cannot be run as asked: a sensor out of range or a profile it cannot fill."""
+
+
 @dataclass
 class SensorConfig:
     """A spinning multi-beam LiDAR: beams evenly spread from `fov_up` to `fov_down` (degrees), the
@@ -56,17 +61,17 @@ class SensorConfig:
 
     def __post_init__(self) -> None:
         if self.beams < 1 or self.azimuth_steps < 1:
-            raise ValueError(
+            raise SimulationError(
                 f"beams and azimuth_steps must be positive, got {self.beams} x {self.azimuth_steps}"
             )
         if not self.fov_down < self.fov_up or not -90 < self.fov_down <= self.fov_up < 90:
-            raise ValueError(
+            raise SimulationError(
                 f"need -90 < fov_down < fov_up < 90 degrees, got {self.fov_down}, {self.fov_up}"
             )
         if self.height <= 0 or self.max_range <= 0:
-            raise ValueError("height and max_range must be positive")
+            raise SimulationError("height and max_range must be positive")
         if self.range_noise < 0 or not 0 <= self.dropout < 1:
-            raise ValueError("range_noise must be >= 0 and dropout in [0, 1)")
+            raise SimulationError("range_noise must be >= 0 and dropout in [0, 1)")
 
     @classmethod
     def for_profile(cls, profile: DatasetProfile, azimuth_steps: int | None = None) -> SensorConfig:

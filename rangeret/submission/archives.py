@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from rangeret.dataset.labels import LabelConfig, semantickitti
 from rangeret.dataset.layout import ScanEntry, discover, prediction_path
+from rangeret.exceptions import DatasetError
 from rangeret.io.atomic import atomic_path
 from rangeret.io.scans import LABEL_BYTES, ScanFormatError, scan_num_points
 from rangeret.io.zipfiles import DeflatedFile, ReproducibleZip, deflate_file, map_ahead
@@ -50,7 +51,7 @@ _LABEL_ENTRY = re.compile(r"^sequences/(\d\d)/predictions/([^/]+)\.label$")
 _MAX_LISTED = 50
 
 
-class SubmissionError(ValueError):
+class SubmissionError(DatasetError, ValueError):
     """An archive (or the predictions for one) that the benchmark server would refuse."""
 
     def __init__(self, problems: Sequence[str]) -> None:

@@ -20,6 +20,7 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from rangeret.exceptions import InputError
 from rangeret.models.weights.demo import DEMO_WARNING
 
 DEFAULT_NAME = "Anonymous"
@@ -34,7 +35,7 @@ OPTIONS = {"name": "--method-name", "pdf_url": "--pdf-url", "code_url": "--code-
 _URL = re.compile(r"^https?://\S+$")
 
 
-class LeaderboardError(ValueError):
+class LeaderboardError(InputError, ValueError):
     """A leaderboard value that cannot be written: empty, more than one line, or not a link."""
 
 

@@ -29,6 +29,7 @@ from rangeret.dataset.profiles import (
     load_profile,
 )
 from rangeret.dataset.projection import ProjectionConfig
+from rangeret.exceptions import ConfigError
 from rangeret.inference.runtime.precision import PRECISIONS
 from rangeret.models.configs import OVERRIDES, list_models
 from rangeret.training.losses import LOSSES, WEIGHTINGS
@@ -46,6 +47,11 @@ RUNTIME_FIELDS = (
     "checkpoint_every",
 )
 DEVICES = ("auto", "cpu", "cuda")
+
+
+class TrainConfigError(ConfigError, ValueError):
+    """Training settings that cannot be used: unknown, out of range, contradictory, or a
+    configuration file that does not hold them."""
 
 
 def profile_reference(name_or_path: str | Path | None) -> str:
@@ -67,7 +73,7 @@ def parse_override(text: str) -> tuple[str, Any]:
     name, sep, value = text.partition("=")
     name = name.strip().replace("-", "_")
     if not sep or name not in OVERRIDES:
-        raise ValueError(
+        raise TrainConfigError(
             f"--override takes NAME=VALUE with NAME one of {', '.join(OVERRIDES)}, got {text!r}"
         )
     value = value.strip()
@@ -354,7 +360,7 @@ class TrainConfig:
         ]
         for ok, message in checks:
             if not ok:
-                raise ValueError(message)
+                raise TrainConfigError(message)
 
     def dataset_profile(self, labels: LabelConfig | None = None) -> DatasetProfile:
         """The profile this run trains with: `profile` with the explicit projection options and
@@ -398,7 +404,7 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> TrainConfig:
-        """Inverse of `to_dict`; unknown fields raise ValueError. The `amp` flag of runs saved
+        """Inverse of `to_dict`; unknown fields raise TrainConfigError. The `amp` flag of runs saved
         before `precision` existed reads as precision auto (amp on) or fp32 (amp off)."""
         values = dict(data)
         if "amp" in values and "precision" not in values:
@@ -406,7 +412,7 @@ class TrainConfig:
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(values) - names)
         if unknown:
-            raise ValueError(f"unknown training settings: {', '.join(unknown)}")
+            raise TrainConfigError(f"unknown training settings: {', '.join(unknown)}")
         for key in ("train_sequences", "val_sequences", "losses", "mixes"):
             if values.get(key) is not None:
                 values[key] = tuple(values[key])

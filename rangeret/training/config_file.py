@@ -3,7 +3,7 @@
 
 The file is a mapping of `TrainConfig` field names to values (`config_yaml` writes every field;
 a file may hold any subset). Each value is checked against its field's type and choices, and an
-unknown key or a bad value is a `ConfigError` naming the key and the file, in one line. Numbers
+unknown key or a bad value is a `TrainConfigError` naming the key and the file, in one line. Numbers
 written as 1e-3 (a string to YAML 1.1) are read as numbers; sequence ids are strings ('00').
 """
 
@@ -21,11 +21,7 @@ from typing import Any
 import yaml
 
 from rangeret.io.bounded_yaml import load_yaml
-from rangeret.training.config import TrainConfig, override_pairs
-
-
-class ConfigError(ValueError):
-    """A training setting that cannot be used, in one line naming the key and where it came from."""
+from rangeret.training.config import TrainConfig, TrainConfigError, override_pairs
 
 
 @functools.cache
@@ -74,20 +70,20 @@ def _scalar(kind: type, value: Any) -> Any:
 
 
 def check_setting(name: str, value: Any, source: str) -> Any:
-    """The value of setting `name` from `source`, in the field's own type; a `ConfigError`
+    """The value of setting `name` from `source`, in the field's own type; a `TrainConfigError`
     naming the key and `source` when the key is unknown or the value has the wrong type or is
     not one of the field's choices."""
     fields = _fields()
     if name not in fields:
         close = difflib.get_close_matches(str(name), fields, n=1)
         hint = f" (did you mean {close[0]}?)" if close else ""
-        raise ConfigError(f"unknown setting {name!r} in {source}{hint}")
+        raise TrainConfigError(f"unknown setting {name!r} in {source}{hint}")
     f, hint = fields[name]
     kind, optional = split_optional(hint)
     if value is None:
         if optional:
             return None
-        raise ConfigError(f"setting {name} in {source} needs a value")
+        raise TrainConfigError(f"setting {name} in {source} needs a value")
     choices = field_choices(f)
     try:
         if typing.get_origin(kind) is tuple and "keys" in f.metadata:
@@ -103,10 +99,10 @@ def check_setting(name: str, value: Any, source: str) -> Any:
         else:
             items = (_scalar(kind, value),)
     except TypeError as exc:
-        raise ConfigError(f"setting {name} in {source} must be {exc}, got {value!r}") from None
+        raise TrainConfigError(f"setting {name} in {source} must be {exc}, got {value!r}") from None
     bad = [v for v in items if choices is not None and v not in choices]
     if bad:
-        raise ConfigError(
+        raise TrainConfigError(
             f"setting {name} in {source} must be one of {', '.join(map(str, choices))}, "
             f"got {bad[0]!r}"
         )
@@ -126,17 +122,19 @@ def _mapping(value: Any, keys: Sequence[str]) -> tuple[tuple[str, Any], ...]:
 
 def read_config_file(path: Path | str) -> dict[str, Any]:
     """The settings in the YAML file at `path`, each checked by `check_setting`; a file that
-    cannot be read or is not a mapping is a `ConfigError` naming it."""
+    cannot be read or is not a mapping is a `TrainConfigError` naming it."""
     try:
         data = load_yaml(path)
     except OSError as exc:
-        raise ConfigError(
+        raise TrainConfigError(
             f"cannot read the training configuration {path}: {exc.strerror or exc}"
         ) from exc
     if data is None:
         return {}
     if not isinstance(data, Mapping):
-        raise ConfigError(f"{path} must map setting names to values, got a {type(data).__name__}")
+        raise TrainConfigError(
+            f"{path} must map setting names to values, got a {type(data).__name__}"
+        )
     return {name: check_setting(name, value, str(path)) for name, value in data.items()}
 
 

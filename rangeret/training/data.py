@@ -67,7 +67,9 @@ class RangeDataset(Dataset):
     ) -> None:
         missing = [s.key for s in scans if s.label_path is None]
         if missing:
-            raise ValueError(f"{len(missing)} scan(s) have no labels, the first {missing[0]}")
+            raise DatasetLayoutError(
+                f"{len(missing)} scan(s) have no labels, the first {missing[0]}"
+            )
         self.scans = list(scans)
         self.projection = projection
         self.label_config = label_config

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from rangeret.dataset.profiles import DatasetProfile, profile_of_record
+from rangeret.exceptions import InputError
 from rangeret.io.atomic import atomic_path
 from rangeret.training.config import TrainConfig
 from rangeret.training.schedule import OPTIMIZERS, SCHEDULE_NAMES
@@ -33,6 +34,14 @@ METRICS_CSV = "metrics.csv"
 CURVES_PNG = "curves.png"
 STATE_FORMAT = "rangeret-train-state"
 STATE_VERSION = 1
+
+
+class TrainingStateError(InputError, ValueError):
+    """A training state that cannot be resumed, or an output folder that already holds a run."""
+
+
+class TrainingStateMissing(InputError, FileNotFoundError):
+    """--resume names an output folder without a training state."""
 
 
 def seed_everything(seed: int) -> None:
@@ -75,12 +84,12 @@ def save_atomic(payload: Any, path: Path) -> None:
 
 def check_run_folder(out: Path, resume: bool) -> Path:
     """The resume state's path in `out`, checked against `resume`: a run to continue must have
-    one (FileNotFoundError), a new run must not find one (ValueError), so no run is overwritten."""
+    one (TrainingStateMissing), a new run must not find one (TrainingStateError), so no run is overwritten."""
     state = out / STATE
     if resume and not state.exists():
-        raise FileNotFoundError(f"cannot resume: {state} does not exist")
+        raise TrainingStateMissing(f"cannot resume: {state} does not exist")
     if not resume and state.exists():
-        raise ValueError(
+        raise TrainingStateError(
             f"{out} already holds a training run ({STATE}): pass --resume to continue it, or choose another folder"
         )
     return state
@@ -97,17 +106,17 @@ def read_state(path: Path, config: TrainConfig, profile: DatasetProfile) -> dict
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:
-        raise ValueError(f"{path} cannot be read as a training state: {exc}") from exc
+        raise TrainingStateError(f"{path} cannot be read as a training state: {exc}") from exc
     if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
-        raise ValueError(f"{path} is not a training state written by rangeret.training")
+        raise TrainingStateError(f"{path} is not a training state written by rangeret.training")
     if state.get("format_version") != STATE_VERSION:
-        raise ValueError(
+        raise TrainingStateError(
             f"{path} has state version {state.get('format_version')!r}; this code reads {STATE_VERSION}"
         )
     stored = TrainConfig.from_dict(state["config"])
     recorded = profile_of_record(state.get("profile"), str(path))
     if recorded.name != profile.name:
-        raise ValueError(
+        raise TrainingStateError(
             f"cannot resume {path}: the run was started with the {recorded.name} profile and "
             f"cannot continue with the {profile.name} profile (pass --profile {stored.profile})"
         )
@@ -119,7 +128,7 @@ def read_state(path: Path, config: TrainConfig, profile: DatasetProfile) -> dict
     if not changed and "profile" in state and recorded.to_dict() != profile.to_dict():
         changed = [f"the {recorded.name} profile's contents changed"]
     if changed:
-        raise ValueError(
+        raise TrainingStateError(
             f"cannot resume {path}: the run was started with other settings ({'; '.join(changed)})"
         )
     return state

@@ -11,6 +11,8 @@ graph would be neither checked against torch nor equal to torch's autocast numer
 
 from __future__ import annotations
 
+from rangeret.exceptions import InputError
+
 #: The values of --backend.
 BACKENDS = ("torch", "onnxruntime")
 
@@ -21,13 +23,18 @@ BACKEND_PRECISIONS = {
 }
 
 
+class RuntimeChoiceError(InputError, ValueError):
+    """A --device, --precision or --backend that is unknown, contradicts another option, or cannot
+    run on this machine."""
+
+
 def check_backend(backend: str, precision: str) -> None:
-    """Raise ValueError (one sentence naming the options) for an unknown backend or a precision
+    """Raise RuntimeChoiceError (one sentence naming the options) for an unknown backend or a precision
     it does not run."""
     if backend not in BACKENDS:
-        raise ValueError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+        raise RuntimeChoiceError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     if precision not in BACKEND_PRECISIONS[backend]:
-        raise ValueError(
+        raise RuntimeChoiceError(
             f"--precision {precision} cannot run with --backend {backend}: its exported graph is "
             "fp32 and onnxruntime has no autocast, so it runs fp32 only (pass --precision fp32 "
             "or auto, or --backend torch for fp16 and bf16)"

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import torch
 
+from rangeret.inference.runtime.backends import RuntimeChoiceError
+
 
 def select_device(device: str | torch.device = "auto") -> torch.device:
     """`auto` picks CUDA when torch sees a GPU and the CPU otherwise; `cuda` without one is an error."""
@@ -11,5 +13,5 @@ def select_device(device: str | torch.device = "auto") -> torch.device:
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     dev = torch.device(device)
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError("--device cuda was asked for but torch sees no CUDA device")
+        raise RuntimeChoiceError("--device cuda was asked for but torch sees no CUDA device")
     return dev

@@ -32,6 +32,7 @@ import numpy as np
 from rangeret import __version__
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.projection import project_with
+from rangeret.exceptions import ModelError
 from rangeret.inference.settings import DEFAULT_KNN
 from rangeret.io.atomic import atomic_write_bytes
 
@@ -56,7 +57,7 @@ CHECK_SEED = 2026
 CHANNELS = ("range", "x", "y", "z", "remission")
 
 
-class ExportError(ValueError):
+class ExportError(ModelError, ValueError):
     """An export that could not be made, or that onnxruntime does not run as torch does."""
 
 
@@ -194,14 +195,14 @@ def read_metadata(source: str | Path | bytes) -> dict[str, Any]:
     except FileNotFoundError:
         raise
     except Exception as exc:
-        raise ValueError(f"{name} is not an ONNX model: {exc}") from exc
+        raise ExportError(f"{name} is not an ONNX model: {exc}") from exc
     record = {
         entry.key.removeprefix(METADATA_PREFIX): json.loads(entry.value)
         for entry in proto.metadata_props
         if entry.key.startswith(METADATA_PREFIX)
     }
     if not record:
-        raise ValueError(
+        raise ExportError(
             f"{name} carries no {METADATA_PREFIX}* metadata: it is not a RangeRet export"
         )
     return record

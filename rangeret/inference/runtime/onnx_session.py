@@ -12,6 +12,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from rangeret.inference.runtime.backends import RuntimeChoiceError
+
 if TYPE_CHECKING:
     import onnxruntime
     import torch
@@ -21,16 +23,18 @@ CUDA_PROVIDER = "CUDAExecutionProvider"
 
 
 def providers_for(device: torch.device) -> list[Any]:
-    """The execution providers of a session on `device`; ValueError (one sentence) when the
+    """The execution providers of a session on `device`; RuntimeChoiceError (one sentence) when the
     installed onnxruntime cannot run there."""
     ort = _onnxruntime()
     if device.type == "cpu":
         return [CPU_PROVIDER]
     if device.type != "cuda":
-        raise ValueError(f"--backend onnxruntime runs on the CPU or CUDA, not on {device.type}")
+        raise RuntimeChoiceError(
+            f"--backend onnxruntime runs on the CPU or CUDA, not on {device.type}"
+        )
     available = ort.get_available_providers()
     if CUDA_PROVIDER not in available:
-        raise ValueError(
+        raise RuntimeChoiceError(
             f"--backend onnxruntime on CUDA needs {CUDA_PROVIDER}, which the installed "
             f"onnxruntime {ort.__version__} lacks (it has {', '.join(available)}): install "
             "onnxruntime-gpu in its place, or pass --device cpu"
@@ -53,11 +57,11 @@ def make_session(model: bytes | Path, device: torch.device) -> onnxruntime.Infer
 
 
 def _onnxruntime() -> Any:
-    """The onnxruntime module; ValueError naming the packages when it is not installed."""
+    """The onnxruntime module; RuntimeChoiceError naming the packages when it is not installed."""
     try:
         import onnxruntime
     except ImportError as exc:
-        raise ValueError(
+        raise RuntimeChoiceError(
             "--backend onnxruntime needs the onnxruntime package: pip install onnxruntime "
             "(or onnxruntime-gpu for CUDA)"
         ) from exc

@@ -13,7 +13,7 @@ import contextlib
 from collections.abc import Iterator
 from typing import TYPE_CHECKING
 
-from rangeret.inference.runtime.backends import check_backend
+from rangeret.inference.runtime.backends import RuntimeChoiceError, check_backend
 
 if TYPE_CHECKING:
     import torch
@@ -26,7 +26,9 @@ def resolve_precision(name: str, device: torch.device, backend: str = "torch") -
     """The precision a run uses on `device` with `backend`: `auto` becomes fp16 on CUDA and fp32
     elsewhere with torch, and fp32 with onnxruntime (which refuses fp16 and bf16)."""
     if name not in PRECISIONS:
-        raise ValueError(f"--precision must be one of {', '.join(PRECISIONS)}, got {name!r}")
+        raise RuntimeChoiceError(
+            f"--precision must be one of {', '.join(PRECISIONS)}, got {name!r}"
+        )
     check_backend(backend, name)
     if name == "auto":
         return "fp16" if device.type == "cuda" and backend == "torch" else "fp32"

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from rangeret.exceptions import InputFileMissing, ModelError
 from rangeret.io.atomic import atomic_write_bytes
 from rangeret.models.configs import OVERRIDES, ModelConfig, list_models, resolve_config
 from rangeret.models.network import RangeRet
@@ -42,7 +43,7 @@ FORMAT_VERSION = 1
 _LISTED = 8
 
 
-class CheckpointError(ValueError):
+class CheckpointError(ModelError, ValueError):
     """A file that is not a loadable RangeRet checkpoint, or does not fit the network asked for."""
 
 
@@ -96,7 +97,10 @@ def load_checkpoint(
     from the file; arguments that contradict it raise CheckpointError.
     """
     path = Path(path)
-    data = path.read_bytes()
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError as exc:
+        raise InputFileMissing.of(exc) from exc
     digest = hashlib.sha256(data).hexdigest()
     try:
         content = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)

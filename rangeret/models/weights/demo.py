@@ -9,6 +9,7 @@ import logging
 from pathlib import Path
 
 from rangeret import DATA_DIR
+from rangeret.exceptions import ModelError
 from rangeret.models.weights.hub import resolve_weights
 
 log = logging.getLogger(__name__)
@@ -22,6 +23,10 @@ DEMO_WARNING = (
 )
 
 
+class DemoWeightsMissing(ModelError, FileNotFoundError):
+    """No --checkpoint was given and the bundled demo weights are not installed."""
+
+
 def resolve_checkpoint(path: str | Path | None) -> Path:
     """The checkpoint to load: `path`, a published model's file when `path` is its registered
     name (`rangeret-kitti-657`, fetched from the cache or the hub), or the bundled demo weights
@@ -29,7 +34,7 @@ def resolve_checkpoint(path: str | Path | None) -> Path:
     if path is not None:
         return resolve_weights(path).path
     if not DEMO_CHECKPOINT.exists():
-        raise FileNotFoundError(
+        raise DemoWeightsMissing(
             f"no --checkpoint given and the bundled demo weights {DEMO_CHECKPOINT} are missing"
         )
     log.warning(DEMO_WARNING)

@@ -18,12 +18,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rangeret.dataset.profiles import DatasetProfile
+from rangeret.exceptions import ModelError
 from rangeret.models.weights.registry import PublishedModel, lookup, profile_for_published
 
 log = logging.getLogger(__name__)
 
 
-class WeightsError(RuntimeError):
+class WeightsError(ModelError, RuntimeError):
     """Published weights that cannot be had: the hub unreachable, the file wrong or missing."""
 
 

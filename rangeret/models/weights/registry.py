@@ -16,7 +16,8 @@ from pathlib import Path
 from typing import Any
 
 from rangeret import DATA_DIR
-from rangeret.dataset.profiles import DatasetProfile, load_profile
+from rangeret.dataset.profiles import DatasetProfile, ProfileError, load_profile
+from rangeret.exceptions import ConfigError
 from rangeret.io.bounded_yaml import YamlLimitError, load_yaml
 
 BUILTIN_REGISTRY = DATA_DIR / "models.yaml"
@@ -29,7 +30,7 @@ _FIELDS = (
 )  # fmt: skip
 
 
-class RegistryError(ValueError):
+class RegistryError(ConfigError, ValueError):
     """A registry file that cannot be read, or an entry that breaks its form."""
 
 
@@ -132,7 +133,7 @@ def profile_for_published(
     if requested is None:
         return load_profile(model.profile)
     if requested.name != model.profile:
-        raise ValueError(
+        raise ProfileError(
             f"{model.name} was trained for the {model.profile} profile and cannot run with the "
             f"{requested.name} profile; leave --profile out or pass --profile {model.profile}"
         )

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import ast
+import dataclasses
 import json
 import shutil
 import subprocess
@@ -10,11 +12,17 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from rangeret.cli.main import main
+from rangeret.commands import CommandError
 from rangeret.dataset.labels import semantickitti
 from rangeret.dataset.layout import discover, prediction_path, velodyne_dir
-from rangeret.io.scans import write_labels
+from rangeret.evaluation.evaluate import EvaluationError
+from rangeret.exceptions import ConfigError, DatasetError, InputError, ModelError, ResourceError
+from rangeret.io.scans import ScanFormatError, write_labels
+from rangeret.models.weights.checkpoint import CheckpointError
+from rangeret.models.weights.hub import WeightsError
 from rangeret.submission.archives import TEST_SEQUENCES
 from tests.support.trees import make_tree
 
@@ -189,3 +197,105 @@ def test_every_entry_point_reports_errors_the_same_way(tmp_path, capsys):
     )
     assert job[0].split(": error: ")[1] == cli[0].split(": error: ")[1]
     assert "sequence 08 is missing" in job[0]
+
+
+def _with_compare_body(monkeypatch, body):
+    """Make `rangeret compare` run `body` (its options are the real ones)."""
+    from rangeret.cli import main as cli_main
+
+    monkeypatch.setattr(
+        cli_main,
+        "BUILTIN_COMMANDS",
+        tuple(
+            dataclasses.replace(c, run=body) if c.name == "compare" else c
+            for c in cli_main.BUILTIN_COMMANDS
+        ),
+    )
+
+
+def _raising(exc: BaseException):
+    def body(args):
+        raise exc
+
+    return body
+
+
+@pytest.mark.parametrize(
+    ("exc", "line"),
+    [
+        (InputError("bad value"), "bad value"),
+        (DatasetError("no sequences"), "no sequences"),
+        (ConfigError("bad profile"), "bad profile"),
+        (ModelError("no weights"), "no weights"),
+        (ResourceError("no CUDA"), "no CUDA"),
+        (CommandError("refused", ["a", "b"]), "refused"),
+        (ScanFormatError("s.bin", "is empty"), "s.bin: is empty"),
+        (CheckpointError("c.pt is not a checkpoint"), "c.pt is not a checkpoint"),
+        (WeightsError("hub unreachable"), "hub unreachable"),
+        (
+            EvaluationError(["x is missing", "y is missing"]),
+            "2 problem(s), the first: x is missing",
+        ),
+    ],
+    ids=lambda v: type(v).__name__ if isinstance(v, BaseException) else "",
+)
+def test_each_kind_of_user_error_is_one_line(monkeypatch, capsys, exc, line):
+    _with_compare_body(monkeypatch, _raising(exc))
+    assert main(["compare", "r.json"]) == 1
+    err = capsys.readouterr().err
+    assert err.splitlines()[0] == f"rangeret compare: error: {line}"
+    assert "Traceback" not in err
+    assert err.count("\n  - ") == len(exc.detail_lines())
+
+
+def test_an_interrupt_is_one_line_and_exit_130(monkeypatch, capsys):
+    _with_compare_body(monkeypatch, _raising(KeyboardInterrupt()))
+    assert main(["compare", "r.json"]) == 130
+    assert capsys.readouterr().err == "rangeret compare: error: interrupted\n"
+
+
+@pytest.mark.parametrize("exc", [ValueError("a bug"), TypeError("a bug"), FileNotFoundError("f")])
+def test_a_programming_error_propagates(monkeypatch, capsys, exc):
+    _with_compare_body(monkeypatch, _raising(exc))
+    with pytest.raises(type(exc)):
+        main(["compare", "r.json"])
+    assert ": error: " not in capsys.readouterr().err
+
+
+def test_a_programming_error_shows_its_traceback_and_fails():
+    code = (
+        "import dataclasses, sys; from rangeret.cli import main as m\n"
+        "def body(args): raise ValueError('a bug in the body')\n"
+        "m.BUILTIN_COMMANDS = tuple(dataclasses.replace(c, run=body) if c.name == 'compare' "
+        "else c for c in m.BUILTIN_COMMANDS)\n"
+        "sys.exit(m.main(['compare', 'r.json']))"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    assert run.returncode != 0
+    assert "Traceback" in run.stderr and "ValueError: a bug in the body" in run.stderr
+    assert ": error: " not in run.stderr
+
+
+def test_the_error_path_imports_only_the_error_hierarchy():
+    import rangeret.commands
+
+    tree = ast.parse(Path(rangeret.commands.__file__).read_text())
+    project = {
+        node.module
+        for node in ast.walk(tree)
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("rangeret")
+    } | {
+        alias.name
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Import)
+        for alias in node.names
+        if alias.name.startswith("rangeret")
+    }
+    assert project == {"rangeret.exceptions"}
+
+
+def test_a_missing_input_file_is_one_line(tmp_path, capsys):
+    missing = tmp_path / "nope.bin"
+    assert main(["view", str(missing), "--out", str(tmp_path / "v.png")]) == 1
+    err = capsys.readouterr().err
+    assert err == f"rangeret view: error: [Errno 2] No such file or directory: '{missing}'\n"

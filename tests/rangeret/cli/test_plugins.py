@@ -66,3 +66,14 @@ def test_every_builtin_subcommand_parses_its_own_options():
     for name, p in sub.choices.items():
         options = [a for a in p._actions if a.dest != "help"]
         assert len(options) > 2, name
+
+
+def test_each_builtin_command_is_registered_by_its_own_module():
+    """Every library subcommand's options and body live in the module of `rangeret.cli` named
+    after it (`validate-submission` beside `submission`)."""
+    modules = {c.name: {c.add_arguments.__module__, c.run.__module__} for c in BUILTIN_COMMANDS}
+    assert modules["validate-submission"] == {"rangeret.cli.submission"}
+    assert modules["train"] == {"rangeret.cli.main"}  # imports rangeret.cli.train when used
+    for name, found in modules.items():
+        if name not in ("validate-submission", "train"):
+            assert found == {f"rangeret.cli.{name}"}, name

@@ -15,8 +15,8 @@ from rangeret.cli.main import main
 from rangeret.cli.train import add_train_arguments
 from rangeret.train_options import add_dataclass_options, config_from_args
 from rangeret.training import TrainConfig
-from rangeret.training.config import setting
-from rangeret.training.config_file import ConfigError, config_yaml, read_config_file
+from rangeret.training.config import TrainConfigError, setting
+from rangeret.training.config_file import config_yaml, read_config_file
 from rangeret.training.schedule import OPTIMIZERS, SCHEDULES, build_optimizer, build_scheduler
 from rangeret.training.state import run_record
 
@@ -174,7 +174,7 @@ def test_a_bad_setting_in_the_file_is_one_line_naming_key_and_file(
     lines = captured.err.splitlines()
     assert len(lines) == 1 and lines[0].startswith("rangeret train: error: ")
     assert message.format(file=file) in lines[0]
-    with pytest.raises(ConfigError):
+    with pytest.raises(TrainConfigError):
         read_config_file(file)
 
 

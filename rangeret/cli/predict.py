@@ -1,0 +1,54 @@
+"""`rangeret predict`: label every scan of a split or of chosen sequences into a predictions tree."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from rangeret.cli.shared import predictor_from_args
+from rangeret.commands import CommandError
+from rangeret.options import add_network_options, add_selection, selected_sequences
+from rangeret.plugins import Subcommand
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
+    add_selection(p)
+    p.add_argument(
+        "--out", type=Path, required=True, metavar="PRED", help="predictions tree to write"
+    )
+    p.add_argument(
+        "--save-confidence",
+        action="store_true",
+        help="also write each point's confidence (the softmax probability of its label at its "
+        "pixel) as float16 in PRED/sequences/XX/confidence/NNNNNN.npy",
+    )
+    add_network_options(p)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Predict every scan of a split or of chosen sequences into a predictions tree."""
+    from rangeret.inference.runner import predict_tree
+
+    predictor = predictor_from_args(args)
+    sequences = selected_sequences(args, predictor.profile)
+    summary = predict_tree(
+        predictor,
+        args.dataset,
+        sequences,
+        args.out,
+        batch_size=args.batch_size,
+        progress=not args.quiet,
+        save_confidence=args.save_confidence,
+    )
+    print(summary.text())
+    if not summary.ok:
+        raise CommandError(
+            f"{len(summary.failed)} of {summary.total} scans could not be predicted "
+            f"(every other scan was written to {args.out})",
+            [f"{k}: {v}" for k, v in summary.failed.items()],
+        )
+    return 0
+
+
+COMMAND = Subcommand("predict", "label every scan of a split or of sequences", add_arguments, run)

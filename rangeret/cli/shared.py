@@ -1,0 +1,31 @@
+"""What several `rangeret` commands share: the loaded predictor of the network options."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from typing import TYPE_CHECKING
+
+from rangeret.options import spec_from_args
+
+if TYPE_CHECKING:
+    from rangeret.inference.predictor import Predictor
+
+log = logging.getLogger("rangeret")
+
+
+def predictor_from_args(args: argparse.Namespace) -> Predictor:
+    """A loaded `Predictor` from the shared network options, announced in the log."""
+    predictor = spec_from_args(args).build()
+    info = predictor.describe()
+    log.info(
+        "%s from %s (sha256 %s), %s profile, at %dx%d on %s",
+        info["model"],
+        info["checkpoint"],
+        (info["checkpoint_sha256"] or "")[:12],
+        predictor.profile.name,
+        predictor.projection_config.height,
+        predictor.projection_config.width,
+        predictor.device,
+    )
+    return predictor
