@@ -13,6 +13,7 @@ from collections.abc import Callable, Sequence
 
 from rangeret.dataset.layout import DatasetLayoutError
 from rangeret.evaluation.evaluate import EvaluationError
+from rangeret.extras import MissingExtraError
 from rangeret.io.scans import ScanFormatError
 from rangeret.models.weights.hub import WeightsError
 from rangeret.submission.archives import SubmissionError
@@ -44,9 +45,13 @@ class CommandError(Exception):
 def run_command(
     program: str, func: Callable[[argparse.Namespace], int], args: argparse.Namespace
 ) -> int:
-    """Run a command's body; input errors become `program: error: reason` (details below it), exit 1."""
+    """Run a command's body; input errors become `program: error: reason` (details below it), exit 1.
+    A missing extra is its own line (`... needs the EXTRA extra: pip install ...`), exit 1."""
     try:
         return func(args)
+    except MissingExtraError as exc:
+        print(exc, file=sys.stderr)
+        return 1
     except CommandError as exc:
         return fail(program, exc.reason, exc.details)
     except (EvaluationError, SubmissionError) as exc:

@@ -282,12 +282,14 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
 
 def run_train(args: argparse.Namespace) -> int:
     """Run `rangeret train` for parsed options; returns 0, raises ValueError (or a subclass such
-    as DatasetLayoutError) or FileNotFoundError with a one-line reason on bad input."""
+    as DatasetLayoutError, or MissingExtraError for a back-end whose extra is not installed) or
+    FileNotFoundError with a one-line reason on bad input."""
     from rangeret.models import load_checkpoint
 
     config = config_from_args(args)
     backend = next((b for b in train_backends() if b.selected(args)), None)
     if backend is not None:
+        backend.check()
         backend.run(config, args)
     else:
         Trainer(config).fit()

@@ -11,6 +11,8 @@ graph would be neither checked against torch nor equal to torch's autocast numer
 
 from __future__ import annotations
 
+from rangeret.extras import require_extra
+
 #: The values of --backend.
 BACKENDS = ("torch", "onnxruntime")
 
@@ -23,9 +25,11 @@ BACKEND_PRECISIONS = {
 
 def check_backend(backend: str, precision: str) -> None:
     """Raise ValueError (one sentence naming the options) for an unknown backend or a precision
-    it does not run."""
+    it does not run, and `MissingExtraError` for onnxruntime without the onnx extra."""
     if backend not in BACKENDS:
         raise ValueError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if backend == "onnxruntime":
+        require_extra("--backend onnxruntime", "onnx")
     if precision not in BACKEND_PRECISIONS[backend]:
         raise ValueError(
             f"--precision {precision} cannot run with --backend {backend}: its exported graph is "

@@ -12,6 +12,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from rangeret.extras import require_extra
+
 if TYPE_CHECKING:
     import onnxruntime
     import torch
@@ -53,12 +55,8 @@ def make_session(model: bytes | Path, device: torch.device) -> onnxruntime.Infer
 
 
 def _onnxruntime() -> Any:
-    """The onnxruntime module; ValueError naming the packages when it is not installed."""
-    try:
-        import onnxruntime
-    except ImportError as exc:
-        raise ValueError(
-            "--backend onnxruntime needs the onnxruntime package: pip install onnxruntime "
-            "(or onnxruntime-gpu for CUDA)"
-        ) from exc
+    """The onnxruntime module; `MissingExtraError` naming the onnx extra when it is not installed."""
+    require_extra("--backend onnxruntime", "onnx")
+    import onnxruntime
+
     return onnxruntime
