@@ -1,6 +1,7 @@
 # The two commands of the quick start: `make demo` (the main job) and `make test` (the whole suite).
 # Both build the virtual environment in .venv and the gateway's web page (`make web`) on first use;
 # `make test` also installs chromium for the browser tests (as root; otherwise it names the command).
+# The environment holds every extra (`.[all,dev]`: Ray, the gateway, ONNX, the hub, the test tools).
 
 PYTHON ?= python3
 # The CPU build of torch found on this machine kind; on a GPU machine pass e.g. TORCH_SPEC=torch==2.13.0
@@ -21,7 +22,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -qq --upgrade pip
 	$(BIN)/python -m pip install -qq "$(TORCH_SPEC)"
-	$(BIN)/python -m pip install -qq -e '.[dev]'
+	$(BIN)/python -m pip install -qq -e '.[all,dev]'
 	touch $(STAMP)
 
 $(WEB_STAMP): $(WEB)/package.json $(WEB)/package-lock.json

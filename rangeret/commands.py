@@ -14,7 +14,7 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 
-from rangeret.exceptions import CommandError, RangeRetError
+from rangeret.exceptions import CommandError, MissingExtraError, RangeRetError
 
 __all__ = ["CommandError", "fail", "run_command"]
 
@@ -25,9 +25,13 @@ def run_command(
     program: str, func: Callable[[argparse.Namespace], int], args: argparse.Namespace
 ) -> int:
     """Run a command's body; a `RangeRetError` becomes `program: error: reason` (details below
-    it) and exit 1, an interrupt exit 130; anything else is a bug and propagates."""
+    it) and exit 1, a missing extra its own line (`... needs the EXTRA extra: pip install ...`)
+    and exit 1, an interrupt exit 130; anything else is a bug and propagates."""
     try:
         return func(args)
+    except MissingExtraError as exc:
+        print(exc, file=sys.stderr)
+        return 1
     except RangeRetError as exc:
         return fail(program, exc.summary(), exc.detail_lines())
     except KeyboardInterrupt:

@@ -57,6 +57,22 @@ class ResourceError(RangeRetError):
     """Something the run needs is not there: a CUDA device, a package, GPUs on the cluster."""
 
 
+#: The distribution whose extras `pip install` names.
+DISTRIBUTION = "rangeret-service"
+
+
+class MissingExtraError(ResourceError, ValueError):
+    """A feature whose optional extra is not installed; its message is the one line to show:
+    `FEATURE needs the EXTRA extra: pip install 'rangeret-service[EXTRA]'`."""
+
+    def __init__(self, feature: str, extra: str) -> None:
+        super().__init__(
+            f"{feature} needs the {extra} extra: pip install '{DISTRIBUTION}[{extra}]'"
+        )
+        self.feature = feature
+        self.extra = extra
+
+
 class CommandError(RangeRetError):
     """A failure a command reports as one line, with optional details below it."""
 

@@ -17,6 +17,7 @@ from rangeret.commands import CommandError
 from rangeret.dataset.labels import LabelConfig, load_label_config
 from rangeret.dataset.layout import resolve_sequences
 from rangeret.dataset.profiles import BUILTIN_PROFILES, DatasetProfile, load_profile
+from rangeret.extras import MissingExtraError
 from rangeret.inference.runtime.backends import BACKENDS, check_backend
 from rangeret.inference.runtime.precision import PRECISIONS
 from rangeret.submission.leaderboard import DEFAULT_NAME, DEFAULT_URL, LeaderboardEntry
@@ -236,6 +237,8 @@ def spec_from_args(args: argparse.Namespace) -> PredictorSpec:
         raise CommandError(f"--tta-shifts must not be negative, got {args.tta_shifts}")
     try:
         check_backend(args.backend, args.precision)
+    except MissingExtraError:
+        raise
     except ValueError as exc:
         raise CommandError(str(exc)) from exc
     tta = (

@@ -8,6 +8,9 @@ The library knows nothing of Ray or HTTP. `workers` and `service` declare what t
 
 An entry point's module must import quickly (no torch, Ray or web stack at import time): it is
 loaded to build every parser; its `add_arguments` and `run` import what they need.
+
+A subcommand or back-end names the optional extra it needs (`rangeret.extras`); without that
+extra's modules it stops with one line, a `MissingExtraError` naming the extra.
 """
 
 from __future__ import annotations
@@ -18,6 +21,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from importlib.metadata import entry_points
 from typing import TYPE_CHECKING, Any
+
+from rangeret.extras import MissingExtraError, extra_installed, require_extra
 
 if TYPE_CHECKING:
     from rangeret.training.config import TrainConfig
@@ -36,6 +41,16 @@ class Subcommand:
     help: str
     add_arguments: Callable[[argparse.ArgumentParser], None]
     run: Callable[[argparse.Namespace], int]
+    #: The optional extra the command needs (a key of `EXTRA_MODULES`), or None.
+    extra: str | None = None
+
+    def installed(self) -> bool:
+        """Whether the command's extra (if it needs one) is installed, so that it can run."""
+        return self.extra is None or extra_installed(self.extra)
+
+    def refuse(self, args: argparse.Namespace) -> int:
+        """The body of the command without its extra: the one-line `MissingExtraError`."""
+        raise MissingExtraError(f"rangeret {self.name}", self.extra or "")
 
 
 @dataclass(frozen=True)
@@ -45,6 +60,15 @@ class TrainBackend:
     add_arguments: Callable[[argparse.ArgumentParser], None]
     selected: Callable[[argparse.Namespace], bool]
     run: Callable[[TrainConfig, argparse.Namespace], None]
+    #: The option that selects it, as messages name it (e.g. `--ray`).
+    option: str = ""
+    #: The optional extra it needs (a key of `EXTRA_MODULES`), or None.
+    extra: str | None = None
+
+    def check(self) -> None:
+        """`MissingExtraError` (`rangeret train OPTION needs ...`) when its extra is missing."""
+        if self.extra is not None:
+            require_extra(f"rangeret train {self.option}".rstrip(), self.extra)
 
 
 def load_plugins(group: str) -> list[Any]:

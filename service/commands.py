@@ -1,7 +1,8 @@
 """What the gateway adds to the `rangeret` command: `rangeret serve`.
 
 Declared as an entry point in `pyproject.toml` and loaded by `rangeret.plugins`. This module
-imports neither the web stack nor torch: the options and the body import them when used.
+imports neither the web stack nor torch: the options and the body import them when used, and
+without the gateway extra `rangeret serve` stops with the one line naming it.
 """
 
 from __future__ import annotations
@@ -23,4 +24,6 @@ def _serve(args: argparse.Namespace) -> int:
     return run_serve(args)
 
 
-SERVE = Subcommand("serve", "the HTTP gateway (FastAPI on uvicorn)", _serve_arguments, _serve)
+SERVE = Subcommand(
+    "serve", "the HTTP gateway (FastAPI on uvicorn)", _serve_arguments, _serve, extra="gateway"
+)

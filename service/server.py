@@ -18,6 +18,7 @@ from pydantic import ValidationError
 
 from rangeret.commands import CommandError
 from rangeret.dataset.profiles import DatasetProfile
+from rangeret.extras import require_extra
 from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
 from rangeret.options import add_network_options, network_values, spec_from_args
 from service.errors import validation_sentence
@@ -175,6 +176,8 @@ def run_serve(args: argparse.Namespace) -> int:
     problem = settings.address_problem()
     if problem:
         raise CommandError(problem)
+    if settings.jobs_address:
+        require_extra("rangeret serve --jobs-address", "ray")  # Ray jobs go through Ray's client
     check_state(settings)  # before minutes of loading weights
     args.batch_size = settings.batch_size
     spec = spec_from_args(args)

@@ -1,7 +1,8 @@
 """What the Ray layer adds to the `rangeret` command: `rangeret demo` and `rangeret train --ray`.
 
 Declared as entry points in `pyproject.toml` and loaded by `rangeret.plugins`. This module
-imports neither torch nor Ray: the bodies import them when they run.
+imports neither torch nor Ray: the bodies import them when they run, and without the ray extra
+both stop with the one line naming it.
 """
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ def _run_demo(args: argparse.Namespace) -> int:
 
 
 DEMO = Subcommand(
-    "demo", "the whole pipeline on a small simulated example", _demo_arguments, _run_demo
+    "demo", "the whole pipeline on a small simulated example", _demo_arguments, _run_demo, "ray"
 )
 
 
@@ -84,4 +85,6 @@ RAY_TRAINING = TrainBackend(
     add_arguments=_ray_arguments,
     selected=lambda args: bool(getattr(args, "ray", False)),
     run=_train_on_ray,
+    option="--ray",
+    extra="ray",
 )

@@ -63,5 +63,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 COMMAND = Subcommand(
-    "export", "a network as ONNX with its metadata, checked against torch", add_arguments, run
+    "export",
+    "a network as ONNX with its metadata, checked against torch",
+    add_arguments,
+    run,
+    extra="onnx",
 )

@@ -78,7 +78,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The argument parser of the `rangeret` command and its subcommands.
 
     A subcommand's options are added only when `command` names it, or when it is None (every
-    option): some need torch or the web stack, and other commands start without them.
+    option): some need torch or the web stack, and other commands start without them. A
+    command whose extra is not installed gets none (`main` refuses it before parsing).
     """
     parser = argparse.ArgumentParser(
         prog="rangeret",
@@ -89,7 +90,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for cmd in subcommands():
         p = sub.add_parser(cmd.name, parents=[common], help=cmd.help)
-        if command is None or command == cmd.name:
+        if (command is None or command == cmd.name) and cmd.installed():
             cmd.add_arguments(p)
         p.set_defaults(func=cmd.run)
     return parser
@@ -98,7 +99,11 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `rangeret` command."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    parser = build_parser(next((a for a in argv if not a.startswith("-")), ""))
+    name = next((a for a in argv if not a.startswith("-")), "")
+    command = next((c for c in subcommands() if c.name == name), None)
+    if command is not None and not command.installed():
+        return run_command(f"rangeret {name}", command.refuse, argparse.Namespace())
+    parser = build_parser(name)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,

@@ -34,7 +34,8 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_train(args: argparse.Namespace) -> int:
     """Run `rangeret train` for parsed options (or print their settings with --print-config);
-    returns 0, raises ValueError (or a subclass such as DatasetLayoutError or ConfigError) or
+    returns 0, raises a `RangeRetError` (such as DatasetLayoutError, TrainConfigError, or
+    MissingExtraError for a back-end whose extra is not installed) or
     FileNotFoundError with a one-line reason on bad input."""
     from rangeret.models import load_checkpoint
 
@@ -44,6 +45,7 @@ def run_train(args: argparse.Namespace) -> int:
         return 0
     backend = next((b for b in train_backends() if b.selected(args)), None)
     if backend is not None:
+        backend.check()
         backend.run(config, args)
     else:
         Trainer(config).fit()

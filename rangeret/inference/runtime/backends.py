@@ -12,6 +12,7 @@ graph would be neither checked against torch nor equal to torch's autocast numer
 from __future__ import annotations
 
 from rangeret.exceptions import InputError
+from rangeret.extras import require_extra
 
 #: The values of --backend.
 BACKENDS = ("torch", "onnxruntime")
@@ -29,10 +30,12 @@ class RuntimeChoiceError(InputError, ValueError):
 
 
 def check_backend(backend: str, precision: str) -> None:
-    """Raise RuntimeChoiceError (one sentence naming the options) for an unknown backend or a precision
-    it does not run."""
+    """Raise RuntimeChoiceError (one sentence naming the options) for an unknown backend or a
+    precision it does not run, and `MissingExtraError` for onnxruntime without the onnx extra."""
     if backend not in BACKENDS:
         raise RuntimeChoiceError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if backend == "onnxruntime":
+        require_extra("--backend onnxruntime", "onnx")
     if precision not in BACKEND_PRECISIONS[backend]:
         raise RuntimeChoiceError(
             f"--precision {precision} cannot run with --backend {backend}: its exported graph is "

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from rangeret.dataset.profiles import DatasetProfile
+from rangeret.extras import require_extra
 from rangeret.inference.runtime.onnx_export import (
     INPUT_NAME,
     OUTPUT_NAME,
@@ -97,7 +98,8 @@ def cached_export(
     """The cached export of `network` for `profile`, made (and checked) first if missing, and
     made again when the file there records other weights, network, projection or profile than
     these (a file copied over another); weights that come from no file are known by
-    `state_sha256`."""
+    `state_sha256`. Without the onnx extra, `MissingExtraError` before anything is exported."""
+    require_extra("--backend onnxruntime", "onnx")
     sha = checkpoint_sha256 or state_sha256(network)
     path = export_path(network, profile, sha)
     if path.exists():

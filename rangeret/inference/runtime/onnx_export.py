@@ -33,6 +33,7 @@ from rangeret import __version__
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.projection import project_with
 from rangeret.exceptions import ModelError
+from rangeret.extras import require_extra
 from rangeret.inference.settings import DEFAULT_KNN
 from rangeret.io.atomic import atomic_write_bytes
 
@@ -141,9 +142,11 @@ def export_onnx(
     dynamic_batch: bool,
     checkpoint_sha256: str | None,
 ) -> bytes:
-    """The serialized ONNX model of `network` at the profile's resolution, with its metadata."""
+    """The serialized ONNX model of `network` at the profile's resolution, with its metadata;
+    `MissingExtraError` without the onnx extra (the exporter needs onnx and onnxscript)."""
     import torch
 
+    require_extra("ONNX export", "onnx")
     p = profile.projection
     model = copy.deepcopy(network).cpu().eval()  # the trace fills the copy's decay tables only
     generator = torch.Generator().manual_seed(CHECK_SEED)

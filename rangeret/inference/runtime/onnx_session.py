@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from rangeret.extras import require_extra
 from rangeret.inference.runtime.backends import RuntimeChoiceError
 
 if TYPE_CHECKING:
@@ -57,12 +58,8 @@ def make_session(model: bytes | Path, device: torch.device) -> onnxruntime.Infer
 
 
 def _onnxruntime() -> Any:
-    """The onnxruntime module; RuntimeChoiceError naming the packages when it is not installed."""
-    try:
-        import onnxruntime
-    except ImportError as exc:
-        raise RuntimeChoiceError(
-            "--backend onnxruntime needs the onnxruntime package: pip install onnxruntime "
-            "(or onnxruntime-gpu for CUDA)"
-        ) from exc
+    """The onnxruntime module; `MissingExtraError` naming the onnx extra when it is not installed."""
+    require_extra("--backend onnxruntime", "onnx")
+    import onnxruntime
+
     return onnxruntime

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.exceptions import ModelError
+from rangeret.extras import extra_installed, require_extra
 from rangeret.models.weights.registry import PublishedModel, lookup, profile_for_published
 
 log = logging.getLogger(__name__)
@@ -36,7 +37,10 @@ def weights_url(model: PublishedModel) -> str:
 
 
 def cached_weights(model: PublishedModel) -> Path | None:
-    """The model's file in the local hub cache, or None when it was never downloaded."""
+    """The model's file in the local hub cache, or None when it was never downloaded (or the hub
+    extra, which reads that cache, is not installed)."""
+    if not extra_installed("hub"):
+        return None
     from huggingface_hub import try_to_load_from_cache
 
     found = try_to_load_from_cache(model.repo, model.file, revision=model.revision)
@@ -73,7 +77,9 @@ def fetch_weights(model: PublishedModel, to: Path | None = None) -> Path:
 
 
 def _download(model: PublishedModel, to: Path | None) -> Path:
-    """Download the file with a progress bar; `WeightsError` with one sentence when it fails."""
+    """Download the file with a progress bar; `WeightsError` with one sentence when it fails,
+    `MissingExtraError` without the hub extra."""
+    require_extra(f"downloading {model.name}", "hub")
     from huggingface_hub import hf_hub_download
 
     url = weights_url(model)
