@@ -26,9 +26,9 @@ class KnnSettings:
 
 def _knn_problem(k: object, search: object, sigma: object, cutoff: object) -> str | None:
     """What is wrong with kNN parameters, naming the parameter; None when they can be used."""
-    if not _is_integer(search) or search < 1 or search % 2 == 0:
+    if not is_integer(search) or search < 1 or search % 2 == 0:
         return f"search must be an odd integer >= 1, got {search!r}"
-    if not _is_integer(k) or k < 1:
+    if not is_integer(k) or k < 1:
         return f"k must be an integer >= 1, got {k!r}"
     if k > search * search:
         return f"k must be at most search**2 = {search * search}, got {k}"
@@ -39,8 +39,9 @@ def _knn_problem(k: object, search: object, sigma: object, cutoff: object) -> st
     return None
 
 
-def _is_integer(value: object) -> bool:
-    """Whether `value` is an integer (a numpy one included), not a bool."""
+def is_integer(value: object) -> bool:
+    """Whether `value` is an integer (a numpy one included), not a bool: what a count or a class
+    id of these settings must be."""
     return isinstance(value, Integral) and not isinstance(value, bool)
 
 
