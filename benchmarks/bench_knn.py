@@ -17,7 +17,9 @@ import numpy as np
 import torch
 from _common import DATA, median_time
 
-from rangeret.inference.knn import refine, refine_batch
+from rangeret.inference.knn import refine_batch
+from rangeret.inference.settings import DEFAULT_KNN
+from rangeret.knn import refine
 
 FIXTURE = DATA / "knn-semantickitti-scan.npz"
 INPUTS = ("proj_range", "unproj_range", "proj_argmax", "proj_x", "proj_y")
@@ -81,15 +83,13 @@ def time_batch(arrays: dict[str, np.ndarray], device: str) -> tuple[np.ndarray, 
 
     def run() -> torch.Tensor:
         out = refine_batch(
+            argmax,
             scans["proj_range"],
             scans["unproj_range"],
-            argmax,
             scans["proj_x"],
             scans["proj_y"],
-            k=7,
-            search=7,
-            sigma=1.0,
-            cutoff=1.0,
+            DEFAULT_KNN,
+            num_classes=20,
         )
         return out.cpu()
 

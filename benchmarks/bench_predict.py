@@ -40,7 +40,7 @@ def stage_medians(
         t2 = time.perf_counter()
         logits = predictor.logits([proj])
         t3 = time.perf_counter()
-        classes = predictor.refine(proj, logits[0])
+        [classes] = predictor.refine_batch([proj], logits)
         t4 = time.perf_counter()
         write_labels(out / f"{i}.label", predictor.to_raw(classes))
         t5 = time.perf_counter()

@@ -44,13 +44,13 @@ from _common import REAL_SCAN, REPO, SMALL_VECTORS
 from rangeret.dataset.layout import ScanEntry, discover, prediction_path
 from rangeret.dataset.profiles import DatasetProfile, load_profile
 from rangeret.dataset.projection import project
-from rangeret.inference.knn import refine
 from rangeret.inference.loading import LoadedScan, load_batch
 from rangeret.inference.predictor import Predictor, PredictorSpec
 from rangeret.inference.runtime.precision import forward_precision
 from rangeret.inference.timing import StageTimes
 from rangeret.io.atomic import atomic_write_text
 from rangeret.io.scans import read_scan, write_labels
+from rangeret.knn import refine
 from rangeret.models import build_model, load_checkpoint
 
 NETWORKS = ("rangeret-thesis", "rangeret-cir")

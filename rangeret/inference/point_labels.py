@@ -1,8 +1,8 @@
 """From a range image's per-pixel classes to one class per point: pixel lookup or kNN refinement.
 
-Written once for every runner: `Predictor` (`point_classes_batch`, one call per batch) and the
-trainer's validation (`point_classes`, one scan) share it, so the labels measured during
-training are the labels served.
+Written once for every runner: `Predictor.refine_batch` (one call per batch) and the trainer's
+validation share `point_classes_batch`, so the labels measured during training are the labels
+served.
 """
 
 from __future__ import annotations
@@ -13,89 +13,59 @@ from collections.abc import Iterator, Sequence
 import numpy as np
 import torch
 
-from rangeret.inference.knn import pixel_classes, refine_batch
+from rangeret.inference.knn import flat_pixels, refine_batch
 from rangeret.inference.settings import KnnSettings
 
-
-def point_classes(
-    argmax: torch.Tensor,
-    proj_x: torch.Tensor,
-    proj_y: torch.Tensor,
-    proj_range: torch.Tensor,
-    unproj_range: torch.Tensor,
-    knn: KnnSettings | None,
-    num_classes: int,
-    votes_from: int = 1,
-    unlabeled: int = 0,
-) -> torch.Tensor:
-    """(N,) int64 classes on argmax's device from an (H, W) argmax and the scan's projection.
-
-    Without `knn` each point takes its pixel's class; with it, the kNN vote in range decides
-    among classes votes_from..C-1 (the dataset profile's rule). Points without a pixel
-    (proj_x == -1) get the `unlabeled` class either way.
-    """
-    return point_classes_batch(
-        argmax[None],
-        [proj_x],
-        [proj_y],
-        [proj_range],
-        [unproj_range],
-        knn,
-        num_classes,
-        votes_from,
-        unlabeled,
-    )
+#: A scan's projection array: numpy, as a `Projection` holds it, or a tensor holding one (a
+#: data loader's).
+ProjectionArray = np.ndarray | torch.Tensor
 
 
 def point_classes_batch(
     argmax: torch.Tensor,
-    proj_x: Sequence[np.ndarray | torch.Tensor],
-    proj_y: Sequence[np.ndarray | torch.Tensor],
-    proj_range: Sequence[np.ndarray | torch.Tensor],
-    unproj_range: Sequence[np.ndarray | torch.Tensor],
+    proj_x: Sequence[ProjectionArray],
+    proj_y: Sequence[ProjectionArray],
+    proj_range: Sequence[ProjectionArray],
+    unproj_range: Sequence[ProjectionArray],
     knn: KnnSettings | None,
     num_classes: int,
     votes_from: int = 1,
     unlabeled: int = 0,
 ) -> torch.Tensor:
-    """`point_classes` of B scans in one call: a (B, H, W) argmax and each scan's projection give
-    the classes of all their points, concatenated scan by scan, on argmax's device.
+    """(N,) int64 classes of B scans' points, concatenated scan by scan, on argmax's device, from
+    their (B, H, W) argmax and each scan's projection arrays.
 
-    Projection arrays are best given as numpy arrays (CPU tensors are taken as such): they are
-    checked on the host and copied to the device in one go, so the batch costs the device a
-    fixed number of waits on the host, however many scans and points it holds.
+    Without `knn` each point takes its pixel's class; with it, the kNN vote in range decides
+    among classes votes_from..C-1 (the dataset profile's rule). Points without a pixel
+    (proj_x == -1) get the `unlabeled` class either way. The arrays go to the device in one copy
+    each, so the batch costs the device no wait on the host, however many scans it holds.
     """
     device = argmax.device
     proj_x, proj_y, proj_range, unproj_range = (
-        [_host_or_on(part, device) for part in parts]
-        for parts in (proj_x, proj_y, proj_range, unproj_range)
+        [_on_host(part) for part in parts] for parts in (proj_x, proj_y, proj_range, unproj_range)
     )
     if knn is None:
-        return pixel_classes(argmax, proj_x, proj_y, num_classes, unprojected=unlabeled)
+        _, height, width = argmax.shape
+        pixels = flat_pixels(proj_x, proj_y, height, width, device)
+        looked_up = argmax.to(torch.int64).reshape(-1).index_select(0, pixels.clamp(min=0))
+        return torch.where(pixels >= 0, looked_up, unlabeled)
     with single_thread_on_cpu(device):
         return refine_batch(
+            argmax,
             proj_range,
             unproj_range,
-            argmax,
             proj_x,
             proj_y,
-            k=knn.k,
-            search=knn.search,
-            sigma=knn.sigma,
-            cutoff=knn.cutoff,
-            num_classes=num_classes,
+            knn,
+            num_classes,
             votes_from=votes_from,
             unprojected=unlabeled,
         )
 
 
-def _host_or_on(
-    value: np.ndarray | torch.Tensor, device: torch.device
-) -> np.ndarray | torch.Tensor:
-    """A CPU tensor as the numpy array it holds, another tensor on `device`, an array as it is."""
-    if not isinstance(value, torch.Tensor):
-        return value
-    return value.numpy() if value.device.type == "cpu" else value.to(device)
+def _on_host(value: ProjectionArray) -> np.ndarray:
+    """A projection array as a numpy array (a CPU tensor's own memory, no copy)."""
+    return value.numpy(force=True) if isinstance(value, torch.Tensor) else np.asarray(value)
 
 
 @contextlib.contextmanager

@@ -1,9 +1,10 @@
 """From points to raw SemanticKITTI labels: projection, the network, kNN refinement, raw ids.
 
 `Predictor` holds a loaded network and the options of a run. Its stages are separate methods
-(`project`, `logits`, `refine`, `to_raw`) so a pipeline can run them on different workers;
+(`project`, `logits`, `refine_batch`, `to_raw`) so a pipeline can run them on different workers;
 `predict` and `predict_batch` chain them for one process. Each stage records its time in the
 `StageTimes` its caller passes (a run's own record), or else in the predictor's `times`.
+Refinement runs per batch (`refine_batch`), one scan being a batch of one.
 Output is deterministic: the same weights, options and batch size give the same labels
 everywhere.
 """
@@ -80,7 +81,6 @@ class ScanPrediction:
 
     labels: np.ndarray
     classes: np.ndarray
-    probabilities: np.ndarray | None = None
     #: Each point's softmax probability of its final class at its pixel (float32), when asked.
     confidence: np.ndarray | None = None
 
@@ -225,12 +225,6 @@ class Predictor:
                 torch.cuda.synchronize(self.device)
             return logits
 
-    def refine(
-        self, projection: Projection, logits: torch.Tensor, times: StageTimes | None = None
-    ) -> np.ndarray:
-        """Stage 3: per-point training classes from one scan's (C, H, W) logits."""
-        return self.refine_batch([projection], logits[None], times)[0]
-
     def refine_batch(
         self,
         projections: Sequence[Projection],
@@ -258,31 +252,19 @@ class Predictor:
         """Stage 4: raw SemanticKITTI ids (uint32) of training classes."""
         return self.label_config.to_raw(classes)
 
-    def probabilities(self, projection: Projection, logits: torch.Tensor) -> np.ndarray:
-        """(N, C) float32 softmax of each point's pixel; zeros for points without a pixel."""
-        probs = torch.softmax(logits.float(), dim=0).cpu().numpy()
-        out = np.zeros((projection.num_points, probs.shape[0]), dtype=np.float32)
-        valid = projection.proj_x >= 0
-        out[valid] = probs[:, projection.proj_y[valid], projection.proj_x[valid]].T
-        return out
-
     # Whole scans ---------------------------------------------------------------------------
 
-    def predict(self, points: np.ndarray, with_probabilities: bool = False) -> ScanPrediction:
+    def predict(self, points: np.ndarray) -> ScanPrediction:
         """Raw labels, one per point, for one (N, 4) scan."""
-        return self.predict_batch([points], with_probabilities)[0]
+        return self.predict_batch([points])[0]
 
-    def predict_batch(
-        self, scans: Sequence[np.ndarray], with_probabilities: bool = False
-    ) -> list[ScanPrediction]:
+    def predict_batch(self, scans: Sequence[np.ndarray]) -> list[ScanPrediction]:
         """Raw labels for several scans, run through the network as one batch."""
-        projections = [self.project(p) for p in scans]
-        return self.finish_batch(projections, with_probabilities)
+        return self.finish_batch([self.project(p) for p in scans])
 
     def finish_batch(
         self,
         projections: Sequence[Projection],
-        with_probabilities: bool = False,
         times: StageTimes | None = None,
         with_confidence: bool = False,
     ) -> list[ScanPrediction]:
@@ -297,13 +279,8 @@ class Predictor:
                 logits, [p.proj_x for p in projections], [p.proj_y for p in projections], classes
             )
         return [
-            ScanPrediction(
-                labels=self.to_raw(c),
-                classes=c,
-                probabilities=self.probabilities(p, out) if with_probabilities else None,
-                confidence=conf,
-            )
-            for p, out, c, conf in zip(projections, logits, classes, confidences, strict=True)
+            ScanPrediction(labels=self.to_raw(c), classes=c, confidence=conf)
+            for c, conf in zip(classes, confidences, strict=True)
         ]
 
     def label_loaded(

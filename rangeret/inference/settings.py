@@ -3,17 +3,46 @@ kNN refinement (its parameters; each profile keeps its own voting rule) and test
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from numbers import Integral, Real
 
 
 @dataclass(frozen=True)
 class KnnSettings:
-    """kNN refinement parameters; the defaults are those the released checkpoints were scored with."""
+    """kNN refinement parameters (a run without refinement has None instead); the defaults are
+    those the released checkpoints were scored with. Checked when made, so refinement need not."""
 
     k: int = 7
     search: int = 7
     sigma: float = 1.0
     cutoff: float = 1.0
+
+    def __post_init__(self) -> None:
+        problem = _knn_problem(self.k, self.search, self.sigma, self.cutoff)
+        if problem is not None:
+            raise ValueError(problem)
+
+
+def _knn_problem(k: object, search: object, sigma: object, cutoff: object) -> str | None:
+    """What is wrong with kNN parameters, naming the parameter; None when they can be used."""
+    if not is_integer(search) or search < 1 or search % 2 == 0:
+        return f"search must be an odd integer >= 1, got {search!r}"
+    if not is_integer(k) or k < 1:
+        return f"k must be an integer >= 1, got {k!r}"
+    if k > search * search:
+        return f"k must be at most search**2 = {search * search}, got {k}"
+    if not isinstance(sigma, Real) or not sigma > 0:
+        return f"sigma must be a number > 0, got {sigma!r}"
+    if not isinstance(cutoff, Real) or math.isnan(cutoff):
+        return f"cutoff must be a number (<= 0 for no cutoff), got {cutoff!r}"
+    return None
+
+
+def is_integer(value: object) -> bool:
+    """Whether `value` is an integer (a numpy one included), not a bool: what a count or a class
+    id of these settings must be."""
+    return isinstance(value, Integral) and not isinstance(value, bool)
 
 
 #: The refinement every runner applies unless told otherwise.

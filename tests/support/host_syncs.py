@@ -12,9 +12,9 @@ import torch
 
 #: Tensor methods that make the host wait for a CUDA device (they read its data).
 SYNCING = ("item", "tolist", "cpu", "__bool__", "__int__", "__float__", "__index__")
-#: Host waits per batch refinement: one read of the deferred checks of tensor inputs, one copy of
-#: the result. However many scans, points and chunks.
-SYNCS_PER_BATCH = 2
+#: Host waits per batch refinement: the copy of the result (its inputs were checked where their
+#: `Projection` was made, on the host). However many scans, points and chunks.
+SYNCS_PER_BATCH = 1
 
 
 @contextlib.contextmanager

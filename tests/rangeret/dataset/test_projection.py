@@ -123,3 +123,28 @@ def test_bad_shapes_and_configs_are_rejected():
         project(np.zeros((3, 4), np.float32), height=0)
     with pytest.raises(ValueError, match="field of view"):
         project(np.zeros((3, 4), np.float32), fov_up=0, fov_down=0)
+
+
+def test_a_projection_is_checked_where_it_is_made(scan):
+    """What kNN refinement relies on is checked once, when a `Projection` is made."""
+    from dataclasses import asdict
+
+    from rangeret.dataset.projection import Projection
+
+    fields = asdict(project(scan[::50], 8, 32))
+    Projection(**fields)  # as made
+    x, y = fields["proj_x"], fields["proj_y"]
+    cases = [
+        ("proj_x", np.where(x == x.max(), 32, x), "width 32"),
+        ("proj_x", x - 2, "-1"),
+        ("proj_x", x.astype(np.float32), "integers"),
+        ("proj_y", np.where(x >= 0, y + 8, -1), r"\[0, 8\)"),
+        ("unproj_range", fields["unproj_range"][:-1], "same shape"),
+        ("proj_range", fields["proj_range"][0], r"\(H, W\)"),
+        ("mask", fields["mask"][:, :-1], "mask"),
+        ("image", fields["image"][0], "image"),
+    ]
+    for name, value, detail in cases:
+        with pytest.raises(ValueError, match=name) as raised:
+            Projection(**{**fields, name: value})
+        assert raised.match(detail)

@@ -1,4 +1,5 @@
-"""kNN refinement (`rangeret.inference.knn.refine`): the published output, the rule itself, types, errors.
+"""kNN refinement (`rangeret.knn.refine`, over `rangeret.inference.knn.refine_batch`): the
+published output, the rule itself, types, errors.
 
 The published post-processing's output on a real scan (`tests/data/knn-semantickitti-scan.npz`)
 is the main check; a slow per-point version of the rule written directly from the rule checks
@@ -12,7 +13,9 @@ import numpy as np
 import pytest
 import torch
 
-from rangeret.inference.knn import gaussian_kernel, pixel_classes, refine, refine_batch, to_device
+from rangeret.inference.knn import gaussian_kernel, refine_batch, to_device
+from rangeret.inference.settings import DEFAULT_KNN, KnnSettings
+from rangeret.knn import refine
 from tests.support.host_syncs import SYNCS_PER_BATCH, host_syncs
 from tests.support.paths import data_path
 
@@ -340,6 +343,42 @@ def test_bad_arguments_are_named():
             refine(*broken)
 
 
+def test_knn_settings_are_checked_when_made():
+    cases = [
+        ({"search": 4}, "search"),
+        ({"search": 1.0}, "search"),
+        ({"k": True}, "k"),
+        ({"k": 50}, "k"),
+        ({"sigma": float("nan")}, "sigma"),
+        ({"cutoff": "1"}, "cutoff"),
+    ]
+    for kwargs, name in cases:
+        with pytest.raises(ValueError, match=f"^{name} must"):
+            KnnSettings(**kwargs)
+    assert KnnSettings(k=np.int64(49), search=np.int32(7), cutoff=-1.0).k == 49
+
+
+def test_unusable_inputs_are_named_not_a_traceback():
+    data = random_scan(1)
+    args = inputs(data)
+    cases = [
+        (0, torch.from_numpy(args[0]).to(torch.bfloat16), "proj_range"),
+        (0, args[0].astype(np.complex64), "proj_range"),
+        (3, args[3] >= 0, "proj_x"),
+        (4, [str(v) for v in args[4]], "proj_y"),
+        (2, np.zeros((0, 0), dtype=np.int64), "proj_argmax"),
+        (0, np.float32(1.0), "proj_range"),
+    ]
+    for position, value, name in cases:
+        broken = list(args)
+        broken[position] = value
+        with pytest.raises(ValueError, match=name):
+            refine(*broken)
+    for name, value in (("votes_from", 20), ("unprojected", -1), ("num_classes", 2.0)):
+        with pytest.raises(ValueError, match=name):
+            refine(*args, **{name: value})
+
+
 def test_tensors_on_different_devices_are_refused():
     data = random_scan(1)
     tensors = [torch.from_numpy(data[name]) for name in INPUTS]
@@ -382,9 +421,20 @@ def random_batch(seed: int, sizes: list[int], **kwargs) -> list[dict[str, np.nda
     return [random_scan(seed + i, points=n, **kwargs) for i, n in enumerate(sizes)]
 
 
-def batch_inputs(scans: list[dict[str, np.ndarray]]) -> list[list[np.ndarray]]:
-    """The five inputs of `refine_batch` as lists of the scans' arrays."""
-    return [[scan[name] for scan in scans] for name in INPUTS]
+def batch_refined(
+    scans: list[dict[str, np.ndarray]],
+    knn: KnnSettings = DEFAULT_KNN,
+    num_classes: int = 20,
+    device: str = "cpu",
+    **kwargs,
+) -> torch.Tensor:
+    """`refine_batch` as `Predictor` calls it: the argmax a (B, H, W) tensor on the device, each
+    scan's projection arrays as numpy arrays."""
+    argmax = torch.from_numpy(np.stack([s["proj_argmax"] for s in scans])).to(device)
+    parts = [
+        [s[name] for s in scans] for name in ("proj_range", "unproj_range", "proj_x", "proj_y")
+    ]
+    return refine_batch(argmax, *parts, knn, num_classes, **kwargs)
 
 
 def per_scan(scans, *args, **kwargs) -> np.ndarray:
@@ -400,18 +450,11 @@ def test_a_batch_gives_each_scans_result(votes_from, k, search, cutoff):
     scans = random_batch(10, [300, 1, 0, 57, 410])
     rule = {"votes_from": votes_from, "unprojected": 4}
     expected = per_scan(scans, k, search, 1.0, cutoff, 5, **rule)
+    knn = KnnSettings(k, search, 1.0, cutoff)
     for chunk_size in (37, 300, None):
-        result = refine_batch(
-            *batch_inputs(scans), k, search, 1.0, cutoff, 5, chunk_size=chunk_size, **rule
-        )
-        assert isinstance(result, np.ndarray) and result.dtype == np.int64
-        assert np.array_equal(result, expected), chunk_size
-    images = batch_inputs(scans)
-    images[0] = torch.from_numpy(np.stack(images[0]))
-    images[2] = torch.from_numpy(np.stack(images[2]))
-    as_tensors = refine_batch(*images, k, search, 1.0, cutoff, 5, chunk_size=64, **rule)
-    assert isinstance(as_tensors, torch.Tensor)
-    assert np.array_equal(as_tensors.numpy(), expected)
+        result = batch_refined(scans, knn, 5, chunk_size=chunk_size, **rule)
+        assert isinstance(result, torch.Tensor) and result.dtype == torch.int64
+        assert np.array_equal(result.numpy(), expected), chunk_size
 
 
 @pytest.mark.parametrize("votes_from", [0, 1])
@@ -421,69 +464,31 @@ def test_a_batch_with_the_real_scan_gives_each_scans_result(scan, refined, votes
     dropped["proj_x"][::50] = dropped["proj_y"][::50] = -1
     scans = [real, random_scan(3, 64, 1024, 20_000, 20), dropped]
     rule = {"votes_from": votes_from, "unprojected": 19}
-    result = refine_batch(*batch_inputs(scans), chunk_size=50_000, **rule)
+    result = batch_refined(scans, chunk_size=50_000, **rule).numpy()
     assert np.array_equal(result, per_scan(scans, **rule))
     if votes_from == 1:
         assert np.array_equal(result[: len(real["proj_x"])], refined[7, 7])
 
 
-def test_pixel_classes_take_each_points_pixel():
-    scans = random_batch(20, [300, 0, 120])
-    result = pixel_classes(
-        np.stack([s["proj_argmax"] for s in scans]),
-        [s["proj_x"] for s in scans],
-        [s["proj_y"] for s in scans],
-        5,
-        unprojected=3,
-    )
-    expected = [
-        np.where(s["proj_x"] >= 0, s["proj_argmax"][s["proj_y"], s["proj_x"]], 3) for s in scans
-    ]
-    assert np.array_equal(result, np.concatenate(expected))
-
-
-def test_bad_batches_are_named():
-    scans = random_batch(30, [300, 200])
-    args = batch_inputs(scans)
-    cases = [
-        (0, [args[0][0]], "proj_range"),
-        (2, np.stack(args[2])[0], "proj_argmax"),
-        (2, [args[2][0], args[2][1][:, :-1]], "proj_argmax"),
-        (1, args[1][:1], "unproj_range"),
-        (3, np.concatenate(args[3]), "proj_x"),
-        (4, [args[4][0], args[4][1][:-1]], "proj_y"),
-    ]
-    for position, value, name in cases:
-        broken = list(args)
-        broken[position] = value
-        with pytest.raises(ValueError, match=name):
-            refine_batch(*broken)
-    with pytest.raises(ValueError, match="at least one scan"):
-        refine_batch([], [], [], [], [])
-
-
 @pytest.mark.parametrize("kind", ["numpy", "tensor"])
-def test_bad_values_are_named_before_or_after_the_work(kind):
-    """Numpy inputs are checked before the copy, tensors on their device (clamped meanwhile)."""
-    scans = random_batch(40, [300, 200])
-    args = batch_inputs(scans)
+def test_bad_values_are_named(kind):
+    """Numpy arrays and tensors alike, before any work."""
+    data = random_batch(40, [300, 200])[1]
+    args = inputs(data)
     convert = np.asarray if kind == "numpy" else torch.from_numpy
     cases = [
-        (2, [args[2][0], args[2][1] + 20], "proj_argmax", r"\[0, 20\)"),
-        (2, [args[2][0] - 3, args[2][1]], "proj_argmax", r"\[-3,"),
-        (3, [args[3][0], np.where(args[3][1] == 0, 20, args[3][1])], "proj_x", "width 20"),
-        (3, [args[3][0] - 2, args[3][1]], "proj_x", "-1"),
-        (4, [args[4][0], np.where(args[3][1] >= 0, args[4][1] + 6, -1)], "proj_y", r"11\]"),
+        (2, args[2] + 20, "proj_argmax", r"\[0, 20\)"),
+        (2, args[2] - 3, "proj_argmax", r"\[-3,"),
+        (3, np.where(args[3] == 0, 20, args[3]), "proj_x", "width 20"),
+        (3, args[3] - 2, "proj_x", "-1"),
+        (4, np.where(args[3] >= 0, args[4] + 6, -1), "proj_y", r"11\]"),
     ]
     for position, value, name, detail in cases:
-        broken = list(args)
-        broken[position] = [convert(part) for part in value]
+        broken = [convert(part) for part in args]
+        broken[position] = convert(value)
         with pytest.raises(ValueError, match=name) as raised:
-            refine_batch(*broken)
+            refine(*broken)
         assert raised.match(detail)
-        if position != 4:
-            with pytest.raises(ValueError, match=name):
-                pixel_classes(broken[2], broken[3], broken[4], 20)
 
 
 @pytest.mark.parametrize("scans", [1, 5])
@@ -494,24 +499,12 @@ def test_a_batch_waits_on_the_host_a_fixed_number_of_times(scans):
     and with chunks of 37 points (tens of chunks).
     """
     batch = random_batch(50, [300, 120, 0, 411, 77][:scans])
-    args = batch_inputs(batch)
-    args[2] = torch.from_numpy(np.stack(args[2]))
     expected = per_scan(batch)
     with host_syncs() as counts:
-        result = refine_batch(*args, chunk_size=37).cpu()
-        looked_up = pixel_classes(args[2], args[3], args[4], 20).cpu()
-    assert counts == {"tolist": 2, "cpu": 2}
-    assert sum(counts.values()) == 2 * SYNCS_PER_BATCH
+        result = batch_refined(batch, chunk_size=37).cpu()
+    assert counts == {"cpu": 1}
+    assert sum(counts.values()) == SYNCS_PER_BATCH
     assert np.array_equal(result.numpy(), expected)
-    assert looked_up.shape == result.shape
-
-
-def test_tensor_inputs_are_read_once():
-    batch = random_batch(60, [300, 120])
-    args = [[torch.from_numpy(part) for part in parts] for parts in batch_inputs(batch)]
-    with host_syncs() as counts:
-        refine_batch(*args, chunk_size=37)
-    assert counts == {"tolist": 1}
 
 
 def test_to_device_concatenates_and_converts():
@@ -548,10 +541,8 @@ def test_cuda_batch_matches_cpu_and_waits_a_fixed_number_of_times():
     with np.load(data_path(FIXTURE)) as fixture:
         real = {name: fixture[name] for name in INPUTS}
     batch = [real, random_scan(3, 64, 1024, 20_000, 20), real]
-    args = batch_inputs(batch)
-    expected = refine_batch(*args, chunk_size=40_000)
-    args[2] = torch.from_numpy(np.stack(args[2])).cuda()
+    expected = batch_refined(batch, chunk_size=40_000)
     with host_syncs() as counts:
-        result = refine_batch(*args, chunk_size=40_000).cpu()
+        result = batch_refined(batch, device="cuda", chunk_size=40_000).cpu()
     assert sum(counts.values()) <= SYNCS_PER_BATCH
-    assert np.array_equal(result.numpy(), expected)
+    assert np.array_equal(result.numpy(), expected.numpy())

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from rangeret.inference.point_labels import point_classes, point_classes_batch
+from rangeret.inference.point_labels import point_classes_batch
 from rangeret.inference.settings import DEFAULT_KNN, KnnSettings
 from tests.support.host_syncs import SYNCS_PER_BATCH, host_syncs
 from tests.support.paths import data_path
@@ -20,12 +20,13 @@ def scan() -> dict[str, torch.Tensor]:
 
 
 def _classes(scan, knn, **rule):
-    return point_classes(
-        scan["proj_argmax"],
-        scan["proj_x"],
-        scan["proj_y"],
-        scan["proj_range"],
-        scan["unproj_range"],
+    """One scan's classes: a batch of one."""
+    return point_classes_batch(
+        scan["proj_argmax"][None],
+        [scan["proj_x"]],
+        [scan["proj_y"]],
+        [scan["proj_range"]],
+        [scan["unproj_range"]],
         knn,
         20,
         **rule,
@@ -54,6 +55,36 @@ def test_points_without_a_pixel_get_class_zero_either_way(scan):
     dropped["proj_x"][:100] = -1
     for knn in (None, DEFAULT_KNN):
         assert (_classes(dropped, knn)[:100] == 0).all()
+
+
+def test_without_knn_a_batchs_points_take_their_pixels():
+    rng = np.random.default_rng(20)
+    sizes = [300, 0, 120]
+    argmax = torch.from_numpy(rng.integers(0, 5, (3, 6, 20)))
+    proj_x = [np.where(rng.random(n) < 0.05, -1, rng.integers(0, 20, n)) for n in sizes]
+    proj_y = [np.where(x < 0, -1, rng.integers(0, 6, len(x))) for x in proj_x]
+    proj_range = [np.ones((6, 20), dtype=np.float32)] * 3
+    unproj_range = [np.ones(n, dtype=np.float32) for n in sizes]
+    parts = (proj_x, proj_y, proj_range, unproj_range)
+    result = point_classes_batch(argmax, *parts, None, 5, unlabeled=3)
+    expected = [
+        np.where(x >= 0, argmax[b].numpy()[y, x], 3)
+        for b, (x, y) in enumerate(zip(proj_x, proj_y, strict=True))
+    ]
+    assert result.dtype == torch.int64
+    assert np.array_equal(result.numpy(), np.concatenate(expected))
+
+
+@pytest.mark.parametrize("knn", [None, DEFAULT_KNN])
+def test_a_batch_waits_on_the_host_once(scan, knn):
+    """Projection arrays as numpy arrays, the argmax a tensor: only the caller's read waits."""
+    fields = ("proj_x", "proj_y", "proj_range", "unproj_range")
+    parts = [[scan[f].numpy()] * 3 for f in fields]
+    argmax = torch.stack([scan["proj_argmax"]] * 3)
+    with host_syncs() as counts:
+        result = point_classes_batch(argmax, *parts, knn, 20).cpu()
+    assert counts == {"cpu": 1} and sum(counts.values()) == SYNCS_PER_BATCH
+    assert torch.equal(result, torch.cat([_classes(scan, knn)] * 3))
 
 
 def test_the_cpu_thread_count_is_restored(scan):
@@ -122,7 +153,10 @@ def test_a_predictor_batch_waits_on_the_host_a_fixed_number_of_times(real_scan_p
     points = read_scan(real_scan_path)
     projections = [predictor.project(p) for p in (points, points[::3], points[1::2])]
     logits = predictor.logits(projections)
-    expected = [predictor.refine(p, out) for p, out in zip(projections, logits, strict=True)]
+    expected = [
+        predictor.refine_batch([p], out[None])[0]
+        for p, out in zip(projections, logits, strict=True)
+    ]
     with host_syncs() as counts:
         classes = predictor.refine_batch(projections, logits)
     assert sum(counts.values()) <= SYNCS_PER_BATCH

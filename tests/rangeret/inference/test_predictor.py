@@ -61,14 +61,12 @@ def test_predictor_on_the_real_scan_with_release_shaped_weights(tmp_path, scan):
 def test_stages_compose_to_predict(small_weights, scan):
     predictor = Predictor.from_checkpoint(small_weights, height=32, width=256, device="cpu")
     pts = scan[::5]
-    whole = predictor.predict(pts, with_probabilities=True)
+    whole = predictor.predict(pts)
     proj = predictor.project(pts)
     logits = predictor.logits([proj])
     assert logits.shape == (1, 20, 32, 256) and logits.dtype == torch.float32
-    classes = predictor.refine(proj, logits[0])
+    [classes] = predictor.refine_batch([proj], logits)
     np.testing.assert_array_equal(predictor.to_raw(classes), whole.labels)
-    assert whole.probabilities.shape == (len(pts), 20)
-    assert np.allclose(whole.probabilities[proj.valid].sum(axis=1), 1, atol=1e-5)
 
 
 def test_without_knn_points_take_their_pixel_class_and_unprojected_get_zero(small_weights, scan):
