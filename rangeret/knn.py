@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from rangeret.dataset.projection import check_pixels
+from rangeret.dataset.projection import ProjectionError, check_pixels
 from rangeret.inference.knn import refine_batch, to_device
 from rangeret.inference.settings import KnnSettings, is_integer
 
@@ -43,17 +43,19 @@ def refine(
 
     Returns (N,) int64 classes: a numpy array when every input is a numpy array, otherwise a
     torch tensor on the device of the tensor inputs. Ranges are compared in float32, as the
-    published code does. Bad input is a ValueError naming the argument.
+    published code does. Bad input is a ProjectionError (a ValueError) naming the argument.
     """
     knn = KnnSettings(k, search, sigma, cutoff)
     _check_class_ids(num_classes, votes_from, unprojected)
     if chunk_size is not None and (not is_integer(chunk_size) or chunk_size < 1):
-        raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
+        raise ProjectionError(f"chunk_size must be a positive integer, got {chunk_size!r}")
     given = (proj_range, unproj_range, proj_argmax, proj_x, proj_y)
     devices = {x.device for x in given if isinstance(x, torch.Tensor)}
     if len(devices) > 1:
         names = ", ".join(sorted(str(d) for d in devices))
-        raise ValueError(f"the input tensors are on different devices ({names}); move them to one")
+        raise ProjectionError(
+            f"the input tensors are on different devices ({names}); move them to one"
+        )
     device = next(iter(devices), torch.device("cpu"))
     names = ("proj_range", "unproj_range", "proj_argmax", "proj_x", "proj_y")
     ranges, point_ranges, classes, cols, rows = (
@@ -87,20 +89,20 @@ def _host(value: object, name: str) -> np.ndarray:
     try:
         return value.numpy(force=True)
     except TypeError as exc:  # a dtype numpy does not have (bfloat16, say)
-        raise ValueError(f"{name} must hold real numbers, got dtype {value.dtype}") from exc
+        raise ProjectionError(f"{name} must hold real numbers, got dtype {value.dtype}") from exc
 
 
 def _check_argmax(classes: np.ndarray, shape: tuple[int, ...], num_classes: int) -> None:
     """Raise ValueError unless `classes` is an image of class ids of the given shape."""
     if classes.dtype.kind not in "iu":
-        raise ValueError(f"proj_argmax must hold integers, got dtype {classes.dtype}")
+        raise ProjectionError(f"proj_argmax must hold integers, got dtype {classes.dtype}")
     if classes.shape != shape:
-        raise ValueError(
+        raise ProjectionError(
             f"proj_argmax must have the shape of proj_range {shape}, got {classes.shape}"
         )
     low, high = (int(classes.min()), int(classes.max())) if classes.size else (0, 0)
     if low < 0 or high >= num_classes:
-        raise ValueError(
+        raise ProjectionError(
             f"proj_argmax must hold classes in [0, {num_classes}), got values in [{low}, {high}]"
         )
 
@@ -108,7 +110,9 @@ def _check_argmax(classes: np.ndarray, shape: tuple[int, ...], num_classes: int)
 def _check_class_ids(num_classes: int, votes_from: int, unprojected: int) -> None:
     """Raise ValueError, naming the argument, unless there are classes and both ids are among them."""
     if not is_integer(num_classes) or num_classes < 2:
-        raise ValueError(f"num_classes must be an integer >= 2, got {num_classes!r}")
+        raise ProjectionError(f"num_classes must be an integer >= 2, got {num_classes!r}")
     for name, value in (("votes_from", votes_from), ("unprojected", unprojected)):
         if not is_integer(value) or not 0 <= value < num_classes:
-            raise ValueError(f"{name} must be a class id in 0..{num_classes - 1}, got {value!r}")
+            raise ProjectionError(
+                f"{name} must be a class id in 0..{num_classes - 1}, got {value!r}"
+            )

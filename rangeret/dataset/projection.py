@@ -118,7 +118,7 @@ def check_pixels(
     proj_range: np.ndarray, unproj_range: np.ndarray, proj_x: np.ndarray, proj_y: np.ndarray
 ) -> tuple[int, int]:
     """The image's (H, W), once the arrays are seen to describe one scan's pixels as `Projection`
-    holds them; otherwise a ValueError naming the array (what per-point labelling relies on)."""
+    holds them; otherwise a ProjectionError naming the array (what per-point labelling relies on)."""
     for name, value, integer in (
         ("proj_range", proj_range, False),
         ("unproj_range", unproj_range, False),
@@ -127,16 +127,16 @@ def check_pixels(
     ):
         kind = value.dtype.kind
         if kind not in "fiu":
-            raise ValueError(f"{name} must hold real numbers, got dtype {value.dtype}")
+            raise ProjectionError(f"{name} must hold real numbers, got dtype {value.dtype}")
         if integer and kind == "f":
-            raise ValueError(f"{name} must hold integers, got dtype {value.dtype}")
+            raise ProjectionError(f"{name} must hold integers, got dtype {value.dtype}")
     if proj_range.ndim != 2:
-        raise ValueError(f"proj_range must be (H, W), got shape {proj_range.shape}")
+        raise ProjectionError(f"proj_range must be (H, W), got shape {proj_range.shape}")
     for name, value in (("unproj_range", unproj_range), ("proj_x", proj_x), ("proj_y", proj_y)):
         if value.ndim != 1:
-            raise ValueError(f"{name} must be (N,), got shape {value.shape}")
+            raise ProjectionError(f"{name} must be (N,), got shape {value.shape}")
     if not unproj_range.shape == proj_x.shape == proj_y.shape:
-        raise ValueError(
+        raise ProjectionError(
             "unproj_range, proj_x and proj_y must have the same shape (N,), got "
             f"{unproj_range.shape}, {proj_x.shape} and {proj_y.shape}"
         )
@@ -144,12 +144,12 @@ def check_pixels(
     if proj_x.size:
         low, high = int(proj_x.min()), int(proj_x.max())
         if low < -1:
-            raise ValueError("proj_x must be -1 (not projected) or a column in [0, W)")
+            raise ProjectionError("proj_x must be -1 (not projected) or a column in [0, W)")
         if high >= width:
-            raise ValueError(f"proj_x must be below the image width {width}, got {high}")
+            raise ProjectionError(f"proj_x must be below the image width {width}, got {high}")
         rows = proj_y[proj_x >= 0]
         if rows.size and (int(rows.min()) < 0 or int(rows.max()) >= height):
-            raise ValueError(
+            raise ProjectionError(
                 f"proj_y must be in [0, {height}) for projected points, "
                 f"got values in [{int(rows.min())}, {int(rows.max())}]"
             )

@@ -5,6 +5,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
+from rangeret.exceptions import InputError
+
+
+class KnnSettingsError(InputError, ValueError):
+    """kNN refinement parameters that cannot be used."""
+
+
 from numbers import Integral, Real
 
 
@@ -21,7 +29,7 @@ class KnnSettings:
     def __post_init__(self) -> None:
         problem = _knn_problem(self.k, self.search, self.sigma, self.cutoff)
         if problem is not None:
-            raise ValueError(problem)
+            raise KnnSettingsError(problem)
 
 
 def _knn_problem(k: object, search: object, sigma: object, cutoff: object) -> str | None:
