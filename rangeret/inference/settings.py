@@ -5,15 +5,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from numbers import Integral, Real
 
 from rangeret.exceptions import InputError
 
 
 class KnnSettingsError(InputError, ValueError):
     """kNN refinement parameters that cannot be used."""
-
-
-from numbers import Integral, Real
 
 
 @dataclass(frozen=True)
