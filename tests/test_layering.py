@@ -135,3 +135,19 @@ def test_no_import_cycles_between_modules():
         if module not in state:
             visit(module, [module])
     assert cycles == []
+
+
+def test_no_source_file_is_longer_than_500_lines():
+    """Small modules, one concept each: a file that grows past 500 lines is split along its jobs."""
+    long = {
+        module: n
+        for module, path in source_files().items()
+        if (n := len(path.read_text().splitlines())) > 500
+    }
+    assert long == {}
+
+
+def test_the_library_top_level_holds_few_modules():
+    """`rangeret/` keeps its concepts in subpackages; at most 8 modules sit beside `__init__.py`."""
+    top = sorted(p.name for p in (REPO / "rangeret").glob("*.py") if p.name != "__init__.py")
+    assert len(top) <= 8, top

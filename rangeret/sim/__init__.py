@@ -12,7 +12,8 @@
 
 from rangeret.sim.dataset import simulate_dataset
 from rangeret.sim.raycast import SensorConfig, simulate_scan
-from rangeret.sim.scene import Boxes, Cylinders, Ellipsoids, Scene, ground_labels, make_scene
+from rangeret.sim.scene import Boxes, Cylinders, Ellipsoids, Scene, ground_labels
+from rangeret.sim.street import make_scene
 
 __all__ = [
     "Boxes",

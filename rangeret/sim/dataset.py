@@ -19,7 +19,7 @@ from rangeret.io.atomic import atomic_write_bytes
 from rangeret.io.scans import write_labels, write_scan
 from rangeret.sim.classes import raw_label_map
 from rangeret.sim.raycast import SensorConfig, SimulationError, simulate_scan
-from rangeret.sim.scene import make_scene
+from rangeret.sim.street import make_scene
 
 #: Seconds between two scans (the HDL-64E spins at 10 Hz).
 SCAN_PERIOD = 0.1
