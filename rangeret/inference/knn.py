@@ -29,8 +29,8 @@ number of points. Everything stays on the argmax's device and the work never wai
 device's results (no data-dependent shapes): the host arrays are copied from pinned memory on CUDA.
 
 Threads: on the CPU this issues about 150 small operations per chunk, each parallelised over
-torch's intra-op threads. That is the fastest on cores of its own (about 35 ms for 123k points,
-k = S = 7, 2 cores; 53 ms on one thread), but when another process keeps the same cores busy
+torch's intra-op threads. That is the fastest on cores of its own (`benchmarks/bench_knn.py`
+measures it on one thread and on all), but when another process keeps the same cores busy
 with its own spinning OpenMP threads, every operation can wait for a time slice and a call may
 take seconds. A caller that shares its cores (a pipeline running the network beside it) should
 run it with `torch.set_num_threads(1)`, or give it cores of its own.

@@ -73,8 +73,8 @@ def single_thread_on_cpu(device: torch.device) -> Iterator[None]:
     """Run the body on one torch thread when on the CPU.
 
     kNN refinement is many small operations: with several threads, each waits for a time slice
-    whenever the cores are shared (readers beside the model actor), which can make it a hundred
-    times slower; on one thread it costs about 1.5x its best time and never more.
+    whenever the cores are shared (readers beside the model actor), which can make it far slower;
+    on one thread its time stays close to its best (`benchmarks/bench_knn.py` measures both).
     """
     if device.type != "cpu":
         yield

@@ -7,8 +7,7 @@ The plain forms build the (B, heads, N, N) scores at once, literally as the thes
 The tiled forms give the same result block by block of query tokens: every normalisation in both
 networks is per query row, so a block of scores, its decay or bias (a view of the row-offset table
 of `decay.py`, never an N x N matrix), its normalisation and its product with V are computed while
-the block is still in cache. On the CPU at 64 x 1024 this is several times faster than the plain
-form. The recurrent form is RetNet's O(1)-per-token recurrence, which equals the parallel form
+the block is still in cache (`benchmarks/bench_models.py` compares the forms on the CPU). The recurrent form is RetNet's O(1)-per-token recurrence, which equals the parallel form
 under the unidirectional decay. `softmax_flex` is the softmax form through FlexAttention, with the
 decay bias computed from token positions inside the kernel instead of read from a matrix.
 """
