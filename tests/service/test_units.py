@@ -18,6 +18,7 @@ import pytest
 
 from rangeret.dataset.layout import list_scans, prediction_path
 from rangeret.dataset.profiles import load_profile
+from rangeret.inference.results import ScanPrediction
 from rangeret.io.scans import write_labels
 from rangeret.sim import simulate_dataset
 from rangeret.submission.archives import required_directories
@@ -29,7 +30,6 @@ from service.routes.scans import wants_json
 from service.schemas import JobState
 from service.settings import Settings, is_loopback
 from tests.support.trees import make_tree
-from workers.scans import LabelledScan
 
 LIMITS = ArchiveLimits(
     max_bytes=1 << 20, max_members=20, max_points=1000, max_extracted_bytes=1 << 20
@@ -207,7 +207,7 @@ class FakePool:
             if self.fail:
                 raise RuntimeError("actor died")
             return [
-                LabelledScan(
+                ScanPrediction(
                     np.full(len(s), len(s) + (0 if knn else 1000), dtype=np.uint32),
                     np.full(len(s), 0.5, dtype=np.float32) if confidence else None,
                 )
