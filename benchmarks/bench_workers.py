@@ -25,7 +25,8 @@ from rangeret.inference.runner import predict_tree
 from rangeret.inference.timing import StageTimes
 from rangeret.io.scans import read_scan, write_scan
 from rangeret.models import build_model
-from workers.pipeline import PipelineOptions, run_pipeline
+from workers.pipeline import run_pipeline
+from workers.sizing import PipelineOptions
 
 SIZES = {"kitti": (64, 1024), "small": (32, 256)}
 
@@ -81,13 +82,13 @@ def main() -> None:
                     actors=actors, actor_cpus=actor_cpus
                 )  # 2 x 0.75 is the default here
                 start = time.perf_counter()
-                result = run_pipeline(spec, profile, entries, tmp / f"ray{actors}-{r}", options)
-                rate = result.written / (time.perf_counter() - start)
+                run = run_pipeline(spec, profile, entries, tmp / f"ray{actors}-{r}", options)
+                rate = run.summary.written / (time.perf_counter() - start)
                 name = f"{actors} actor(s) x {actor_cpus:g} CPU"
                 rates.setdefault(name, []).append(rate)
                 ratios.setdefault(name, []).append(single / rate)
                 print(
-                    f"  round {r + 1}: Ray, {name:17s} {rate:6.3f} scans/s   {_stages(result.times)}"
+                    f"  round {r + 1}: Ray, {name:17s} {rate:6.3f} scans/s   {_stages(run.summary.times)}"
                 )
         print("medians:")
         print(

@@ -44,10 +44,10 @@ from _common import REAL_SCAN, REPO, SMALL_VECTORS
 from rangeret.dataset.layout import ScanEntry, discover, prediction_path
 from rangeret.dataset.profiles import DatasetProfile, load_profile
 from rangeret.dataset.projection import project
-from rangeret.inference.loading import LoadedScan, load_batch
+from rangeret.inference.loading import LoadedScan, batches, load_batch
 from rangeret.inference.predictor import Predictor, PredictorSpec
+from rangeret.inference.results import RunSummary
 from rangeret.inference.runtime.precision import forward_precision
-from rangeret.inference.timing import StageTimes
 from rangeret.io.atomic import atomic_write_text
 from rangeret.io.scans import read_scan, write_labels
 from rangeret.knn import refine
@@ -901,13 +901,13 @@ def label_in_process(
     sampler: UtilisationSampler,
 ) -> dict[str, Any]:
     """One GPU actor's work in this process: reader threads, the network and kNN, writer threads."""
-    times = StageTimes()
+    summary = RunSummary(total=len(entries))
+    times = summary.times
     size = plan.pipeline_batch
-    batches = [list(entries[i : i + size]) for i in range(0, len(entries), size)]
+    scan_batches = batches(entries, size)
     config, record = predictor.projection_config, predictor.profile.points
     done_at: list[float] = []
-    failed: dict[str, str] = {}
-    writes: list[Future[None]] = []
+    writes: list[tuple[str, int, Future[None]]] = []
 
     def write(entry: ScanEntry, labels: np.ndarray) -> None:
         with times.stage("write"):
@@ -918,7 +918,7 @@ def label_in_process(
         ThreadPoolExecutor(plan.readers, thread_name_prefix="reader") as readers,
         ThreadPoolExecutor(plan.writers, thread_name_prefix="writer") as writers,
     ):
-        upcoming = iter(batches)
+        upcoming = iter(scan_batches)
         pending: deque[Future[list[LoadedScan]]] = deque()
 
         def refill() -> None:
@@ -934,26 +934,28 @@ def label_in_process(
             refill()
             results = predictor.label_loaded(loaded, times)
             done_at.append(time.perf_counter())
-            for scan, (found, error) in zip(loaded, results, strict=True):
-                if found is None:
-                    failed[scan.entry.key] = error
+            for scan, found in zip(loaded, results, strict=True):
+                if isinstance(found, str):
+                    summary.add(scan.entry.key, found)
                 else:
-                    writes.append(writers.submit(write, scan.entry, found.labels))
+                    written = writers.submit(write, scan.entry, found.labels)
+                    writes.append((scan.entry.key, scan.projection.num_points, written))
         labelled = time.perf_counter()
-        for future in writes:
+        for key, points, future in writes:
             future.result()
-    total = time.perf_counter() - start
+            summary.add(key, None, points)
+    summary.seconds = total = time.perf_counter() - start
     skip = plan.pipeline_skip
     steady: dict[str, Any] = {"skipped_batches": skip}
-    if len(batches) > skip >= 1:
+    if len(scan_batches) > skip >= 1:
         window = done_at[-1] - done_at[skip - 1]
-        scans = sum(len(b) for b in batches[skip:])
+        scans = sum(len(b) for b in scan_batches[skip:])
         steady.update(scans=scans, seconds=round(window, 3), scans_per_s=round(scans / window, 2))
         steady["gpu_utilisation"] = sampler.between(done_at[skip - 1], done_at[-1])
     return {
-        "scans": len(entries),
-        "written": len(writes),
-        "failed": failed,
+        "scans": summary.total,
+        "written": summary.written,
+        "failed": summary.failed,
         "batch": size,
         "readers": plan.readers,
         "writers": plan.writers,
@@ -975,7 +977,8 @@ def label_on_ray(
     """The same scans through the Ray pipeline (`workers.pipeline.run_pipeline`) on a local Ray."""
     import ray
 
-    from workers.pipeline import PipelineOptions, run_pipeline
+    from workers.pipeline import run_pipeline
+    from workers.sizing import PipelineOptions
 
     os.environ["PYTHONPATH"] = python_path()  # Ray's worker processes import `workers` from here
     gpus = torch.cuda.device_count() if torch.cuda.is_available() else 0
@@ -983,7 +986,7 @@ def label_on_ray(
     ray.init(num_cpus=os.cpu_count(), num_gpus=gpus, include_dashboard=False, log_to_driver=False)
     try:
         started = time.perf_counter() - start
-        result = run_pipeline(
+        run = run_pipeline(
             spec,
             profile,
             entries,
@@ -992,15 +995,16 @@ def label_on_ray(
         )
     finally:
         ray.shutdown()
+    summary = run.summary
     return {
         "ray_start_s": round(started, 2),
-        "seconds": round(result.seconds, 3),
-        "written": result.written,
-        "failed": result.failed,
-        "actors": result.actors,
-        "workers": result.devices,
-        "scans_per_s": round(result.written / result.seconds, 2) if result.seconds else None,
-        "stage_ms_per_scan": {k: round(v, 3) for k, v in result.times.per_scan_ms().items()},
+        "seconds": round(summary.seconds, 3),
+        "written": summary.written,
+        "failed": summary.failed,
+        "actors": run.layout.actors if run.layout is not None else 0,
+        "workers": run.devices,
+        "scans_per_s": round(summary.written / summary.seconds, 2) if summary.seconds else None,
+        "stage_ms_per_scan": {k: round(v, 3) for k, v in summary.times.per_scan_ms().items()},
     }
 
 

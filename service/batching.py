@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 if TYPE_CHECKING:
-    from workers.scans import LabelledScan
+    from rangeret.inference.results import ScanPrediction
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +30,7 @@ class ScanBackend(Protocol):
 
     async def predict_async(
         self, scans: Sequence[np.ndarray], knn: bool = True, confidence: bool = False
-    ) -> list[LabelledScan | str]:
+    ) -> list[ScanPrediction | str]:
         """Each scan of a batch labelled (with confidences when asked), or the reason a scan
         cannot be labelled."""
         ...
@@ -58,7 +58,7 @@ class _Request:
     points: np.ndarray
     options: tuple[bool, bool]  # (knn, confidence): requests share a batch only with equal ones
     arrived: float
-    future: asyncio.Future[LabelledScan]
+    future: asyncio.Future[ScanPrediction]
 
 
 class ScanBatcher:
@@ -107,7 +107,7 @@ class ScanBatcher:
 
     async def label(
         self, points: np.ndarray, knn: bool = True, confidence: bool = False
-    ) -> LabelledScan:
+    ) -> ScanPrediction:
         """One scan (the profile's point records) labelled within a batch: raw labels (uint32,
         one per point) and, when asked, their confidences; `ScanRejected` when the workers refuse
         the scan itself."""

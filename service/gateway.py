@@ -24,7 +24,7 @@ from service.settings import Settings
 if TYPE_CHECKING:
     import numpy as np
 
-    from workers.scans import LabelledScan
+    from rangeret.inference.results import ScanPrediction
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +45,7 @@ class ScanLabeller(Protocol):
 
     async def label(
         self, points: np.ndarray, raw: bytes, knn: bool = True, confidence: bool = False
-    ) -> LabelledScan:
+    ) -> ScanPrediction:
         """One scan labelled: its points parsed and its bytes as received."""
         ...
 

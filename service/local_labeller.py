@@ -16,8 +16,9 @@ from typing import Protocol
 import numpy as np
 
 from rangeret.inference.predictor import PredictorSpec
+from rangeret.inference.results import ScanPrediction
 from service.batching import ScanBackend, ScanBatcher
-from workers.scans import LabelledScan, ScanWorker
+from workers.scans import ScanWorker
 
 
 class LocalPool:
@@ -30,13 +31,13 @@ class LocalPool:
 
     def _predict(
         self, scans: Sequence[np.ndarray], knn: bool, confidence: bool
-    ) -> list[LabelledScan | str]:
+    ) -> list[ScanPrediction | str]:
         with self._lock:
             return self.worker.predict(scans, knn, confidence)
 
     async def predict_async(
         self, scans: Sequence[np.ndarray], knn: bool = True, confidence: bool = False
-    ) -> list[LabelledScan | str]:
+    ) -> list[ScanPrediction | str]:
         """Each scan of a batch labelled, or the reason it cannot be, in a worker thread."""
         self._waiting += 1
         try:
@@ -88,7 +89,7 @@ class LocalLabeller:
 
     async def label(
         self, points: np.ndarray, raw: bytes, knn: bool = True, confidence: bool = False
-    ) -> LabelledScan:
+    ) -> ScanPrediction:
         """One scan labelled within a batch (`raw`, its bytes, is not needed here)."""
         if self.batcher is None:
             raise RuntimeError("the labeller is not started")

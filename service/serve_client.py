@@ -19,9 +19,9 @@ import numpy as np
 
 from rangeret.commands import CommandError
 from rangeret.dataset.profiles import DatasetProfile
+from rangeret.inference.results import ScanPrediction
 from service.batching import BackendError, BackendTimeout, ScanRejected
 from workers.scan_wire import INFO_PATH, OCTET, SCANS_PATH, decode_labels, options_query
-from workers.scans import LabelledScan
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +61,7 @@ class ServeLabeller:
 
     async def label(
         self, points: np.ndarray, raw: bytes, knn: bool = True, confidence: bool = False
-    ) -> LabelledScan:
+    ) -> ScanPrediction:
         """One scan (`raw`, its bytes; `points`, them parsed) labelled by the application."""
         if self._client is None:
             raise BackendError("the gateway is starting; try again in a moment")
@@ -89,7 +89,7 @@ class ServeLabeller:
             self._in_flight -= 1
         return self._answer(response, len(points))
 
-    def _answer(self, response: httpx.Response, points: int) -> LabelledScan:
+    def _answer(self, response: httpx.Response, points: int) -> ScanPrediction:
         """The labels of a 200, or the error its status means."""
         if response.status_code == 200:
             try:

@@ -27,7 +27,8 @@ from rangeret.models.weights.demo import DEMO_CHECKPOINT, DEMO_WARNING, resolve_
 from rangeret.sim import SensorConfig, simulate_dataset
 from rangeret.submission.archives import TEST_SEQUENCES, validate_submission, write_submission
 from rangeret.submission.leaderboard import LeaderboardEntry, description_text
-from workers.pipeline import PipelineOptions, run_pipeline
+from workers.pipeline import run_pipeline
+from workers.sizing import PipelineOptions
 
 log = logging.getLogger(__name__)
 
@@ -99,14 +100,14 @@ def run_demo(
         )
     try:
         entries = discover(dataset, list(sequences), layout=profile.layout).scans
-        result = run_pipeline(
+        run = run_pipeline(
             spec, profile, entries, preds, PipelineOptions(read_cpus=0.25, write_cpus=0.1)
         )
     finally:
         if own_ray:
             ray.shutdown()
-    if result.failed:
-        raise RuntimeError(f"the demo could not predict {sorted(result.failed)}")
+    if not run.summary.ok:
+        raise RuntimeError(f"the demo could not predict {sorted(run.summary.failed)}")
 
     report = evaluate_predictions(
         dataset, preds, [valid], checkpoint_sha256=info.sha256, profile=profile
@@ -142,7 +143,7 @@ def run_demo(
     print(report.table())
     print(
         f"\nDone in {time.perf_counter() - started:.0f} s with {info.name} at "
-        f"{profile.projection.height}x{profile.projection.width} on {', '.join(result.devices)}. Results in {out}/:"
+        f"{profile.projection.height}x{profile.projection.width} on {', '.join(run.devices)}. Results in {out}/:"
     )
     print(f"  dataset (simulated, {profile.name} layout):".ljust(43) + f"{dataset}")
     print(f"  predictions tree:                         {preds}")

@@ -19,6 +19,7 @@ import logging
 import os
 import sys
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 from rangeret.commands import CommandError, run_command
@@ -27,7 +28,6 @@ from rangeret.dataset.profiles import DEFAULT_PROFILE, DatasetProfile
 from rangeret.exceptions import RangeRetError
 from rangeret.inference.description import describe_network
 from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
-from rangeret.inference.runner import PredictSummary
 from rangeret.io.run_info import write_run_info
 from rangeret.models.weights.checkpoint_info import CheckpointInfo
 from rangeret.models.weights.demo import DEMO_WARNING, is_demo_checkpoint
@@ -40,8 +40,10 @@ from rangeret.options import (
     spec_from_args,
 )
 from rangeret.submission.leaderboard import description_text
-from workers.pipeline import PipelineOptions, count_labels, run_pipeline
+from workers.pipeline import run_pipeline
 from workers.progress import ProgressWriter
+from workers.sizing import PipelineOptions
+from workers.stages import count_labels
 
 log = logging.getLogger("workers.predict_job")
 
@@ -172,24 +174,15 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
         use_gpu=None if args.device == "auto" else args.device == "cuda",
         read_roots=tuple(str(r.resolve()) for r in args.read_roots) if args.read_roots else None,
     )
-    result = run_pipeline(spec, profile, pending, args.out, options, progress=recorder.batch)
-    precision = result.precision(spec)
-    log.info("model actors: %s", ", ".join(result.devices) or "none needed")
-
-    summary = PredictSummary(
-        total=len(entries),
-        written=result.written,
-        skipped=len(done),
-        points=result.points,
-        seconds=result.seconds,
-        failed=result.failed,
-        times=result.times,
-    )
+    run = run_pipeline(spec, profile, pending, args.out, options, progress=recorder.batch)
+    precision = run.precision(spec)
+    log.info("model actors: %s", ", ".join(run.devices) or "none needed")
+    summary = replace(run.summary, total=len(entries), skipped=len(done))
     print(summary.text())
 
-    evaluator = result.evaluator
+    evaluator = run.evaluator
     evaluator.merge(count_labels(done, args.out, profile))
-    if evaluator.num_scans and not result.failed:
+    if evaluator.num_scans and summary.ok:
         report = evaluator.report(sequences, info.sha256)
         report.profile = profile.name
         report.precision = precision
@@ -208,12 +201,12 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
     elif args.report and not evaluator.num_scans:
         log.warning("no scan of %s has ground truth: no evaluation report", ", ".join(sequences))
 
-    if result.failed:
-        recorder.finish(failures=result.failed, precision=precision)
+    if not summary.ok:
+        recorder.finish(failures=summary.failed, precision=precision)
         raise CommandError(
-            f"{len(result.failed)} of {len(entries)} scans could not be predicted "
+            f"{len(summary.failed)} of {summary.total} scans could not be predicted "
             f"(every other scan was written to {args.out})",
-            [f"{k}: {v}" for k, v in result.failed.items()],
+            [f"{k}: {v}" for k, v in summary.failed.items()],
         )
     if args.submission and profile.name != DEFAULT_PROFILE:
         raise CommandError(

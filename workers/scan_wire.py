@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from workers.scans import LabelledScan
+from rangeret.inference.results import ScanPrediction
 
 SCANS_PATH = "/scans"
 INFO_PATH = "/info"
@@ -41,7 +41,7 @@ def query_flag(value: str | None, default: bool, name: str) -> bool:
     raise ValueError(f"the query parameter {name} is true or false, got {value[:40]!r}")
 
 
-def encode_labels(scan: LabelledScan) -> tuple[bytes, dict[str, str]]:
+def encode_labels(scan: ScanPrediction) -> tuple[bytes, dict[str, str]]:
     """The answer's body and headers for one labelled scan."""
     labels = np.ascontiguousarray(scan.labels, dtype="<u4")
     headers = {POINTS_HEADER: str(len(labels)), CONFIDENCE_HEADER: "0"}
@@ -52,7 +52,7 @@ def encode_labels(scan: LabelledScan) -> tuple[bytes, dict[str, str]]:
     return labels.tobytes() + confidence.tobytes(), headers
 
 
-def decode_labels(body: bytes, headers: dict[str, str] | object, points: int) -> LabelledScan:
+def decode_labels(body: bytes, headers: dict[str, str] | object, points: int) -> ScanPrediction:
     """One labelled scan from an answer for a scan of `points` points; `ValueError` saying what
     does not fit when the answer is not one."""
     get = headers.get  # type: ignore[attr-defined]
@@ -70,4 +70,4 @@ def decode_labels(body: bytes, headers: dict[str, str] | object, points: int) ->
         if with_confidence
         else None
     )
-    return LabelledScan(labels, confidence)
+    return ScanPrediction(labels, confidence)

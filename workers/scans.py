@@ -11,22 +11,14 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
-from rangeret.dataset.projection import Projection
+from rangeret.dataset.profiles import DatasetProfile
+from rangeret.inference.loading import project_scans
 from rangeret.inference.predictor import PredictorSpec
-from workers.pipeline import warm_up
-
-
-@dataclass
-class LabelledScan:
-    """One labelled scan: raw labels (uint32, one per point) and, when asked, each point's
-    confidence in its label (float32)."""
-
-    labels: np.ndarray
-    confidence: np.ndarray | None = None
+from rangeret.inference.results import ScanOutcome
+from workers.stages import warm_up
 
 
 class ScanWorker:
@@ -44,7 +36,7 @@ class ScanWorker:
         self.warm_up_seconds = warm_up(self.spec_predictor)
 
     @property
-    def profile(self):
+    def profile(self) -> DatasetProfile:
         """The dataset profile the network runs with (point record, labels)."""
         return self.spec_predictor.profile
 
@@ -60,23 +52,10 @@ class ScanWorker:
 
     def predict(
         self, scans: Sequence[np.ndarray], knn: bool = True, confidence: bool = False
-    ) -> list[LabelledScan | str]:
+    ) -> list[ScanOutcome]:
         """Each scan of a batch of the profile's point records labelled (with its points'
-        confidences when asked), or the reason it cannot be projected."""
+        confidences when asked), or the reason it cannot be projected. A failing network pass
+        raises: it is the replica's fault, not the scans'."""
         predictor = self.spec_predictor if knn else self.without_knn
-        projections: list[Projection] = []
-        rejected: dict[int, str] = {}
-        for i, scan in enumerate(scans):
-            try:
-                projections.append(predictor.project(scan))
-            except ValueError as exc:
-                rejected[i] = str(exc)
-        done = iter(
-            [
-                LabelledScan(r.labels, r.confidence)
-                for r in predictor.finish_batch(projections, with_confidence=confidence)
-            ]
-            if projections
-            else []
-        )
-        return [rejected[i] if i in rejected else next(done) for i in range(len(scans))]
+        projected = project_scans(scans, predictor.projection_config, predictor.times)
+        return predictor.label_projected(projected, with_confidence=confidence)

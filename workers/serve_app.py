@@ -27,8 +27,10 @@ from starlette.requests import Request
 from starlette.responses import JSONResponse, Response
 
 from rangeret.commands import CommandError
+from rangeret.inference.results import ScanOutcome
 from rangeret.io.scans import ScanFormatError, parse_scan
 from rangeret.options import NETWORK_OPTIONS, network_args, spec_from_values
+from workers.cluster import read_resources
 from workers.scan_wire import (
     INFO_PATH,
     OCTET,
@@ -36,7 +38,8 @@ from workers.scan_wire import (
     encode_labels,
     query_flag,
 )
-from workers.scans import LabelledScan, ScanWorker
+from workers.scans import ScanWorker
+from workers.sizing import ClusterResources, replica_gpus
 
 log = logging.getLogger(__name__)
 
@@ -68,12 +71,12 @@ class ScanModel:
         self._failure: str | None = None
 
     @serve.batch(max_batch_size=1, batch_wait_timeout_s=DEFAULT_BATCH_WAIT_MS / 1000)
-    async def label_one(self, items: list[Item]) -> list[LabelledScan | str]:
+    async def label_one(self, items: list[Item]) -> list[ScanOutcome]:
         """A batch of requests labelled, one network pass per set of equal options."""
         return await asyncio.to_thread(self._label_items, items)
 
-    def _label_items(self, items: list[Item]) -> list[LabelledScan | str]:
-        results: list[LabelledScan | str | None] = [None] * len(items)
+    def _label_items(self, items: list[Item]) -> list[ScanOutcome]:
+        results: list[ScanOutcome | None] = [None] * len(items)
         for options in dict.fromkeys((knn, conf) for _, knn, conf in items):
             indices = [i for i, item in enumerate(items) if item[1:] == options]
             try:
@@ -115,16 +118,6 @@ class ScanModel:
             raise RuntimeError(f"the last network pass failed: {self._failure}")
 
 
-def replica_gpus(device: str) -> float:
-    """GPUs each replica asks for: one on `cuda`, none on `cpu`, and for `auto` one where the
-    cluster has GPUs or its autoscaler can add them."""
-    if device != "auto":
-        return 1.0 if device == "cuda" else 0.0
-    from workers.pipeline import autoscaler_gpus, cluster_gpus
-
-    return 1.0 if cluster_gpus() or autoscaler_gpus() else 0.0
-
-
 def deployment_options(batch_size: int, gpus: float) -> dict[str, Any]:
     """The deployment's defaults: backpressure sized to the batch (one batch running, one
     gathering), autoscaling on the requests in flight per replica, and health checks."""
@@ -161,5 +154,6 @@ def build_app(args: Mapping[str, object]) -> serve.Application:
     wait = float(args.get("batch_wait_ms", DEFAULT_BATCH_WAIT_MS))  # type: ignore[arg-type]
     if wait < 0:
         raise ValueError(f"batch_wait_ms must not be negative, got {wait:g}")
-    options = deployment_options(parsed.batch_size, replica_gpus(parsed.device))
+    resources = read_resources() if parsed.device == "auto" else ClusterResources()
+    options = deployment_options(parsed.batch_size, replica_gpus(parsed.device, resources))
     return serve.deployment(**options)(ScanModel).bind(values, wait)

@@ -1,27 +1,41 @@
-"""The pipeline's CPU stages: read + project before the network, write + count after it.
+"""The pipeline's stages: read + project, the network + kNN (`ModelWorker`), write + count.
 
-They run in small Ray Data actor pools beside the model actors. This module imports only numpy and
-the torch-free parts of the library, so a reader or writer process starts in about a second and
-holds no copy of torch. A batch travels between stages as one typed `BatchRecord`, encoded into a
-Ray Data row by `encode` and read back by `BatchRecord.decode`.
+The CPU stages run in small Ray Data actor pools beside the model actors. This module imports only
+numpy and the torch-free parts of the library (the model stage imports torch when its actor is
+built), so a reader or writer process starts in about a second and holds no copy of torch. A batch
+travels between stages as one typed `BatchRecord`, encoded into a Ray Data row by `encode` and read
+back by `BatchRecord.decode`.
 """
 
 from __future__ import annotations
 
+import logging
+import math
+import os
 import pickle
-from collections.abc import Sequence
+import time
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from rangeret.dataset.distance import distance_bands
 from rangeret.dataset.labels import LabelConfig
 from rangeret.dataset.layout import ScanEntry, prediction_path
+from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.projection import ProjectionConfig
+from rangeret.evaluation.evaluate import count_scan
 from rangeret.evaluation.metrics import RawLabelEvaluator
 from rangeret.inference.loading import LoadedScan, load_batch
 from rangeret.inference.timing import StageTimes
 from rangeret.io.scans import KITTI_RECORD, PointRecord, ScanFormatError, read_labels, write_labels
+
+if TYPE_CHECKING:  # torch stays out of the CPU stages' processes
+    from rangeret.inference.predictor import Predictor, PredictorSpec
+
+log = logging.getLogger(__name__)
 
 #: The one column of a pipeline row: the pickled `BatchRecord`.
 ROW_COLUMN = "record"
@@ -107,6 +121,40 @@ def write_results(record: BatchRecord, out: str, label_config: LabelConfig) -> B
     return record
 
 
+def warm_up(predictor: Predictor) -> float:
+    """Run the network once on an empty scan's range image (zeros of (1, 5, H, W)), so that the
+    decay tables and the device's kernels are built before the first real batch; the time it took
+    is logged and returned, and recorded in no stage."""
+    start = time.perf_counter()
+    empty = predictor.project(np.zeros((0, 5), np.float32), StageTimes())
+    predictor.logits([empty], StageTimes())
+    seconds = time.perf_counter() - start
+    config = predictor.projection_config
+    log.info(
+        "model actor %d warmed up on %s (%d x %d) in %.2f s",
+        os.getpid(),
+        predictor.device,
+        config.height,
+        config.width,
+        seconds,
+    )
+    return seconds
+
+
+def label_batch(predictor: Predictor, encoded: bytes) -> bytes:
+    """Stage 2 on one encoded `BatchRecord`: the network, kNN refinement and raw ids of its
+    scans (`Predictor.label_loaded`: labels or a named failure per scan); the record names the
+    device and process that ran it."""
+    record = BatchRecord.decode({ROW_COLUMN: encoded})
+    record.results = [
+        (None, found) if isinstance(found, str) else (found.labels, None)
+        for found in predictor.label_loaded(record.loaded, record.times)
+    ]
+    record.loaded = []
+    record.worker = f"{predictor.device}@{os.getpid()}"
+    return record.encode()[ROW_COLUMN]
+
+
 class Reader:
     """`read_and_project` as a long-lived Ray Data actor: no worker process start per batch."""
 
@@ -134,3 +182,31 @@ class Writer:
 
     def __call__(self, row: dict) -> dict:
         return write_results(BatchRecord.decode(row), self.out, self.label_config).encode()
+
+
+class ModelWorker:
+    """Stage 2 (an actor): the network on a batch, then kNN refinement and raw ids. It warms the
+    network up before it takes a batch, so the first batch's times are those of any other."""
+
+    def __init__(self, spec: PredictorSpec, cpus: float) -> None:
+        import torch
+
+        torch.set_num_threads(max(1, math.ceil(cpus)))
+        self.predictor = spec.build()
+        self.warm_up_seconds = warm_up(self.predictor)
+
+    def __call__(self, batch: dict) -> dict:
+        return {ROW_COLUMN: [label_batch(self.predictor, row) for row in batch[ROW_COLUMN]]}
+
+
+def count_labels(
+    entries: Iterable[ScanEntry], out: Path | str, profile: DatasetProfile
+) -> RawLabelEvaluator:
+    """Confusion counts of scans predicted earlier (skipped on resume), read from their files as
+    `rangeret evaluate` reads them (the scan for its points' distance bands)."""
+    evaluator = RawLabelEvaluator(profile.labels)
+    for entry in entries:
+        if entry.label_path is not None:
+            pred = prediction_path(out, entry.sequence, entry.name)
+            count_scan(evaluator, entry, pred, profile.points)
+    return evaluator

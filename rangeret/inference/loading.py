@@ -1,18 +1,38 @@
-"""Reading and projecting the scans of a batch, with every unreadable scan kept as a named failure.
+"""Batches of scans, read and projected, with every unreadable scan kept as a named failure.
 
-The first step of every prediction runner (`rangeret predict` and the Ray pipeline's readers),
-written once. Torch-free, so the pipeline's reader processes start without torch.
+The first step of every prediction runner (`rangeret predict`, the Ray pipeline's driver and
+readers, the GPU check's in-process labeller, and for scans already in memory the Serve replicas
+and the gateway), written once. Torch-free, so the pipeline's reader processes start without torch.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TypeVar
+
+import numpy as np
 
 from rangeret.dataset.layout import ScanEntry
 from rangeret.dataset.projection import Projection, ProjectionConfig, project_with
+from rangeret.inference.runtime.backends import RuntimeChoiceError
 from rangeret.inference.timing import StageTimes
 from rangeret.io.scans import KITTI_RECORD, PointRecord, ScanFormatError, read_scan
+
+T = TypeVar("T")
+
+
+def check_batch_size(size: int) -> None:
+    """`RuntimeChoiceError` naming `--batch-size` unless `size` is at least 1."""
+    if size < 1:
+        raise RuntimeChoiceError(f"--batch-size must be at least 1, got {size}")
+
+
+def batches(items: Sequence[T], size: int) -> list[list[T]]:
+    """`items` in consecutive batches of `size` (the last one shorter), in order: every runner
+    groups scans this way, so a batch holds the same scans, and gives the same labels, in each."""
+    check_batch_size(size)
+    return [list(items[start : start + size]) for start in range(0, len(items), size)]
 
 
 @dataclass
@@ -53,3 +73,18 @@ def load_batch(
             continue
         loaded.append(LoadedScan(entry, projection=projection))
     return loaded
+
+
+def project_scans(
+    scans: Sequence[np.ndarray], config: ProjectionConfig, times: StageTimes
+) -> list[Projection | str]:
+    """Project scans already in memory (a request's points), in order; a scan whose points cannot
+    be projected (a laser id off the image) becomes the reason instead."""
+    projected: list[Projection | str] = []
+    for points in scans:
+        try:
+            with times.stage("project"):
+                projected.append(project_with(points, config))
+        except ValueError as exc:
+            projected.append(str(exc))
+    return projected

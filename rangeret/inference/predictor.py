@@ -26,6 +26,7 @@ from rangeret.dataset.projection import Projection, ProjectionConfig, project_wi
 from rangeret.inference.description import describe_network
 from rangeret.inference.loading import LoadedScan
 from rangeret.inference.point_labels import point_classes_batch, point_confidences
+from rangeret.inference.results import ScanOutcome, ScanPrediction
 from rangeret.inference.runtime.device import select_device
 from rangeret.inference.runtime.onnx_backend import OnnxForward, cached_export
 from rangeret.inference.runtime.precision import forward_precision, resolve_precision
@@ -73,16 +74,6 @@ class PredictorSpec:
             tta=self.tta,
             backend=self.backend,
         )
-
-
-@dataclass
-class ScanPrediction:
-    """The result for one scan: raw labels (one per point) and what led to them."""
-
-    labels: np.ndarray
-    classes: np.ndarray
-    #: Each point's softmax probability of its final class at its pixel (float32), when asked.
-    confidence: np.ndarray | None = None
 
 
 class Predictor:
@@ -283,28 +274,41 @@ class Predictor:
             for c, conf in zip(classes, confidences, strict=True)
         ]
 
+    def label_projected(
+        self,
+        scans: Sequence[Projection | str],
+        times: StageTimes | None = None,
+        with_confidence: bool = False,
+    ) -> list[ScanOutcome]:
+        """A prediction for each projected scan of a batch and, for a scan given as the reason it
+        has no projection, that reason, in order. The network runs once on the projected scans;
+        its errors propagate (see `label_loaded`)."""
+        good = [s for s in scans if not isinstance(s, str)]
+        done = iter(
+            self.finish_batch(good, times=times, with_confidence=with_confidence) if good else []
+        )
+        return [s if isinstance(s, str) else next(done) for s in scans]
+
     def label_loaded(
         self,
         scans: Sequence[LoadedScan],
         times: StageTimes | None = None,
         with_confidence: bool = False,
-    ) -> list[tuple[ScanPrediction | None, str | None]]:
-        """(prediction, None) or (None, why) for each scan of a loaded batch, in order.
+    ) -> list[ScanOutcome]:
+        """A prediction or the named failure of each scan of a loaded batch, in order.
 
         The network runs once on the readable scans; if it fails (out of device memory, say),
         each of them becomes a named failure instead of stopping the run.
         """
-        good = [s.projection for s in scans if s.error is None]
         try:
-            done = iter(
-                self.finish_batch(good, times=times, with_confidence=with_confidence)
-                if good
-                else []
+            return self.label_projected(
+                [s.error if s.error is not None else s.projection for s in scans],
+                times,
+                with_confidence,
             )
         except RuntimeError as exc:
             reason = f"the network failed: {exc}"
-            return [(None, s.error or reason) for s in scans]
-        return [(None, s.error) if s.error is not None else (next(done), None) for s in scans]
+            return [s.error or reason for s in scans]
 
     # Internals -----------------------------------------------------------------------------
 

@@ -20,6 +20,7 @@ import pytest
 import yaml
 
 from rangeret.cli.main import main as rangeret_main
+from rangeret.inference.results import ScanPrediction
 from rangeret.io.scans import read_labels, read_scan
 from rangeret.models.weights.hub import file_sha256 as checkpoint_sha256
 from service.serve_client import ServeLabeller
@@ -32,7 +33,6 @@ from workers.scan_wire import (
     encode_labels,
     query_flag,
 )
-from workers.scans import LabelledScan
 
 NET_ARGS = {"height": 32, "width": 256, "device": "cpu"}
 
@@ -43,13 +43,13 @@ NET_ARGS = {"height": 32, "width": 256, "device": "cpu"}
 def test_the_exchange_round_trips_labels_and_confidences():
     labels = np.array([0, 10, 40, 252, 65536 + 10], np.uint32)
     for confidence in (None, np.linspace(0, 1, 5, dtype=np.float32)):
-        body, headers = encode_labels(LabelledScan(labels, confidence))
+        body, headers = encode_labels(ScanPrediction(labels, confidence))
         back = decode_labels(body, headers, len(labels))
         assert np.array_equal(back.labels, labels)
         assert (back.confidence is None) == (confidence is None)
         if confidence is not None:
             assert np.array_equal(back.confidence, confidence)
-    body, headers = encode_labels(LabelledScan(labels))
+    body, headers = encode_labels(ScanPrediction(labels))
     with pytest.raises(ValueError, match=r"answered 20 bytes for 5 points, not the 24 bytes"):
         decode_labels(body, headers, 6)
     with pytest.raises(ValueError, match=r"not the 40 bytes"):

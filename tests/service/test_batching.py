@@ -9,8 +9,8 @@ import time
 import numpy as np
 import pytest
 
+from rangeret.inference.results import ScanPrediction
 from service.batching import BackendError, ScanBatcher, ScanRejected
-from workers.scans import LabelledScan
 
 
 class FakePool:
@@ -32,7 +32,7 @@ class FakePool:
             if self.fail:
                 raise RuntimeError("actor died")
             return [
-                LabelledScan(
+                ScanPrediction(
                     np.full(len(s), len(s) + (0 if knn else 1000), dtype=np.uint32),
                     np.full(len(s), 0.5, dtype=np.float32) if confidence else None,
                 )

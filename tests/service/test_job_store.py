@@ -18,13 +18,13 @@ import pytest
 from fastapi.testclient import TestClient
 
 from rangeret.dataset.layout import prediction_path
+from rangeret.inference.results import ScanPrediction
 from rangeret.io.scans import write_labels
 from service.app import create_app
 from service.jobs import SCHEMA_VERSION, JobDatabaseVersionError, JobStore
 from service.schemas import JobState
 from service.settings import Settings
 from tests.support.trees import make_tree
-from workers.scans import LabelledScan
 
 TOKEN = "store-test-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -180,7 +180,7 @@ class FakeLabeller:
         return None
 
     async def label(self, points, raw, knn=True, confidence=False):
-        return LabelledScan(np.full(len(points), 40, dtype=np.uint32))
+        return ScanPrediction(np.full(len(points), 40, dtype=np.uint32))
 
     def depth(self):
         return 0

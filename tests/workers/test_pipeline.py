@@ -17,7 +17,8 @@ from rangeret.cli.main import main as rangeret_main
 from rangeret.dataset.layout import discover
 from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
 from tests.support.workers import build_tree, small_weights, tree_bytes
-from workers.pipeline import PipelineOptions, run_pipeline
+from workers.pipeline import run_pipeline
+from workers.sizing import PipelineOptions
 
 pytestmark = pytest.mark.slow
 
@@ -75,11 +76,11 @@ def test_one_model_actor_per_gpu_and_a_node_leaving(cluster, tmp_path):
     data = build_tree(tmp_path / "data", labelled=3, unlabelled=5)
     _predict_here(weights, data, tmp_path / "single")
 
-    result = _job(weights, data, tmp_path / "a")
-    assert result.actors == 2
-    assert len(result.devices) == 2, result.devices
-    assert all(d.startswith("cpu@") for d in result.devices), result.devices
-    assert not result.failed and result.written == 8
+    run = _job(weights, data, tmp_path / "a")
+    assert run.layout.actors == 2
+    assert len(run.devices) == 2, run.devices
+    assert all(d.startswith("cpu@") for d in run.devices), run.devices
+    assert not run.summary.failed and run.summary.written == 8
     assert tree_bytes(tmp_path / "a") == tree_bytes(tmp_path / "single")
 
     out = tmp_path / "b"
@@ -94,15 +95,15 @@ def test_one_model_actor_per_gpu_and_a_node_leaving(cluster, tmp_path):
 
     remover = threading.Thread(target=remove_when_started, daemon=True)
     remover.start()
-    result = _job(weights, data, out)
+    run = _job(weights, data, out)
     remover.join(timeout=10)
     assert done_at_removal and done_at_removal[0] < 8, "the node left after the job, not during it"
-    assert not result.failed and result.written == 8
+    assert not run.summary.failed and run.summary.written == 8
     assert tree_bytes(out) == tree_bytes(tmp_path / "single")
 
 
 def test_more_gpu_actors_than_gpus_is_a_named_error_not_a_hang(cluster, tmp_path):
-    from workers.pipeline import ClusterCapacityError
+    from workers.sizing import ClusterCapacityError
 
     weights = small_weights(tmp_path)
     data = build_tree(tmp_path / "data", labelled=1, unlabelled=1)
@@ -127,7 +128,7 @@ def test_a_job_takes_the_gpus_other_actors_leave(cluster, tmp_path):
     from the free GPUs, and one that finds none free says so with the numbers."""
     import ray
 
-    from workers.pipeline import ClusterCapacityError
+    from workers.sizing import ClusterCapacityError
 
     @ray.remote(num_gpus=1, num_cpus=0)
     class Replica:
@@ -140,10 +141,10 @@ def test_a_job_takes_the_gpus_other_actors_leave(cluster, tmp_path):
     try:
         ray.get(holders[0].ready.remote(), timeout=120)
         _wait_for_free_gpus(1)
-        result = _job(weights, data, tmp_path / "out", actor_start_timeout=20)
-        assert result.actors == 1 and len(result.devices) == 1
-        assert not result.failed and result.written == 4
-        assert result.readers >= 2 and result.writers >= 2
+        run = _job(weights, data, tmp_path / "out", actor_start_timeout=20)
+        assert run.layout.actors == 1 and len(run.devices) == 1
+        assert not run.summary.failed and run.summary.written == 4
+        assert run.layout.readers >= 2 and run.layout.writers >= 2
         holders.append(Replica.remote())
         ray.get(holders[1].ready.remote(), timeout=120)
         _wait_for_free_gpus(0)

@@ -279,24 +279,26 @@ def test_a_job_runs_beside_actors_that_hold_cpus(ray_local, setup, tmp_path, cap
 
 
 def test_cpu_layout_defaults_to_one_single_threaded_actor_per_free_cpu(ray_local):
-    from workers.pipeline import Layout, PipelineOptions, _cpu_layout, plan_layout
+    from workers.cluster import cluster_layout, read_resources
+    from workers.sizing import Layout, PipelineOptions, cpu_layout
 
     deadline = time.monotonic() + 60  # actors of earlier tests give their CPUs back asynchronously
     while ray_local.available_resources().get("CPU", 0) < 2 and time.monotonic() < deadline:
         time.sleep(0.5)
-    assert _cpu_layout(PipelineOptions()) == (2, 0.75)
-    assert _cpu_layout(PipelineOptions(actors=1)) == (1, 1.5)
-    assert _cpu_layout(PipelineOptions(actors=3, actor_cpus=0.5)) == (3, 0.5)
-    assert _cpu_layout(PipelineOptions(read_cpus=0.5, write_cpus=0.5)) == (1, 1.0)
-    assert plan_layout(PipelineOptions()) == Layout("cpu", 2, 0.75, 2, 2)
-    assert plan_layout(PipelineOptions(actors=3, actor_cpus=0.5)).readers == 3
+    resources = read_resources()
+    assert cpu_layout(PipelineOptions(), resources) == (2, 0.75)
+    assert cpu_layout(PipelineOptions(actors=1), resources) == (1, 1.5)
+    assert cpu_layout(PipelineOptions(actors=3, actor_cpus=0.5), resources) == (3, 0.5)
+    assert cpu_layout(PipelineOptions(read_cpus=0.5, write_cpus=0.5), resources) == (1, 1.0)
+    assert cluster_layout(PipelineOptions()) == Layout("cpu", 2, 0.75, 2, 2)
+    assert cluster_layout(PipelineOptions(actors=3, actor_cpus=0.5)).readers == 3
 
 
 def test_readers_and_writers_beside_gpu_actors_grow_with_the_free_cores():
     """A reader reads and projects a scan in about 20 ms of a core: a 16-core node with one GPU
     actor gets 13 of them (about 650 scans/s), a cluster of 4 such 8-core pods and a 4-core head
     29; small clusters keep 2 of each."""
-    from workers.pipeline import gpu_feeders
+    from workers.sizing import gpu_feeders
 
     assert gpu_feeders(16, 0.5) == (13, 2)
     assert gpu_feeders(36, 4 * 0.5) == (29, 5)
@@ -310,9 +312,8 @@ def test_model_actors_warm_up_before_their_first_batch(setup):
     from rangeret.dataset.layout import discover
     from rangeret.inference.predictor import checkpoint_profile
     from rangeret.models.blocks.decay import GridCache
-    from workers.pipeline import ModelWorker
     from workers.scans import ScanWorker
-    from workers.stages import ROW_COLUMN, BatchRecord, read_and_project
+    from workers.stages import ROW_COLUMN, BatchRecord, ModelWorker, read_and_project
 
     data, weights = setup
     spec = PredictorSpec(checkpoint=str(weights), height=32, width=256, device="cpu")

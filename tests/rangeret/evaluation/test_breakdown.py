@@ -17,8 +17,7 @@ from rangeret.evaluation.metrics import EvaluationReport
 from rangeret.io.scans import read_scan, write_labels, write_scan
 from tests.support.reference import add_at_confusion, read_mapped, remap_table, scores
 from tests.support.trees import make_tree
-from workers.pipeline import count_labels
-from workers.stages import BatchRecord, read_and_project, write_results
+from workers.stages import BatchRecord, count_labels, read_and_project, write_results
 
 PNG = b"\x89PNG\r\n\x1a\n"
 

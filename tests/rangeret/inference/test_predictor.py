@@ -10,10 +10,13 @@ import torch
 
 from rangeret.cli.main import main
 from rangeret.dataset.labels import semantickitti
-from rangeret.dataset.layout import prediction_path, velodyne_dir
+from rangeret.dataset.layout import list_scans, prediction_path, velodyne_dir
 from rangeret.dataset.projection import ProjectionConfig, project
+from rangeret.inference.loading import batches, load_batch, project_scans
 from rangeret.inference.predictor import Predictor
+from rangeret.inference.results import RunSummary
 from rangeret.inference.settings import KnnSettings, TtaSettings
+from rangeret.inference.timing import StageTimes
 from rangeret.inference.tta import transformed_view
 from rangeret.io.scans import read_labels, read_scan, write_scan
 from rangeret.models import build_model
@@ -207,3 +210,49 @@ def test_each_run_reports_only_its_own_stage_times(tree, tmp_path, small_weights
     assert second.times.scans["read"] == second.times.scans["write"] == 4
     again = pickle.loads(pickle.dumps(second.times))
     assert again.seconds == second.times.seconds and again.scans == second.times.scans
+
+
+def test_each_scan_gets_a_prediction_or_its_named_failure_in_order(tree, small_weights, scan):
+    """The contract every runner builds on: an unreadable scan keeps its reason, a network that
+    fails on a loaded batch names each readable scan, and in-memory scans that cannot be
+    projected keep theirs while the network's own errors propagate."""
+    predictor = Predictor.from_checkpoint(small_weights, height=32, width=256, device="cpu")
+    (velodyne_dir(tree, "08") / "000001.bin").write_bytes(b"\x01" * 30)
+    entries = list_scans(tree, ["08"])
+    loaded = load_batch(entries, predictor.projection_config, StageTimes())
+    found = predictor.label_loaded(loaded)
+    assert [isinstance(f, str) for f in found] == [False, True, False]
+    assert "000001.bin" in found[1] and "multiple of 16" in found[1]
+    alone = predictor.predict(read_scan(entries[2].scan_path))
+    np.testing.assert_array_equal(found[2].labels, alone.labels)
+
+    projected = project_scans([scan[::7], scan[:, :3]], predictor.projection_config, StageTimes())
+    in_memory = predictor.label_projected(projected)
+    assert in_memory[1] == "points must have shape (N, 4), got (123389, 3)"
+    np.testing.assert_array_equal(in_memory[0].labels, predictor.predict(scan[::7]).labels)
+
+    def out_of_memory(*args, **kwargs):
+        raise RuntimeError("CUDA out of memory")
+
+    predictor.logits = out_of_memory
+    failed = "the network failed: CUDA out of memory"
+    assert predictor.label_loaded(loaded) == [failed, found[1], failed]
+    with pytest.raises(RuntimeError, match="out of memory"):
+        predictor.label_projected(projected)
+
+
+def test_a_run_summary_tallies_every_scan_and_names_each_failure():
+    summary = RunSummary(total=4, skipped=1, seconds=2.0)
+    summary.add("08/000000", None, 1200)
+    summary.add("08/000001", "unreadable")
+    summary.add("08/000002", None, 800)
+    assert summary.done == 3 and summary.written == 2 and summary.points == 2000
+    assert not summary.ok and summary.failed == {"08/000001": "unreadable"}
+    assert summary.lines() == [
+        "4 scans: 2 written, 1 already done, 1 failed; 2,000 points in 2.0 s (1.00 scans/s)",
+        "FAILED 08/000001: unreadable",
+    ]
+    assert summary.text() == "\n".join(summary.lines())
+    assert batches(list(range(5)), 2) == [[0, 1], [2, 3], [4]]
+    with pytest.raises(ValueError, match="--batch-size must be at least 1, got 0"):
+        batches([1], 0)

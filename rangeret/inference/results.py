@@ -1,0 +1,79 @@
+"""What every runner gives: one `ScanPrediction` or a named failure per scan, and the
+`RunSummary` of a run.
+
+`rangeret predict`, the Ray job (`workers.pipeline`), the GPU check's in-process labeller, the
+Serve replicas and the gateway all answer in these types, so each reports its scans the same way.
+Torch-free, so the Ray driver, the pipeline's CPU stages and the gateway import it without torch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rangeret.inference.timing import StageTimes
+
+
+@dataclass
+class ScanPrediction:
+    """The result for one scan: raw labels (uint32, one per point) and, when asked, each point's
+    confidence in its label (float32) and its training classes."""
+
+    labels: np.ndarray
+    #: Each point's softmax probability of its final class at its pixel (float32), when asked.
+    confidence: np.ndarray | None = None
+    classes: np.ndarray | None = None
+
+
+#: One scan of a batch: its prediction, or the reason it has none.
+ScanOutcome = ScanPrediction | str
+
+
+@dataclass
+class RunSummary:
+    """What a run did: scans written, skipped as already done, failed (with reasons), and times."""
+
+    total: int = 0
+    written: int = 0
+    skipped: int = 0
+    points: int = 0
+    seconds: float = 0.0
+    failed: dict[str, str] = field(default_factory=dict)
+    times: StageTimes = field(default_factory=StageTimes)
+
+    @property
+    def ok(self) -> bool:
+        """True when no scan failed."""
+        return not self.failed
+
+    @property
+    def done(self) -> int:
+        """Scans this run finished, written or failed (the skipped ones not counted)."""
+        return self.written + len(self.failed)
+
+    def add(self, key: str, error: str | None, points: int = 0) -> None:
+        """Count one scan: written with `points` points when `error` is None, else failed."""
+        if error is None:
+            self.written += 1
+            self.points += points
+        else:
+            self.failed[key] = error
+
+    def lines(self) -> list[str]:
+        """The report: counts, throughput, time per stage, then every failed scan."""
+        rate = self.written / self.seconds if self.seconds else 0.0
+        lines = [
+            f"{self.total} scans: {self.written} written, {self.skipped} already done, "
+            f"{len(self.failed)} failed; {self.points:,} points in {self.seconds:.1f} s "
+            f"({rate:.2f} scans/s)"
+        ]
+        stages = self.times.per_scan_ms()
+        if stages:
+            lines.append("per scan: " + ", ".join(f"{k} {v:.1f} ms" for k, v in stages.items()))
+        lines.extend(f"FAILED {key}: {reason}" for key, reason in self.failed.items())
+        return lines
+
+    def text(self) -> str:
+        """The report as one printable text."""
+        return "\n".join(self.lines())
