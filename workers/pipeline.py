@@ -13,8 +13,8 @@ Scans are grouped into batches on the driver, in the same order and with the sam
 How many actors each stage gets is `workers.sizing.plan_layout`'s (see `PipelineOptions`), for
 the resources `workers.cluster` reads. The CPU stages are long-lived actors rather than tasks
 because Ray stops idle task workers once a node holds more worker processes than CPUs, which model
-actors cause on small nodes; every batch then paid a worker start-up (1-2 s of CPU). Measured on
-2 cores, that churn cost more than the network's own time per scan (`benchmarks/bench_workers.py`).
+actors cause on small nodes; every batch then paid a worker start-up, which on small nodes cost
+more than the network's own time per scan (`benchmarks/bench_workers.py` measures the stages).
 
 The driver tallies each scan in a `RunSummary`, sums the matrices (reduction by addition) and logs
 progress. Ray Data restarts dead actors, on other nodes when theirs is gone, and retries their

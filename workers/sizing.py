@@ -37,8 +37,8 @@ FREE_GPU_WAIT_S = 10.0
 (those of a job that has just finished) give their GPUs back within seconds."""
 
 CORES_PER_GPU_WRITER = 8
-"""Free CPU cores per writer beside GPU model actors: writing a scan takes about 1 ms, reading
-and projecting it about 20 ms, so one writer keeps up with several readers."""
+"""Free CPU cores per writer beside GPU model actors: writing a scan is far cheaper than reading
+and projecting it (`benchmarks/bench_workers.py`), so one writer keeps up with several readers."""
 
 
 class ClusterCapacityError(ResourceError, ValueError):
@@ -55,17 +55,15 @@ class PipelineOptions:
     `ClusterCapacityError` naming the numbers, unless an autoscaler can add GPUs (one actor then
     waits for them). Readers: up to one per CPU core of the cluster that the model actors leave
     free, less the writers, which get one per `CORES_PER_GPU_WRITER` such cores (at least 2 of
-    each). Reading and projecting a 120k-point scan takes about 20 ms of one core, so a 16-core node
-    with one GPU gets up to 13 readers (about 650 scans/s) and 2 writers. Each reader reserves
+    each): a 16-core node with one GPU gets up to 13 readers and 2 writers. Each reader reserves
     `read_cpus` and each writer `write_cpus`; Ray Data starts more of them while batches wait.
 
     CPU clusters: model actors default to one per CPU that a reader and a writer leave free on the
-    largest node, each with one torch thread: on 2 cores, two one-thread actors ran about 1.25x
-    faster than one two-thread actor (`benchmarks/bench_workers.py`), as intra-op threads scale
+    largest node, each with one torch thread: two one-thread actors outrun one two-thread actor
+    (`benchmarks/bench_workers.py` compares them), as intra-op threads scale
     below linearly and stall whenever another process takes their core. Given `actors`,
     `actor_cpus` defaults to that free share split between them; the network runs on
-    ceil(actor_cpus) threads. Readers and writers: up to max(2, model actors) of each, the layout
-    measured on 2 cores.
+    ceil(actor_cpus) threads. Readers and writers: up to max(2, model actors) of each.
 
     `actors`, `use_gpu` and `actor_cpus` shape the model actors a run starts. Batches flow once every
     model actor has started, so that each GPU works from the first batch on;
