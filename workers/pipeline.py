@@ -278,7 +278,7 @@ def run_pipeline(
     import ray.data
 
     out = str(out)
-    result = PipelineResult(evaluator=RawLabelEvaluator(profile.labels))
+    result = PipelineResult(evaluator=RawLabelEvaluator(config=profile.labels))
     if not entries:
         return result
     layout = plan_layout(options)
@@ -437,7 +437,7 @@ def count_labels(
 ) -> RawLabelEvaluator:
     """Confusion counts of scans predicted earlier (skipped on resume), read from their files as
     `rangeret evaluate` reads them (the scan for its points' distance bands)."""
-    evaluator = RawLabelEvaluator(profile.labels)
+    evaluator = RawLabelEvaluator(config=profile.labels)
     for entry in entries:
         if entry.label_path is not None:
             pred = prediction_path(out, entry.sequence, entry.name)

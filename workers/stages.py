@@ -85,7 +85,7 @@ def read_and_project(
 def write_results(record: BatchRecord, out: str, label_config: LabelConfig) -> BatchRecord:
     """Stage 3: atomic label writes, and the confusion counts of the batch's labelled scans (by
     sequence and by the distance bands the reader found)."""
-    evaluator = RawLabelEvaluator(label_config)
+    evaluator = RawLabelEvaluator(config=label_config)
     failures: list[str | None] = []
     rows = zip(record.entries, record.results, record.bands, strict=True)
     for entry, (labels, error), bands in rows:

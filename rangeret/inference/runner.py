@@ -100,7 +100,11 @@ def predict_tree(
     profile = predictor.profile
     entries = list_scans(dataset, sequences, layout=profile.layout)
     summary = PredictSummary(total=len(entries))
-    pending = [e for e in entries if not is_complete(e, out, profile.points, save_confidence)]
+    pending = [
+        e
+        for e in entries
+        if not is_complete(e, out, record=profile.points, with_confidence=save_confidence)
+    ]
     summary.skipped = len(entries) - len(pending)
     if summary.skipped:
         log.info(

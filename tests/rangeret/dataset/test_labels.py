@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from rangeret.dataset.labels import LabelConfig, load_label_config, semantickitti
+from rangeret.dataset.labels import load_label_config, parse_label_config, semantickitti
 from tests.support.paths import data_path
 
 
@@ -48,6 +48,6 @@ def test_raw_to_class_masks_instances_and_unknown_ids():
 
 def test_dict_round_trip():
     cfg = semantickitti()
-    again = LabelConfig.from_dict(json.loads(json.dumps(cfg.to_dict())))
+    again = parse_label_config(json.loads(json.dumps(cfg.to_dict())), "checkpoint test")
     assert again == cfg
     np.testing.assert_array_equal(again.raw_lut, cfg.raw_lut)
