@@ -216,7 +216,7 @@ def builtin_profiles() -> list[str]:
     return list(BUILTIN_PROFILES)
 
 
-def load_profile(name_or_path: str | Path | None) -> DatasetProfile:
+def load_profile(name_or_path: str | Path | None = None) -> DatasetProfile:
     """A built-in profile by name, or a profile YAML file; None gives the default
     (`semantickitti`), which only the command line and the gateway's settings ask for. Anything
     wrong is a ProfileError naming the file and the field."""

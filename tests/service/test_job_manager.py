@@ -32,7 +32,7 @@ def _manager(tmp_path: Path, executor=None, retention: float = 3600, profile=Non
         executor or FakeExecutor(),
         tmp_path / "jobs",
         retention,
-        profile=profile,
+        profile=profile or load_profile("semantickitti"),
     )
 
 
