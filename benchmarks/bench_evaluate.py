@@ -15,10 +15,11 @@ from _common import REAL_LABELS, median_time, require_real_scan
 from _official import add_at_confusion, read_mapped, remap_table
 
 from rangeret.dataset.labels import semantickitti
-from rangeret.dataset.layout import labels_dir, prediction_path, velodyne_dir
+from rangeret.dataset.layout import KITTI_LAYOUT, labels_dir, prediction_path, velodyne_dir
+from rangeret.dataset.profiles import load_profile
 from rangeret.evaluation.evaluate import evaluate_predictions
 from rangeret.evaluation.metrics import confusion_counts
-from rangeret.io.scans import read_labels, write_labels, write_scan
+from rangeret.io.scans import KITTI_RECORD, read_labels, write_labels, write_scan
 
 SCANS = 40
 
@@ -28,8 +29,12 @@ def build_tree(root: Path, gt: np.ndarray) -> None:
     points = np.zeros((gt.size, 4), np.float32)
     for i in range(SCANS):
         name = f"{i:06d}"
-        write_scan(velodyne_dir(root, "08") / f"{name}.bin", points)
-        write_labels(labels_dir(root, "08") / f"{name}.label", gt)
+        write_scan(
+            velodyne_dir(root, "08", layout=KITTI_LAYOUT) / f"{name}.bin",
+            points,
+            record=KITTI_RECORD,
+        )
+        write_labels(labels_dir(root, "08", layout=KITTI_LAYOUT) / f"{name}.label", gt)
         pred = gt.copy()
         idx = rng.choice(gt.size, gt.size // 3, replace=False)
         pred[idx] = rng.permutation(pred[idx])
@@ -40,7 +45,7 @@ def official_end_to_end(root: Path, table: np.ndarray) -> np.ndarray:
     conf = np.zeros((20, 20), np.int64)
     for i in range(SCANS):
         name = f"{i:06d}"
-        gt = read_mapped(labels_dir(root, "08") / f"{name}.label", table)
+        gt = read_mapped(labels_dir(root, "08", layout=KITTI_LAYOUT) / f"{name}.label", table)
         pred = read_mapped(prediction_path(root / "pred", "08", name), table)
         conf += add_at_confusion(pred, gt, 20)
     return conf
@@ -74,10 +79,17 @@ def main() -> None:
         root = Path(tmp)
         build_tree(root, gt_raw)
         table = remap_table(cfg)
-        ours = evaluate_predictions(root, root / "pred", ["08"])
+        ours = evaluate_predictions(
+            root, root / "pred", ["08"], profile=load_profile("semantickitti")
+        )
         assert np.array_equal(ours.confusion.matrix, official_end_to_end(root, table))
         t_official = median_time(lambda: official_end_to_end(root, table), repeat=9)
-        t_ours = median_time(lambda: evaluate_predictions(root, root / "pred", ["08"]), repeat=9)
+        t_ours = median_time(
+            lambda: evaluate_predictions(
+                root, root / "pred", ["08"], profile=load_profile("semantickitti")
+            ),
+            repeat=9,
+        )
     print(f"end to end, {SCANS} scans read from disk, mapped and accumulated, median of 9:")
     print(
         f"  official formulation    {1e3 * t_official / SCANS:8.2f} ms/scan ({SCANS / t_official:6.1f} scans/s)"

@@ -17,11 +17,11 @@ import numpy as np
 import torch
 from _common import REAL_SCAN, require_real_scan
 
-from rangeret.dataset.layout import velodyne_dir
+from rangeret.dataset.layout import KITTI_LAYOUT, velodyne_dir
 from rangeret.dataset.profiles import load_profile
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.runner import predict_tree
-from rangeret.io.scans import read_scan, write_labels, write_scan
+from rangeret.io.scans import KITTI_RECORD, read_scan, write_labels, write_scan
 from rangeret.models import build_model
 
 
@@ -78,7 +78,11 @@ def main() -> None:
             )
         root = tmp / "data"
         for i in range(args.scans):
-            write_scan(velodyne_dir(root, "08") / f"{i:06d}.bin", points[i % 3 :: 1 + i % 2])
+            write_scan(
+                velodyne_dir(root, "08", layout=KITTI_LAYOUT) / f"{i:06d}.bin",
+                points[i % 3 :: 1 + i % 2],
+                record=KITTI_RECORD,
+            )
         for name, predictor in (("rangeret-cir", cir), ("rangeret-thesis", thesis)):
             out = tmp / f"pred-{name}"
             summary = predict_tree(predictor, root, ["08"], out, progress=False)

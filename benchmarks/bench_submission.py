@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from rangeret.dataset.labels import semantickitti
-from rangeret.dataset.layout import prediction_path, velodyne_dir
+from rangeret.dataset.layout import KITTI_LAYOUT, prediction_path, velodyne_dir
 from rangeret.io.atomic import atomic_path
 from rangeret.io.scans import LABEL_BYTES, write_labels
 from rangeret.io.zipfiles import ReproducibleZip, available_cpus
@@ -41,11 +41,11 @@ def synthetic_labels(rng: np.random.Generator, points: int, ids: np.ndarray) -> 
 def make_inputs(root: Path, files: int, points: int) -> tuple[Path, Path]:
     """A dataset of sparse scans and a predictions tree of `files` label files."""
     data, preds = root / "data", root / "pred"
-    velodyne_dir(data, SEQUENCE).mkdir(parents=True)
+    velodyne_dir(data, SEQUENCE, layout=KITTI_LAYOUT).mkdir(parents=True)
     rng = np.random.default_rng(0)
     ids = np.array(sorted(semantickitti().valid_prediction_ids), dtype=np.uint32)
     for i in range(files):
-        with open(velodyne_dir(data, SEQUENCE) / f"{i:06d}.bin", "wb") as f:
+        with open(velodyne_dir(data, SEQUENCE, layout=KITTI_LAYOUT) / f"{i:06d}.bin", "wb") as f:
             f.truncate(points * POINT_BYTES)
         labels = synthetic_labels(rng, points, ids)
         write_labels(prediction_path(preds, SEQUENCE, f"{i:06d}"), labels)
@@ -90,7 +90,7 @@ def main() -> None:
         runs: dict[str, Callable[[Path, int], object]] = {
             "archive": lambda out, w: archive_only(preds, out, args.files, w),
             "write_submission": lambda out, w: write_submission(
-                preds, data, out, allow_partial=True, workers=w
+                preds, data, out, allow_partial=True, workers=w, labels=semantickitti()
             ),
         }
         times: dict[tuple[str, int], list[float]] = {(k, w): [] for k in runs for w in counts}

@@ -24,6 +24,8 @@ from pathlib import Path
 
 from _common import REAL_LABELS, REAL_SCAN, require_real_scan
 
+from rangeret.dataset.layout import KITTI_LAYOUT
+
 MODELS = ("rangeret-thesis", "rangeret-cir")
 SIZE = (64, 1024)
 #: Table 5.3 / 5.6 of the thesis: training iterations per second and memory on an RTX 2080.
@@ -45,10 +47,10 @@ def measure(model: str, steps: int) -> dict:
 
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "data"
-        velodyne_dir(root, "00").mkdir(parents=True)
-        labels_dir(root, "00").mkdir(parents=True)
-        (velodyne_dir(root, "00") / "000000.bin").symlink_to(REAL_SCAN)
-        (labels_dir(root, "00") / "000000.label").symlink_to(REAL_LABELS)
+        velodyne_dir(root, "00", layout=KITTI_LAYOUT).mkdir(parents=True)
+        labels_dir(root, "00", layout=KITTI_LAYOUT).mkdir(parents=True)
+        (velodyne_dir(root, "00", layout=KITTI_LAYOUT) / "000000.bin").symlink_to(REAL_SCAN)
+        (labels_dir(root, "00", layout=KITTI_LAYOUT) / "000000.label").symlink_to(REAL_LABELS)
         config = TrainConfig(
             dataset=str(root),
             out=str(Path(tmp) / "out"),

@@ -19,11 +19,11 @@ from pathlib import Path
 import torch
 from _common import REAL_SCAN, require_real_scan, small_state_dict
 
-from rangeret.dataset.layout import list_scans, velodyne_dir
+from rangeret.dataset.layout import KITTI_LAYOUT, list_scans, velodyne_dir
 from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
 from rangeret.inference.runner import predict_tree
 from rangeret.inference.timing import StageTimes
-from rangeret.io.scans import read_scan, write_scan
+from rangeret.io.scans import KITTI_RECORD, read_scan, write_scan
 from rangeret.models import build_model
 from workers.pipeline import run_pipeline
 from workers.sizing import PipelineOptions
@@ -55,10 +55,12 @@ def main() -> None:
         torch.save(state, tmp / "w.pt")
         for i in range(args.scans):
             write_scan(
-                velodyne_dir(tmp / "data", "08") / f"{i:06d}.bin", points[i % 7 :: 1 + i % 2]
+                velodyne_dir(tmp / "data", "08", layout=KITTI_LAYOUT) / f"{i:06d}.bin",
+                points[i % 7 :: 1 + i % 2],
+                record=KITTI_RECORD,
             )
         spec = PredictorSpec(checkpoint=str(tmp / "w.pt"), height=h, width=w, device="cpu")
-        entries = list_scans(tmp / "data", ["08"])
+        entries = list_scans(tmp / "data", ["08"], layout=KITTI_LAYOUT)
 
         ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
         _, profile = checkpoint_profile(spec)

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from _common import REAL_SCAN, REPO, SMALL_VECTORS
 
-from rangeret.dataset.layout import ScanEntry, discover, prediction_path
+from rangeret.dataset.layout import KITTI_LAYOUT, ScanEntry, discover, prediction_path
 from rangeret.dataset.profiles import DatasetProfile, load_profile
 from rangeret.dataset.projection import project
 from rangeret.inference.loading import LoadedScan, batches, load_batch
@@ -926,7 +926,7 @@ def label_in_process(
                 batch = next(upcoming, None)
                 if batch is None:
                     return
-                pending.append(readers.submit(load_batch, batch, config, times, record))
+                pending.append(readers.submit(load_batch, batch, config, times, record=record))
 
         refill()
         while pending:
@@ -1022,7 +1022,7 @@ def section_pipeline(ctx: Context, figures: dict[str, Any]) -> None:
     """Simulated scans through one process's readers, network, kNN and writers; then on Ray."""
     device, plan = ctx.device, ctx.plan
     root, sequences = simulated_scans(ctx, figures)
-    entries = discover(root, sequences).scans
+    entries = discover(root, sequences, layout=KITTI_LAYOUT).scans
     figures.update(scans=len(entries), size=plan.size, network="rangeret-cir", data=str(root))
     ctx.progress()
     with tempfile.TemporaryDirectory() as tmp:

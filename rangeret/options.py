@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from rangeret.commands import CommandError
-from rangeret.dataset.labels import LabelConfig, load_label_config
+from rangeret.dataset.labels import load_label_config
 from rangeret.dataset.layout import resolve_sequences
 from rangeret.dataset.profiles import BUILTIN_PROFILES, DatasetProfile, load_profile
 from rangeret.extras import MissingExtraError
@@ -53,7 +53,7 @@ def selected_sequences(args: argparse.Namespace, profile: DatasetProfile) -> lis
     """The sequences chosen by --split or --sequences, as the profile writes their ids on disk
     (`--sequences 1` is "01" for SemanticKITTI, "001" for PandaSet)."""
     return resolve_sequences(
-        split=args.split, sequences=args.sequences, config=profile.labels, layout=profile.layout
+        split=args.split, sequences=args.sequences, labels=profile.labels, layout=profile.layout
     )
 
 
@@ -75,10 +75,12 @@ def requested_profile(args: argparse.Namespace) -> DatasetProfile | None:
 
 
 def profile_from_args(args: argparse.Namespace) -> DatasetProfile:
-    """The profile of --profile (default semantickitti) with --label-config in its labels' place."""
+    """The profile of --profile (default semantickitti: the command line is where the default
+    applies) with --label-config in its labels' place; a bad file is a LabelConfigError."""
     profile = requested_profile(args) or load_profile(None)
-    if getattr(args, "label_config", None):
-        profile = profile.with_overrides(labels=label_config_from_args(args))
+    path = getattr(args, "label_config", None)
+    if path:
+        profile = profile.with_overrides(labels=load_label_config(path))
     return profile
 
 
@@ -89,18 +91,8 @@ def add_label_config(parser: argparse.ArgumentParser) -> None:
         type=Path,
         metavar="FILE",
         help="label configuration (.json of this project or an official semantic-kitti .yaml); "
-        "default: the bundled SemanticKITTI one",
+        "default: the profile's",
     )
-
-
-def label_config_from_args(args: argparse.Namespace) -> LabelConfig:
-    """The label configuration of --label-config, or the bundled one; a bad file is a CommandError."""
-    try:
-        return load_label_config(args.label_config)
-    except (OSError, ValueError, KeyError) as exc:
-        raise CommandError(
-            f"cannot read the label configuration {args.label_config}: {exc}"
-        ) from exc
 
 
 def add_leaderboard_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:

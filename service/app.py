@@ -18,7 +18,7 @@ from typing import Any
 from fastapi import Depends, FastAPI
 from fastapi.openapi.utils import get_openapi
 
-from rangeret.dataset.profiles import DatasetProfile, load_profile
+from rangeret.dataset.profiles import DatasetProfile
 from service.dependencies import require_token
 from service.error_handlers import install_error_handlers
 from service.errors import error_responses
@@ -69,12 +69,13 @@ def create_app(
     settings: Settings,
     labeller: ScanLabeller,
     executor: JobExecutor,
-    profile: DatasetProfile | None = None,
+    *,
+    profile: DatasetProfile,
     checkpoint_sha256: str | None = None,
     model: str | None = None,
 ) -> FastAPI:
-    """The gateway app over a ready labeller whose network runs with `profile` (default
-    semantickitti): its point record, labels, layout and splits are the gateway's.
+    """The gateway app over a ready labeller whose network runs with `profile`: its point
+    record, labels, layout and splits are the gateway's.
 
     Refuses (ValueError) a non-loopback host without a token and a job database newer than this code.
     """
@@ -86,7 +87,7 @@ def create_app(
         settings,
         labeller,
         executor,
-        profile or load_profile(None),
+        profile,
         checkpoint_sha256,
         model=model,
     )

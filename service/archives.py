@@ -27,8 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
-from rangeret.dataset.layout import KITTI_LAYOUT, SequenceLayout, sequence_dir
-from rangeret.io.scans import KITTI_RECORD, LABEL_BYTES, PointRecord, ScanFormatError, parse_scan
+from rangeret.dataset.layout import SequenceLayout, sequence_dir
+from rangeret.io.scans import LABEL_BYTES, PointRecord, ScanFormatError, parse_scan
 from service.archive_listing import (
     MAX_NAME,
     ArchiveError,
@@ -163,8 +163,9 @@ def extract_archive(
     archive: Path,
     dest: Path,
     limits: ArchiveLimits,
-    record: PointRecord = KITTI_RECORD,
-    layout: SequenceLayout = KITTI_LAYOUT,
+    *,
+    record: PointRecord,
+    layout: SequenceLayout,
 ) -> ExtractedDataset:
     """Check every member of `archive` (scans as `record`s), then write its scans and labels
     under `dest` in `layout`, so the dataset there reads like any other of its profile."""
@@ -268,7 +269,7 @@ def _extract(
             )
         if folder == "velodyne":
             try:
-                points = parse_scan(data, member.name, record)
+                points = parse_scan(data, member.name, record=record)
             except ScanFormatError as exc:
                 raise ArchiveError(f"Archive member {exc.source}: {exc.problem}.") from exc
             scans.setdefault(seq, {})[stem] = len(points)
@@ -278,7 +279,7 @@ def _extract(
                     f"Archive member {member.name!r} is {len(data)} bytes, not a whole number of uint32 labels."
                 )
             labels.setdefault(seq, {})[stem] = len(data) // LABEL_BYTES
-        target = sequence_dir(root, seq, layout) / folder / f"{stem}.{_SUFFIX[folder]}"
+        target = sequence_dir(root, seq, layout=layout) / folder / f"{stem}.{_SUFFIX[folder]}"
         if not target.resolve().is_relative_to(root):
             raise ArchiveError(f"Archive member {member.name!r} would escape the job folder.")
         target.parent.mkdir(parents=True, exist_ok=True)

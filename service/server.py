@@ -195,7 +195,14 @@ def run_serve(args: argparse.Namespace) -> int:
         f"as Ray jobs at {settings.jobs_address}" if settings.jobs_address else "in this process",
         settings.batch_size,
     )
-    app = create_app(settings, labeller, executor, facts.profile, facts.sha256, model=facts.model)
+    app = create_app(
+        settings,
+        labeller,
+        executor,
+        profile=facts.profile,
+        checkpoint_sha256=facts.sha256,
+        model=facts.model,
+    )
     uvicorn.run(
         app,
         host=settings.host,

@@ -151,3 +151,99 @@ def test_the_library_top_level_holds_few_modules():
     """`rangeret/` keeps its concepts in subpackages; at most 8 modules sit beside `__init__.py`."""
     top = sorted(p.name for p in (REPO / "rangeret").glob("*.py") if p.name != "__init__.py")
     assert len(top) <= 8, top
+
+
+# --- no silent SemanticKITTI fallbacks ------------------------------------------------------------
+
+#: Files that may name SemanticKITTI's built-ins as a default, each with why.
+FALLBACK_ALLOWED = {
+    "rangeret/options.py": "the command line is where the default profile applies",
+    "rangeret/cli/": "the command line is where the default profile applies",
+    "rangeret/dataset/profiles.py": "defines the built-in profiles and the default one",
+    "rangeret/dataset/labels.py": "defines the bundled SemanticKITTI label configuration",
+    "service/settings.py": "the gateway's settings are where the default profile applies",
+    "service/server.py": "the gateway's settings are where the default profile applies",
+    "rangeret/sim/classes.py": "the simulated scenes are labelled with SemanticKITTI's raw ids",
+}
+#: Public contract functions (DESIGN section 7) whose documented short form keeps a default.
+CONTRACT_DEFAULTS = {
+    ("rangeret/io/scans.py", "read_scan"): "`rangeret.io.read_scan(path)` -> float32 (N, 4)",
+}
+#: Parameter defaults that would bypass a profile.
+FALLBACK_NAMES = ("KITTI_RECORD", "KITTI_LAYOUT")
+
+
+def _name(node: ast.AST) -> str | None:
+    if isinstance(node, ast.Name):
+        return node.id
+    if isinstance(node, ast.Attribute):
+        return node.attr
+    return None
+
+
+def fallbacks(source: str) -> list[tuple[int, str, str | None]]:
+    """(line, what, enclosing function) of every profile fallback in `source`: a parameter
+    defaulting to SemanticKITTI's record or layout, a `load_profile(None)`, `load_profile()` or
+    `semantickitti()` call, and a `read_scan` call that does not pass its record."""
+    found: list[tuple[int, str, str | None]] = []
+
+    def visit(node: ast.AST, function: str | None) -> None:
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            defaults = [*node.args.defaults, *(d for d in node.args.kw_defaults if d is not None)]
+            for default in defaults:
+                if _name(default) in FALLBACK_NAMES:
+                    found.append((default.lineno, f"a {_name(default)} default", node.name))
+            function = node.name
+        if isinstance(node, ast.Call):
+            called = _name(node.func)
+            plain = not node.args or (
+                isinstance(node.args[0], ast.Constant) and node.args[0].value is None
+            )
+            if called == "load_profile" and plain and not node.keywords:
+                found.append((node.lineno, "load_profile(None)", function))
+            elif called == "semantickitti" and not node.args:
+                found.append((node.lineno, "semantickitti()", function))
+            elif (
+                called == "read_scan"
+                and len(node.args) < 2
+                and "record" not in {k.arg for k in node.keywords}
+            ):
+                found.append((node.lineno, "read_scan without its record", function))
+        for child in ast.iter_child_nodes(node):
+            visit(child, function)
+
+    visit(ast.parse(source), None)
+    return found
+
+
+def test_the_fallback_checker_sees_each_kind():
+    source = (
+        "def a(record=KITTI_RECORD): ...\n"
+        "def b(*, layout=io.KITTI_LAYOUT): ...\n"
+        "def c():\n"
+        "    load_profile(None); load_profile(); semantickitti(); read_scan(p)\n"
+        "    load_profile('pandaset'); read_scan(p, record=r); read_scan(p, r)\n"
+    )
+    assert [(line, what) for line, what, _ in fallbacks(source)] == [
+        (1, "a KITTI_RECORD default"),
+        (2, "a KITTI_LAYOUT default"),
+        (4, "load_profile(None)"),
+        (4, "load_profile(None)"),
+        (4, "semantickitti()"),
+        (4, "read_scan without its record"),
+    ]
+
+
+def test_no_silent_semantickitti_fallbacks():
+    """Profiles, point records, layouts and label configurations are passed explicitly inside
+    the library and the service; the default profile applies only at the edges allowed above."""
+    found = []
+    for package in ("rangeret", "workers", "service"):
+        for path in sorted((REPO / package).rglob("*.py")):
+            rel = path.relative_to(REPO).as_posix()
+            if any(rel == a or (a.endswith("/") and rel.startswith(a)) for a in FALLBACK_ALLOWED):
+                continue
+            for line, what, function in fallbacks(path.read_text()):
+                if (rel, function) not in CONTRACT_DEFAULTS:
+                    found.append(f"{rel}:{line}: {what} in {function or 'the module'}")
+    assert found == []

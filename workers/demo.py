@@ -115,7 +115,7 @@ def run_demo(
     if weights.resolve() == DEMO_CHECKPOINT.resolve():
         report.notes.append(DEMO_WARNING)
     report.write_json(out / "report.json")
-    plots = write_plots(report, out / "plots", profile.labels)
+    plots = write_plots(report, out / "plots", config=profile.labels)
     plots.append(
         _range_image_png(dataset, preds, profile, valid, out / "plots" / "range-image.png")
     )
@@ -137,8 +137,11 @@ def run_demo(
                 demo_weights=weights.resolve() == DEMO_CHECKPOINT.resolve(),
                 notes=["simulated scans: not a real submission"],
             ),
+            labels=profile.labels,
         )
-        validate_submission(archive, dataset, allow_partial=True).raise_for_problems()
+        validate_submission(
+            archive, dataset, allow_partial=True, labels=profile.labels
+        ).raise_for_problems()
 
     print(report.table())
     print(
@@ -187,6 +190,6 @@ def _range_image_png(
         proj.to_image(gt),
         proj.to_image(pred),
         path,
-        config,
+        config=config,
         title=f"simulated scan {entry.key}",
     )

@@ -100,7 +100,7 @@ def run_pipeline(
 
     out = str(out)
     summary = RunSummary(total=len(entries))
-    run = PipelineRun(summary, RawLabelEvaluator(profile.labels))
+    run = PipelineRun(summary, RawLabelEvaluator(config=profile.labels))
     if not entries:
         return run
     layout = run.layout = cluster_layout(options)

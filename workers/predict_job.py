@@ -151,7 +151,7 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
     entries = list_scans(
         args.dataset, sequences, missing_ok=args.allow_partial, layout=profile.layout
     )
-    complete = [is_complete(e, args.out, profile.points) for e in entries]
+    complete = [is_complete(e, args.out, record=profile.points) for e in entries]
     done = [e for e, finished in zip(entries, complete, strict=True) if finished]
     pending = [e for e, finished in zip(entries, complete, strict=True) if not finished]
     log.info(
@@ -195,7 +195,7 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
 
             report.write_json(args.report)
             plots = write_plots(
-                report, args.report.with_name(args.report.stem + "-plots"), label_config
+                report, args.report.with_name(args.report.stem + "-plots"), config=label_config
             )
             print(f"report: {args.report}; plots: {', '.join(map(str, plots))}")
     elif args.report and not evaluator.num_scans:
@@ -229,7 +229,7 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
                 profile=profile.name,
                 demo_weights=demo,
             ),
-            config=label_config,
+            labels=label_config,
             progress=not args.quiet,
         )
         print(check.summary())

@@ -99,7 +99,7 @@ class ScanModel:
         try:
             knn = query_flag(request.query_params.get("knn"), True, "knn")
             confidence = query_flag(request.query_params.get("confidence"), False, "confidence")
-            points = parse_scan(await request.body(), "the scan", self.record)
+            points = parse_scan(await request.body(), "the scan", record=self.record)
         except ScanFormatError as exc:
             return JSONResponse({"detail": f"The scan is malformed: {exc.problem}."}, 400)
         except ValueError as exc:

@@ -30,7 +30,7 @@ from rangeret.evaluation.evaluate import count_scan
 from rangeret.evaluation.metrics import RawLabelEvaluator
 from rangeret.inference.loading import LoadedScan, load_batch
 from rangeret.inference.timing import StageTimes
-from rangeret.io.scans import KITTI_RECORD, PointRecord, ScanFormatError, read_labels, write_labels
+from rangeret.io.scans import PointRecord, ScanFormatError, read_labels, write_labels
 
 if TYPE_CHECKING:  # torch stays out of the CPU stages' processes
     from rangeret.inference.predictor import Predictor, PredictorSpec
@@ -79,14 +79,17 @@ class BatchRecord:
 def read_and_project(
     record: BatchRecord,
     projection: ProjectionConfig,
-    points: PointRecord = KITTI_RECORD,
+    *,
+    points: PointRecord,
     within: Sequence[str] | None = None,
 ) -> BatchRecord:
     """Stage 1: read and project every scan of a batch; unreadable scans (and, with `within`,
     files that lead outside those folders) become named failures. Labelled scans get their
     points' distance bands from the projection's ranges, so the writer counts them by distance
     without reading the scan again."""
-    record.loaded = load_batch(record.entries, projection, record.times, points, within)
+    record.loaded = load_batch(
+        record.entries, projection, record.times, record=points, within=within
+    )
     record.bands = [
         distance_bands(scan.projection.unproj_range)
         if scan.projection is not None and scan.entry.label_path is not None
@@ -99,7 +102,7 @@ def read_and_project(
 def write_results(record: BatchRecord, out: str, label_config: LabelConfig) -> BatchRecord:
     """Stage 3: atomic label writes, and the confusion counts of the batch's labelled scans (by
     sequence and by the distance bands the reader found)."""
-    evaluator = RawLabelEvaluator(label_config)
+    evaluator = RawLabelEvaluator(config=label_config)
     failures: list[str | None] = []
     rows = zip(record.entries, record.results, record.bands, strict=True)
     for entry, (labels, error), bands in rows:
@@ -170,7 +173,9 @@ class Reader:
 
     def __call__(self, row: dict) -> dict:
         decoded = BatchRecord.decode(row)
-        return read_and_project(decoded, self.projection, self.record, self.within).encode()
+        return read_and_project(
+            decoded, self.projection, points=self.record, within=self.within
+        ).encode()
 
 
 class Writer:
@@ -204,7 +209,7 @@ def count_labels(
 ) -> RawLabelEvaluator:
     """Confusion counts of scans predicted earlier (skipped on resume), read from their files as
     `rangeret evaluate` reads them (the scan for its points' distance bands)."""
-    evaluator = RawLabelEvaluator(profile.labels)
+    evaluator = RawLabelEvaluator(config=profile.labels)
     for entry in entries:
         if entry.label_path is not None:
             pred = prediction_path(out, entry.sequence, entry.name)

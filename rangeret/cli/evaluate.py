@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     if args.plots:
         from rangeret.evaluation.plots import write_plots
 
-        for path in write_plots(report, args.plots, profile.labels):
+        for path in write_plots(report, args.plots, config=profile.labels):
             print(f"plot: {path}")
     return 0
 

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from rangeret.commands import CommandError
+from rangeret.dataset.profiles import load_profile
 from rangeret.options import add_profile_option, requested_profile
 from rangeret.plugins import Subcommand
 
@@ -39,6 +40,7 @@ def run(args: argparse.Namespace) -> int:
     labelled = [s for s in counts if s not in set(args.unlabelled)]
     profile = requested_profile(args)
     if profile is None:
+        profile = load_profile(None)
         sensor = SensorConfig(beams=args.beams or 64, azimuth_steps=args.azimuth_steps or 2048)
     else:
         if args.beams is not None and args.beams != profile.projection.height:

@@ -8,12 +8,11 @@ import logging
 from pathlib import Path
 
 from rangeret.commands import CommandError
-from rangeret.dataset.profiles import DEFAULT_PROFILE
+from rangeret.dataset.profiles import DEFAULT_PROFILE, DatasetProfile
 from rangeret.options import (
     add_label_config,
     add_leaderboard_options,
     add_profile_option,
-    label_config_from_args,
     leaderboard_from_args,
     profile_from_args,
 )
@@ -59,7 +58,7 @@ def run_submission(args: argparse.Namespace) -> int:
     from rangeret.submission.archives import write_submission
     from rangeret.submission.leaderboard import description_text
 
-    _benchmark_profile_only(args)
+    profile = _benchmark_profile_only(args)
     if args.workers is not None and args.workers < 1:
         raise CommandError(f"--workers must be at least 1, got {args.workers}")
     run = read_run_info(args.predictions)
@@ -78,7 +77,7 @@ def run_submission(args: argparse.Namespace) -> int:
         args.out,
         allow_partial=args.allow_partial,
         description=description,
-        config=label_config_from_args(args),
+        labels=profile.labels,
         progress=not args.quiet,
         workers=args.workers,
     )
@@ -102,12 +101,12 @@ def run_validate(args: argparse.Namespace) -> int:
     """Validate a submission zip against the dataset and the official test split."""
     from rangeret.submission.archives import validate_submission
 
-    _benchmark_profile_only(args)
+    profile = _benchmark_profile_only(args)
     check = validate_submission(
         args.archive,
         args.dataset,
         allow_partial=args.allow_partial,
-        config=label_config_from_args(args),
+        labels=profile.labels,
         progress=not args.quiet,
     )
     if not check.ok:
@@ -120,14 +119,16 @@ def run_validate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _benchmark_profile_only(args: argparse.Namespace) -> None:
-    """Submission archives are the SemanticKITTI benchmark's format: other profiles are refused."""
+def _benchmark_profile_only(args: argparse.Namespace) -> DatasetProfile:
+    """The profile of --profile and --label-config, which must be SemanticKITTI's: submission
+    archives are that benchmark's format, other profiles are refused."""
     profile = profile_from_args(args)
     if profile.name != DEFAULT_PROFILE:
         raise CommandError(
             f"submission archives are the SemanticKITTI benchmark's format; the {profile.name} "
             "profile has no such archive (use `rangeret evaluate` on its predictions instead)"
         )
+    return profile
 
 
 COMMAND = Subcommand(

@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
             f"--out {args.out}: the file must end with .ply (point cloud and PNG) or .png (PNG only)"
         )
     profile = profile_from_args(args)
-    view = load_labelled_scan(args.scan, args.labels, args.ground_truth, profile)
+    view = load_labelled_scan(args.scan, args.labels, args.ground_truth, profile=profile)
     for path in write_view(view, args.out, profile):
         print(f"{path.suffix[1:]}: {path}")
     print(f"{len(view.points):,} points of {args.scan}, coloured by {view.coloured_by}")

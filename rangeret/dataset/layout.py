@@ -16,10 +16,9 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from rangeret.dataset.labels import LabelConfig, semantickitti
+from rangeret.dataset.labels import LabelConfig
 from rangeret.exceptions import DatasetError
 from rangeret.io.scans import (
-    KITTI_RECORD,
     LABEL_BYTES,
     PointRecord,
     ScanFormatError,
@@ -106,19 +105,19 @@ class Discovery:
         return groups
 
 
-def sequence_dir(root: Path | str, sequence: str, layout: SequenceLayout = KITTI_LAYOUT) -> Path:
+def sequence_dir(root: Path | str, sequence: str, *, layout: SequenceLayout) -> Path:
     """Folder of one sequence of a dataset."""
     return layout.sequences_root(root) / sequence
 
 
-def velodyne_dir(root: Path | str, sequence: str, layout: SequenceLayout = KITTI_LAYOUT) -> Path:
+def velodyne_dir(root: Path | str, sequence: str, *, layout: SequenceLayout) -> Path:
     """Folder of a sequence's scans."""
-    return sequence_dir(root, sequence, layout) / "velodyne"
+    return sequence_dir(root, sequence, layout=layout) / "velodyne"
 
 
-def labels_dir(root: Path | str, sequence: str, layout: SequenceLayout = KITTI_LAYOUT) -> Path:
+def labels_dir(root: Path | str, sequence: str, *, layout: SequenceLayout) -> Path:
     """Folder of a sequence's ground-truth labels."""
-    return sequence_dir(root, sequence, layout) / "labels"
+    return sequence_dir(root, sequence, layout=layout) / "labels"
 
 
 def predictions_dir(root: Path | str, sequence: str) -> Path:
@@ -137,7 +136,7 @@ def confidence_path(pred_root: Path | str, sequence: str, name: str) -> Path:
     return Path(pred_root) / "sequences" / sequence / "confidence" / f"{name}.npy"
 
 
-def list_sequences(root: Path | str, layout: SequenceLayout = KITTI_LAYOUT) -> list[str]:
+def list_sequences(root: Path | str, *, layout: SequenceLayout) -> list[str]:
     """Sorted names of the sequence folders of a dataset (those holding a velodyne folder)."""
     base = layout.sequences_root(root)
     if not base.is_dir():
@@ -145,7 +144,7 @@ def list_sequences(root: Path | str, layout: SequenceLayout = KITTI_LAYOUT) -> l
     return sorted(p.name for p in base.iterdir() if (p / "velodyne").is_dir())
 
 
-def normalise_sequence(name: str | int, layout: SequenceLayout = KITTI_LAYOUT) -> str:
+def normalise_sequence(name: str | int, *, layout: SequenceLayout) -> str:
     """The on-disk form of a sequence id (8 -> "08" for SemanticKITTI, "008" for 3-digit ids)."""
     return layout.normalise(name)
 
@@ -153,8 +152,9 @@ def normalise_sequence(name: str | int, layout: SequenceLayout = KITTI_LAYOUT) -
 def resolve_sequences(
     split: str | None = None,
     sequences: Iterable[str | int] | None = None,
-    config: LabelConfig | None = None,
-    layout: SequenceLayout = KITTI_LAYOUT,
+    *,
+    labels: LabelConfig,
+    layout: SequenceLayout,
 ) -> list[str]:
     """The sequences a command works on: those named, or those of a split of the label config.
 
@@ -170,8 +170,7 @@ def resolve_sequences(
         if not names:
             raise DatasetLayoutError("the list of sequences is empty")
         return sorted(dict.fromkeys(names))
-    config = config or semantickitti()
-    return list(config.split(split))
+    return list(labels.split(split))
 
 
 def _stems(folder: Path, suffix: str) -> dict[str, Path]:
@@ -190,7 +189,8 @@ def discover(
     sequences: Sequence[str],
     with_labels: bool = False,
     missing_ok: bool = False,
-    layout: SequenceLayout = KITTI_LAYOUT,
+    *,
+    layout: SequenceLayout,
 ) -> Discovery:
     """List the scans of `sequences` under `root`, sorted, matched to their labels by name.
 
@@ -201,7 +201,7 @@ def discover(
     root = Path(root)
     result = Discovery(root=root, sequences=[])
     for seq in sequences:
-        vdir = velodyne_dir(root, seq, layout)
+        vdir = velodyne_dir(root, seq, layout=layout)
         if not vdir.is_dir():
             if not missing_ok:
                 result.problems.append(f"{vdir} does not exist (sequence {seq} is missing)")
@@ -210,7 +210,7 @@ def discover(
         scans = _stems(vdir, ".bin")
         if not scans and not missing_ok:
             result.problems.append(f"{vdir} holds no .bin scan")
-        ldir = labels_dir(root, seq, layout)
+        ldir = labels_dir(root, seq, layout=layout)
         labels = _stems(ldir, ".label")
         if with_labels:
             for stem in sorted(scans.keys() - labels.keys()):
@@ -229,14 +229,15 @@ def discover(
 def is_complete(
     entry: ScanEntry,
     out: Path,
-    record: PointRecord = KITTI_RECORD,
+    *,
+    record: PointRecord,
     with_confidence: bool = False,
 ) -> bool:
     """Whether the scan's prediction exists with one label per point (a finished earlier run),
     and its confidence file too when `with_confidence`."""
     pred = prediction_path(out, entry.sequence, entry.name)
     try:
-        whole = pred.stat().st_size == scan_num_points(entry.scan_path, record) * LABEL_BYTES
+        whole = pred.stat().st_size == scan_num_points(entry.scan_path, record=record) * LABEL_BYTES
     except (OSError, ScanFormatError):
         return False
     return whole and (
@@ -248,7 +249,8 @@ def list_scans(
     dataset: Path | str,
     sequences: Sequence[str],
     missing_ok: bool = False,
-    layout: SequenceLayout = KITTI_LAYOUT,
+    *,
+    layout: SequenceLayout,
 ) -> list[ScanEntry]:
     """The scans of `sequences`, in order; a missing or empty sequence is an error naming it
     unless `missing_ok` (a partial local copy, logged)."""

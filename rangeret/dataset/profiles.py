@@ -10,21 +10,25 @@ Torch-free.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from functools import cache
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any
 
 from rangeret import DATA_DIR
-from rangeret.dataset.labels import LabelConfig
+from rangeret.dataset.fields import Fields
+from rangeret.dataset.labels import LabelConfig, LabelConfigError, parse_label_config
 from rangeret.dataset.layout import SequenceLayout
 from rangeret.dataset.projection import ROW_SOURCES, ProjectionConfig
 from rangeret.exceptions import ConfigError
 from rangeret.io.scans import PointRecord
 
 PROFILES_DIR = DATA_DIR / "profiles"
+#: The profile the command line and the gateway's settings apply when none is named.
 DEFAULT_PROFILE = "semantickitti"
+#: Files written before profiles existed (checkpoints, run records) were all SemanticKITTI's.
+LEGACY_PROFILE = "semantickitti"
 BUILTIN_PROFILES = ("semantickitti", "semantic-poss", "pandaset")
 
 
@@ -131,7 +135,7 @@ class DatasetProfile:
     def from_dict(cls, data: Any, source: str = "profile") -> DatasetProfile:
         """A profile from `to_dict()`'s form; a wrong, missing or extra field is a ProfileError
         naming it (as `source: field.path: problem`)."""
-        f = _Fields(data, source)
+        f = Fields(data, source, error=ProfileError, kind="profile field")
         sensor = f.section("sensor", _SENSOR_KEYS)
         points = f.section("points", ("fields",))
         layout = f.section("layout", ("sequence_folders", "id_digits"))
@@ -172,22 +176,23 @@ class DatasetProfile:
             layout.fail("sequence_folders", "must name at least one folder")
         sequence_layout = SequenceLayout(folders, layout.integer("id_digits", 1, 8))
 
-        classes = labels.records("classes", ("name", "raw_id", "ignored"))
-        raw_labels = labels.records("raw_labels", ("id", "name", "class", "bgr", "frequency"))
-        num_classes = len(classes)
-        if num_classes < 2:
-            labels.fail("classes", f"must list at least 2 classes, got {num_classes}")
-        unlabeled = labels.integer("unlabeled_class", 0, num_classes - 1)
-        votes_from = knn.integer("votes_from", 0, num_classes - 1)
-        label_config = _label_config(
-            labels, classes, raw_labels, unlabeled, splits, sequence_layout
-        )
-        name = f.value("name", str)
+        try:
+            label_config = parse_label_config(
+                labels.data,
+                source,
+                field="labels",
+                splits=splits,
+                normalise=sequence_layout.normalise,
+            )
+        except LabelConfigError as exc:
+            raise ProfileError(str(exc)) from exc
+        votes_from = knn.integer("votes_from", 0, label_config.num_classes - 1)
+        name = f.get("name", str)
         if not name.strip():
             f.fail("name", "must not be empty")
         return cls(
             name=name,
-            description=f.value("description", str),
+            description=f.get("description", str),
             projection=projection,
             points=record,
             labels=label_config,
@@ -213,7 +218,8 @@ def builtin_profiles() -> list[str]:
 
 def load_profile(name_or_path: str | Path | None = None) -> DatasetProfile:
     """A built-in profile by name, or a profile YAML file; None gives the default
-    (`semantickitti`). Anything wrong is a ProfileError naming the file and the field."""
+    (`semantickitti`), which only the command line and the gateway's settings ask for. Anything
+    wrong is a ProfileError naming the file and the field."""
     if name_or_path is None:
         return _builtin(DEFAULT_PROFILE)
     text = str(name_or_path)
@@ -255,166 +261,13 @@ def _read(path: Path) -> DatasetProfile:
         raise ProfileError(text[: MAX_ERROR_CHARS - 3] + "...") from exc
 
 
+def legacy_profile() -> DatasetProfile:
+    """The profile of files written before profiles existed: all were SemanticKITTI's."""
+    return _builtin(LEGACY_PROFILE)
+
+
 def profile_of_record(record: Mapping[str, Any] | None, source: str) -> DatasetProfile:
-    """The profile stored in a checkpoint or run record; the default one when it holds none
-    (files written before profiles existed were all SemanticKITTI's)."""
+    """The profile stored in a checkpoint or run record; `legacy_profile()` when it holds none."""
     if not record:
-        return load_profile(None)
+        return legacy_profile()
     return DatasetProfile.from_dict(record, source)
-
-
-def _label_config(
-    labels: _Fields,
-    classes: list[dict[str, Any]],
-    raw_labels: list[dict[str, Any]],
-    unlabeled: int,
-    splits: Mapping[str, Any],
-    layout: SequenceLayout,
-) -> LabelConfig:
-    """The label configuration of a profile's `labels` and `splits` sections."""
-    for i, c in enumerate(classes):
-        if not isinstance(c["name"], str) or not isinstance(c["ignored"], bool):
-            labels.fail(f"classes[{i}]", "needs a text name and a true/false ignored")
-    raw_to_class: dict[int, int] = {}
-    for i, r in enumerate(raw_labels):
-        raw, cls = r["id"], r["class"]
-        if not _is_int(raw) or not 0 <= raw <= 0xFFFF:
-            labels.fail(f"raw_labels[{i}].id", f"must be a raw id 0..65535, got {raw!r}")
-        if not _is_int(cls) or not 0 <= cls < len(classes):
-            labels.fail(
-                f"raw_labels[{i}].class", f"must be a class 0..{len(classes) - 1}, got {cls!r}"
-            )
-        if raw in raw_to_class:
-            labels.fail(f"raw_labels[{i}].id", f"raw id {raw} is listed twice")
-        bgr = r["bgr"]
-        if not (
-            isinstance(bgr, list)
-            and len(bgr) == 3
-            and all(_is_int(v) and 0 <= v <= 255 for v in bgr)
-        ):
-            labels.fail(f"raw_labels[{i}].bgr", f"must be three integers 0..255, got {bgr!r}")
-        if not isinstance(r["frequency"], int | float) or isinstance(r["frequency"], bool):
-            labels.fail(f"raw_labels[{i}].frequency", f"must be a number, got {r['frequency']!r}")
-        raw_to_class[raw] = cls
-    class_raw = [c["raw_id"] for c in classes]
-    for i, raw in enumerate(class_raw):
-        if raw not in raw_to_class:
-            labels.fail(f"classes[{i}].raw_id", f"raw id {raw!r} is not among raw_labels")
-        if raw_to_class[raw] != i:
-            labels.fail(
-                f"classes[{i}].raw_id",
-                f"raw id {raw} maps to class {raw_to_class[raw]}, not back to class {i}",
-            )
-    split_ids: dict[str, tuple[str, ...]] = {}
-    for name, ids in splits.items():
-        if not isinstance(ids, list) or not all(
-            isinstance(s, str | int) and not isinstance(s, bool) for s in ids
-        ):
-            raise ProfileError(f"{labels.source}: splits.{name}: must be a list of sequence ids")
-        split_ids[str(name)] = tuple(layout.normalise(s) for s in ids)
-    try:
-        return LabelConfig(
-            class_names=tuple(c["name"] for c in classes),
-            class_raw_ids=tuple(class_raw),
-            ignored=tuple(c["ignored"] for c in classes),
-            raw_names={r["id"]: str(r["name"]) for r in raw_labels},
-            raw_to_class=raw_to_class,
-            raw_bgr={r["id"]: tuple(r["bgr"]) for r in raw_labels},
-            raw_frequency={r["id"]: float(r["frequency"]) for r in raw_labels},
-            splits=split_ids,
-            unlabeled_class=unlabeled,
-        )
-    except ValueError as exc:
-        raise ProfileError(f"{labels.source}: labels: {exc}") from exc
-
-
-def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-class _Fields:
-    """One mapping of a profile being read, that names the field path in every error."""
-
-    def __init__(self, data: Any, source: str, path: str = "") -> None:
-        if not isinstance(data, Mapping):
-            where = f"{path}: " if path else ""
-            raise ProfileError(
-                f"{source}: {where}must be a mapping of fields, got {type(data).__name__}"
-            )
-        self.data, self.source, self.path = data, source, path
-
-    def _name(self, key: str) -> str:
-        return f"{self.path}.{key}" if self.path else key
-
-    def fail(self, key: str, problem: str) -> NoReturn:
-        raise ProfileError(f"{self.source}: {self._name(key)}: {problem}")
-
-    def finish(self, keys: Sequence[str]) -> None:
-        """Every expected field is there, and no other."""
-        extra = sorted(str(k) for k in self.data if k not in keys)
-        if extra:
-            self.fail(extra[0], f"is not a profile field (expected: {', '.join(keys)})")
-        missing = [k for k in keys if k not in self.data]
-        if missing:
-            self.fail(missing[0], "is missing")
-
-    def get(self, key: str, kind: type) -> Any:
-        if key not in self.data:
-            self.fail(key, "is missing")
-        value = self.data[key]
-        if not isinstance(value, kind):
-            self.fail(key, f"must be a {kind.__name__}, got {value!r}")
-        return value
-
-    def value(self, key: str, kind: type) -> Any:
-        return self.get(key, kind)
-
-    def section(self, key: str, keys: Sequence[str]) -> _Fields:
-        if key not in self.data:
-            self.fail(key, "is missing")
-        section = _Fields(self.data[key], self.source, self._name(key))
-        section.finish(keys)
-        return section
-
-    def integer(self, key: str, low: int, high: int | None = None) -> int:
-        value = self.data[key]
-        if not _is_int(value) or value < low or (high is not None and value > high):
-            bound = f"{low}..{high}" if high is not None else f"at least {low}"
-            self.fail(key, f"must be an integer {bound}, got {value!r}")
-        return value
-
-    def number(self, key: str) -> float:
-        value = self.data[key]
-        if not isinstance(value, int | float) or isinstance(value, bool):
-            self.fail(key, f"must be a number, got {value!r}")
-        return float(value)
-
-    def numbers(self, key: str, count: int) -> tuple[float, ...]:
-        value = self.data[key]
-        if (
-            not isinstance(value, list)
-            or len(value) != count
-            or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
-        ):
-            self.fail(key, f"must be a list of {count} numbers, got {value!r}")
-        return tuple(float(v) for v in value)
-
-    def strings(self, key: str) -> list[str]:
-        value = self.data[key]
-        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
-            self.fail(key, f"must be a list of names, got {value!r}")
-        return value
-
-    def choice(self, key: str, choices: Sequence[str]) -> str:
-        value = self.data[key]
-        if value not in choices:
-            self.fail(key, f"must be one of {', '.join(choices)}, got {value!r}")
-        return value
-
-    def records(self, key: str, keys: Sequence[str]) -> list[dict[str, Any]]:
-        value = self.data[key]
-        if not isinstance(value, list):
-            self.fail(key, f"must be a list, got {value!r}")
-        for i, item in enumerate(value):
-            _Fields(item, self.source, f"{self._name(key)}[{i}]").finish(keys)
-        return value

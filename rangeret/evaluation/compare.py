@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rangeret.dataset.profiles import DEFAULT_PROFILE
+from rangeret.dataset.profiles import LEGACY_PROFILE
 from rangeret.exceptions import InputError
 
 
@@ -55,7 +55,7 @@ def read_scores(path: Path | str) -> ReportScores:
         )
     return ReportScores(
         path=path,
-        profile=str(data.get("profile") or DEFAULT_PROFILE),
+        profile=str(data.get("profile") or LEGACY_PROFILE),
         iou={str(name): float(value) for name, value in iou.items()},
         miou=float(data["miou"]),
         accuracy=float(data["accuracy"]),

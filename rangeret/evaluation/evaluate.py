@@ -18,9 +18,8 @@ import numpy as np
 from tqdm import tqdm
 
 from rangeret.dataset.distance import scan_bands
-from rangeret.dataset.labels import LabelConfig
 from rangeret.dataset.layout import ScanEntry, confidence_path, discover, prediction_path
-from rangeret.dataset.profiles import DatasetProfile, load_profile
+from rangeret.dataset.profiles import DatasetProfile
 from rangeret.evaluation.calibration import Calibration
 from rangeret.evaluation.metrics import EvaluationReport, RawLabelEvaluator
 from rangeret.exceptions import DatasetError
@@ -52,7 +51,7 @@ def count_scan(
     `ScanFormatError` names a file that does not fit."""
     if entry.label_path is None:
         raise ValueError(f"scan {entry.key} has no ground-truth label file")
-    bands = scan_bands(read_scan(entry.scan_path, record))
+    bands = scan_bands(read_scan(entry.scan_path, record=record))
     gt_raw = read_labels(entry.label_path, num_points=bands.size)
     pred_raw = read_labels(prediction, num_points=bands.size)
     evaluator.add(pred_raw, gt_raw, entry.sequence, bands)
@@ -69,20 +68,17 @@ def evaluate_predictions(
     dataset: Path | str,
     predictions: Path | str,
     sequences: Sequence[str],
-    config: LabelConfig | None = None,
+    *,
+    profile: DatasetProfile,
     checkpoint_sha256: str | None = None,
     progress: bool = False,
-    profile: DatasetProfile | None = None,
 ) -> EvaluationReport:
     """Evaluate `PRED/sequences/XX/predictions` against the dataset's labels, overall, per
     sequence and per distance band.
 
-    The profile (default semantickitti) gives the dataset's layout, point record and labels;
-    `config` replaces its labels. Raises `EvaluationError` listing every missing label or
+    The profile gives the dataset's layout, point record and labels. Raises `EvaluationError` listing every missing label or
     prediction file and every file whose length does not match its scan.
     """
-    profile = profile or load_profile(None)
-    config = config or profile.labels
     found = discover(dataset, sequences, with_labels=True, layout=profile.layout)
     problems = list(found.problems)
     pairs = []
@@ -97,7 +93,7 @@ def evaluate_predictions(
     if not pairs:
         raise EvaluationError([f"no labelled scan found in sequences {', '.join(sequences)}"])
 
-    evaluator = RawLabelEvaluator(config)
+    evaluator = RawLabelEvaluator(config=profile.labels)
     confidences = [confidence_path(predictions, e.sequence, e.name) for e, _ in pairs]
     have = sum(path.is_file() for path in confidences)
     calibration = Calibration() if have == len(pairs) else None
@@ -108,7 +104,14 @@ def evaluate_predictions(
         disable=not progress,
     ):
         try:
-            count_scan(evaluator, entry, pred, profile.points, calibration, confidence)
+            count_scan(
+                evaluator,
+                entry,
+                pred,
+                record=profile.points,
+                calibration=calibration,
+                confidence=confidence,
+            )
         except ScanFormatError as exc:
             problems.append(str(exc))
     if problems:

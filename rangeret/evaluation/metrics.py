@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from rangeret.dataset.distance import NUM_BANDS, band_limits, band_name
-from rangeret.dataset.labels import LabelConfig, semantickitti
+from rangeret.dataset.labels import LabelConfig
 from rangeret.evaluation.calibration import Calibration
 
 EPS = 1e-15
@@ -68,9 +68,8 @@ class ConfusionMatrix:
         self.ignore = tuple(int(c) for c in self.ignore)
 
     @classmethod
-    def for_config(cls, config: LabelConfig | None = None) -> ConfusionMatrix:
+    def for_config(cls, *, config: LabelConfig) -> ConfusionMatrix:
         """An empty matrix shaped for a label configuration."""
-        config = config or semantickitti()
         return cls(
             config.num_classes, tuple(c for c in range(config.num_classes) if config.ignored[c])
         )
@@ -212,9 +211,8 @@ class EvaluationReport:
         path.write_text(json.dumps(self.to_dict(), indent=2) + "\n")
 
     @classmethod
-    def from_dict(cls, data: dict, config: LabelConfig | None = None) -> EvaluationReport:
-        """Rebuild a report from its JSON form."""
-        config = config or semantickitti()
+    def from_dict(cls, data: dict, *, config: LabelConfig) -> EvaluationReport:
+        """Rebuild a report from its JSON form (class names it lacks are `config`'s)."""
         ignore = tuple(c for c in range(config.num_classes) if config.ignored[c])
 
         def matrix(counts: list) -> ConfusionMatrix:
@@ -296,8 +294,8 @@ class RawLabelEvaluator:
     by band, overall) is a sum of those.
     """
 
-    def __init__(self, config: LabelConfig | None = None) -> None:
-        self.config = config or semantickitti()
+    def __init__(self, *, config: LabelConfig) -> None:
+        self.config = config
         n = self.config.num_classes
         self._n = n
         # Unknown ids map to the extra class n, folded into the unlabeled class when read.
@@ -364,7 +362,7 @@ class RawLabelEvaluator:
         full = counts.reshape(n + 1, n + 1).copy()
         full[u] += full[n]
         full[:, u] += full[:, n]
-        cm = ConfusionMatrix.for_config(self.config)
+        cm = ConfusionMatrix.for_config(config=self.config)
         cm.merge(full[:n, :n])
         return cm
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from rangeret.dataset.distance import band_name
-from rangeret.dataset.labels import LabelConfig, semantickitti
+from rangeret.dataset.labels import LabelConfig
 from rangeret.evaluation.calibration import Calibration
 from rangeret.evaluation.metrics import EvaluationReport
 
@@ -55,11 +55,10 @@ def plot_confusion(report: EvaluationReport, path: Path | str) -> Path:
     return _save(fig, path)
 
 
-def plot_iou(report: EvaluationReport, path: Path | str, config: LabelConfig | None = None) -> Path:
-    """Bar chart of per-class IoU in the classes' colours (the label configuration's; default
-    SemanticKITTI's), with the mIoU line."""
+def plot_iou(report: EvaluationReport, path: Path | str, *, config: LabelConfig) -> Path:
+    """Bar chart of per-class IoU in the classes' colours (the label configuration's), with the
+    mIoU line."""
     plt = _pyplot()
-    config = config or semantickitti()
     include = report.confusion.include
     iou = report.confusion.iou()[include] * 100
     colours = (
@@ -168,16 +167,14 @@ def plot_iou_comparison(
     return _save(fig, path)
 
 
-def write_plots(
-    report: EvaluationReport, folder: Path | str, config: LabelConfig | None = None
-) -> list[Path]:
+def write_plots(report: EvaluationReport, folder: Path | str, *, config: LabelConfig) -> list[Path]:
     """Write `confusion.png` and `iou.png` into `folder`, in the label configuration's colours,
     and, for a report broken down by distance and sequence, `iou-by-distance.png` and
     `miou-by-sequence.png`, and `calibration.png` where the report has confidences."""
     folder = Path(folder)
     paths = [
         plot_confusion(report, folder / "confusion.png"),
-        plot_iou(report, folder / "iou.png", config),
+        plot_iou(report, folder / "iou.png", config=config),
     ]
     if report.by_distance:
         paths.append(plot_iou_by_distance(report, folder / "iou-by-distance.png"))
@@ -229,13 +226,13 @@ def plot_range_image(
     ground_truth: np.ndarray | None,
     prediction: np.ndarray,
     path: Path | str,
-    config: LabelConfig | None = None,
+    *,
+    config: LabelConfig,
     title: str = "",
 ) -> Path:
     """Stacked PNG of one scan's range image, its ground truth and the prediction (training classes
-    in the label configuration's colours, default SemanticKITTI's; empty pixels black)."""
+    in the label configuration's colours; empty pixels black)."""
     plt = _pyplot()
-    config = config or semantickitti()
     palette = config.class_rgb()
     panels: list[tuple[str, np.ndarray]] = []
     rng = np.where(range_image > 0, range_image, np.nan)

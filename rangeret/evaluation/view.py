@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from rangeret.dataset.labels import SEMANTIC_MASK, LabelConfig
-from rangeret.dataset.profiles import DatasetProfile, load_profile
+from rangeret.dataset.profiles import DatasetProfile
 from rangeret.evaluation.plots import _pyplot
 from rangeret.io.atomic import atomic_path
 from rangeret.io.ply import write_ply
@@ -58,13 +58,13 @@ def load_labelled_scan(
     scan: Path | str,
     labels: Path | str | None = None,
     ground_truth: Path | str | None = None,
-    profile: DatasetProfile | None = None,
+    *,
+    profile: DatasetProfile,
 ) -> LabelledScan:
     """Read a scan with the profile's point record and its label files, each checked to hold one
     uint32 per point (a ScanFormatError naming the file and both counts otherwise)."""
-    profile = profile or load_profile(None)
     scan = Path(scan)
-    points = read_scan(scan, profile.points)
+    points = read_scan(scan, record=profile.points)
     return LabelledScan(
         scan=scan,
         points=points,

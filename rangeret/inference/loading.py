@@ -17,7 +17,7 @@ from rangeret.dataset.layout import ScanEntry
 from rangeret.dataset.projection import Projection, ProjectionConfig, project_with
 from rangeret.inference.runtime.backends import RuntimeChoiceError
 from rangeret.inference.timing import StageTimes
-from rangeret.io.scans import KITTI_RECORD, PointRecord, ScanFormatError, read_scan
+from rangeret.io.scans import PointRecord, ScanFormatError, read_scan
 
 T = TypeVar("T")
 
@@ -48,7 +48,8 @@ def load_batch(
     entries: Sequence[ScanEntry],
     config: ProjectionConfig,
     times: StageTimes,
-    record: PointRecord = KITTI_RECORD,
+    *,
+    record: PointRecord,
     within: Sequence[str] | None = None,
 ) -> list[LoadedScan]:
     """Read and project every scan of `entries`, in order; times go to `times` (read, project).

@@ -148,7 +148,7 @@ class Predictor:
         one, or for a published model's registered name (its file fetched, its profile taken).
 
         The project's own files run with the profile they record (asking for another one is an
-        error). Published files record none: they run with `profile` (default `semantickitti`),
+        error). Published files record none: they run with `profile` (else SemanticKITTI's),
         which gives their resolution and field of view unless height, width or fov are given.
         """
         weights = resolve_weights(path, profile, model, height, width)
@@ -161,7 +161,7 @@ class Predictor:
             default_resolution=default_resolution(profile),
         )
         info = network.checkpoint_info
-        resolved = profile_for_checkpoint(info, profile, fov_up, fov_down)
+        resolved = profile_for_checkpoint(info, requested=profile, fov_up=fov_up, fov_down=fov_down)
         return cls(
             network,
             resolved,
@@ -355,7 +355,9 @@ def checkpoint_profile(spec: PredictorSpec) -> tuple[CheckpointInfo, DatasetProf
         default_resolution=default_resolution(spec.profile),
     )
     info = network.checkpoint_info
-    profile = profile_for_checkpoint(info, spec.profile, spec.fov_up, spec.fov_down)
+    profile = profile_for_checkpoint(
+        info, requested=spec.profile, fov_up=spec.fov_up, fov_down=spec.fov_down
+    )
     if spec.backend == "onnxruntime":
         cached_export(network, profile, info.sha256)
     return info, profile

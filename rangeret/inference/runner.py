@@ -59,7 +59,11 @@ def predict_tree(
     profile = predictor.profile
     entries = list_scans(dataset, sequences, layout=profile.layout)
     summary = RunSummary(total=len(entries))
-    pending = [e for e in entries if not is_complete(e, out, profile.points, save_confidence)]
+    pending = [
+        e
+        for e in entries
+        if not is_complete(e, out, record=profile.points, with_confidence=save_confidence)
+    ]
     summary.skipped = len(entries) - len(pending)
     if summary.skipped:
         log.info(
@@ -83,7 +87,12 @@ def predict_tree(
 
         def read_next() -> Future[list[LoadedScan]]:
             return pool.submit(
-                load_batch, next(upcoming, []), config, times, profile.points, read_roots
+                load_batch,
+                next(upcoming, []),
+                config,
+                times,
+                record=profile.points,
+                within=read_roots,
             )
 
         future = read_next()

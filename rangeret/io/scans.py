@@ -74,7 +74,7 @@ class ScanFormatError(InputError, ValueError):
 
 
 def parse_scan(
-    data: bytes | memoryview, source: str = "<scan>", record: PointRecord = KITTI_RECORD
+    data: bytes | memoryview, source: str = "<scan>", *, record: PointRecord
 ) -> np.ndarray:
     """Decode the bytes of a `.bin` scan into a float32 (N, fields) array, validating them."""
     size = len(data)
@@ -103,7 +103,8 @@ def read_scan(
     record: PointRecord = KITTI_RECORD,
     within: Sequence[str | os.PathLike[str]] | None = None,
 ) -> np.ndarray:
-    """Read a `.bin` scan as a float32 (N, fields) array ((N, 4) x, y, z, remission by default).
+    """Read a `.bin` scan as a float32 (N, fields) array ((N, 4) x, y, z, remission by default:
+    the one-argument form is a public contract; the project's own code always passes `record`).
 
     Raises `ScanFormatError` when the file is empty, its size is not a whole number of records or
     it holds non-finite values, and `FileNotFoundError` when it does not exist. With `within`,
@@ -115,7 +116,7 @@ def read_scan(
         data = path.read_bytes() if within is None else _read_within(path, within)
     except FileNotFoundError as exc:
         raise InputFileMissing.of(exc) from exc
-    return parse_scan(data, str(path), record).copy()
+    return parse_scan(data, str(path), record=record).copy()
 
 
 def _read_within(path: Path, within: Sequence[str | os.PathLike[str]]) -> bytes:
@@ -137,7 +138,7 @@ def _opened_path(fd: int, path: Path) -> str:
         return os.path.realpath(path)
 
 
-def scan_num_points(path: str | os.PathLike[str], record: PointRecord = KITTI_RECORD) -> int:
+def scan_num_points(path: str | os.PathLike[str], *, record: PointRecord) -> int:
     """Number of points of a `.bin` scan from its size alone (no read), validating the size."""
     size = os.path.getsize(path)
     if size == 0:
@@ -203,9 +204,7 @@ def read_confidence(path: str | os.PathLike[str], num_points: int | None = None)
     return values.astype(np.float32)
 
 
-def write_scan(
-    path: str | os.PathLike[str], points: np.ndarray, record: PointRecord = KITTI_RECORD
-) -> None:
+def write_scan(path: str | os.PathLike[str], points: np.ndarray, *, record: PointRecord) -> None:
     """Write float (N, fields) points atomically as a `.bin` scan."""
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != record.num_fields:

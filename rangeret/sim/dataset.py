@@ -14,7 +14,7 @@ import numpy as np
 
 from rangeret.dataset.labels import SEMANTIC_MASK
 from rangeret.dataset.layout import labels_dir, velodyne_dir
-from rangeret.dataset.profiles import DatasetProfile, load_profile
+from rangeret.dataset.profiles import DatasetProfile
 from rangeret.io.atomic import atomic_write_bytes
 from rangeret.io.scans import write_labels, write_scan
 from rangeret.sim.classes import raw_label_map
@@ -58,7 +58,8 @@ def simulate_dataset(
     sensor: SensorConfig | None = None,
     seed: int = 0,
     progress: bool = False,
-    profile: DatasetProfile | None = None,
+    *,
+    profile: DatasetProfile,
 ) -> int:
     """Write a simulated dataset tree under `root` and return the number of scans written.
 
@@ -68,16 +69,11 @@ def simulate_dataset(
     `poses.txt`, `times.txt` and `calib.txt` (the LiDAR is the reference frame: `Tr` is the
     identity and the poses are the sensor's). The same seed writes the same bytes.
 
-    With a `profile`, the sequence folders, ids, point records and raw label ids are the
-    profile's (a laser id, where its record has one, is the beam index), and the sensor defaults
-    to `SensorConfig.for_profile(profile)`; without one, the tree is SemanticKITTI's and the
-    sensor `SensorConfig()`.
+    The sequence folders, ids, point records and raw label ids are the profile's (a laser id,
+    where its record has one, is the beam index), and the sensor defaults to
+    `SensorConfig.for_profile(profile)`.
     """
-    if profile is None:
-        profile = load_profile(None)
-        sensor = sensor or SensorConfig()
-    else:
-        sensor = sensor or SensorConfig.for_profile(profile)
+    sensor = sensor or SensorConfig.for_profile(profile)
     _check_profile(profile, sensor)
     layout, record = profile.layout, profile.points
     label_map = raw_label_map(profile)
@@ -103,7 +99,7 @@ def simulate_dataset(
             seeds = _sequence_seed(seed, name).spawn(n + 1)
             scene = make_scene(np.random.default_rng(seeds[0]), max(200.0, 1.25 * n))
             step = scene.ego_speed * SCAN_PERIOD
-            seq_dir = velodyne_dir(root, name, layout).parent
+            seq_dir = velodyne_dir(root, name, layout=layout).parent
             seq_dir.mkdir(parents=True, exist_ok=True)
             poses, times = [], []
             for k in range(n):
@@ -112,10 +108,12 @@ def simulate_dataset(
                 )
                 if record.num_fields == 5:
                     points = np.column_stack([points, lasers.astype(np.float32)])
-                write_scan(velodyne_dir(root, name, layout) / f"{k:06d}.bin", points, record)
+                write_scan(
+                    velodyne_dir(root, name, layout=layout) / f"{k:06d}.bin", points, record=record
+                )
                 if name in with_labels:
                     raw = label_map[labels & SEMANTIC_MASK] | (labels & ~np.uint32(SEMANTIC_MASK))
-                    write_labels(labels_dir(root, name, layout) / f"{k:06d}.label", raw)
+                    write_labels(labels_dir(root, name, layout=layout) / f"{k:06d}.label", raw)
                 poses.append(_matrix_line([1, 0, 0, k * step, 0, 1, 0, 0, 0, 0, 1, 0]))
                 times.append(f"{k * SCAN_PERIOD:.6e}")
                 written += 1

@@ -10,7 +10,9 @@ The official validator compares the zip only with the local velodyne folders, so
 local copy of the test set passes it and the server then fails. Here the dataset is also checked
 against the official scan counts of the test split, unless a partial archive is asked for
 explicitly (for tests). Nothing is written unless the archive would pass; every missing or wrong
-file is listed instead.
+file is listed instead. The benchmark is SemanticKITTI's: its test scans are read with that
+dataset's layout and point record, and the caller gives the label configuration (`labels`, the
+semantickitti profile's).
 """
 
 from __future__ import annotations
@@ -26,11 +28,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from rangeret.dataset.labels import LabelConfig, semantickitti
-from rangeret.dataset.layout import ScanEntry, discover, prediction_path
+from rangeret.dataset.labels import LabelConfig
+from rangeret.dataset.layout import KITTI_LAYOUT, ScanEntry, discover, prediction_path
 from rangeret.exceptions import DatasetError
 from rangeret.io.atomic import atomic_path
-from rangeret.io.scans import LABEL_BYTES, ScanFormatError, scan_num_points
+from rangeret.io.scans import KITTI_RECORD, LABEL_BYTES, ScanFormatError, scan_num_points
 from rangeret.io.zipfiles import DeflatedFile, ReproducibleZip, deflate_file, map_ahead
 from rangeret.submission.leaderboard import (
     DEFAULT_NAME,
@@ -127,7 +129,7 @@ def _dataset_scans(
     dataset: Path, allow_partial: bool
 ) -> tuple[list[ScanEntry], list[str], list[str]]:
     """The test scans the dataset holds, the sequences present, and problems with completeness."""
-    found = discover(dataset, TEST_SEQUENCES, missing_ok=allow_partial)
+    found = discover(dataset, TEST_SEQUENCES, missing_ok=allow_partial, layout=KITTI_LAYOUT)
     problems = list(found.problems)
     if not allow_partial:
         counts = {s: len(v) for s, v in found.by_sequence().items()}
@@ -159,7 +161,7 @@ def _read_prediction(
 ) -> tuple[str | None, DeflatedFile | None]:
     """Why a scan's prediction is wrong, or its deflated entry (None once `failed` is set)."""
     try:
-        num_points = scan_num_points(entry.scan_path)
+        num_points = scan_num_points(entry.scan_path, record=KITTI_RECORD)
     except ScanFormatError as exc:
         return str(exc), None
     pred = prediction_path(predictions, entry.sequence, entry.name)
@@ -178,7 +180,8 @@ def write_submission(
     out: Path | str,
     allow_partial: bool = False,
     description: str | None = None,
-    config: LabelConfig | None = None,
+    *,
+    labels: LabelConfig,
     progress: bool = False,
     workers: int | None = None,
 ) -> SubmissionCheck:
@@ -193,7 +196,6 @@ def write_submission(
     (default: every CPU this process may use).
     """
     predictions, dataset, out = Path(predictions), Path(dataset), Path(out)
-    config = config or semantickitti()
     if description is None:
         description = "\n".join(LeaderboardEntry().lines())
     if out.suffix != ".zip":
@@ -201,7 +203,7 @@ def write_submission(
     scans, _, problems = _dataset_scans(dataset, allow_partial)
     if not scans and not problems:
         problems.append(f"{dataset} holds no test scan (sequences 11 to 21)")
-    valid = _valid_id_table(config)
+    valid = _valid_id_table(labels)
     # Once a problem is found nothing more is written, so the workers stop deflating.
     failed = threading.Event()
     if problems:
@@ -227,7 +229,7 @@ def write_submission(
                 zf.add_file(DESCRIPTION_NAME, description.rstrip("\n") + "\n")
         if problems:
             raise SubmissionError(problems)
-        check = validate_submission(tmp, dataset, allow_partial=allow_partial, config=config)
+        check = validate_submission(tmp, dataset, allow_partial=allow_partial, labels=labels)
         check.path = out
         check.raise_for_problems()
     return check
@@ -237,7 +239,8 @@ def validate_submission(
     archive: Path | str,
     dataset: Path | str,
     allow_partial: bool = False,
-    config: LabelConfig | None = None,
+    *,
+    labels: LabelConfig,
     progress: bool = False,
 ) -> SubmissionCheck:
     """Check a submission zip against the dataset's test scans and the official test split.
@@ -249,7 +252,6 @@ def validate_submission(
     but shows the method as Anonymous.
     """
     archive, dataset = Path(archive), Path(dataset)
-    config = config or semantickitti()
     check = SubmissionCheck(path=archive, partial=allow_partial)
     if archive.suffix != ".zip":
         check.problems.append(f"{archive}: the archive's name must end with .zip")
@@ -259,7 +261,7 @@ def validate_submission(
     scans, present, dataset_problems = _dataset_scans(dataset, allow_partial)
     check.sequences = present
     check.problems += dataset_problems
-    valid = _valid_id_table(config)
+    valid = _valid_id_table(labels)
     try:
         zf = zipfile.ZipFile(archive)
     except (zipfile.BadZipFile, OSError) as exc:
@@ -295,7 +297,7 @@ def validate_submission(
         check.warnings += _description_warnings(zf, entries.get(DESCRIPTION_NAME), archive)
         for name, entry in tqdm(wanted.items(), desc="validate", unit="scan", disable=not progress):
             try:
-                num_points = scan_num_points(entry.scan_path)
+                num_points = scan_num_points(entry.scan_path, record=KITTI_RECORD)
             except ScanFormatError as exc:
                 check.problems.append(str(exc))
                 continue

@@ -34,7 +34,7 @@ from rangeret.dataset.labels import LabelConfig
 from rangeret.dataset.layout import DatasetLayoutError, ScanEntry, discover, resolve_sequences
 from rangeret.dataset.profiles import DatasetProfile, ProfileError, profile_of_record
 from rangeret.dataset.projection import ProjectionConfig, project_with
-from rangeret.io.scans import KITTI_RECORD, PointRecord, read_labels, read_scan
+from rangeret.io.scans import PointRecord, read_labels, read_scan
 from rangeret.training.augment import augment_points
 from rangeret.training.config import TrainConfig
 from rangeret.training.range_mixes import MixSettings, RangeImage, rare_classes
@@ -48,7 +48,7 @@ POINT_KEYS = ("proj_x", "proj_y", "unproj_range", "point_labels")
 class RangeDataset(Dataset):
     """Scans of a dataset tree as range images with per-pixel training classes.
 
-    `points` is the scan files' point record (SemanticKITTI's 4 floats by default). `augment` applies the thesis's point augmentations, `mixing` RangeFormer's image mixes (both
+    `points` is the scan files' point record (the profile's). `augment` applies the thesis's point augmentations, `mixing` RangeFormer's image mixes (both
     for training). With `with_points` a sample also carries what point-level validation needs:
     every point's pixel and range, its class, and the (H, W) range image.
     """
@@ -63,7 +63,7 @@ class RangeDataset(Dataset):
         mixing: MixSettings | None = None,
         seed: int = 0,
         with_points: bool = False,
-        points: PointRecord = KITTI_RECORD,
+        points: PointRecord,
     ) -> None:
         missing = [s.key for s in scans if s.label_path is None]
         if missing:
@@ -89,7 +89,7 @@ class RangeDataset(Dataset):
     def points_and_classes(self, index: int) -> tuple[np.ndarray, np.ndarray]:
         """(N, fields) float32 points and (N,) int64 training classes of scan `index`."""
         entry = self.scans[index]
-        points = read_scan(entry.scan_path, self.record)
+        points = read_scan(entry.scan_path, record=self.record)
         raw = read_labels(entry.label_path, num_points=len(points))
         return points, self.label_config.to_class(raw).astype(np.int64)
 
@@ -242,9 +242,12 @@ def find_scans(
         return []
     layout = profile.layout
     names = (
-        resolve_sequences(sequences=sequences, config=profile.labels, layout=layout)
+        resolve_sequences(sequences=sequences, labels=profile.labels, layout=layout)
         if sequences is not None
-        else [layout.normalise(s) for s in resolve_sequences(split=split, config=profile.labels)]
+        else [
+            layout.normalise(s)
+            for s in resolve_sequences(split=split, labels=profile.labels, layout=layout)
+        ]
     )
     found = discover(root, names, with_labels=True, layout=layout)
     if found.problems:

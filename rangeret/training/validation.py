@@ -38,7 +38,7 @@ VAL_METRICS = (
 def confusion_matrix(flat: torch.Tensor, label_config: LabelConfig) -> ConfusionMatrix:
     """A ConfusionMatrix of the label configuration from flat C[pred, gt] counts."""
     c = label_config.num_classes
-    cm = ConfusionMatrix.for_config(label_config)
+    cm = ConfusionMatrix.for_config(config=label_config)
     cm.merge(flat.reshape(c, c).cpu().numpy())
     return cm
 

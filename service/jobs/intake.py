@@ -165,7 +165,7 @@ class JobIntake:
         root = resolve_dataset(request.dataset, roots)
         try:
             sequences = resolve_sequences(
-                request.split, request.sequences, profile.labels, profile.layout
+                request.split, request.sequences, labels=profile.labels, layout=profile.layout
             )
             entries = list_scans(root, sequences, layout=profile.layout)
         except (DatasetLayoutError, ValueError) as exc:

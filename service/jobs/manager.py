@@ -22,7 +22,7 @@ import uuid
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from rangeret.dataset.profiles import DatasetProfile, load_profile
+from rangeret.dataset.profiles import DatasetProfile
 from service.jobs.capacity import disk_full, disk_short, folder_bytes, queue_full
 from service.jobs.executors import JobControl, JobError, JobExecutor
 from service.jobs.reasons import failure_sentence
@@ -61,7 +61,8 @@ class JobManager:
         executor: JobExecutor,
         jobs_dir: Path,
         retention_s: float,
-        profile: DatasetProfile | None = None,
+        *,
+        profile: DatasetProfile,
         checkpoint_sha256: str | None = None,
         on_scans: Callable[[int], None] | None = None,
         max_running: int = 1,
@@ -74,14 +75,14 @@ class JobManager:
         self.store = store
         self.jobs_dir = jobs_dir
         self.retention_s = retention_s
-        self.profile = profile or load_profile(None)
+        self.profile = profile
         self.max_running = max_running
         self.max_queued = max_queued
         self.max_bytes = max_bytes
         self.work = JobWork(
             store,
             executor,
-            self.profile,
+            profile=self.profile,
             checkpoint_sha256=checkpoint_sha256,
             read_roots=None
             if read_roots is None

@@ -267,7 +267,7 @@ class RayJobExecutor:
         Returns early when `cancel` is set: a cancelled job's Ray job is stopped first, one
         paused by a gateway stop is left running. `JobError` when it cannot go on.
         """
-        before = sum(is_complete(e, out, self.profile.points) for e in entries)
+        before = sum(is_complete(e, out, record=self.profile.points) for e in entries)
         follow = _Follow(self, entries, dataset, sequences, out, progress, cancel, before)
         return follow.run()
 

@@ -12,13 +12,12 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from rangeret.dataset.layout import (
-    KITTI_LAYOUT,
     ScanEntry,
     SequenceLayout,
     discover,
     prediction_path,
 )
-from rangeret.dataset.profiles import DEFAULT_PROFILE, DatasetProfile, load_profile
+from rangeret.dataset.profiles import DatasetProfile
 from rangeret.evaluation.evaluate import evaluate_predictions
 from rangeret.evaluation.plots import write_plots
 from rangeret.io.atomic import atomic_path
@@ -34,10 +33,12 @@ REPORT_JSON = "report.json"
 PLOTS_DIR = "plots"
 #: A report PNG's name, as `rangeret.evaluation.plots.write_plots` names them.
 PLOT_NAME = re.compile(r"^[a-z][a-z-]{0,63}\.png$")
+#: The profile whose test sequences the benchmark server takes (`rangeret.submission.archives`).
+BENCHMARK_PROFILE = "semantickitti"
 
 
 def labelled_sequences(
-    dataset: Path, sequences: Sequence[str], layout: SequenceLayout = KITTI_LAYOUT
+    dataset: Path, sequences: Sequence[str], *, layout: SequenceLayout
 ) -> list[str]:
     """The sequences every scan of which has a ground-truth label file."""
     found = discover(dataset, sequences, missing_ok=True, layout=layout).by_sequence()
@@ -60,19 +61,20 @@ def write_predictions_zip(
     sequences: Sequence[str],
     path: Path,
     description: str,
-    profile: DatasetProfile | None = None,
+    *,
+    profile: DatasetProfile,
     workers: int | None = None,
 ) -> None:
     """The job's predictions as a reproducible zip with explicit directory entries, as
-    `sequences/<id as on disk>/predictions/NNNNNN.label` for every profile (default semantickitti).
+    `sequences/<id as on disk>/predictions/NNNNNN.label` for every profile.
 
-    When the profile is SemanticKITTI's and all the sequences are its test sequences, the archive
+    When the profile is the benchmark's (SemanticKITTI) and all the sequences are its test sequences, the archive
     holds the directory entries of every test sequence, as the benchmark server wants, so it
     passes the submission validator. The labels are read and deflated in `workers` threads
     (default: every CPU this process may use); the archive's bytes do not depend on it.
     """
     names = list(dict.fromkeys(sequences))
-    benchmark = (profile or load_profile(None)).name == DEFAULT_PROFILE
+    benchmark = profile.name == BENCHMARK_PROFILE
     if benchmark and all(s in TEST_SEQUENCES for s in names):
         directories = list(required_directories())
     else:
@@ -100,6 +102,7 @@ def write_report(
     pred_root: Path,
     labelled: Sequence[str],
     folder: Path,
+    *,
     profile: DatasetProfile,
     checkpoint_sha256: str | None,
     precision: str | None,
@@ -119,7 +122,7 @@ def write_report(
     report.backend = backend
     path = folder / REPORT_JSON
     report.write_json(path)
-    write_plots(report, folder / PLOTS_DIR, profile.labels)
+    write_plots(report, folder / PLOTS_DIR, config=profile.labels)
     metrics = {"miou": report.miou, "accuracy": report.accuracy, "iou": report.iou_by_name()}
     return path, metrics
 

@@ -122,7 +122,7 @@ class JobWork:
         """Predict the scans not yet written, keeping the job's progress (and the scan count)
         up to date; the failures by scan key."""
         record = self.profile.points
-        skipped = sum(is_complete(e, out, record) for e in entries)
+        skipped = sum(is_complete(e, out, record=record) for e in entries)
         self.store.progress(job.id, len(entries), skipped, 0)
         counted = [0]
 
@@ -142,7 +142,7 @@ class JobWork:
     ) -> str | None:
         """Why the job fails when predictions are missing from its folder once they were all
         written (it was changed meanwhile), with the progress set back; None when all are there."""
-        missing = [e for e in entries if not is_complete(e, out, self.profile.points)]
+        missing = [e for e in entries if not is_complete(e, out, record=self.profile.points)]
         if not missing:
             return None
         self.store.progress(job.id, len(entries), len(entries) - len(missing), 0)
@@ -162,19 +162,21 @@ class JobWork:
         dataset = Path(job.dataset)
         zip_path = folder / PREDICTIONS_ZIP
         description = predictions_description(self.checkpoint_sha256, self.profile)
-        write_predictions_zip(out, entries, job.sequences, zip_path, description, self.profile)
+        write_predictions_zip(
+            out, entries, job.sequences, zip_path, description, profile=self.profile
+        )
         metrics = report_path = None
-        labelled = labelled_sequences(dataset, job.sequences, self.profile.layout)
+        labelled = labelled_sequences(dataset, job.sequences, layout=self.profile.layout)
         if labelled:
             report_path, metrics = write_report(
                 dataset,
                 out,
                 labelled,
                 folder,
-                self.profile,
-                self.checkpoint_sha256,
-                self.executor.precision,
-                self.executor.inference_backend,
+                profile=self.profile,
+                checkpoint_sha256=self.checkpoint_sha256,
+                precision=self.executor.precision,
+                backend=self.executor.inference_backend,
             )
         self.store.finish(
             job.id, JobState.succeeded, metrics=metrics, predictions=zip_path, report=report_path

@@ -141,7 +141,7 @@ async def _label(request: Request, gw: Gateway, knn: bool, confidence: bool) -> 
             f"{', '.join(record.fields)}, the point record of the {gw.profile.name} profile).",
         )
     try:
-        points = await asyncio.to_thread(parse_scan, body, "the scan", record)
+        points = await asyncio.to_thread(parse_scan, body, "the scan", record=record)
     except ScanFormatError as exc:
         raise ApiError(400, f"The scan is malformed: {exc.problem}.") from exc
     if not gw.started:

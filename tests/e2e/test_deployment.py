@@ -38,6 +38,7 @@ import pytest
 import yaml
 
 from rangeret.cli.main import main as rangeret_main
+from rangeret.dataset.labels import semantickitti
 from rangeret.submission.archives import validate_submission
 from tests.support.gateway import OCTET, Gateway, wait_healthy, wait_job
 from tests.support.kuberay import (
@@ -478,7 +479,9 @@ def test_an_archive_job_loses_no_scan_when_a_worker_node_is_killed(cluster, tmp_
     assert set(written) <= set(expected)
     assert status["state"] == "succeeded", status
     (tmp_path / "archive.zip").write_bytes(zipped.content)
-    check = validate_submission(tmp_path / "archive.zip", data, allow_partial=True)
+    check = validate_submission(
+        tmp_path / "archive.zip", data, allow_partial=True, labels=semantickitti()
+    )
     assert check.ok and check.scans == 40, check
 
 

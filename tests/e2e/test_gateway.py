@@ -28,9 +28,9 @@ import torch
 
 from rangeret.cli.main import main as rangeret_main
 from rangeret.dataset.labels import semantickitti
-from rangeret.dataset.layout import prediction_path, velodyne_dir
+from rangeret.dataset.layout import KITTI_LAYOUT, prediction_path, velodyne_dir
 from rangeret.inference.predictor import PredictorSpec
-from rangeret.io.scans import read_labels, read_scan, write_scan
+from rangeret.io.scans import KITTI_RECORD, read_labels, read_scan, write_scan
 from rangeret.submission.archives import validate_submission
 from service.jobs import SCHEMA_VERSION, JobStore
 from tests.support.gateway import (
@@ -69,8 +69,9 @@ def setup(tmp_path_factory) -> dict:
     data = build_tree(roots / "data", labelled=3, unlabelled=2)
     real = roots / "real"
     write_scan(
-        velodyne_dir(real, "00") / "000000.bin",
+        velodyne_dir(real, "00", layout=KITTI_LAYOUT) / "000000.bin",
         read_scan(data_path("semantickitti-scan", "000000.bin")),
+        record=KITTI_RECORD,
     )
     net = ["--checkpoint", str(weights), *NET, "-q"]
     threads = torch.get_num_threads()
@@ -460,7 +461,7 @@ def test_dataset_jobs_test_sequences_pass_the_validator(setup, gateway):
         assert client.get(f"/v1/jobs/{second['id']}/report").json()["num_scans"] == 3
     path = setup["base"] / "test-job.zip"
     path.write_bytes(archive)
-    check = validate_submission(path, setup["data"], allow_partial=True)
+    check = validate_submission(path, setup["data"], allow_partial=True, labels=semantickitti())
     assert check.ok, check.problems
     assert check.scans == 2
 
@@ -613,7 +614,11 @@ def test_gateway_killed_mid_job_resumes_it(setup, tmp_path):
     points = read_scan(data_path("semantickitti-scan", "000000.bin"))
     root = setup["roots"] / "long"
     for i in range(16):
-        write_scan(velodyne_dir(root, "42") / f"{i:06d}.bin", points[i % 7 :: 40 + i])
+        write_scan(
+            velodyne_dir(root, "42", layout=KITTI_LAYOUT) / f"{i:06d}.bin",
+            points[i % 7 :: 40 + i],
+            record=KITTI_RECORD,
+        )
     env = gateway_env(tmp_path / "state", [setup["roots"]], RANGERET_BATCH_SIZE="1")
     first = start_gateway(setup["weights"], env, tmp_path / "first.log")
     try:

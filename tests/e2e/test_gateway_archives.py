@@ -17,6 +17,8 @@ import httpx
 import numpy as np
 import pytest
 
+from rangeret.dataset.layout import KITTI_LAYOUT
+from rangeret.io.scans import KITTI_RECORD
 from service import archives
 from service.archives import ArchiveError, ArchiveLimits, ArchiveTooLarge, extract_archive
 from tests.support.gateway import Gateway, assert_error, gateway_env, start_gateway, wait_job
@@ -102,7 +104,13 @@ def test_zip_of_folders_over_the_member_limit_is_refused_before_extraction(tmp_p
     archive = _write(tmp_path, _zip_bytes({f"sequences/{i:06d}/": b"" for i in range(30)}))
     _forbid_zipfile(monkeypatch)
     with pytest.raises(ArchiveTooLarge, match="declares 30 members, more than the limit of 20"):
-        extract_archive(archive, tmp_path / "data", _limits(members=20))
+        extract_archive(
+            archive,
+            tmp_path / "data",
+            _limits(members=20),
+            record=KITTI_RECORD,
+            layout=KITTI_LAYOUT,
+        )
     assert not (tmp_path / "data").exists()
 
 
@@ -112,7 +120,13 @@ def test_zip_whose_end_record_understates_its_entries_is_refused_by_the_count(
     archive = _write(tmp_path, _declare_entries(_zip_bytes(_folders(30)), 10))
     _forbid_zipfile(monkeypatch)
     with pytest.raises(ArchiveTooLarge, match="more than the limit of 20 members"):
-        extract_archive(archive, tmp_path / "data", _limits(members=20))
+        extract_archive(
+            archive,
+            tmp_path / "data",
+            _limits(members=20),
+            record=KITTI_RECORD,
+            layout=KITTI_LAYOUT,
+        )
     assert not (tmp_path / "data").exists()
 
 
@@ -121,9 +135,17 @@ def test_zip_whose_end_record_declares_too_many_entries_is_refused_at_once(tmp_p
     zip64 = _write(tmp_path, _as_zip64(_zip_bytes({BIN: SCAN}), declared=10**12), "zip64")
     _forbid_zipfile(monkeypatch)
     with pytest.raises(ArchiveTooLarge, match="declares 60,000 members"):
-        extract_archive(archive, tmp_path / "data", _limits(members=20))
+        extract_archive(
+            archive,
+            tmp_path / "data",
+            _limits(members=20),
+            record=KITTI_RECORD,
+            layout=KITTI_LAYOUT,
+        )
     with pytest.raises(ArchiveTooLarge, match="declares 1,000,000,000,000 members"):
-        extract_archive(zip64, tmp_path / "data", _limits(members=20))
+        extract_archive(
+            zip64, tmp_path / "data", _limits(members=20), record=KITTI_RECORD, layout=KITTI_LAYOUT
+        )
 
 
 def test_damaged_central_directory_is_an_archive_error(tmp_path, monkeypatch):
@@ -139,7 +161,9 @@ def test_damaged_central_directory_is_an_archive_error(tmp_path, monkeypatch):
     _forbid_zipfile(monkeypatch)
     for what, path in paths.items():
         with pytest.raises(ArchiveError, match=r"central directory|zip64") as info:
-            extract_archive(path, tmp_path / "data", _limits())
+            extract_archive(
+                path, tmp_path / "data", _limits(), record=KITTI_RECORD, layout=KITTI_LAYOUT
+            )
         assert info.value.status_code == 400, what
     assert not (tmp_path / "data").exists()
 
@@ -158,7 +182,13 @@ def test_tar_gz_of_many_folders_is_refused_while_listing(tmp_path, monkeypatch):
 
     monkeypatch.setattr(tarfile.TarFile, "next", counting_next)
     with pytest.raises(ArchiveTooLarge, match="more than the limit of 20 members"):
-        extract_archive(archive, tmp_path / "data", _limits(members=20))
+        extract_archive(
+            archive,
+            tmp_path / "data",
+            _limits(members=20),
+            record=KITTI_RECORD,
+            layout=KITTI_LAYOUT,
+        )
     assert headers <= 22, f"{headers} tar entries were read for a limit of 20"
     assert not (tmp_path / "data").exists()
 
@@ -166,21 +196,40 @@ def test_tar_gz_of_many_folders_is_refused_while_listing(tmp_path, monkeypatch):
 def test_tar_extended_headers_are_bounded(tmp_path):
     big = _tar_gz(iter([(BIN, SCAN)]), pax={"comment": "x" * (100 << 10)})
     with pytest.raises(ArchiveError, match="extended header") as info:
-        extract_archive(_write(tmp_path, big), tmp_path / "data", _limits())
+        extract_archive(
+            _write(tmp_path, big),
+            tmp_path / "data",
+            _limits(),
+            record=KITTI_RECORD,
+            layout=KITTI_LAYOUT,
+        )
     assert info.value.status_code == 400
     small = _tar_gz(iter([(BIN, SCAN)]), pax={"comment": "made by a test"})
-    assert extract_archive(_write(tmp_path, small), tmp_path / "ok", _limits()).scans == 1
+    assert (
+        extract_archive(
+            _write(tmp_path, small),
+            tmp_path / "ok",
+            _limits(),
+            record=KITTI_RECORD,
+            layout=KITTI_LAYOUT,
+        ).scans
+        == 1
+    )
 
 
 def test_overlong_member_names_are_refused_as_they_are_listed(tmp_path, monkeypatch):
     name = "./" * 600 + BIN  # a valid name once cleaned, but 1,232 characters
     long_tar = _write(tmp_path, _tar_gz(iter([(name, SCAN)])), "long.tgz")
     with pytest.raises(ArchiveError, match="longer than the 1,024 allowed"):
-        extract_archive(long_tar, tmp_path / "data", _limits())
+        extract_archive(
+            long_tar, tmp_path / "data", _limits(), record=KITTI_RECORD, layout=KITTI_LAYOUT
+        )
     long_zip = _write(tmp_path, _zip_bytes({name: SCAN}), "long.zip")
     _forbid_zipfile(monkeypatch)
     with pytest.raises(ArchiveError, match="longer than the 1,024 allowed"):
-        extract_archive(long_zip, tmp_path / "data", _limits())
+        extract_archive(
+            long_zip, tmp_path / "data", _limits(), record=KITTI_RECORD, layout=KITTI_LAYOUT
+        )
     assert not (tmp_path / "data").exists()
 
 
@@ -193,10 +242,22 @@ def test_declared_sizes_over_the_extracted_limit_are_refused_before_writing(tmp_
     data = _zip_bytes(members) if kind == "zip" else _tar_gz(iter(members.items()))
     assert len(data) < 20_000  # far below any upload limit: only the extracted total refuses it
     with pytest.raises(ArchiveTooLarge, match="more than 100,000 bytes") as info:
-        extract_archive(_write(tmp_path, data), tmp_path / "data", _limits(extracted=100_000))
+        extract_archive(
+            _write(tmp_path, data),
+            tmp_path / "data",
+            _limits(extracted=100_000),
+            record=KITTI_RECORD,
+            layout=KITTI_LAYOUT,
+        )
     assert info.value.status_code == 413
     assert not (tmp_path / "data").exists()
-    assert extract_archive(_write(tmp_path, data), tmp_path / "ok", _limits(extracted=160_000))
+    assert extract_archive(
+        _write(tmp_path, data),
+        tmp_path / "ok",
+        _limits(extracted=160_000),
+        record=KITTI_RECORD,
+        layout=KITTI_LAYOUT,
+    )
 
 
 @pytest.mark.parametrize("declared", [16, 400])
@@ -207,7 +268,13 @@ def test_zip_member_whose_header_lies_about_its_size_is_refused(tmp_path, declar
     struct.pack_into("<L", data, 22, declared)  # the local header's uncompressed size
     struct.pack_into("<L", data, central + 24, declared)  # and the central directory's
     with pytest.raises(ArchiveError) as info:
-        extract_archive(_write(tmp_path, bytes(data)), tmp_path / "data", _limits())
+        extract_archive(
+            _write(tmp_path, bytes(data)),
+            tmp_path / "data",
+            _limits(),
+            record=KITTI_RECORD,
+            layout=KITTI_LAYOUT,
+        )
     assert info.value.status_code == 400
 
 
@@ -222,7 +289,13 @@ def test_tar_member_whose_header_lies_about_its_size_is_refused(tmp_path):
     chksum = sum(data[:148]) + 8 * 32 + sum(data[156:512])
     data[148:156] = b"%06o\0 " % chksum
     with pytest.raises(ArchiveError) as info:
-        extract_archive(_write(tmp_path, bytes(data)), tmp_path / "data", _limits(points=1 << 20))
+        extract_archive(
+            _write(tmp_path, bytes(data)),
+            tmp_path / "data",
+            _limits(points=1 << 20),
+            record=KITTI_RECORD,
+            layout=KITTI_LAYOUT,
+        )
     assert info.value.status_code == 400
 
 
@@ -234,7 +307,13 @@ def test_zip_with_bytes_prepended_still_extracts(tmp_path):
     data = b"#!/bin/sh\necho a self-extracting stub\nexit 0\n" * 20 + _zip_bytes(
         {BIN: SCAN, LABEL: labels}
     )
-    found = extract_archive(_write(tmp_path, data), tmp_path / "data", _limits())
+    found = extract_archive(
+        _write(tmp_path, data),
+        tmp_path / "data",
+        _limits(),
+        record=KITTI_RECORD,
+        layout=KITTI_LAYOUT,
+    )
     assert found.scans == 1 and found.labelled == ["08"]
     assert (tmp_path / "data" / LABEL).read_bytes() == labels
     assert (tmp_path / "data" / BIN).read_bytes() == SCAN
@@ -245,7 +324,9 @@ def test_zip64_end_records_are_read(tmp_path):
     plain = _zip_bytes({BIN: SCAN, "sequences/08/": b""})
     for name, data in {"zip64": _as_zip64(plain), "prefixed": prefix + _as_zip64(plain)}.items():
         archive = _write(tmp_path, data, f"{name}.zip")
-        found = extract_archive(archive, tmp_path / name, _limits())
+        found = extract_archive(
+            archive, tmp_path / name, _limits(), record=KITTI_RECORD, layout=KITTI_LAYOUT
+        )
         assert found.scans == 1 and (tmp_path / name / BIN).read_bytes() == SCAN
     # Python writes a zip64 end record for more than 65,535 entries.
     buf = io.BytesIO()
@@ -256,10 +337,22 @@ def test_zip64_end_records_are_read(tmp_path):
             out.write(SCAN)
     data = buf.getvalue()
     assert b"PK\x06\x06" in data[-200:]
-    found = extract_archive(_write(tmp_path, data, "many.zip"), tmp_path / "many", _limits(70_000))
+    found = extract_archive(
+        _write(tmp_path, data, "many.zip"),
+        tmp_path / "many",
+        _limits(70_000),
+        record=KITTI_RECORD,
+        layout=KITTI_LAYOUT,
+    )
     assert found.scans == 1
     with pytest.raises(ArchiveTooLarge, match="declares 65,541 members"):
-        extract_archive(_write(tmp_path, data, "many.zip"), tmp_path / "few", _limits(65_540))
+        extract_archive(
+            _write(tmp_path, data, "many.zip"),
+            tmp_path / "few",
+            _limits(65_540),
+            record=KITTI_RECORD,
+            layout=KITTI_LAYOUT,
+        )
 
 
 def test_one_class_label_file_that_compresses_1000_to_1_is_accepted(tmp_path):
@@ -270,7 +363,9 @@ def test_one_class_label_file_that_compresses_1000_to_1_is_accepted(tmp_path):
     with zipfile.ZipFile(io.BytesIO(data)) as zf:
         assert zf.getinfo(LABEL).file_size > 900 * zf.getinfo(LABEL).compress_size
     limits = _limits(extracted=len(scan) + len(labels), points=points)
-    found = extract_archive(_write(tmp_path, data), tmp_path / "data", limits)
+    found = extract_archive(
+        _write(tmp_path, data), tmp_path / "data", limits, record=KITTI_RECORD, layout=KITTI_LAYOUT
+    )
     assert found.labelled == ["08"] and (tmp_path / "data" / LABEL).read_bytes() == labels
 
 

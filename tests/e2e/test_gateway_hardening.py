@@ -18,8 +18,8 @@ from collections.abc import Iterator
 import httpx
 import pytest
 
-from rangeret.dataset.layout import velodyne_dir
-from rangeret.io.scans import read_scan, write_scan
+from rangeret.dataset.layout import KITTI_LAYOUT, velodyne_dir
+from rangeret.io.scans import KITTI_RECORD, read_scan, write_scan
 from service.schemas import ErrorResponse
 from tests.support.gateway import (
     AUTH,
@@ -48,18 +48,26 @@ def setup(tmp_path_factory) -> dict:
     roots = base / "roots"
     points = read_scan(data_path("semantickitti-scan", "000000.bin"))
     data = roots / "data"
-    write_scan(velodyne_dir(data, "08") / "000000.bin", points[::50])
-    first = velodyne_dir(data, "09") / "000000.bin"
-    write_scan(first, points)
+    write_scan(
+        velodyne_dir(data, "08", layout=KITTI_LAYOUT) / "000000.bin",
+        points[::50],
+        record=KITTI_RECORD,
+    )
+    first = velodyne_dir(data, "09", layout=KITTI_LAYOUT) / "000000.bin"
+    write_scan(first, points, record=KITTI_RECORD)
     for i in range(1, LONG_SCANS):
         os.link(first, first.with_name(f"{i:06d}.bin"))
     outside = base / "outside"
-    write_scan(velodyne_dir(outside, "08") / "000000.bin", points[::60])
+    write_scan(
+        velodyne_dir(outside, "08", layout=KITTI_LAYOUT) / "000000.bin",
+        points[::60],
+        record=KITTI_RECORD,
+    )
     (roots / "linked-sequence" / "sequences").mkdir(parents=True)
     (roots / "linked-sequence" / "sequences" / "08").symlink_to(outside / "sequences" / "08")
-    velodyne_dir(roots / "linked-scan", "08").mkdir(parents=True)
-    (velodyne_dir(roots / "linked-scan", "08") / "000000.bin").symlink_to(
-        velodyne_dir(outside, "08") / "000000.bin"
+    velodyne_dir(roots / "linked-scan", "08", layout=KITTI_LAYOUT).mkdir(parents=True)
+    (velodyne_dir(roots / "linked-scan", "08", layout=KITTI_LAYOUT) / "000000.bin").symlink_to(
+        velodyne_dir(outside, "08", layout=KITTI_LAYOUT) / "000000.bin"
     )
     (roots / "inner-link").symlink_to(data)
     return {"base": base, "weights": weights, "roots": roots, "outside": outside, "points": points}

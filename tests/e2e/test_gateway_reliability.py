@@ -18,8 +18,8 @@ import httpx
 import numpy as np
 import pytest
 
-from rangeret.dataset.layout import velodyne_dir
-from rangeret.io.scans import read_scan, write_scan
+from rangeret.dataset.layout import KITTI_LAYOUT, velodyne_dir
+from rangeret.io.scans import KITTI_RECORD, read_scan, write_scan
 from tests.support.gateway import assert_error, gateway_env, start_gateway, wait_job
 from tests.support.paths import data_path
 from tests.support.workers import small_weights
@@ -89,7 +89,11 @@ def test_clean_stops_do_not_count_towards_the_restarts_a_job_survives(tmp_path):
     points = read_scan(data_path("semantickitti-scan", "000000.bin"))
     root = tmp_path / "long"
     for i in range(60):
-        write_scan(velodyne_dir(root, "42") / f"{i:06d}.bin", points[i % 3 :: 3])
+        write_scan(
+            velodyne_dir(root, "42", layout=KITTI_LAYOUT) / f"{i:06d}.bin",
+            points[i % 3 :: 3],
+            record=KITTI_RECORD,
+        )
     weights = small_weights(tmp_path)
     env = gateway_env(tmp_path / "state", [tmp_path], RANGERET_BATCH_SIZE="1")
     job_id = None
@@ -231,7 +235,11 @@ def test_a_job_whose_folder_is_removed_fails_naming_no_server_path(tmp_path):
 
     points = read_scan(data_path("semantickitti-scan", "000000.bin"))
     for i in range(40):
-        write_scan(velodyne_dir(tmp_path / "long", "42") / f"{i:06d}.bin", points[i % 3 :: 3])
+        write_scan(
+            velodyne_dir(tmp_path / "long", "42", layout=KITTI_LAYOUT) / f"{i:06d}.bin",
+            points[i % 3 :: 3],
+            record=KITTI_RECORD,
+        )
     state = tmp_path / "state"
     env = gateway_env(state, [tmp_path], RANGERET_BATCH_SIZE="1")
     gw = start_gateway(small_weights(tmp_path), env, tmp_path / "gateway.log")
@@ -261,13 +269,17 @@ def test_a_scan_swapped_for_a_link_out_of_the_roots_while_its_job_runs_is_refuse
     points = read_scan(data_path("semantickitti-scan", "000000.bin"))
     roots = tmp_path / "roots"
     for i in range(40):
-        write_scan(velodyne_dir(roots / "long", "42") / f"{i:06d}.bin", points[i % 3 :: 3])
+        write_scan(
+            velodyne_dir(roots / "long", "42", layout=KITTI_LAYOUT) / f"{i:06d}.bin",
+            points[i % 3 :: 3],
+            record=KITTI_RECORD,
+        )
     outside = tmp_path / "outside.bin"
-    write_scan(outside, points[::5])
+    write_scan(outside, points[::5], record=KITTI_RECORD)
     state = tmp_path / "state"
     env = gateway_env(state, [roots], RANGERET_BATCH_SIZE="1")
     gw = start_gateway(small_weights(tmp_path), env, tmp_path / "gateway.log")
-    last = velodyne_dir(roots / "long", "42") / "000039.bin"
+    last = velodyne_dir(roots / "long", "42", layout=KITTI_LAYOUT) / "000039.bin"
     try:
         with gw.client() as client:
             job_id = client.post("/v1/jobs", json={"dataset": "long", "sequences": ["42"]}).json()[
@@ -322,7 +334,11 @@ def small_disk(tmp_path):
 def _long_dataset(root: Path, scans: int = 60, stride: int = 3) -> None:
     points = read_scan(data_path("semantickitti-scan", "000000.bin"))
     for i in range(scans):
-        write_scan(velodyne_dir(root, "42") / f"{i:06d}.bin", points[i % stride :: stride])
+        write_scan(
+            velodyne_dir(root, "42", layout=KITTI_LAYOUT) / f"{i:06d}.bin",
+            points[i % stride :: stride],
+            record=KITTI_RECORD,
+        )
 
 
 def test_a_full_disk_under_the_job_database_is_507_and_fails_the_running_job(tmp_path, small_disk):

@@ -29,7 +29,7 @@ from pathlib import Path
 import pytest
 
 from rangeret.cli.main import main as rangeret_main
-from rangeret.dataset.layout import list_scans, velodyne_dir
+from rangeret.dataset.layout import KITTI_LAYOUT, list_scans, velodyne_dir
 from rangeret.dataset.profiles import load_profile
 from service.jobs import JobControl, JobError, JobManager, JobStore
 from service.jobs.ray_jobs import (
@@ -222,7 +222,7 @@ def _setup(tmp_path: Path, api: ScriptedApi, **options) -> Setup:
     values = {"checkpoint": "weights.pt", "height": 32, "width": 256, "device": "cpu"}
     options = {"poll_s": 0.01, "unreachable_s": 0.3, **options}
     executor = RayJobExecutor(ADDRESS, values, load_profile(None), 2, api=api, **options)
-    entries = list_scans(data, ["08", "11"])
+    entries = list_scans(data, ["08", "11"], layout=KITTI_LAYOUT)
     return Setup(store, JobControl(JOB, store), executor, entries, data, tmp_path / "out", calls=[])
 
 
@@ -451,7 +451,9 @@ def test_a_job_on_a_cluster_survives_more_gateway_restarts_than_one_run_here(tmp
         store.requeue("there-long")
         store.start("there-long")
     store.next_submission("there-long")
-    manager = JobManager(store, object(), tmp_path / "jobs", 3600)
+    manager = JobManager(
+        store, object(), tmp_path / "jobs", 3600, profile=load_profile("semantickitti")
+    )
     manager.recover()
     assert store.get("here").state is JobState.failed
     assert store.get("there").state is JobState.queued
@@ -514,7 +516,7 @@ def cluster(tmp_path_factory):
     data = build_tree(roots / "data", labelled=3, unlabelled=SCANS - 3)
     long = build_tree(roots / "long", labelled=0, unlabelled=LONG_SCANS)
     broken = build_tree(roots / "broken", labelled=1, unlabelled=1)
-    truncated = velodyne_dir(broken, "11") / "000001.bin"
+    truncated = velodyne_dir(broken, "11", layout=KITTI_LAYOUT) / "000001.bin"
     truncated.write_bytes(truncated.read_bytes()[:-5])
     _predict_here(weights, data, base / "ref", ["08", "11"])
     _predict_here(weights, long, base / "long-ref", ["11"])

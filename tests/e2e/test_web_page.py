@@ -23,7 +23,7 @@ from playwright.sync_api import Browser, Page, sync_playwright
 
 from rangeret.dataset.labels import semantickitti
 from rangeret.evaluation.metrics import ConfusionMatrix
-from rangeret.io.scans import read_labels, read_scan, write_scan
+from rangeret.io.scans import KITTI_RECORD, read_labels, read_scan, write_scan
 from tests.support.browser import CHROMIUM_ARGS, PageLog, chromium_path, prefix_proxy
 from tests.support.gateway import TOKEN, Gateway, gateway_env, start_gateway
 from tests.support.paths import REPO, data_path
@@ -54,7 +54,9 @@ def setup(tmp_path_factory) -> Iterator[dict]:
             if path.is_file():
                 zf.write(path, path.relative_to(tree).as_posix())
     small = base / "small.bin"
-    write_scan(small, read_scan(data_path("semantickitti-scan", "000000.bin"))[::7])
+    write_scan(
+        small, read_scan(data_path("semantickitti-scan", "000000.bin"))[::7], record=KITTI_RECORD
+    )
     env = gateway_env(base / "state", [base], RANGERET_ROOT_PATH=PREFIX)
     gw = start_gateway(weights, env, base / "gateway.log")
     try:
@@ -221,7 +223,7 @@ def test_the_real_scan_is_labelled_drawn_and_scored(setup, page, capsys):
     names = config.class_names
     truth_counts = np.bincount(config.to_class(truth), minlength=config.num_classes)
     assert shown["truthCounts"] == {names[c]: int(n) for c, n in enumerate(truth_counts) if n}
-    confusion = ConfusionMatrix.for_config(config)
+    confusion = ConfusionMatrix.for_config(config=config)
     confusion.add(config.to_class(predicted), config.to_class(truth))
     scores = shown["scores"]
     assert scores["miou"] == pytest.approx(confusion.miou(), abs=1e-12)

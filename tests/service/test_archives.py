@@ -11,8 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rangeret.dataset.layout import list_scans
+from rangeret.dataset.layout import KITTI_LAYOUT, list_scans
 from rangeret.dataset.profiles import load_profile
+from rangeret.io.scans import KITTI_RECORD
 from service.archives import ArchiveError, ArchiveLimits, ArchiveTooLarge, extract_archive
 
 LIMITS = ArchiveLimits(
@@ -42,12 +43,14 @@ def test_archive_with_labels_is_extracted(tmp_path):
             "sequences/11/velodyne/000001.bin": SCAN,
         },
     )
-    found = extract_archive(archive, tmp_path / "data", LIMITS)
+    found = extract_archive(
+        archive, tmp_path / "data", LIMITS, record=KITTI_RECORD, layout=KITTI_LAYOUT
+    )
     assert found.sequences == ["08", "11"] and found.labelled == ["08"] and found.scans == 3
     assert (
         tmp_path / "data" / "sequences" / "08" / "labels" / "000000.label"
     ).read_bytes() == labels
-    assert len(list_scans(found.root, found.sequences)) == 3
+    assert len(list_scans(found.root, found.sequences, layout=KITTI_LAYOUT)) == 3
 
 
 @pytest.mark.parametrize(
@@ -86,21 +89,35 @@ def test_archive_with_labels_is_extracted(tmp_path):
 )
 def test_bad_archive_members(tmp_path, members, words):
     with pytest.raises(ArchiveError, match=words):
-        extract_archive(_zip(tmp_path, members), tmp_path / "data", LIMITS)
+        extract_archive(
+            _zip(tmp_path, members),
+            tmp_path / "data",
+            LIMITS,
+            record=KITTI_RECORD,
+            layout=KITTI_LAYOUT,
+        )
 
 
 def test_archive_limits_are_checked_before_writing(tmp_path):
     many = {f"sequences/08/velodyne/{i:06d}.bin": SCAN for i in range(21)}
     with pytest.raises(ArchiveTooLarge, match="members"):
-        extract_archive(_zip(tmp_path, many), tmp_path / "a", LIMITS)
+        extract_archive(
+            _zip(tmp_path, many), tmp_path / "a", LIMITS, record=KITTI_RECORD, layout=KITTI_LAYOUT
+        )
     assert not (tmp_path / "a").exists()
     big = {"sequences/08/velodyne/000000.bin": b"\0" * 16 * 1001}
     with pytest.raises(ArchiveTooLarge, match="1,000 points"):
-        extract_archive(_zip(tmp_path, big), tmp_path / "b", LIMITS)
+        extract_archive(
+            _zip(tmp_path, big), tmp_path / "b", LIMITS, record=KITTI_RECORD, layout=KITTI_LAYOUT
+        )
     total = {f"sequences/08/velodyne/{i:06d}.bin": b"\0" * 16000 for i in range(10)}
     with pytest.raises(ArchiveTooLarge, match="add up"):
         extract_archive(
-            _zip(tmp_path, total), tmp_path / "c", ArchiveLimits(1 << 20, 20, 1000, 100_000)
+            _zip(tmp_path, total),
+            tmp_path / "c",
+            ArchiveLimits(1 << 20, 20, 1000, 100_000),
+            record=KITTI_RECORD,
+            layout=KITTI_LAYOUT,
         )
 
 
@@ -120,11 +137,25 @@ def test_tar_duplicates_and_special_members_are_refused(tmp_path):
             tar((name, SCAN, tarfile.REGTYPE), (name, SCAN, tarfile.REGTYPE)),
             tmp_path / "d",
             LIMITS,
+            record=KITTI_RECORD,
+            layout=KITTI_LAYOUT,
         )
     with pytest.raises(ArchiveError, match="pipe"):
-        extract_archive(tar((name, b"", tarfile.FIFOTYPE)), tmp_path / "d", LIMITS)
+        extract_archive(
+            tar((name, b"", tarfile.FIFOTYPE)),
+            tmp_path / "d",
+            LIMITS,
+            record=KITTI_RECORD,
+            layout=KITTI_LAYOUT,
+        )
     with pytest.raises(ArchiveError, match=r"not a \.zip"):
-        extract_archive(_write(tmp_path, b"junk" * 200), tmp_path / "d", LIMITS)
+        extract_archive(
+            _write(tmp_path, b"junk" * 200),
+            tmp_path / "d",
+            LIMITS,
+            record=KITTI_RECORD,
+            layout=KITTI_LAYOUT,
+        )
 
 
 def test_archive_of_another_profile_is_checked_with_its_record_and_laid_out_as_its_datasets(
@@ -156,7 +187,10 @@ def test_archive_of_another_profile_is_checked_with_its_record_and_laid_out_as_i
         extract_archive(_zip(tmp_path, big), tmp_path / "big", LIMITS, record=record, layout=layout)
     fits = {"sequences/001/velodyne/000000.bin": b"\0" * 20 * 1000}
     assert (
-        extract_archive(_zip(tmp_path, fits), tmp_path / "fits", LIMITS, record=record).scans == 1
+        extract_archive(
+            _zip(tmp_path, fits), tmp_path / "fits", LIMITS, record=record, layout=KITTI_LAYOUT
+        ).scans
+        == 1
     )
 
 

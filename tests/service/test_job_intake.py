@@ -36,7 +36,12 @@ def _intake(tmp_path: Path, roots: Path, **limits) -> JobIntake:
     """An intake for a manager that is not started, so its jobs stay queued."""
     settings = Settings(state_dir=tmp_path / "state", data_roots=[roots])
     manager = JobManager(
-        JobStore(tmp_path / "jobs.sqlite"), FakeExecutor(), tmp_path / "jobs", 3600, **limits
+        JobStore(tmp_path / "jobs.sqlite"),
+        FakeExecutor(),
+        tmp_path / "jobs",
+        3600,
+        profile=KITTI,
+        **limits,
     )
     return JobIntake(manager, settings, KITTI)
 

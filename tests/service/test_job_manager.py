@@ -32,7 +32,7 @@ def _manager(tmp_path: Path, executor=None, retention: float = 3600, profile=Non
         executor or FakeExecutor(),
         tmp_path / "jobs",
         retention,
-        profile=profile,
+        profile=profile or load_profile("semantickitti"),
     )
 
 
@@ -205,6 +205,7 @@ def test_jobs_run_side_by_side_and_the_queue_and_disk_are_bounded(tmp_path):
         max_queued=1,
         max_bytes=10_000,
         read_roots=[tmp_path],
+        profile=load_profile("semantickitti"),
     )
 
     def submit(sequence: str, expected: int) -> str:
@@ -251,7 +252,7 @@ def test_a_job_whose_files_were_linked_out_of_the_roots_since_it_was_queued_fail
     scan.symlink_to(outside)
     manager = JobManager(
         JobStore(tmp_path / "jobs.sqlite"), FakeExecutor(), tmp_path / "jobs", 3600,
-        read_roots=[roots],
+        read_roots=[roots], profile=load_profile("semantickitti"),
     )  # fmt: skip
     manager.start()
     try:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from rangeret.dataset.labels import semantickitti
-from rangeret.dataset.layout import list_scans, prediction_path
+from rangeret.dataset.layout import KITTI_LAYOUT, list_scans, prediction_path
 from rangeret.dataset.profiles import load_profile
 from rangeret.io.scans import write_labels
 from rangeret.submission.archives import required_directories
@@ -32,14 +32,18 @@ KITTI = load_profile(None)
 def test_predictions_zip_directory_entries(tmp_path):
     make_tree(tmp_path / "data", {"08": [5], "11": [6]})
     pred = tmp_path / "pred"
-    entries = list_scans(tmp_path / "data", ["08", "11"])
+    entries = list_scans(tmp_path / "data", ["08", "11"], layout=KITTI_LAYOUT)
     for entry in entries:
         write_labels(
             prediction_path(pred, entry.sequence, entry.name), np.zeros(5, dtype=np.uint32)
         )
     test_only = [e for e in entries if e.sequence == "11"]
-    write_predictions_zip(pred, test_only, ["11"], tmp_path / "a.zip", "d")
-    write_predictions_zip(pred, entries, ["08", "11"], tmp_path / "b.zip", "d")
+    write_predictions_zip(
+        pred, test_only, ["11"], tmp_path / "a.zip", "d", profile=load_profile("semantickitti")
+    )
+    write_predictions_zip(
+        pred, entries, ["08", "11"], tmp_path / "b.zip", "d", profile=load_profile("semantickitti")
+    )
     names_a = zipfile.ZipFile(tmp_path / "a.zip").namelist()
     names_b = zipfile.ZipFile(tmp_path / "b.zip").namelist()
     assert [n for n in names_a if n.endswith("/")] == list(required_directories())
@@ -63,7 +67,7 @@ def test_only_sequences_with_every_label_are_evaluated(tmp_path):
     make_tree(data, {"08": [5, 6], "11": [5]})
     make_tree(data, {"12": [5]}, labelled=False)
     (data / "sequences" / "11" / "labels" / "000000.label").unlink()
-    assert labelled_sequences(data, ["08", "11", "12"]) == ["08"]
+    assert labelled_sequences(data, ["08", "11", "12"], layout=KITTI_LAYOUT) == ["08"]
 
 
 def test_the_report_and_its_plots_are_written_into_the_job_folder(tmp_path):
@@ -75,7 +79,14 @@ def test_the_report_and_its_plots_are_written_into_the_job_folder(tmp_path):
         truth = config.to_raw(config.to_class(labels)).astype(np.uint32)
         write_labels(prediction_path(pred, "08", f"{i:06d}"), truth)
     path, metrics = write_report(
-        data, pred, ["08"], tmp_path / "job", KITTI, "ef" * 32, "fp16", "onnxruntime"
+        data,
+        pred,
+        ["08"],
+        tmp_path / "job",
+        profile=KITTI,
+        checkpoint_sha256="ef" * 32,
+        precision="fp16",
+        backend="onnxruntime",
     )
     assert path == tmp_path / "job" / "report.json"
     report = json.loads(path.read_text())

@@ -18,6 +18,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from rangeret.dataset.layout import prediction_path
+from rangeret.dataset.profiles import load_profile
 from rangeret.inference.results import ScanPrediction
 from rangeret.io.scans import write_labels
 from service.app import create_app
@@ -159,9 +160,14 @@ def test_create_app_refuses_a_newer_database_before_serving(tmp_path):
     JobStore(settings.database_path).close()
     _set_user_version(settings.database_path, SCHEMA_VERSION + 5)
     with pytest.raises(JobDatabaseVersionError, match=str(SCHEMA_VERSION + 5)):
-        create_app(settings, FakeLabeller(), FakeExecutor())
+        create_app(settings, FakeLabeller(), FakeExecutor(), profile=load_profile("semantickitti"))
     assert not (tmp_path / "absent").exists()
-    create_app(Settings(state_dir=tmp_path / "absent"), FakeLabeller(), FakeExecutor())
+    create_app(
+        Settings(state_dir=tmp_path / "absent"),
+        FakeLabeller(),
+        FakeExecutor(),
+        profile=load_profile("semantickitti"),
+    )
     assert not (tmp_path / "absent").exists()  # checking creates nothing
 
 
@@ -245,7 +251,9 @@ def test_routes_never_touch_the_store_on_the_event_loop(tmp_path, monkeypatch):
     roots = tmp_path / "roots"
     make_tree(roots / "data", {"08": [30, 40], "11": [20]}, labelled=True)
     settings = Settings(state_dir=tmp_path / "state", data_roots=[roots], api_token=TOKEN)
-    app = create_app(settings, FakeLabeller(), FakeExecutor())
+    app = create_app(
+        settings, FakeLabeller(), FakeExecutor(), profile=load_profile("semantickitti")
+    )
     archive = io.BytesIO()
     with zipfile.ZipFile(archive, "w") as zf:
         for path in sorted((roots / "data").rglob("*.bin")):

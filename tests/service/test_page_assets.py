@@ -72,7 +72,9 @@ def _unbuilt_copy(tmp_path: Path) -> Path:
 
 def _app(tmp_path: Path, token: str | None = TOKEN, web: Path | None = None):
     settings = Settings(state_dir=tmp_path / "state", api_token=token)
-    app = create_app(settings, LocalLabeller(FakePool()), FakeExecutor())
+    app = create_app(
+        settings, LocalLabeller(FakePool()), FakeExecutor(), profile=load_profile("semantickitti")
+    )
     if web is not None:
         app.state.gateway.page = PageFiles(web)
     return app
@@ -181,7 +183,7 @@ def test_the_profile_endpoint_follows_the_token_rule_and_describes_the_profile(t
     pandaset = load_profile("pandaset")
     settings = Settings(state_dir=tmp_path / "panda", api_token=None)
     with TestClient(
-        create_app(settings, LocalLabeller(FakePool()), FakeExecutor(), pandaset),
+        create_app(settings, LocalLabeller(FakePool()), FakeExecutor(), profile=pandaset),
         base_url="http://localhost",  # a gateway without a token answers to loopback names only
     ) as client:
         body = client.get("/v1/profile").json()

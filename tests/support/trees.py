@@ -6,6 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
+from rangeret.dataset.layout import KITTI_LAYOUT
+from rangeret.io.scans import KITTI_RECORD
+
 
 def make_tree(
     root: Path,
@@ -26,13 +29,17 @@ def make_tree(
     raw_ids = np.array(sorted(semantickitti().raw_to_class), dtype=np.uint32)
     written: dict[str, list[np.ndarray]] = {}
     for seq, counts in scans.items():
-        velodyne_dir(root, seq).mkdir(parents=True, exist_ok=True)
+        velodyne_dir(root, seq, layout=KITTI_LAYOUT).mkdir(parents=True, exist_ok=True)
         written[seq] = []
         for i, n in enumerate(counts):
             points = rng.normal(0, 10, size=(n, 4)).astype(np.float32)
-            write_scan(velodyne_dir(root, seq) / f"{i:06d}.bin", points)
+            write_scan(
+                velodyne_dir(root, seq, layout=KITTI_LAYOUT) / f"{i:06d}.bin",
+                points,
+                record=KITTI_RECORD,
+            )
             labels = rng.choice(raw_ids, size=n) | (rng.integers(0, 3, n).astype(np.uint32) << 16)
             written[seq].append(labels)
             if labelled:
-                write_labels(labels_dir(root, seq) / f"{i:06d}.label", labels)
+                write_labels(labels_dir(root, seq, layout=KITTI_LAYOUT) / f"{i:06d}.label", labels)
     return written

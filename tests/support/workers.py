@@ -17,8 +17,8 @@ from pathlib import Path
 
 import torch
 
-from rangeret.dataset.layout import labels_dir, velodyne_dir
-from rangeret.io.scans import read_labels, read_scan, write_labels, write_scan
+from rangeret.dataset.layout import KITTI_LAYOUT, labels_dir, velodyne_dir
+from rangeret.io.scans import KITTI_RECORD, read_labels, read_scan, write_labels, write_scan
 from tests.support.paths import data_path, load_vectors
 
 
@@ -37,9 +37,13 @@ def build_tree(root: Path, labelled: int = 3, unlabelled: int = 2, seq_test: str
     for i in range(labelled + unlabelled):
         seq = "08" if i < labelled else seq_test
         sel = slice(i % 5, None, 9 + i)
-        write_scan(velodyne_dir(root, seq) / f"{i:06d}.bin", points[sel])
+        write_scan(
+            velodyne_dir(root, seq, layout=KITTI_LAYOUT) / f"{i:06d}.bin",
+            points[sel],
+            record=KITTI_RECORD,
+        )
         if seq == "08":
-            write_labels(labels_dir(root, seq) / f"{i:06d}.label", labels[sel])
+            write_labels(labels_dir(root, seq, layout=KITTI_LAYOUT) / f"{i:06d}.label", labels[sel])
     return root
 
 

@@ -8,6 +8,7 @@ import zipfile
 
 import pytest
 
+from rangeret.dataset.labels import semantickitti
 from rangeret.submission.archives import validate_submission
 from rangeret.submission.leaderboard import LeaderboardEntry
 
@@ -32,7 +33,9 @@ def test_demo_end_to_end(tmp_path, capsys):
         png = out / "plots" / name
         assert png.read_bytes()[:4] == b"\x89PNG" and png.stat().st_size > 5_000
         assert name in printed
-    check = validate_submission(out / "submission.zip", out / "dataset", allow_partial=True)
+    check = validate_submission(
+        out / "submission.zip", out / "dataset", allow_partial=True, labels=semantickitti()
+    )
     assert check.ok and check.scans == 11
     with zipfile.ZipFile(out / "submission.zip") as zf:
         description = zf.read("description.txt").decode()

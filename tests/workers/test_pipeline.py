@@ -14,7 +14,7 @@ import time
 import pytest
 
 from rangeret.cli.main import main as rangeret_main
-from rangeret.dataset.layout import discover
+from rangeret.dataset.layout import KITTI_LAYOUT, discover
 from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
 from tests.support.workers import build_tree, small_weights, tree_bytes
 from workers.pipeline import run_pipeline
@@ -46,7 +46,7 @@ def _spec(weights) -> PredictorSpec:
 def _job(weights, data, out, **options):
     spec = _spec(weights)
     _, profile = checkpoint_profile(spec)
-    entries = discover(data, ["08", "11"]).scans
+    entries = discover(data, ["08", "11"], layout=KITTI_LAYOUT).scans
     return run_pipeline(
         spec, profile, entries, out, PipelineOptions(read_cpus=0.25, write_cpus=0.1, **options)
     )
@@ -116,7 +116,7 @@ def test_more_gpu_actors_than_gpus_is_a_named_error_not_a_hang(cluster, tmp_path
         run_pipeline(
             spec,
             profile,
-            discover(data, ["08", "11"]).scans,
+            discover(data, ["08", "11"], layout=KITTI_LAYOUT).scans,
             tmp_path / "out",
             options,
         )

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from rangeret.cli.main import main as rangeret_main
+from rangeret.dataset.layout import KITTI_LAYOUT
 from rangeret.inference.predictor import PredictorSpec
 from rangeret.io.scans import read_scan
 from tests.support.workers import build_tree, kill_actor_when, small_weights, tree_bytes
@@ -318,8 +319,8 @@ def test_model_actors_warm_up_before_their_first_batch(setup):
     data, weights = setup
     spec = PredictorSpec(checkpoint=str(weights), height=32, width=256, device="cpu")
     _, profile = checkpoint_profile(spec)
-    record = BatchRecord(0, discover(data, ["08"]).scans[:2])
-    row = read_and_project(record, profile.projection, profile.points).encode()[ROW_COLUMN]
+    record = BatchRecord(0, discover(data, ["08"], layout=KITTI_LAYOUT).scans[:2])
+    row = read_and_project(record, profile.projection, points=profile.points).encode()[ROW_COLUMN]
     threads = torch.get_num_threads()
     try:
         model_worker, scan_worker = ModelWorker(spec, 1.0), ScanWorker(spec)

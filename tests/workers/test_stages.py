@@ -11,9 +11,9 @@ import pytest
 
 from rangeret.dataset.distance import scan_bands
 from rangeret.dataset.labels import semantickitti
-from rangeret.dataset.layout import discover, prediction_path, velodyne_dir
+from rangeret.dataset.layout import KITTI_LAYOUT, discover, prediction_path, velodyne_dir
 from rangeret.dataset.projection import ProjectionConfig
-from rangeret.io.scans import read_labels, read_scan
+from rangeret.io.scans import KITTI_RECORD, read_labels, read_scan
 from tests.support.trees import make_tree
 from workers.stages import BatchRecord, read_and_project, write_results
 
@@ -22,12 +22,14 @@ from workers.stages import BatchRecord, read_and_project, write_results
 def entries(tmp_path):
     data = tmp_path / "data"
     make_tree(data, {"08": [300, 400, 500]})
-    (velodyne_dir(data, "08") / "000001.bin").write_bytes(b"\x00" * 33)
-    return discover(data, ["08"], with_labels=True).scans
+    (velodyne_dir(data, "08", layout=KITTI_LAYOUT) / "000001.bin").write_bytes(b"\x00" * 33)
+    return discover(data, ["08"], with_labels=True, layout=KITTI_LAYOUT).scans
 
 
 def test_a_batch_survives_encoding_between_stages(entries):
-    record = read_and_project(BatchRecord(4, entries), ProjectionConfig(height=16, width=128))
+    record = read_and_project(
+        BatchRecord(4, entries), ProjectionConfig(height=16, width=128), points=KITTI_RECORD
+    )
     again = BatchRecord.decode(pickle.loads(pickle.dumps(record.encode())))
     assert again.index == 4 and again.entries == entries
     assert [s.error is None for s in again.loaded] == [True, False, True]
@@ -83,8 +85,12 @@ def test_readers_given_roots_refuse_a_scan_that_leads_out_of_them(entries, tmp_p
     entries[2].scan_path.unlink()
     entries[2].scan_path.symlink_to(inside_copy)
     roots = (str(tmp_path / "data"),)
-    record = read_and_project(BatchRecord(0, entries), ProjectionConfig(16, 128), within=roots)
+    record = read_and_project(
+        BatchRecord(0, entries), ProjectionConfig(16, 128), points=KITTI_RECORD, within=roots
+    )
     assert "leads outside the folders this run may read" in record.loaded[0].error
     assert record.loaded[2].error is None and record.loaded[2].projection.num_points == 500
-    unchecked = read_and_project(BatchRecord(0, entries), ProjectionConfig(16, 128))
+    unchecked = read_and_project(
+        BatchRecord(0, entries), ProjectionConfig(16, 128), points=KITTI_RECORD
+    )
     assert unchecked.loaded[0].error is None

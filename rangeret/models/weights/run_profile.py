@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from rangeret.dataset.labels import LabelConfig
-from rangeret.dataset.profiles import DatasetProfile, load_profile, profile_of_record
+from rangeret.dataset.labels import parse_label_config
+from rangeret.dataset.profiles import DatasetProfile, legacy_profile, profile_of_record
 from rangeret.dataset.projection import ProjectionConfig
 from rangeret.models.weights.checkpoint import CheckpointError
 from rangeret.models.weights.checkpoint_info import CheckpointInfo
@@ -14,7 +14,8 @@ from rangeret.models.weights.checkpoint_info import CheckpointInfo
 
 def profile_for_checkpoint(
     info: CheckpointInfo,
-    requested: DatasetProfile | None = None,
+    *,
+    requested: DatasetProfile | None,
     fov_up: float | None = None,
     fov_down: float | None = None,
 ) -> DatasetProfile:
@@ -22,11 +23,11 @@ def profile_for_checkpoint(
 
     The project's own files give their recorded profile (files from before profiles: the
     `semantickitti` profile with the stored projection and labels); a `requested` profile of
-    another name is a CheckpointError naming both. Published files take `requested` or the
-    default. A class count that differs from the profile's is a CheckpointError naming both.
+    another name is a CheckpointError naming both; None asks for the recorded one. Published files
+    record none: they take `requested`, else SemanticKITTI's (`legacy_profile`). A class count that differs from the profile's is a CheckpointError naming both.
     """
     if info.published:
-        profile = requested or load_profile(None)
+        profile = requested or legacy_profile()
         projection = profile.projection
     else:
         profile = _recorded_profile(info)
@@ -55,9 +56,10 @@ def _recorded_profile(info: CheckpointInfo) -> DatasetProfile:
     with the label configuration they stored."""
     if info.profile:
         return profile_of_record(info.profile, info.path)
-    profile = load_profile(None)
+    profile = legacy_profile()
     if info.label_config:
-        profile = replace(profile, labels=LabelConfig.from_dict(info.label_config))
+        labels = parse_label_config(info.label_config, f"checkpoint {info.path}")
+        profile = replace(profile, labels=labels)
     return profile
 
 
@@ -73,5 +75,7 @@ def _stored_projection(record: dict | None) -> ProjectionConfig | None:
 
 
 def default_resolution(profile: DatasetProfile | None) -> tuple[int, int]:
-    base = (profile or load_profile(None)).projection
+    """The resolution a published file runs at: the requested profile's, else SemanticKITTI's
+    (published files record none)."""
+    base = (profile or legacy_profile()).projection
     return base.height, base.width

@@ -17,7 +17,7 @@ import pytest
 from rangeret.cli.main import main
 from rangeret.commands import CommandError
 from rangeret.dataset.labels import semantickitti
-from rangeret.dataset.layout import discover, prediction_path, velodyne_dir
+from rangeret.dataset.layout import KITTI_LAYOUT, discover, prediction_path, velodyne_dir
 from rangeret.evaluation.evaluate import EvaluationError
 from rangeret.exceptions import ConfigError, DatasetError, InputError, ModelError, ResourceError
 from rangeret.io.scans import ScanFormatError, write_labels
@@ -29,7 +29,7 @@ from tests.support.trees import make_tree
 
 def _copy_truth_as_predictions(data, preds, sequences):
     cfg = semantickitti()
-    for e in discover(data, sequences, with_labels=True).scans:
+    for e in discover(data, sequences, with_labels=True, layout=KITTI_LAYOUT).scans:
         gt = np.fromfile(e.label_path, dtype=np.uint32)
         write_labels(prediction_path(preds, e.sequence, e.name), cfg.to_raw(cfg.to_class(gt)))
 
@@ -91,7 +91,7 @@ def test_bad_scan_is_one_line_error(tmp_path, capsys):
     data, preds = tmp_path / "data", tmp_path / "pred"
     make_tree(data, {"08": [10]})
     _copy_truth_as_predictions(data, preds, ["08"])
-    (velodyne_dir(data, "08") / "000000.bin").write_bytes(b"\x00" * 20)
+    (velodyne_dir(data, "08", layout=KITTI_LAYOUT) / "000000.bin").write_bytes(b"\x00" * 20)
     assert (
         main(
             [

@@ -242,7 +242,9 @@ def test_a_wrong_list_item_is_named(tmp_path: Path) -> None:
     path = tmp_path / "bad.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     with pytest.raises(
-        ProfileError, match=r"labels\.raw_labels\[3\]\.class: must be a class 0\.\.14"
+        ProfileError,
+        match=r"labels\.raw_labels\[3\]\.class: raw id \d+ maps to unknown class 15 "
+        r"\(must be a class 0\.\.14\)",
     ):
         load_profile(path)
     del data["labels"]["raw_labels"][3]["bgr"]

@@ -10,11 +10,17 @@ import pytest
 from rangeret.cli.main import main as rangeret_main
 from rangeret.dataset.distance import NUM_BANDS, distance_bands
 from rangeret.dataset.labels import semantickitti
-from rangeret.dataset.layout import discover, labels_dir, prediction_path, velodyne_dir
+from rangeret.dataset.layout import (
+    KITTI_LAYOUT,
+    discover,
+    labels_dir,
+    prediction_path,
+    velodyne_dir,
+)
 from rangeret.dataset.profiles import load_profile
 from rangeret.evaluation.evaluate import evaluate_predictions
 from rangeret.evaluation.metrics import EvaluationReport
-from rangeret.io.scans import read_scan, write_labels, write_scan
+from rangeret.io.scans import KITTI_RECORD, read_scan, write_labels, write_scan
 from tests.support.reference import add_at_confusion, read_mapped, remap_table, scores
 from tests.support.trees import make_tree
 from workers.stages import BatchRecord, count_labels, read_and_project, write_results
@@ -24,7 +30,7 @@ PNG = b"\x89PNG\r\n\x1a\n"
 
 def _predict_noisily(dataset, preds, sequences, seed=0):
     rng = np.random.default_rng(seed)
-    for entry in discover(dataset, sequences, with_labels=True).scans:
+    for entry in discover(dataset, sequences, with_labels=True, layout=KITTI_LAYOUT).scans:
         gt = np.fromfile(entry.label_path, dtype=np.uint32)
         pred = gt.copy()
         flip = rng.random(gt.size) < 0.4
@@ -67,7 +73,7 @@ def test_parts_add_up_to_the_official_whole(tmp_path, capsys):
     whole = np.zeros((20, 20), np.int64)
     by_seq = {s: np.zeros((20, 20), np.int64) for s in ("03", "08")}
     by_band = np.zeros((NUM_BANDS, 20, 20), np.int64)
-    for entry in discover(data, ["03", "08"], with_labels=True).scans:
+    for entry in discover(data, ["03", "08"], with_labels=True, layout=KITTI_LAYOUT).scans:
         gt = read_mapped(entry.label_path, table)
         pred = read_mapped(prediction_path(preds, entry.sequence, entry.name), table)
         whole += add_at_confusion(pred, gt, 20)
@@ -107,7 +113,7 @@ def test_parts_add_up_to_the_official_whole(tmp_path, capsys):
         (40, 50),
         (50, None),
     ]
-    assert EvaluationReport.from_dict(report).to_dict() == report
+    assert EvaluationReport.from_dict(report, config=semantickitti()).to_dict() == report
     for name in ("iou-by-distance.png", "miou-by-sequence.png"):
         png = (tmp_path / "plots" / name).read_bytes()
         assert png[:8] == PNG and len(png) > 10_000
@@ -120,11 +126,13 @@ def test_the_pipelines_counts_equal_evaluate(tmp_path):
     make_tree(data, {"08": [500, 800], "03": [400]}, seed=7)
     _predict_noisily(data, preds, ["08", "03"], seed=2)
     profile = load_profile(None)
-    expected = evaluate_predictions(data, preds, ["03", "08"]).to_dict()
+    expected = evaluate_predictions(
+        data, preds, ["03", "08"], profile=load_profile("semantickitti")
+    ).to_dict()
     keys = ("confusion", "per_sequence", "per_distance")
 
-    entries = discover(data, ["03", "08"], with_labels=True).scans
-    record = read_and_project(BatchRecord(0, entries), profile.projection, profile.points)
+    entries = discover(data, ["03", "08"], with_labels=True, layout=KITTI_LAYOUT).scans
+    record = read_and_project(BatchRecord(0, entries), profile.projection, points=profile.points)
     record.results = [
         (np.fromfile(prediction_path(preds, e.sequence, e.name), np.uint32), None) for e in entries
     ]
@@ -159,11 +167,20 @@ def test_points_land_in_their_distance_band(tmp_path):
     ]
     data, preds = tmp_path / "data", tmp_path / "pred"
     xyz = np.array([p for p, _, _ in points], np.float32)
-    write_scan(velodyne_dir(data, "08") / "000000.bin", np.column_stack([xyz, np.zeros(12)]))
-    write_labels(labels_dir(data, "08") / "000000.label", np.array([g for _, g, _ in points]))
+    write_scan(
+        velodyne_dir(data, "08", layout=KITTI_LAYOUT) / "000000.bin",
+        np.column_stack([xyz, np.zeros(12)]),
+        record=KITTI_RECORD,
+    )
+    write_labels(
+        labels_dir(data, "08", layout=KITTI_LAYOUT) / "000000.label",
+        np.array([g for _, g, _ in points]),
+    )
     write_labels(prediction_path(preds, "08", "000000"), np.array([p for _, _, p in points]))
 
-    report = evaluate_predictions(data, preds, ["08"]).to_dict()
+    report = evaluate_predictions(
+        data, preds, ["08"], profile=load_profile("semantickitti")
+    ).to_dict()
     bands = report["per_distance"]
     assert [b["points"] for b in bands] == [1, 3, 1, 1, 1, 2]
     assert report["per_sequence"]["08"]["points"] == 9 and report["num_points"] == 12

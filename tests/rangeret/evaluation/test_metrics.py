@@ -74,7 +74,7 @@ def real_bands(real_scan_path):
 
 def test_perfect_predictions_on_the_real_scan(real_gt, real_bands):
     cfg = semantickitti()
-    ev = RawLabelEvaluator()
+    ev = RawLabelEvaluator(config=semantickitti())
     perfect = cfg.to_raw(cfg.to_class(real_gt))
     ev.add(perfect, real_gt, "08", real_bands)
     report = ev.report()
@@ -93,7 +93,7 @@ def test_shuffled_predictions_equal_the_official_formulation(real_gt, real_bands
     idx = rng.choice(pred.size, pred.size // 3, replace=False)
     pred[idx] = rng.permutation(pred[idx])
     pred[:500] = rng.choice(np.array(cfg.class_raw_ids, np.uint32), 500)
-    ev = RawLabelEvaluator()
+    ev = RawLabelEvaluator(config=semantickitti())
     ev.add(pred, real_gt, "08", real_bands)
     gt_c, pred_c = cfg.to_class(real_gt).astype(np.int64), cfg.to_class(pred).astype(np.int64)
     ref_conf = add_at_confusion(pred_c, gt_c, 20)
@@ -107,7 +107,7 @@ def test_shuffled_predictions_equal_the_official_formulation(real_gt, real_bands
 
 
 def test_unknown_ids_count_as_unlabeled_and_are_reported():
-    ev = RawLabelEvaluator()
+    ev = RawLabelEvaluator(config=semantickitti())
     gt = np.array([10, 10, 40, 40 | (3 << 16), 300], np.uint32)
     pred = np.array([10, 77, 40, 40, 10 | (9 << 16)], np.uint32)
     ev.add(pred, gt, "08", np.zeros(gt.size, np.uint8))
@@ -120,7 +120,7 @@ def test_unknown_ids_count_as_unlabeled_and_are_reported():
 
 def test_report_json_table_and_plots(tmp_path, real_gt, real_bands):
     cfg = semantickitti()
-    ev = RawLabelEvaluator()
+    ev = RawLabelEvaluator(config=semantickitti())
     ev.add(cfg.to_raw(cfg.to_class(real_gt)), real_gt, "08", real_bands)
     report = ev.report(sequences=["08"], checkpoint_sha256="ab" * 32)
     report.write_json(tmp_path / "r" / "report.json")
@@ -129,10 +129,10 @@ def test_report_json_table_and_plots(tmp_path, real_gt, real_bands):
     assert list(data["iou"]) == list(cfg.class_names[1:])
     assert np.array(data["confusion"]).shape == (20, 20)
     assert sum(map(sum, data["confusion"])) == real_gt.size  # raw counts, unlabeled column kept
-    again = EvaluationReport.from_dict(data)
+    again = EvaluationReport.from_dict(data, config=semantickitti())
     assert again.miou == report.miou and again.accuracy == report.accuracy
     table = report.table()
     assert "traffic-sign" in table and "mIoU" in table and f"{100 * report.miou:6.2f}" in table
-    for path in write_plots(report, tmp_path / "plots"):
+    for path in write_plots(report, tmp_path / "plots", config=semantickitti()):
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert path.stat().st_size > 10_000

@@ -127,7 +127,7 @@ def test_a_pandaset_scan_is_read_with_its_five_float_record(tmp_path, capsys):
     profile = load_profile("pandaset")
     rng = np.random.default_rng(0)
     points = rng.normal(0, 10, (500, 5)).astype(np.float32)
-    write_scan(tmp_path / "p.bin", points, profile.points)
+    write_scan(tmp_path / "p.bin", points, record=profile.points)
     raw = np.array(profile.labels.class_raw_ids, dtype=np.uint32)[rng.integers(0, 15, 500)]
     write_labels(tmp_path / "p.label", raw)
     args = ["view", "-q", str(tmp_path / "p.bin"), "--labels", str(tmp_path / "p.label")]

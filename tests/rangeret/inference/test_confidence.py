@@ -8,10 +8,11 @@ import numpy as np
 import torch
 
 from rangeret.cli.main import main as rangeret_main
-from rangeret.dataset.layout import confidence_path, prediction_path, velodyne_dir
+from rangeret.dataset.labels import semantickitti
+from rangeret.dataset.layout import KITTI_LAYOUT, confidence_path, prediction_path, velodyne_dir
 from rangeret.inference.point_labels import point_confidences
 from rangeret.inference.predictor import PredictorSpec
-from rangeret.io.scans import read_confidence, read_labels, read_scan, write_scan
+from rangeret.io.scans import KITTI_RECORD, read_confidence, read_labels, read_scan, write_scan
 from tests.support.paths import data_path
 from tests.support.workers import small_weights
 
@@ -51,7 +52,11 @@ def test_predict_saves_one_confidence_per_point_beside_each_prediction(tmp_path)
     data = tmp_path / "data"
     scan = read_scan(data_path("semantickitti-scan", "000000.bin"))
     for i, step in enumerate((3, 5)):
-        write_scan(velodyne_dir(data, "08") / f"{i:06d}.bin", scan[i::step])
+        write_scan(
+            velodyne_dir(data, "08", layout=KITTI_LAYOUT) / f"{i:06d}.bin",
+            scan[i::step],
+            record=KITTI_RECORD,
+        )
     net = ["--checkpoint", str(weights), "--height", "32", "--width", "256", "--device", "cpu"]
     common = ["predict", "--dataset", str(data), "--sequences", "08", *net, "-q"]
     assert rangeret_main([*common, "--out", str(tmp_path / "plain")]) == 0
@@ -117,7 +122,7 @@ def test_evaluate_reports_calibration_where_every_scan_has_confidences(tmp_path)
     # The bins' accuracy, weighted by their points, is the overall accuracy.
     correct = sum(b["accuracy"] * b["points"] for b in calibration["bins"] if b["points"])
     assert np.isclose(correct / evaluated, report["accuracy"])
-    rebuilt = EvaluationReport.from_dict(report).calibration
+    rebuilt = EvaluationReport.from_dict(report, config=semantickitti()).calibration
     assert isinstance(rebuilt, Calibration) and np.isclose(rebuilt.ece(), calibration["ece"])
 
     # Without confidences for every scan there is no calibration, and a note says why.

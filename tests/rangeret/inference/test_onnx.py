@@ -20,7 +20,7 @@ import torch
 
 from rangeret.cli.main import main as rangeret_main
 from rangeret.dataset.labels import semantickitti
-from rangeret.dataset.layout import prediction_path, velodyne_dir
+from rangeret.dataset.layout import KITTI_LAYOUT, prediction_path, velodyne_dir
 from rangeret.dataset.projection import CHANNEL_MEANS, CHANNEL_STDS
 from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
 from rangeret.inference.runtime.onnx_backend import CACHE_VARIABLE
@@ -32,7 +32,7 @@ from rangeret.inference.runtime.onnx_export import (
 )
 from rangeret.inference.runtime.onnx_session import make_session, providers_for
 from rangeret.inference.runtime.precision import resolve_precision
-from rangeret.io.scans import read_labels, read_scan, write_scan
+from rangeret.io.scans import KITTI_RECORD, read_labels, read_scan, write_scan
 from rangeret.models import build_model
 from rangeret.options import spec_from_args
 from tests.support.gateway import NET, OCTET, gateway_env, start_gateway
@@ -57,8 +57,9 @@ def setup(tmp_path_factory) -> Iterator[dict]:
     base = tmp_path_factory.mktemp("onnx")
     real = base / "real"
     write_scan(
-        velodyne_dir(real, "08") / "000000.bin",
+        velodyne_dir(real, "08", layout=KITTI_LAYOUT) / "000000.bin",
         read_scan(data_path("semantickitti-scan", "000000.bin")),
+        record=KITTI_RECORD,
     )
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv(CACHE_VARIABLE, str(base / "cache"))

@@ -10,7 +10,7 @@ import torch
 
 from rangeret.cli.main import main
 from rangeret.dataset.labels import semantickitti
-from rangeret.dataset.layout import list_scans, prediction_path, velodyne_dir
+from rangeret.dataset.layout import KITTI_LAYOUT, list_scans, prediction_path, velodyne_dir
 from rangeret.dataset.projection import ProjectionConfig, project
 from rangeret.inference.loading import batches, load_batch, project_scans
 from rangeret.inference.predictor import Predictor
@@ -18,7 +18,7 @@ from rangeret.inference.results import RunSummary
 from rangeret.inference.settings import KnnSettings, TtaSettings
 from rangeret.inference.timing import StageTimes
 from rangeret.inference.tta import transformed_view
-from rangeret.io.scans import read_labels, read_scan, write_scan
+from rangeret.io.scans import KITTI_RECORD, read_labels, read_scan, write_scan
 from rangeret.models import build_model
 from tests.support.paths import load_vectors
 
@@ -44,7 +44,11 @@ def tree(tmp_path, scan):
     """Four subsampled variants of the real scan in two sequences."""
     root = tmp_path / "data"
     for i, (seq, step) in enumerate([("08", 7), ("08", 11), ("08", 13), ("42", 17)]):
-        write_scan(velodyne_dir(root, seq) / f"{i:06d}.bin", scan[i::step])
+        write_scan(
+            velodyne_dir(root, seq, layout=KITTI_LAYOUT) / f"{i:06d}.bin",
+            scan[i::step],
+            record=KITTI_RECORD,
+        )
     return root
 
 
@@ -151,7 +155,9 @@ def test_predict_command_writes_resumes_and_names_bad_scans(tree, tmp_path, smal
     assert len(files) == 4
     for f in files:
         seq = f.parent.parent.name
-        n = (velodyne_dir(tree, seq) / f.name.replace(".label", ".bin")).stat().st_size // 16
+        n = (
+            velodyne_dir(tree, seq, layout=KITTI_LAYOUT) / f.name.replace(".label", ".bin")
+        ).stat().st_size // 16
         labels = read_labels(f, num_points=n)
         assert np.isin(labels, VALID_RAW).all()
     assert "4 written, 0 already done, 0 failed" in capsys.readouterr().out
@@ -166,7 +172,7 @@ def test_predict_command_writes_resumes_and_names_bad_scans(tree, tmp_path, smal
     assert target.read_bytes() == saved
     assert {f: f.stat().st_mtime_ns for f in before} == before
 
-    (velodyne_dir(tree, "42") / "000009.bin").write_bytes(b"\x01" * 30)
+    (velodyne_dir(tree, "42", layout=KITTI_LAYOUT) / "000009.bin").write_bytes(b"\x01" * 30)
     for f in out.rglob("*.label"):
         f.unlink()
     code = main(
@@ -219,7 +225,9 @@ def test_each_scan_gets_a_prediction_or_its_named_failure_in_order(tree, small_w
     predictor = Predictor.from_checkpoint(small_weights, height=32, width=256, device="cpu")
     (velodyne_dir(tree, "08") / "000001.bin").write_bytes(b"\x01" * 30)
     entries = list_scans(tree, ["08"])
-    loaded = load_batch(entries, predictor.projection_config, StageTimes())
+    loaded = load_batch(
+        entries, predictor.projection_config, StageTimes(), record=predictor.profile.points
+    )
     found = predictor.label_loaded(loaded)
     assert [isinstance(f, str) for f in found] == [False, True, False]
     assert "000001.bin" in found[1] and "multiple of 16" in found[1]

@@ -7,7 +7,8 @@ import numpy as np
 
 from rangeret.dataset.distance import scan_bands
 from rangeret.dataset.labels import semantickitti
-from rangeret.dataset.layout import discover
+from rangeret.dataset.layout import KITTI_LAYOUT, discover
+from rangeret.dataset.profiles import load_profile
 from rangeret.evaluation.metrics import RawLabelEvaluator
 from rangeret.inference.predictor import Predictor
 from rangeret.io.scans import read_labels, read_scan
@@ -23,12 +24,19 @@ def test_demo_weights_load_and_beat_the_majority_class(tmp_path):
     assert is_demo_checkpoint(info.sha256) and predictor.describe()["demo_weights"]
 
     simulate_dataset(
-        tmp_path, {"08": 2}, sensor=SensorConfig(beams=64, azimuth_steps=2048), seed=99
+        tmp_path,
+        {"08": 2},
+        sensor=SensorConfig(beams=64, azimuth_steps=2048),
+        seed=99,
+        profile=load_profile("semantickitti"),
     )
     cfg = semantickitti()
-    ours, majority = RawLabelEvaluator(), RawLabelEvaluator()
+    ours, majority = (
+        RawLabelEvaluator(config=semantickitti()),
+        RawLabelEvaluator(config=semantickitti()),
+    )
     gts = []
-    for entry in discover(tmp_path, ["08"], with_labels=True).scans:
+    for entry in discover(tmp_path, ["08"], with_labels=True, layout=KITTI_LAYOUT).scans:
         gt = read_labels(entry.label_path)
         points = read_scan(entry.scan_path)
         gts.append((gt, scan_bands(points)))

@@ -24,9 +24,9 @@ import numpy as np
 import pytest
 import yaml
 
-from rangeret.dataset.layout import prediction_path, velodyne_dir
+from rangeret.dataset.layout import KITTI_LAYOUT, prediction_path, velodyne_dir
 from rangeret.dataset.profiles import load_profile
-from rangeret.io.scans import read_labels, read_scan, write_scan
+from rangeret.io.scans import KITTI_RECORD, read_labels, read_scan, write_scan
 from rangeret.models.weights.registry import load_registry, profile_for_published
 from tests.support.paths import REPO, data_path
 from tests.support.workers import small_weights
@@ -101,8 +101,9 @@ def weights(tmp_path_factory) -> dict:
     path = small_weights(base)
     data = base / "data"
     write_scan(
-        velodyne_dir(data, "00") / "000000.bin",
+        velodyne_dir(data, "00", layout=KITTI_LAYOUT) / "000000.bin",
         read_scan(data_path("semantickitti-scan", "000000.bin"))[::4],
+        record=KITTI_RECORD,
     )
     return {
         "path": path,

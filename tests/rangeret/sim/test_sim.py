@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from rangeret.dataset.labels import semantickitti
-from rangeret.dataset.layout import discover, labels_dir, velodyne_dir
+from rangeret.dataset.layout import KITTI_LAYOUT, discover, labels_dir, velodyne_dir
 from rangeret.dataset.profiles import BUILTIN_PROFILES, DatasetProfile, load_profile
 from rangeret.dataset.projection import project, project_with
 from rangeret.io.scans import read_labels, read_scan
@@ -84,41 +84,62 @@ def scan(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
 
 def test_dataset_layout_and_files(tmp_path: Path) -> None:
     config = semantickitti()
-    written = simulate_dataset(tmp_path, {"00": 3, "11": 2}, labelled=["00"], sensor=SMALL, seed=1)
+    written = simulate_dataset(
+        tmp_path,
+        {"00": 3, "11": 2},
+        labelled=["00"],
+        sensor=SMALL,
+        seed=1,
+        profile=load_profile("semantickitti"),
+    )
     assert written == 5
     assert sorted(p.name for p in (tmp_path / "sequences").iterdir()) == ["00", "11"]
     for seq, n in (("00", 3), ("11", 2)):
         names = [f"{k:06d}" for k in range(n)]
-        assert sorted(p.name for p in velodyne_dir(tmp_path, seq).iterdir()) == [
-            f"{s}.bin" for s in names
-        ]
+        assert sorted(
+            p.name for p in velodyne_dir(tmp_path, seq, layout=KITTI_LAYOUT).iterdir()
+        ) == [f"{s}.bin" for s in names]
         seq_dir = tmp_path / "sequences" / seq
         for file in ("poses.txt", "times.txt"):
             assert len((seq_dir / file).read_text().splitlines()) == n
         calib = (seq_dir / "calib.txt").read_text().splitlines()
         assert [line.split(":")[0] for line in calib] == ["P0", "P1", "P2", "P3", "Tr"]
         for s in names:
-            points = read_scan(velodyne_dir(tmp_path, seq) / f"{s}.bin")
+            points = read_scan(velodyne_dir(tmp_path, seq, layout=KITTI_LAYOUT) / f"{s}.bin")
             assert points.shape[1] == 4 and len(points) > 1000
             if seq == "00":
-                labels = read_labels(labels_dir(tmp_path, seq) / f"{s}.label", len(points))
+                labels = read_labels(
+                    labels_dir(tmp_path, seq, layout=KITTI_LAYOUT) / f"{s}.label", len(points)
+                )
                 assert set(np.unique(labels & 0xFFFF).tolist()) <= set(config.raw_to_class)
-    assert not labels_dir(tmp_path, "11").exists()
-    assert len(list(labels_dir(tmp_path, "00").iterdir())) == 3
+    assert not labels_dir(tmp_path, "11", layout=KITTI_LAYOUT).exists()
+    assert len(list(labels_dir(tmp_path, "00", layout=KITTI_LAYOUT).iterdir())) == 3
 
 
 @pytest.mark.parametrize("labelled", [True, False])
 def test_dataset_all_or_no_labels(tmp_path: Path, labelled: bool) -> None:
-    simulate_dataset(tmp_path, {"08": 1, "9": 1}, labelled=labelled, sensor=SMALL)
+    simulate_dataset(
+        tmp_path,
+        {"08": 1, "9": 1},
+        labelled=labelled,
+        sensor=SMALL,
+        profile=load_profile("semantickitti"),
+    )
     for seq in ("08", "09"):
-        assert velodyne_dir(tmp_path, seq).is_dir()
-        assert labels_dir(tmp_path, seq).is_dir() == labelled
+        assert velodyne_dir(tmp_path, seq, layout=KITTI_LAYOUT).is_dir()
+        assert labels_dir(tmp_path, seq, layout=KITTI_LAYOUT).is_dir() == labelled
 
 
 def test_dataset_is_deterministic(tmp_path: Path) -> None:
     runs = {}
     for name, seed in (("a", 7), ("b", 7), ("c", 8)):
-        simulate_dataset(tmp_path / name, {"00": 2, "01": 2}, sensor=SMALL, seed=seed)
+        simulate_dataset(
+            tmp_path / name,
+            {"00": 2, "01": 2},
+            sensor=SMALL,
+            seed=seed,
+            profile=load_profile("semantickitti"),
+        )
         runs[name] = tree_bytes(tmp_path / name)
     assert runs["a"] == runs["b"]
     scan_name = "sequences/00/velodyne/000000.bin"
@@ -129,9 +150,15 @@ def test_dataset_is_deterministic(tmp_path: Path) -> None:
 
 def test_dataset_rejects_bad_arguments(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="not among"):
-        simulate_dataset(tmp_path, {"00": 1}, labelled=["01"], sensor=SMALL)
+        simulate_dataset(
+            tmp_path,
+            {"00": 1},
+            labelled=["01"],
+            sensor=SMALL,
+            profile=load_profile("semantickitti"),
+        )
     with pytest.raises(ValueError, match=">= 0"):
-        simulate_dataset(tmp_path, {"00": -1}, sensor=SMALL)
+        simulate_dataset(tmp_path, {"00": -1}, sensor=SMALL, profile=load_profile("semantickitti"))
     with pytest.raises(ValueError):
         SensorConfig(fov_up=-30.0, fov_down=-25.0)
     with pytest.raises(ValueError):
@@ -139,7 +166,12 @@ def test_dataset_rejects_bad_arguments(tmp_path: Path) -> None:
 
 
 def test_dataset_progress(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert simulate_dataset(tmp_path, {"00": 2}, sensor=SMALL, progress=True) == 2
+    assert (
+        simulate_dataset(
+            tmp_path, {"00": 2}, sensor=SMALL, progress=True, profile=load_profile("semantickitti")
+        )
+        == 2
+    )
     assert "2/2" in capsys.readouterr().err
 
 
@@ -343,7 +375,7 @@ def test_profile_dataset(tmp_path: Path, name: str) -> None:
     config = profile.labels
     classes: set[int] = set()
     for entry in found.scans:
-        assert entry.scan_path.parent == velodyne_dir(tmp_path, seq, profile.layout)
+        assert entry.scan_path.parent == velodyne_dir(tmp_path, seq, layout=profile.layout)
         assert entry.scan_path.stat().st_size % profile.points.point_bytes == 0
         points = read_scan(entry.scan_path, profile.points)
         assert points.shape[1] == profile.points.num_fields and len(points) > 1000
@@ -370,7 +402,14 @@ def test_builtin_profiles_landing_places(tmp_path: Path) -> None:
 
 
 def test_semantickitti_profile_writes_the_same_bytes(tmp_path: Path) -> None:
-    simulate_dataset(tmp_path / "a", {"00": 2}, labelled=True, sensor=SMALL, seed=5)
+    simulate_dataset(
+        tmp_path / "a",
+        {"00": 2},
+        labelled=True,
+        sensor=SMALL,
+        seed=5,
+        profile=load_profile("semantickitti"),
+    )
     simulate_dataset(
         tmp_path / "b", {"00": 2}, sensor=SMALL, seed=5, profile=load_profile("semantickitti")
     )
@@ -404,7 +443,9 @@ def test_custom_profile_maps_equal_class_names(tmp_path: Path) -> None:
     assert lut[[10, 80, 71, 70, 72, 11]].tolist() == [7, 13, 8, 0, 0, 0]
     sensor = SensorConfig.for_profile(profile, azimuth_steps=128)
     simulate_dataset(tmp_path / "data", {"02": 1}, sensor=sensor, profile=profile)
-    labels = read_labels(labels_dir(tmp_path / "data", "02", profile.layout) / "000000.label")
+    labels = read_labels(
+        labels_dir(tmp_path / "data", "02", layout=profile.layout) / "000000.label"
+    )
     assert set(np.unique(labels & 0xFFFF).tolist()) <= {0, 4, 7, 8, 10, 13, 15, 17}
 
 
@@ -414,7 +455,7 @@ def test_sensor_defaults_to_the_profiles(tmp_path: Path) -> None:
     )
     simulate_dataset(tmp_path / "data", {"1": 1}, profile=profile)
     points = read_scan(
-        velodyne_dir(tmp_path / "data", "001", profile.layout) / "000000.bin", profile.points
+        velodyne_dir(tmp_path / "data", "001", layout=profile.layout) / "000000.bin", profile.points
     )
     assert set(np.unique(points[:, 4]).tolist()) <= set(range(8))
     assert len(points) <= 8 * 128

@@ -13,8 +13,8 @@ import pytest
 
 from rangeret.cli.main import main
 from rangeret.dataset.labels import semantickitti
-from rangeret.dataset.layout import discover, prediction_path, velodyne_dir
-from rangeret.io.scans import write_labels, write_scan
+from rangeret.dataset.layout import KITTI_LAYOUT, discover, prediction_path, velodyne_dir
+from rangeret.io.scans import KITTI_RECORD, write_labels, write_scan
 from rangeret.io.zipfiles import deflate_file
 from rangeret.submission.archives import (
     TEST_SCAN_COUNTS,
@@ -49,7 +49,7 @@ def official_checks(archive: Path, dataset: Path) -> None:
 def _predict(dataset: Path, preds: Path, seed: int = 0) -> None:
     cfg = semantickitti()
     rng = np.random.default_rng(seed)
-    for entry in discover(dataset, TEST_SEQUENCES, missing_ok=True).scans:
+    for entry in discover(dataset, TEST_SEQUENCES, missing_ok=True, layout=KITTI_LAYOUT).scans:
         n = entry.scan_path.stat().st_size // 16
         write_labels(
             prediction_path(preds, entry.sequence, entry.name), cfg.to_raw(rng.integers(0, 20, n))
@@ -68,9 +68,11 @@ def test_partial_archive_passes_the_official_checks(small_test_set, tmp_path):
     data, preds = small_test_set
     # The official checker lists every test sequence folder, so give the absent ones empty folders.
     for seq in TEST_SEQUENCES:
-        velodyne_dir(data, seq).mkdir(parents=True, exist_ok=True)
+        velodyne_dir(data, seq, layout=KITTI_LAYOUT).mkdir(parents=True, exist_ok=True)
     out = tmp_path / "sub.zip"
-    check = write_submission(preds, data, out, allow_partial=True, description="test run")
+    check = write_submission(
+        preds, data, out, allow_partial=True, description="test run", labels=semantickitti()
+    )
     assert check.ok and check.scans == 6 and check.partial
     official_checks(out, data)
     with zipfile.ZipFile(out) as zf:
@@ -81,21 +83,34 @@ def test_partial_archive_passes_the_official_checks(small_test_set, tmp_path):
             == prediction_path(preds, "11", "000001").read_bytes()
         )
     assert names[0] == "sequences/" and len([n for n in names if n.endswith("/")]) == 23
-    assert validate_submission(out, data, allow_partial=True).ok
+    assert validate_submission(out, data, allow_partial=True, labels=semantickitti()).ok
 
 
 def test_archive_is_reproducible(small_test_set, tmp_path):
     data, preds = small_test_set
-    a = write_submission(preds, data, tmp_path / "a.zip", allow_partial=True).path
-    b = write_submission(preds, data, tmp_path / "b.zip", allow_partial=True).path
+    a = write_submission(
+        preds, data, tmp_path / "a.zip", allow_partial=True, labels=semantickitti()
+    ).path
+    b = write_submission(
+        preds, data, tmp_path / "b.zip", allow_partial=True, labels=semantickitti()
+    ).path
     assert a.read_bytes() == b.read_bytes()
 
 
 @pytest.mark.parametrize("workers", [2, 8])
 def test_archive_is_the_same_for_any_number_of_workers(small_test_set, tmp_path, workers):
     data, preds = small_test_set
-    one = write_submission(preds, data, tmp_path / "one.zip", allow_partial=True, workers=1)
-    many = write_submission(preds, data, tmp_path / "many.zip", allow_partial=True, workers=workers)
+    one = write_submission(
+        preds, data, tmp_path / "one.zip", allow_partial=True, workers=1, labels=semantickitti()
+    )
+    many = write_submission(
+        preds,
+        data,
+        tmp_path / "many.zip",
+        allow_partial=True,
+        workers=workers,
+        labels=semantickitti(),
+    )
     assert many.ok and many.scans == one.scans == 6
     assert many.path.read_bytes() == one.path.read_bytes()
     with zipfile.ZipFile(many.path) as zf:
@@ -111,7 +126,13 @@ def test_cli_workers_option(small_test_set, tmp_path):
         LeaderboardEntry(), written_by="rangeret submission", checkpoint_sha256=None
     )
     write_submission(
-        preds, data, tmp_path / "b.zip", allow_partial=True, workers=1, description=description
+        preds,
+        data,
+        tmp_path / "b.zip",
+        allow_partial=True,
+        workers=1,
+        description=description,
+        labels=semantickitti(),
     )
     assert (tmp_path / "a.zip").read_bytes() == (tmp_path / "b.zip").read_bytes()
     assert main([*base, "--out", str(tmp_path / "c.zip"), "--workers", "0"]) != 0
@@ -130,7 +151,7 @@ def test_a_failing_compression_leaves_no_archive(small_test_set, tmp_path, monke
 
     monkeypatch.setattr("rangeret.submission.archives.deflate_file", deflate)
     with pytest.raises(MemoryError):
-        write_submission(preds, data, out, allow_partial=True, workers=2)
+        write_submission(preds, data, out, allow_partial=True, workers=2, labels=semantickitti())
     assert out.read_bytes() == b"previous"
     assert sorted(p.name for p in tmp_path.glob("*.zip*")) == ["s.zip"]
 
@@ -146,14 +167,16 @@ def test_nothing_is_compressed_after_a_problem(small_test_set, tmp_path, monkeyp
 
     monkeypatch.setattr("rangeret.submission.archives.deflate_file", deflate)
     with pytest.raises(SubmissionError, match="is missing"):
-        write_submission(preds, data, tmp_path / "s.zip", allow_partial=True, workers=1)
+        write_submission(
+            preds, data, tmp_path / "s.zip", allow_partial=True, workers=1, labels=semantickitti()
+        )
     assert deflated == []
 
 
 def test_without_partial_an_incomplete_test_set_is_refused(small_test_set, tmp_path):
     data, preds = small_test_set
     with pytest.raises(SubmissionError) as info:
-        write_submission(preds, data, tmp_path / "s.zip")
+        write_submission(preds, data, tmp_path / "s.zip", labels=semantickitti())
     text = "\n".join(info.value.problems)
     assert "sequence 13 is missing" in text
     assert "holds 2 scans but the official test sequence 11 has 921" in text
@@ -188,7 +211,9 @@ def test_writer_lists_wrong_predictions_and_writes_nothing(
     data, preds = small_test_set
     damage(preds)
     with pytest.raises(SubmissionError, match=message):
-        write_submission(preds, data, tmp_path / "s.zip", allow_partial=True)
+        write_submission(
+            preds, data, tmp_path / "s.zip", allow_partial=True, labels=semantickitti()
+        )
     assert list(tmp_path.glob("*.zip*")) == []
 
 
@@ -197,7 +222,9 @@ def test_writer_lists_every_problem_at_once(small_test_set, tmp_path):
     prediction_path(preds, "11", "000000").unlink()
     prediction_path(preds, "15", "000001").unlink()
     with pytest.raises(SubmissionError) as info:
-        write_submission(preds, data, tmp_path / "s.zip", allow_partial=True)
+        write_submission(
+            preds, data, tmp_path / "s.zip", allow_partial=True, labels=semantickitti()
+        )
     assert len(info.value.problems) == 2
 
 
@@ -245,9 +272,11 @@ def _symlink(name: str) -> zipfile.ZipInfo:
 )
 def test_validator_failures(small_test_set, tmp_path, edit, message):
     data, preds = small_test_set
-    good = write_submission(preds, data, tmp_path / "good.zip", allow_partial=True).path
+    good = write_submission(
+        preds, data, tmp_path / "good.zip", allow_partial=True, labels=semantickitti()
+    ).path
     bad = _rezip(good, tmp_path / "bad.zip", **edit)
-    check = validate_submission(bad, data, allow_partial=True)
+    check = validate_submission(bad, data, allow_partial=True, labels=semantickitti())
     assert not check.ok
     assert any(re.search(message, p) for p in check.problems), check.problems
     assert "INVALID" in check.summary()
@@ -256,18 +285,31 @@ def test_validator_failures(small_test_set, tmp_path, edit, message):
 def test_validator_refuses_non_zips_and_wrong_names(small_test_set, tmp_path):
     data, _ = small_test_set
     (tmp_path / "x.zip").write_bytes(b"not a zip")
-    assert "not a readable zip" in validate_submission(tmp_path / "x.zip", data, True).problems[0]
+    assert (
+        "not a readable zip"
+        in validate_submission(tmp_path / "x.zip", data, True, labels=semantickitti()).problems[0]
+    )
     (tmp_path / "x.tar").write_bytes(b"")
-    assert "must end with .zip" in validate_submission(tmp_path / "x.tar", data, True).problems[0]
-    assert "does not exist" in validate_submission(tmp_path / "none.zip", data, True).problems[-1]
+    assert (
+        "must end with .zip"
+        in validate_submission(tmp_path / "x.tar", data, True, labels=semantickitti()).problems[0]
+    )
+    assert (
+        "does not exist"
+        in validate_submission(tmp_path / "none.zip", data, True, labels=semantickitti()).problems[
+            -1
+        ]
+    )
 
 
 def test_partial_archive_only_needs_the_scans_the_dataset_holds(small_test_set, tmp_path):
     data, preds = small_test_set
-    good = write_submission(preds, data, tmp_path / "good.zip", allow_partial=True).path
-    (velodyne_dir(data, "15") / "000002.bin").unlink()
-    assert validate_submission(good, data, allow_partial=True).ok
-    check = validate_submission(good, data, allow_partial=False)
+    good = write_submission(
+        preds, data, tmp_path / "good.zip", allow_partial=True, labels=semantickitti()
+    ).path
+    (velodyne_dir(data, "15", layout=KITTI_LAYOUT) / "000002.bin").unlink()
+    assert validate_submission(good, data, allow_partial=True, labels=semantickitti()).ok
+    check = validate_submission(good, data, allow_partial=False, labels=semantickitti())
     assert any("15/predictions/000002.label has no matching test scan" in p for p in check.problems)
 
 
@@ -279,14 +321,18 @@ def test_full_test_split_archive_without_partial(tmp_path):
     label = np.array([40], np.uint32)
     for seq, count in TEST_SCAN_COUNTS.items():
         for i in range(count):
-            write_scan(velodyne_dir(data, seq) / f"{i:06d}.bin", point)
+            write_scan(
+                velodyne_dir(data, seq, layout=KITTI_LAYOUT) / f"{i:06d}.bin",
+                point,
+                record=KITTI_RECORD,
+            )
             write_labels(prediction_path(preds, seq, f"{i:06d}"), label)
     out = tmp_path / "full.zip"
-    check = write_submission(preds, data, out)
+    check = write_submission(preds, data, out, labels=semantickitti())
     assert check.ok and check.scans == 20_351 and not check.partial
     official_checks(out, data)
-    (velodyne_dir(data, "19") / "004980.bin").unlink()
-    check = validate_submission(out, data)
+    (velodyne_dir(data, "19", layout=KITTI_LAYOUT) / "004980.bin").unlink()
+    check = validate_submission(out, data, labels=semantickitti())
     assert any(
         "holds 4980 scans but the official test sequence 19 has 4981" in p for p in check.problems
     )

@@ -9,7 +9,7 @@ import pytest
 
 from rangeret.cli.main import build_parser, main
 from rangeret.dataset.labels import semantickitti
-from rangeret.dataset.layout import discover, prediction_path
+from rangeret.dataset.layout import KITTI_LAYOUT, discover, prediction_path
 from rangeret.io.run_info import write_run_info
 from rangeret.io.scans import read_labels, write_labels
 from rangeret.options import leaderboard_from_args
@@ -36,7 +36,9 @@ def tree(tmp_path):
     data, preds = tmp_path / "data", tmp_path / "pred"
     make_tree(data, {"11": [20], "12": [30]})
     cfg = semantickitti()
-    for entry in discover(data, TEST_SEQUENCES, missing_ok=True, with_labels=True).scans:
+    for entry in discover(
+        data, TEST_SEQUENCES, missing_ok=True, with_labels=True, layout=KITTI_LAYOUT
+    ).scans:
         write_labels(
             prediction_path(preds, entry.sequence, entry.name),
             cfg.to_raw(cfg.to_class(read_labels(entry.label_path))),
@@ -78,7 +80,7 @@ def test_submission_writes_the_given_name_and_links_then_the_checkpoint(tree, tm
         ("checkpoint sha256", SHA),
     ]
     assert ("model", "rangeret-cir") in fields and fields[-1] == ("x",)
-    check = validate_submission(out, tree[0], allow_partial=True)
+    check = validate_submission(out, tree[0], allow_partial=True, labels=semantickitti())
     assert check.ok and check.warnings == []
 
 
@@ -141,7 +143,9 @@ def test_the_validator_warns_about_missing_or_malformed_lines(tree, tmp_path, ca
         ("order.zip", "line 1 should be 'name: ...'"),
         ("link.zip", "line 2 'pdf url: somewhere': the value is neither an http(s) URL"),
     ]:
-        check = validate_submission(tmp_path / name, data, allow_partial=True)
+        check = validate_submission(
+            tmp_path / name, data, allow_partial=True, labels=semantickitti()
+        )
         assert check.ok and len(check.warnings) == 1 and expected in check.warnings[0], name
         args = ["validate-submission", "-q", str(tmp_path / name), "--dataset", str(data)]
         assert main([*args, "--allow-partial"]) == 0

@@ -20,12 +20,12 @@ import torch
 from torch.nn.parallel import DistributedDataParallel
 
 from rangeret.cli.train import add_train_arguments, run_train
-from rangeret.dataset.labels import LabelConfig, semantickitti
-from rangeret.dataset.layout import discover, labels_dir, velodyne_dir
+from rangeret.dataset.labels import parse_label_config, semantickitti
+from rangeret.dataset.layout import KITTI_LAYOUT, discover, labels_dir, velodyne_dir
 from rangeret.dataset.profiles import load_profile
 from rangeret.dataset.projection import CHANNEL_MEANS, CHANNEL_STDS, ProjectionConfig
 from rangeret.inference.predictor import Predictor
-from rangeret.io.scans import read_scan
+from rangeret.io.scans import KITTI_RECORD, read_scan
 from rangeret.models import CheckpointError, build_model, load_checkpoint
 from rangeret.sim import SensorConfig, simulate_dataset
 from rangeret.train_options import config_from_args
@@ -89,14 +89,18 @@ def sim_root(tmp_path_factory) -> Path:
     """A tiny simulated tree: 4 training scans in 00, 2 validation scans in 08 (16 x 256 sensor)."""
     root = tmp_path_factory.mktemp("sim")
     simulate_dataset(
-        root, {"00": 4, "08": 2}, sensor=SensorConfig(beams=16, azimuth_steps=256), seed=3
+        root,
+        {"00": 4, "08": 2},
+        sensor=SensorConfig(beams=16, azimuth_steps=256),
+        seed=3,
+        profile=load_profile("semantickitti"),
     )
     return root
 
 
 @pytest.fixture(scope="module")
 def sim_scans(sim_root):
-    return discover(sim_root, ["00", "08"], with_labels=True).scans
+    return discover(sim_root, ["00", "08"], with_labels=True, layout=KITTI_LAYOUT).scans
 
 
 def small_config(root: Path, out: Path, **changes) -> TrainConfig:
@@ -159,8 +163,10 @@ def test_augment_points_moves_only_x_and_y_of_real_points():
 def test_dataset_labels_move_with_their_points(sim_scans):
     config = semantickitti()
     projection = ProjectionConfig(**SMALL)
-    plain = RangeDataset(sim_scans, projection, config, with_points=True)
-    moved = RangeDataset(sim_scans, projection, config, augment=True, with_points=True, seed=5)
+    plain = RangeDataset(sim_scans, projection, config, with_points=True, points=KITTI_RECORD)
+    moved = RangeDataset(
+        sim_scans, projection, config, augment=True, with_points=True, seed=5, points=KITTI_RECORD
+    )
     for index in range(3):
         points, classes = plain.points_and_classes(index)
         before, after = plain[index], moved[(2, index)]
@@ -189,7 +195,7 @@ def test_dataset_labels_move_with_their_points(sim_scans):
 
 @pytest.fixture(scope="module")
 def two_images(sim_scans):
-    ds = RangeDataset(sim_scans, ProjectionConfig(**SMALL), semantickitti())
+    ds = RangeDataset(sim_scans, ProjectionConfig(**SMALL), semantickitti(), points=KITTI_RECORD)
     images = []
     for i in (0, 4):
         s = ds[i]
@@ -300,7 +306,12 @@ def test_mix_settings_apply_each_mix_with_its_probability(two_images):
 def test_dataset_with_mixes_is_reproducible(sim_scans):
     settings = MixSettings(MIXES, probability=1.0, paste_classes=(1, 9))
     ds = RangeDataset(
-        sim_scans, ProjectionConfig(**SMALL), semantickitti(), augment=True, mixing=settings
+        sim_scans,
+        ProjectionConfig(**SMALL),
+        semantickitti(),
+        augment=True,
+        mixing=settings,
+        points=KITTI_RECORD,
     )
     first, second = ds[(1, 2)], ds[(1, 2)]
     for key in ("image", "label", "mask"):
@@ -645,7 +656,7 @@ def test_run_train_end_to_end(sim_root, tmp_path, capsys):
     assert {"val_miou_image", "val_miou_points", "val_miou_knn", "train_loss"} <= set(
         meta["metrics"]
     )
-    assert LabelConfig.from_dict(info.label_config) == semantickitti()
+    assert parse_label_config(info.label_config, "checkpoint") == semantickitti()
     assert ProjectionConfig(
         **{k: tuple(v) if isinstance(v, list) else v for k, v in info.projection.items()}
     ) == ProjectionConfig(**SMALL)
@@ -664,9 +675,14 @@ def test_run_train_end_to_end(sim_root, tmp_path, capsys):
 
 def test_missing_labels_are_reported(tmp_path):
     root = tmp_path / "data"
-    simulate_dataset(root, {"00": 2}, sensor=SensorConfig(beams=8, azimuth_steps=64))
-    (labels_dir(root, "00") / "000001.label").unlink()
-    assert (velodyne_dir(root, "00") / "000001.bin").exists()
+    simulate_dataset(
+        root,
+        {"00": 2},
+        sensor=SensorConfig(beams=8, azimuth_steps=64),
+        profile=load_profile("semantickitti"),
+    )
+    (labels_dir(root, "00", layout=KITTI_LAYOUT) / "000001.label").unlink()
+    assert (velodyne_dir(root, "00", layout=KITTI_LAYOUT) / "000001.bin").exists()
     with pytest.raises(ValueError, match=r"000001\.label is missing"):
         Trainer(small_config(root, tmp_path / "out", val_sequences=()))
 
@@ -997,11 +1013,11 @@ def test_overfitting_the_real_scan(tmp_path):
     # One epoch of 150 steps: the scan under 150 names (links), so the run saves only once.
     steps = 150
     root = tmp_path / "data"
-    velodyne_dir(root, "00").mkdir(parents=True)
-    labels_dir(root, "00").mkdir(parents=True)
+    velodyne_dir(root, "00", layout=KITTI_LAYOUT).mkdir(parents=True)
+    labels_dir(root, "00", layout=KITTI_LAYOUT).mkdir(parents=True)
     for i in range(steps):
-        (velodyne_dir(root, "00") / f"{i:06d}.bin").symlink_to(scan)
-        (labels_dir(root, "00") / f"{i:06d}.label").symlink_to(labels)
+        (velodyne_dir(root, "00", layout=KITTI_LAYOUT) / f"{i:06d}.bin").symlink_to(scan)
+        (labels_dir(root, "00", layout=KITTI_LAYOUT) / f"{i:06d}.label").symlink_to(labels)
     config = small_config(
         root,
         tmp_path / "out",
