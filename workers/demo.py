@@ -86,7 +86,7 @@ def run_demo(
         sensor=sensor,
         seed=2026,
         progress=progress,
-        profile=None if benchmark else profile,
+        profile=profile,
     )
     log.info("simulated %d scans into %s", n, dataset)
 

@@ -223,8 +223,8 @@ def test_each_scan_gets_a_prediction_or_its_named_failure_in_order(tree, small_w
     fails on a loaded batch names each readable scan, and in-memory scans that cannot be
     projected keep theirs while the network's own errors propagate."""
     predictor = Predictor.from_checkpoint(small_weights, height=32, width=256, device="cpu")
-    (velodyne_dir(tree, "08") / "000001.bin").write_bytes(b"\x01" * 30)
-    entries = list_scans(tree, ["08"])
+    (velodyne_dir(tree, "08", layout=KITTI_LAYOUT) / "000001.bin").write_bytes(b"\x01" * 30)
+    entries = list_scans(tree, ["08"], layout=KITTI_LAYOUT)
     loaded = load_batch(
         entries, predictor.projection_config, StageTimes(), record=predictor.profile.points
     )
