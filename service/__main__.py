@@ -8,11 +8,18 @@ import sys
 from collections.abc import Sequence
 
 from rangeret.commands import run_command
-from service.server import add_serve_arguments, run_serve
+from rangeret.exceptions import MissingExtraError
+from rangeret.extras import extra_installed
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Parse the options and serve; bad input becomes a one-line message and exit code 1."""
+    """Parse the options and serve; bad input, or a missing gateway extra, becomes a one-line
+    message and exit code 1."""
+    if not extra_installed("gateway"):
+        print(MissingExtraError("python -m service", "gateway"), file=sys.stderr)
+        return 1
+    from service.server import add_serve_arguments, run_serve
+
     parser = argparse.ArgumentParser(
         prog="python -m service", description="The RangeRet HTTP gateway."
     )

@@ -185,3 +185,21 @@ def test_the_environments_install_every_extra():
         for requirement in requirements:
             name = re.split(r"[<>=\[ ]", requirement, maxsplit=1)[0]
             assert re.search(rf"(^|[\s\"]){re.escape(name)}([\s\"\[]|$)", installed), (extra, name)
+
+
+def test_the_gateway_module_without_its_extra_stops_with_one_line(tmp_path):
+    """`python -m service`, the gateway without the `rangeret` command, says the same line."""
+    runner = RUNNER.replace(
+        "from rangeret.cli.main import main", "from service.__main__ import main"
+    )
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    run = subprocess.run(
+        [sys.executable, "-c", runner, ",".join(BLOCKED), "--port", "1"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert (run.returncode, run.stderr) == (1, _line("python -m service", "gateway")), run.stdout
