@@ -31,6 +31,9 @@ EXTRA_MODULES: dict[str, tuple[str, ...]] = {
     ),
     "onnx": ("onnx", "onnxscript", "onnxruntime"),
     "hub": ("huggingface_hub",),
+    "files": ("pypcd4", "laspy", "lazrs"),
+    "bags": ("rosbags",),
+    "ros2": ("rclpy", "sensor_msgs", "diagnostic_msgs"),
 }
 
 

@@ -35,9 +35,11 @@ def add_output_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
 
 
-def add_selection(parser: argparse.ArgumentParser, splits: Sequence[str] = SPLITS) -> None:
-    """--split or --sequences, exactly one of them."""
-    group = parser.add_mutually_exclusive_group(required=True)
+def add_selection(
+    parser: argparse.ArgumentParser, splits: Sequence[str] = SPLITS, *, required: bool = True
+) -> None:
+    """--split or --sequences, exactly one of them (at most one where not `required`)."""
+    group = parser.add_mutually_exclusive_group(required=required)
     group.add_argument(
         "--split", choices=list(splits), help="an official split of the label configuration"
     )
@@ -82,6 +84,19 @@ def profile_from_args(args: argparse.Namespace) -> DatasetProfile:
     if path:
         profile = profile.with_overrides(labels=load_label_config(path))
     return profile
+
+
+def add_field_option(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """--field NAME=FIELD: which field of a file or message fills a value of the point record."""
+    parser.add_argument(
+        "--field",
+        action="append",
+        metavar="NAME=FIELD",
+        default=[],
+        help="read the point record's value NAME (x, y, z, remission, intensity, laser_id) from "
+        "the cloud's field FIELD; by default each is found by its name or a usual alias "
+        "(intensity for remission, ring for laser_id); repeatable",
+    )
 
 
 def add_label_config(parser: argparse.ArgumentParser) -> None:

@@ -1,4 +1,5 @@
-"""The layers depend one way, rangeret <- workers <- service, checked on every source file.
+"""The layers depend one way, rangeret <- workers <- service (and rangeret <- ros2node, the
+ROS 2 node beside them), checked on every source file.
 
 Every import counts: at module level, inside functions, under TYPE_CHECKING, and modules named
 to `importlib.import_module`. A test fixture checks that the checker itself sees each kind.
@@ -13,7 +14,9 @@ import pytest
 
 from tests.support.paths import REPO
 
-PACKAGES = ("rangeret", "workers", "service")
+PACKAGES = ("rangeret", "workers", "service", "ros2node")
+#: ROS 2's own modules, which only the node imports.
+ROS_MODULES = ("rclpy", "sensor_msgs", "diagnostic_msgs", "std_msgs", "builtin_interfaces")
 
 
 def imported_modules(source: str, module: str) -> set[str]:
@@ -68,6 +71,14 @@ def violations() -> list[str]:
             ):
                 found.append(f"{module} imports {target}")
             if within(module, "workers") and within(target, "service"):
+                found.append(f"{module} imports {target}")
+            if not within(module, "ros2node") and any(
+                within(target, m) for m in ("ros2node", *ROS_MODULES)
+            ):
+                found.append(f"{module} imports {target}")
+            if within(module, "ros2node") and (
+                within(target, "workers") or within(target, "service")
+            ):
                 found.append(f"{module} imports {target}")
             if not within(module, "rangeret.cli") and within(target, "rangeret.cli"):
                 found.append(f"{module} imports {target}")

@@ -1,4 +1,5 @@
-"""`rangeret predict`: label every scan of a split or of chosen sequences into a predictions tree."""
+"""`rangeret predict`: label a dataset's scans into a predictions tree, point-cloud files into a
+folder, or a bag's PointCloud2 messages into a labelled bag."""
 
 from __future__ import annotations
 
@@ -12,8 +13,11 @@ from rangeret.plugins import Subcommand
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
-    add_selection(p)
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument(
+        "--dataset", type=Path, metavar="ROOT", help="a dataset tree (with --split or --sequences)"
+    )
+    add_selection(p, required=False)
     p.add_argument(
         "--out", type=Path, required=True, metavar="PRED", help="predictions tree to write"
     )
@@ -27,6 +31,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Predict the scans of the source chosen (a dataset's split or sequences)."""
+    if args.split is None and args.sequences is None:
+        raise CommandError("--dataset needs --split or --sequences")
+    return run_dataset(args)
+
+
+def run_dataset(args: argparse.Namespace) -> int:
     """Predict every scan of a split or of chosen sequences into a predictions tree."""
     from rangeret.inference.runner import predict_tree
 
@@ -51,4 +62,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-COMMAND = Subcommand("predict", "label every scan of a split or of sequences", add_arguments, run)
+COMMAND = Subcommand(
+    "predict",
+    "label a dataset's scans, point-cloud files, or a bag's clouds",
+    add_arguments,
+    run,
+)

@@ -62,6 +62,12 @@ class DatasetProfile:
         return self.labels.num_classes
 
     @property
+    def reflectance_fill(self) -> float:
+        """The reflectance a point gets when its cloud has none (a PCD or PointCloud2 of x, y, z
+        only): the profile's mean reflectance, which the network's input normalises to 0."""
+        return float(self.projection.means[4])
+
+    @property
     def splits(self) -> dict[str, tuple[str, ...]]:
         """Sequence ids of each split, as written on disk."""
         return self.labels.splits
