@@ -34,7 +34,7 @@ def run_bag(args: argparse.Namespace) -> int:
     """Label the bag's topic into a new bag; exit 1 when a message could not be labelled."""
     require_extra("rangeret predict --bag", "bags")
     from rangeret.inference.bag_runner import label_bag
-    from rangeret.io.bags import bag_format, check_target, run_record_path
+    from rangeret.io.bags import bag_format, check_target, open_bag, run_record_path
 
     if not args.topic:
         raise CommandError("--bag needs --topic (the PointCloud2 topic to label)")
@@ -45,6 +45,8 @@ def run_bag(args: argparse.Namespace) -> int:
         )
     fmt = args.bag_format or bag_format(args.bag)
     check_target(args.out, fmt, overwrite=args.overwrite, source=args.bag)
+    with open_bag(args.bag) as bag:
+        bag.cloud_topic(args.topic)  # a wrong topic is told before the network loads
     predictor = predictor_from_args(args)
     overrides = parse_field_overrides(args.field, record=predictor.profile.points)
     summary = label_bag(
