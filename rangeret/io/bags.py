@@ -277,7 +277,7 @@ class TargetBag:
             key = (conn.topic, conn.msgtype, repr(ext))
             if key not in made:
                 made[key] = self._add(conn, ext)
-            self.connections[id(conn)] = made[key]
+            self.connections[conn.id] = made[key]
             self.converters.setdefault(conn.msgtype, self._converter(conn.msgtype))
 
     def _ext(self, conn: Connection) -> ConnectionExtRosbag1 | ConnectionExtRosbag2:
@@ -344,7 +344,7 @@ class TargetBag:
                 f"{self.source.path}: a {conn.topic} message at t={timestamp} cannot be "
                 f"converted ({exc})"
             ) from exc
-        self.writer.write(self.connections[id(conn)], timestamp, data)
+        self.writer.write(self.connections[conn.id], timestamp, data)
 
 
 def _target_typestore(source: SourceBag, to_ros2: bool) -> Any:
