@@ -6,9 +6,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from rangeret.cli.predict_bag import add_bag_options, run_bag
 from rangeret.cli.shared import predictor_from_args
 from rangeret.commands import CommandError
-from rangeret.options import add_network_options, add_selection, selected_sequences
+from rangeret.options import (
+    add_field_option,
+    add_network_options,
+    add_selection,
+    selected_sequences,
+)
 from rangeret.plugins import Subcommand
 
 
@@ -16,6 +22,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument(
         "--dataset", type=Path, metavar="ROOT", help="a dataset tree (with --split or --sequences)"
+    )
+    source.add_argument(
+        "--bag", type=Path, metavar="IN", help="a rosbag2 folder or ROS 1 .bag file (with --topic)"
     )
     add_selection(p, required=False)
     p.add_argument(
@@ -27,11 +36,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="also write each point's confidence (the softmax probability of its label at its "
         "pixel) as float16 in PRED/sequences/XX/confidence/NNNNNN.npy",
     )
+    add_bag_options(p)
+    add_field_option(p)
     add_network_options(p)
 
 
 def run(args: argparse.Namespace) -> int:
-    """Predict the scans of the source chosen (a dataset's split or sequences)."""
+    """Predict the scans of the source chosen (a dataset's split or sequences, or a bag)."""
+    if args.bag is not None:
+        return run_bag(args)
     if args.split is None and args.sequences is None:
         raise CommandError("--dataset needs --split or --sequences")
     return run_dataset(args)

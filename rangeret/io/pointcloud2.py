@@ -85,6 +85,12 @@ def layout_of(msg: Any) -> CloudLayout:
 
 def check_layout(layout: CloudLayout, data_size: int, source: str) -> None:
     """CloudMessageError unless the fields fit the point step and the data holds the points."""
+    if layout.point_step < 1 and layout.num_points > 0:
+        raise CloudMessageError(
+            source,
+            "point_step",
+            f"point_step is {layout.point_step} for {layout.num_points} points",
+        )
     seen: set[str] = set()
     for f in layout.fields:
         if f.datatype not in DATATYPES:
@@ -149,7 +155,7 @@ def decode(msg: Any, source: str) -> tuple[CloudLayout, dict[str, np.ndarray]]:
     native byte order, points in the message's order; a bad layout is a CloudMessageError."""
     layout = layout_of(msg)
     data = msg.data
-    check_layout(layout, len(data), source)
+    check_layout(layout, memoryview(data).nbytes, source)
     points = _points_bytes(layout, data)
     records = points.reshape(-1).view(_dtype(layout, layout.fields))
     return layout, {

@@ -2,7 +2,9 @@
 
 It records the network (model, checkpoint and its SHA-256, whether these are the demo weights,
 projection, kNN, test-time augmentation, device), the data (dataset, sequences), the batch size,
-the runner and the start time, so that any tree can be traced back to what produced it.
+the runner and the start time, so that any tree can be traced back to what produced it. An
+output that is not a tree (a labelled bag) gets the same record at an explicit path
+(`write_run_record`).
 """
 
 from __future__ import annotations
@@ -37,17 +39,39 @@ def write_run_info(
     `network` is the description of the network and its options (`Predictor.describe()`, or
     `describe_network` where no predictor is loaded in this process).
     """
+    return write_run_record(
+        Path(out) / RUN_INFO,
+        network,
+        runner=runner,
+        details={"batch_size": batch_size, "dataset": str(dataset), "sequences": list(sequences)},
+    )
+
+
+def write_run_record(
+    path: Path | str,
+    network: Mapping[str, Any],
+    *,
+    runner: str,
+    details: Mapping[str, Any],
+    started: str | None = None,
+) -> Path:
+    """Write a run record at the explicit `path` atomically (for outputs that are not a tree,
+    such as a labelled bag's `OUT.run.json`): the network, `details` (what the run read and
+    wrote), the runner and its start time (`started`, else now)."""
     record = {
         **network,
-        "batch_size": batch_size,
-        "dataset": str(dataset),
-        "sequences": list(sequences),
+        **details,
         "runner": runner,
-        "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "started": started or started_now(),
     }
-    path = Path(out) / RUN_INFO
+    path = Path(path)
     atomic_write_text(path, json.dumps(record, indent=2) + "\n")
     return path
+
+
+def started_now() -> str:
+    """The current local time as run records write it."""
+    return time.strftime("%Y-%m-%dT%H:%M:%S%z")
 
 
 def read_run_info(out: Path | str) -> dict[str, Any]:
