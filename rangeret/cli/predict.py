@@ -8,7 +8,12 @@ from pathlib import Path
 
 from rangeret.cli.shared import predictor_from_args
 from rangeret.commands import CommandError
-from rangeret.options import add_network_options, add_selection, selected_sequences
+from rangeret.options import (
+    add_field_option,
+    add_network_options,
+    add_selection,
+    selected_sequences,
+)
 from rangeret.plugins import Subcommand
 
 
@@ -16,6 +21,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument(
         "--dataset", type=Path, metavar="ROOT", help="a dataset tree (with --split or --sequences)"
+    )
+    source.add_argument(
+        "--files",
+        type=Path,
+        nargs="+",
+        metavar="PATH",
+        help="point-cloud files (.pcd, .ply, .las, .laz, .bin) or folders holding them (not "
+        "their subfolders); writes OUT/<stem>.label per file",
     )
     add_selection(p, required=False)
     p.add_argument(
@@ -25,13 +38,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--save-confidence",
         action="store_true",
         help="also write each point's confidence (the softmax probability of its label at its "
-        "pixel) as float16 in PRED/sequences/XX/confidence/NNNNNN.npy",
+        "pixel) as float16 in PRED/sequences/XX/confidence/NNNNNN.npy (with --files: "
+        "OUT/<stem>.npy)",
     )
+    p.add_argument(
+        "--write-labelled",
+        action="store_true",
+        help="with --files: also write each file again in its own format with label and "
+        "confidence fields added, as OUT/<stem>.labelled.<ext>",
+    )
+    add_field_option(p)
     add_network_options(p)
 
 
 def run(args: argparse.Namespace) -> int:
-    """Predict the scans of the source chosen (a dataset's split or sequences)."""
+    """Predict the scans of the source chosen (a dataset's split or sequences, or files)."""
+    if args.files is not None:
+        from rangeret.cli.predict_files import run_files
+
+        return run_files(args)
+    if args.write_labelled:
+        raise CommandError("--write-labelled is for --files")
+    if args.field:
+        raise CommandError("--field maps the fields of point-cloud files, not of --dataset scans")
     if args.split is None and args.sequences is None:
         raise CommandError("--dataset needs --split or --sequences")
     return run_dataset(args)
