@@ -17,8 +17,8 @@ import numpy as np
 from rangeret.dataset.labels import LabelConfig
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.extras import MissingExtraError
-from rangeret.io.point_fields import PointFieldsError, to_record
 from rangeret.io import las, pcd, ply
+from rangeret.io.point_fields import PointFieldsError, to_record
 from rangeret.io.point_files import declared_points, decode_point_file
 from rangeret.io.scans import PointRecord, ScanFormatError
 from service.errors import ApiError

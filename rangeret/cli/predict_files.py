@@ -108,9 +108,7 @@ def predict_file(
             write_confidence(targets["confidence"], found.confidence)
             written["confidence"] = str(targets["confidence"])
         if labelled and point_file.can_write_labelled:
-            target = targets["labelled"].with_name(
-                targets["labelled"].name + point_file.extension
-            )
+            target = targets["labelled"].with_name(targets["labelled"].name + point_file.extension)
             write_labelled(target, point_file, found.labels, found.confidence)
             written["labelled"] = str(target)
     info = point_file.describe()

@@ -12,6 +12,7 @@ dimensions `label` (uint32) and `confidence` (float32).
 from __future__ import annotations
 
 import io
+import struct
 from dataclasses import dataclass
 from typing import Any
 
@@ -115,9 +116,14 @@ def read_las(data: bytes | memoryview, source: str) -> LasCloud:
     kind = "LAZ" if info.compressed else "LAS"
     try:
         with laspy.open(io.BytesIO(data)) as reader:
-            need = reader.header.offset_to_point_data + info.points * reader.header.point_format.size
+            start = reader.header.offset_to_point_data
+            if info.compressed:
+                check_chunk_table(data, start, info.points, source)
+            need = start + info.points * reader.header.point_format.size
             short = not info.compressed and len(data) < need
             las = None if short else reader.read()
+    except LasFormatError:
+        raise
     except _errors(laspy) as exc:
         raise LasFormatError(source, f"the {kind} points cannot be decoded ({exc})") from exc
     if las is None:
@@ -132,6 +138,26 @@ def read_las(data: bytes | memoryview, source: str) -> LasCloud:
             "(the file is truncated)",
         )
     return LasCloud(las, info)
+
+
+def check_chunk_table(data: bytes | memoryview, start: int, points: int, source: str) -> None:
+    """Refuse a LAZ file whose chunk table lies outside it or declares more chunks than it has
+    points, before lazrs reads it (a forged chunk count would have it allocate without bound)."""
+    size = len(data)
+    if size < start + 8:
+        raise LasFormatError(source, "the LAZ file ends before its points (it is truncated)")
+    (offset,) = struct.unpack("<q", bytes(data[start : start + 8]))
+    if offset == -1 and size >= start + 16:  # written last, its offset in the file's last 8 bytes
+        (offset,) = struct.unpack("<q", bytes(data[size - 8 :]))
+    if not start + 8 <= offset <= size - 8:
+        raise LasFormatError(
+            source, f"the LAZ chunk table offset {offset} lies outside the file (it is truncated)"
+        )
+    _, chunks = struct.unpack("<II", bytes(data[offset : offset + 8]))
+    if chunks > points + 1:
+        raise LasFormatError(
+            source, f"the LAZ chunk table declares {chunks} chunks for {points} points"
+        )
 
 
 def labelled_las_bytes(cloud: LasCloud, labels: np.ndarray, confidence: np.ndarray) -> bytes:

@@ -60,7 +60,9 @@ class PcdHeader:
         ):
             base = NUMPY_TYPES[(kind, size)]
             name = f"_{i}" if name == "_" else name
-            items += [(name, base)] if count == 1 else [(f"{name}__{c:04d}", base) for c in range(count)]
+            items += (
+                [(name, base)] if count == 1 else [(f"{name}__{c:04d}", base) for c in range(count)]
+            )
         return np.dtype(items)
 
 
@@ -109,14 +111,18 @@ def _header(values: dict[str, list[str]], encoding: str, offset: int, source: st
         height = int(values.get("HEIGHT", ["1"])[0])
         points = int(values.get("POINTS", [str(width * height)])[0])
     except ValueError as exc:
-        raise PcdFormatError(source, f"the PCD header holds a number that is not one ({exc})") from exc
+        raise PcdFormatError(
+            source, f"the PCD header holds a number that is not one ({exc})"
+        ) from exc
     types = tuple(t.upper() for t in values.get("TYPE", ()))
     for key, got in (("SIZE", sizes), ("TYPE", types), ("COUNT", counts)):
         if len(got) != n:
             raise PcdFormatError(source, f"the PCD header lists {n} FIELDS but {len(got)} {key}")
     for name, kind, size, count in zip(fields, types, sizes, counts, strict=True):
         if (kind, size) not in NUMPY_TYPES:
-            raise PcdFormatError(source, f"field {name!r} has TYPE {kind} SIZE {size}, not a PCD type")
+            raise PcdFormatError(
+                source, f"field {name!r} has TYPE {kind} SIZE {size}, not a PCD type"
+            )
         if count < 1:
             raise PcdFormatError(source, f"field {name!r} has COUNT {count}")
     named = [f for f in fields if f != "_"]
@@ -167,7 +173,9 @@ def read_pcd(data: bytes | memoryview, source: str) -> PcdCloud:
     try:
         cloud = PointCloud.from_fileobj(stream)
     except (ValueError, RuntimeError, TypeError, KeyError, struct.error, OSError) as exc:
-        raise PcdFormatError(source, f"the {header.encoding} PCD data cannot be decoded ({exc})") from exc
+        raise PcdFormatError(
+            source, f"the {header.encoding} PCD data cannot be decoded ({exc})"
+        ) from exc
     array = np.asarray(cloud.pc_data)
     if len(array) != header.points:
         raise PcdFormatError(

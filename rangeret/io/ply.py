@@ -114,7 +114,10 @@ class PlyHeader:
         """One vertex as a numpy record in the file's byte order."""
         order = FORMATS[self.format]
         return np.dtype(
-            [(name, np.dtype(PLY_TYPES[kind]).newbyteorder(order)) for name, kind in self.properties]
+            [
+                (name, np.dtype(PLY_TYPES[kind]).newbyteorder(order))
+                for name, kind in self.properties
+            ]
         )
 
 

@@ -168,7 +168,8 @@ def labelled_bytes(point_file: PointFile, labels: np.ndarray, confidence: np.nda
     if point_file.format in ("las", "laz"):
         return las.labelled_las_bytes(point_file.decoded, labels, confidence)
     raise PointFileError(
-        point_file.source, "a .bin scan has no room for added fields (its .label file is the labels)"
+        point_file.source,
+        "a .bin scan has no room for added fields (its .label file is the labels)",
     )
 
 

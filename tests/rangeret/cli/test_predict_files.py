@@ -50,7 +50,10 @@ def test_every_format_gets_the_labels_of_its_bin(run):
         expected = las_reference if kind in ("las", "laz") else reference
         assert np.array_equal(read_labels(out / f"{kind}.label"), expected), kind
         confidence = read_confidence(out / f"{kind}.npy", 123_389)
-        assert np.array_equal(confidence, read_confidence(out / "scan.npy")) or kind in ("las", "laz")
+        assert np.array_equal(confidence, read_confidence(out / "scan.npy")) or kind in (
+            "las",
+            "laz",
+        )
 
 
 def test_run_json_records_each_file(run):
