@@ -215,22 +215,22 @@ def _ascii_vertices(
     if header.count == 0:
         return array
     lines = bytes(data[header.data_offset :]).split(b"\n", header.count)
-    tokens = b" ".join(lines[: header.count]).split()
     width = len(header.properties)
-    if len(lines) < header.count or len(tokens) < header.count * width:
+    try:
+        values = np.fromstring(b" ".join(lines[: header.count]).decode("ascii"), sep=" ")
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise PlyFormatError(source, f"a vertex value is not a number ({exc})") from exc
+    if len(lines) < header.count or values.size < header.count * width:
         raise PlyFormatError(
             source,
-            f"holds {len(tokens)} ASCII values, {header.count} vertices of {width} properties need "
-            f"{header.count * width} (the file is truncated)",
+            f"holds {values.size} ASCII values, {header.count} vertices of {width} properties "
+            f"need {header.count * width} (the file is truncated)",
         )
-    if len(tokens) != header.count * width:
+    if values.size != header.count * width:
         raise PlyFormatError(
-            source, f"its first {header.count} lines hold {len(tokens)} values, not {width} each"
+            source, f"its first {header.count} lines hold {values.size} values, not {width} each"
         )
-    try:
-        values = np.array(tokens).astype(np.float64).reshape(header.count, width)
-    except ValueError as exc:
-        raise PlyFormatError(source, f"a vertex value is not a number ({exc})") from exc
+    values = values.reshape(header.count, width)
     for i, (name, _) in enumerate(header.properties):
         array[name] = values[:, i]
     return array
