@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from rangeret.cli.shared import predictor_from_args
 from rangeret.commands import CommandError
-from rangeret.exceptions import RangeRetError
+from rangeret.exceptions import MissingExtraError, RangeRetError
 from rangeret.inference.clouds import label_cloud
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import RunSummary
@@ -145,6 +145,8 @@ def run_files(args: argparse.Namespace) -> int:
                 labelled=args.write_labelled,
                 times=summary.times,
             )
+        except MissingExtraError:
+            raise  # no file of its format can be read: one line, not one failure per file
         except RangeRetError as exc:
             summary.add(str(path), _problem(exc, path))
             inputs.append({"file": str(path), "error": _problem(exc, path)})

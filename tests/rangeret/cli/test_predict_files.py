@@ -6,6 +6,9 @@ labelled copies read back with their labels; `rangeret view` reads a PCD."""
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +18,7 @@ from rangeret.cli.main import main
 from rangeret.io.ply import read_ply
 from rangeret.io.point_files import read_point_file
 from rangeret.io.scans import KITTI_RECORD, read_confidence, read_labels, read_scan, write_scan
+from tests.support.paths import REPO
 from tests.support.point_files import las_decoded, pcd_bytes, write_all_formats
 from tests.support.workers import small_weights
 
@@ -154,3 +158,32 @@ def test_rangeret_view_reads_a_pcd(run, capsys):
     cloud = read_ply(out)
     assert np.array_equal(cloud["label"], read_labels(labels) & 0xFFFF)
     assert out.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"
+
+
+#: `rangeret ARGV` with the `files` extra's modules made unimportable.
+WITHOUT_FILES = """\
+import sys
+for name in ("pypcd4", "laspy", "lazrs"):
+    sys.modules[name] = None
+from rangeret.cli.main import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_without_the_files_extra_pcd_stops_with_one_line_and_ply_still_reads(run, tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+
+    def view(path: Path) -> subprocess.CompletedProcess:
+        argv = ["view", "-q", str(path), "--out", str(tmp_path / f"{path.stem}.png")]
+        return subprocess.run(
+            [sys.executable, "-c", WITHOUT_FILES, *argv],
+            env=env, capture_output=True, text=True, timeout=300, check=False,
+        )  # fmt: skip
+
+    blocked = view(run["paths"]["pcd-binary"])
+    assert blocked.returncode == 1
+    lines = [line for line in blocked.stderr.splitlines() if "ros2" not in line]
+    assert lines == [
+        "reading PCD files needs the files extra: pip install 'rangeret-service[files]'"
+    ], blocked.stderr
+    assert view(run["paths"]["ply-be"]).returncode == 0
