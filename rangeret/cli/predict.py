@@ -24,27 +24,66 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--dataset", type=Path, metavar="ROOT", help="a dataset tree (with --split or --sequences)"
     )
     source.add_argument(
+        "--files",
+        type=Path,
+        nargs="+",
+        metavar="PATH",
+        help="point-cloud files (.pcd, .ply, .las, .laz, .bin) or folders holding them (not "
+        "their subfolders); writes OUT/<stem>.label per file",
+    )
+    source.add_argument(
         "--bag", type=Path, metavar="IN", help="a rosbag2 folder or ROS 1 .bag file (with --topic)"
     )
     add_selection(p, required=False)
     p.add_argument(
-        "--out", type=Path, required=True, metavar="PRED", help="predictions tree to write"
+        "--out",
+        type=Path,
+        required=True,
+        metavar="OUT",
+        help="where to write: a predictions tree (--dataset), a folder (--files) or a bag (--bag)",
     )
     p.add_argument(
         "--save-confidence",
         action="store_true",
         help="also write each point's confidence (the softmax probability of its label at its "
-        "pixel) as float16 in PRED/sequences/XX/confidence/NNNNNN.npy",
+        "pixel) as float16 in PRED/sequences/XX/confidence/NNNNNN.npy (with --files: "
+        "OUT/<stem>.npy)",
     )
     add_bag_options(p)
+    p.add_argument(
+        "--write-labelled",
+        action="store_true",
+        help="with --files: also write each file again in its own format with label and "
+        "confidence fields added, as OUT/<stem>.labelled.<ext>",
+    )
     add_field_option(p)
     add_network_options(p)
 
 
 def run(args: argparse.Namespace) -> int:
-    """Predict the scans of the source chosen (a dataset's split or sequences, or a bag)."""
-    if args.bag is not None:
+    """Predict the scans of the source chosen (a dataset's split or sequences, files, or a bag)."""
+    if args.bag is None:
+        for option, value in (
+            ("--topic", args.topic),
+            ("--bag-format", args.bag_format),
+            ("--overwrite", args.overwrite),
+        ):
+            if value:
+                raise CommandError(f"{option} is for --bag")
+    elif args.write_labelled:
+        raise CommandError("--write-labelled is for --files (a labelled bag carries its labels)")
+    else:
         return run_bag(args)
+    if args.files is not None:
+        from rangeret.cli.predict_files import run_files
+
+        return run_files(args)
+    if args.write_labelled:
+        raise CommandError("--write-labelled is for --files")
+    if args.field:
+        raise CommandError(
+            "--field maps the fields of point-cloud files and bags, not of --dataset scans"
+        )
     if args.split is None and args.sequences is None:
         raise CommandError("--dataset needs --split or --sequences")
     return run_dataset(args)

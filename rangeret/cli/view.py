@@ -6,12 +6,18 @@ import argparse
 from pathlib import Path
 
 from rangeret.commands import CommandError
-from rangeret.options import add_profile_option, profile_from_args
+from rangeret.io.point_fields import parse_field_overrides
+from rangeret.options import add_field_option, add_profile_option, profile_from_args
 from rangeret.plugins import Subcommand
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scan", type=Path, metavar="SCAN", help="a .bin scan")
+    p.add_argument(
+        "scan",
+        type=Path,
+        metavar="SCAN",
+        help="a point-cloud file: .bin (the profile's record), .pcd, .ply, .las or .laz",
+    )
     p.add_argument(
         "--labels", type=Path, metavar="FILE", help="predicted .label file (colours the cloud)"
     )
@@ -30,6 +36,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "stem beside it, or the PNG alone",
     )
     add_profile_option(p)
+    add_field_option(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -41,10 +48,14 @@ def run(args: argparse.Namespace) -> int:
             f"--out {args.out}: the file must end with .ply (point cloud and PNG) or .png (PNG only)"
         )
     profile = profile_from_args(args)
-    view = load_labelled_scan(args.scan, args.labels, args.ground_truth, profile=profile)
+    overrides = parse_field_overrides(args.field, record=profile.points)
+    view = load_labelled_scan(
+        args.scan, args.labels, args.ground_truth, profile=profile, overrides=overrides
+    )
     for path in write_view(view, args.out, profile):
         print(f"{path.suffix[1:]}: {path}")
-    print(f"{len(view.points):,} points of {args.scan}, coloured by {view.coloured_by}")
+    left_out = f" ({view.invalid_points:,} invalid points left out)" if view.invalid_points else ""
+    print(f"{len(view.points):,} points of {args.scan}{left_out}, coloured by {view.coloured_by}")
     return 0
 
 

@@ -1,6 +1,8 @@
 """`rangeret view`: one scan with its labels as a coloured PLY point cloud and bird's-eye PNGs.
 
-The scan is read with the profile's point record; a label file (the prediction, the ground truth
+The scan is any point-cloud file `rangeret.io.point_files` reads (`.bin` with the profile's point
+record, PCD, PLY, LAS/LAZ), its fields mapped to the record as `rangeret predict --files` maps
+them; points with a NaN or infinite value are left out of the view (with their labels). A label file (the prediction, the ground truth
 or both) must hold one uint32 per point. Points take their raw id's colour from the profile's
 palette (the label configuration's `color_map`, stored BGR as in the official YAML, written RGB);
 the PLY is coloured by the prediction when there is one, else by the ground truth, else by height
@@ -21,7 +23,9 @@ from rangeret.dataset.profiles import DatasetProfile
 from rangeret.evaluation.plots import _pyplot
 from rangeret.io.atomic import atomic_path
 from rangeret.io.ply import write_ply
-from rangeret.io.scans import ScanFormatError, read_labels, read_scan
+from rangeret.io.point_fields import to_record
+from rangeret.io.point_files import read_point_file
+from rangeret.io.scans import ScanFormatError, read_labels
 
 #: Error map colours (RGB): right, wrong, ignored ground truth; and the background.
 RIGHT_RGB = (44, 160, 44)
@@ -43,6 +47,8 @@ class LabelledScan:
     prediction_path: Path | None = None
     ground_truth: np.ndarray | None = None
     ground_truth_path: Path | None = None
+    #: Points of the file left out because a value is NaN or infinite.
+    invalid_points: int = 0
 
     @property
     def coloured_by(self) -> str:
@@ -60,18 +66,33 @@ def load_labelled_scan(
     ground_truth: Path | str | None = None,
     *,
     profile: DatasetProfile,
+    overrides: dict[str, str] | None = None,
 ) -> LabelledScan:
-    """Read a scan with the profile's point record and its label files, each checked to hold one
-    uint32 per point (a ScanFormatError naming the file and both counts otherwise)."""
+    """Read a point-cloud file as the profile's record (`overrides`: `--field` mappings) and its
+    label files, each checked to hold one uint32 per point of the file (a ScanFormatError naming
+    the file and both counts otherwise); invalid points are then left out."""
     scan = Path(scan)
-    points = read_scan(scan, record=profile.points)
+    cloud = to_record(
+        read_point_file(scan, record=profile.points).columns,
+        record=profile.points,
+        source=str(scan),
+        reflectance_fill=profile.reflectance_fill,
+        overrides=overrides,
+    )
+    n, valid = cloud.num_points, cloud.valid
+    prediction = _labels_for(labels, scan, n)
+    truth = _labels_for(ground_truth, scan, n)
+    if cloud.num_invalid:
+        prediction = None if prediction is None else prediction[valid]
+        truth = None if truth is None else truth[valid]
     return LabelledScan(
         scan=scan,
-        points=points,
-        prediction=_labels_for(labels, scan, len(points)),
+        points=cloud.points[valid] if cloud.num_invalid else cloud.points,
+        prediction=prediction,
         prediction_path=Path(labels) if labels is not None else None,
-        ground_truth=_labels_for(ground_truth, scan, len(points)),
+        ground_truth=truth,
         ground_truth_path=Path(ground_truth) if ground_truth is not None else None,
+        invalid_points=cloud.num_invalid,
     )
 
 

@@ -1,21 +1,26 @@
-"""Coloured point clouds as binary little-endian PLY files, and a reader for such files.
+"""PLY point clouds: the project's coloured, labelled output, and a reader and labelled writer for
+any PLY whose first element is `vertex`.
 
-The writer gives one vertex per point with `x`, `y`, `z` (float32), `red`, `green`, `blue`
-(uchar) and `label` (uint32, the raw semantic id), under the standard header that CloudCompare,
-MeshLab and Open3D read (`label` shows as a scalar field where the viewer has them). The reader
-takes any binary little-endian PLY whose first element is `vertex` with scalar properties, as
-written here.
+The writer of `rangeret view` gives one vertex per point with `x`, `y`, `z` (float32), `red`,
+`green`, `blue` (uchar) and `label` (uint32, the raw semantic id), under the standard header that
+CloudCompare, MeshLab and Open3D read. The reader takes the `ascii`, `binary_little_endian` and
+`binary_big_endian` formats; the first element must be `vertex` with scalar properties (a list
+property there is an error naming it), and later elements (faces, ...) are skipped. The labelled
+writer keeps every vertex property, adds `label` (uint) and `confidence` (float) and keeps the
+file's format; later elements are not written back.
 """
 
 from __future__ import annotations
 
+import io
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from rangeret.exceptions import InputError
 from rangeret.io.atomic import atomic_write_bytes
+from rangeret.io.scans import ScanFormatError
 
 #: The vertex record written: position, colour and raw label.
 VERTEX_DTYPE = np.dtype(
@@ -40,11 +45,8 @@ PLY_TYPES = {
 _TYPE_NAMES = {"<f4": "float", "u1": "uchar", "<u4": "uint"}
 
 
-class PlyFormatError(InputError, ValueError):
+class PlyFormatError(ScanFormatError):
     """A PLY file this reader cannot read, naming the file and the problem."""
-
-    def __init__(self, source: str | os.PathLike[str], problem: str) -> None:
-        super().__init__(f"{source}: {problem}")
 
 
 def ply_bytes(
@@ -87,35 +89,174 @@ def write_ply(
     return Path(path)
 
 
-def read_ply(path: str | os.PathLike[str]) -> np.ndarray:
-    """The vertices of a binary little-endian PLY as a structured array, one field per property."""
-    data = Path(path).read_bytes()
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
-        raise PlyFormatError(path, "is not a PLY file (no 'ply' magic or no end_header)")
-    body = data.index(b"\n", end) + 1
-    lines = data[:body].decode("ascii").splitlines()
-    if "format binary_little_endian 1.0" not in lines:
-        raise PlyFormatError(path, "is not a binary little-endian PLY")
-    count, fields = None, []
-    for line in lines:
+#: The formats of a PLY body, and the byte order of the binary ones.
+FORMATS = {"ascii": "<", "binary_little_endian": "<", "binary_big_endian": ">"}
+#: printf formats of ASCII values that read back exact (integers: %d).
+_ASCII_FORMATS = {"float": "%.9g", "float32": "%.9g", "double": "%.17g", "float64": "%.17g"}
+#: Bytes of a header read before it must have ended.
+HEADER_LIMIT = 64 << 10
+
+
+@dataclass(frozen=True)
+class PlyHeader:
+    """What a PLY header declares about its first element, `vertex`."""
+
+    format: str
+    count: int
+    #: (name, PLY type name) of each vertex property, in order.
+    properties: tuple[tuple[str, str], ...]
+    #: `comment` and `obj_info` lines, kept for a labelled copy.
+    comments: tuple[str, ...]
+    data_offset: int
+
+    @property
+    def dtype(self) -> np.dtype:
+        """One vertex as a numpy record in the file's byte order."""
+        order = FORMATS[self.format]
+        return np.dtype(
+            [
+                (name, np.dtype(PLY_TYPES[kind]).newbyteorder(order))
+                for name, kind in self.properties
+            ]
+        )
+
+
+def is_ply(head: bytes) -> bool:
+    """Whether bytes start with the PLY magic line."""
+    return head.startswith((b"ply\n", b"ply\r\n"))
+
+
+def parse_header(data: bytes | memoryview, source: str | os.PathLike[str]) -> PlyHeader:
+    """The header of a PLY file's bytes (only the header is read); PlyFormatError when it is not
+    a PLY, its first element is not `vertex`, or a vertex property is a list."""
+    head = bytes(data[:HEADER_LIMIT])
+    end = head.find(b"end_header")
+    if not is_ply(head) or end < 0:
+        raise PlyFormatError(source, "is not a PLY file (no 'ply' magic or no end_header)")
+    newline = head.find(b"\n", end)
+    offset = newline + 1 if newline >= 0 else len(head)
+    try:
+        lines = head[:offset].decode("ascii").splitlines()
+    except UnicodeDecodeError:
+        raise PlyFormatError(source, "the PLY header is not ASCII text") from None
+    fmt, count, properties, comments, element = None, None, [], [], None
+    for line in lines[1:]:
         words = line.split()
-        if words[:1] == ["element"]:
+        if not words:
+            continue
+        key = words[0]
+        if key == "format":
+            fmt = words[1] if len(words) > 1 else ""
+        elif key in ("comment", "obj_info"):
+            comments.append(line.strip())
+        elif key == "element":
+            element = words[1] if len(words) > 1 else ""
             if count is not None:
                 break  # only the vertex element, which comes first, is read
-            if words[1:2] != ["vertex"]:
-                raise PlyFormatError(path, f"the first element is {words[1]!r}, not vertex")
+            if element != "vertex" or len(words) != 3 or not words[2].isdigit():
+                raise PlyFormatError(source, f"the first element is {line.strip()!r}, not vertex N")
             count = int(words[2])
-        elif words[:1] == ["property"] and count is not None:
-            if words[1] not in PLY_TYPES:
-                raise PlyFormatError(path, f"property {' '.join(words[1:])} is not a scalar")
-            fields.append((words[2], PLY_TYPES[words[1]]))
+        elif key == "property" and element == "vertex":
+            if len(words) > 1 and words[1] == "list":
+                name = words[-1] if len(words) > 2 else "?"
+                raise PlyFormatError(source, f"vertex property {name!r} is a list, not a scalar")
+            if len(words) != 3 or words[1] not in PLY_TYPES:
+                raise PlyFormatError(source, f"{line.strip()!r} is not a scalar PLY property")
+            properties.append((words[2], words[1]))
+    if fmt not in FORMATS:
+        raise PlyFormatError(source, f"format {fmt!r} is not one of {', '.join(FORMATS)}")
     if count is None:
-        raise PlyFormatError(path, "has no vertex element")
-    dtype = np.dtype(fields)
-    if len(data) - body < count * dtype.itemsize:
+        raise PlyFormatError(source, "has no vertex element")
+    if len({name for name, _ in properties}) != len(properties):
+        raise PlyFormatError(source, "names a vertex property twice")
+    return PlyHeader(fmt, count, tuple(properties), tuple(comments), offset)
+
+
+def declared_points(data: bytes | memoryview, source: str) -> int:
+    """The vertices a PLY declares, from its header alone."""
+    return parse_header(data, source).count
+
+
+@dataclass(frozen=True)
+class PlyCloud:
+    """A decoded PLY: its header and its vertices as one structured array (native byte order)."""
+
+    header: PlyHeader
+    array: np.ndarray
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """Each vertex property as a 1-D array."""
+        return {name: self.array[name] for name in self.array.dtype.names or ()}
+
+
+def read_ply_cloud(data: bytes | memoryview, source: str | os.PathLike[str]) -> PlyCloud:
+    """Decode the vertices of a PLY file's bytes; PlyFormatError when they are truncated."""
+    header = parse_header(data, source)
+    dtype = header.dtype
+    native = dtype.newbyteorder("=")
+    if header.format == "ascii":
+        return PlyCloud(header, _ascii_vertices(data, header, native, source))
+    need = header.count * dtype.itemsize
+    if len(data) - header.data_offset < need:
         raise PlyFormatError(
-            path,
-            f"holds {len(data) - body} bytes of vertices, {count} need {count * dtype.itemsize}",
+            source,
+            f"holds {len(data) - header.data_offset} bytes of vertices, {header.count} need "
+            f"{need} (the file is truncated)",
         )
-    return np.frombuffer(data, dtype=dtype, count=count, offset=body).copy()
+    array = np.frombuffer(data, dtype=dtype, count=header.count, offset=header.data_offset)
+    return PlyCloud(header, array.astype(native))
+
+
+def _ascii_vertices(
+    data: bytes | memoryview, header: PlyHeader, dtype: np.dtype, source: str | os.PathLike[str]
+) -> np.ndarray:
+    """The first `count` lines of an ASCII body as vertices."""
+    array = np.empty(header.count, dtype=dtype)
+    if header.count == 0:
+        return array
+    lines = bytes(data[header.data_offset :]).split(b"\n", header.count)
+    width = len(header.properties)
+    try:
+        values = np.fromstring(b" ".join(lines[: header.count]).decode("ascii"), sep=" ")
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise PlyFormatError(source, f"a vertex value is not a number ({exc})") from exc
+    if len(lines) < header.count or values.size < header.count * width:
+        raise PlyFormatError(
+            source,
+            f"holds {values.size} ASCII values, {header.count} vertices of {width} properties "
+            f"need {header.count * width} (the file is truncated)",
+        )
+    if values.size != header.count * width:
+        raise PlyFormatError(
+            source, f"its first {header.count} lines hold {values.size} values, not {width} each"
+        )
+    values = values.reshape(header.count, width)
+    for i, (name, _) in enumerate(header.properties):
+        array[name] = values[:, i]
+    return array
+
+
+def read_ply(path: str | os.PathLike[str]) -> np.ndarray:
+    """The vertices of a PLY file as a structured array, one field per property."""
+    return read_ply_cloud(Path(path).read_bytes(), path).array
+
+
+def labelled_ply_bytes(cloud: PlyCloud, labels: np.ndarray, confidence: np.ndarray) -> bytes:
+    """The PLY again, in its own format, with every vertex property plus `label` (uint) and
+    `confidence` (float); properties of those names are replaced."""
+    kept = [(n, k) for n, k in cloud.header.properties if n not in ("label", "confidence")]
+    properties = (*kept, ("label", "uint"), ("confidence", "float"))
+    header = PlyHeader(cloud.header.format, len(labels), properties, cloud.header.comments, 0)
+    array = np.empty(len(labels), dtype=header.dtype)
+    for name, _ in kept:
+        array[name] = cloud.array[name]
+    array["label"], array["confidence"] = labels, confidence
+    lines = ["ply", f"format {header.format} 1.0", *header.comments, f"element vertex {len(array)}"]
+    lines += [f"property {kind} {name}" for name, kind in properties]
+    text = ("\n".join([*lines, "end_header"]) + "\n").encode("ascii")
+    if header.format != "ascii":
+        return text + array.tobytes()
+    formats = [_ASCII_FORMATS.get(kind, "%d") for _, kind in properties]
+    out = io.BytesIO()
+    np.savetxt(out, array, fmt=formats, delimiter=" ")
+    return text + out.getvalue()

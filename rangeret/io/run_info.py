@@ -30,21 +30,28 @@ def write_run_info(
     network: Mapping[str, Any],
     *,
     runner: str,
-    dataset: Path | str,
+    dataset: Path | str | None,
     sequences: Sequence[str],
     batch_size: int,
+    inputs: Sequence[Mapping[str, Any]] | None = None,
+    extra: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write `OUT/run.json` atomically and return its path.
 
     `network` is the description of the network and its options (`Predictor.describe()`, or
-    `describe_network` where no predictor is loaded in this process).
+    `describe_network` where no predictor is loaded in this process). `dataset` is None for runs
+    on single files; `inputs` describes each file read (format, points, how its fields filled the
+    record) and `extra` adds run-wide keys.
     """
-    return write_run_record(
-        Path(out) / RUN_INFO,
-        network,
-        runner=runner,
-        details={"batch_size": batch_size, "dataset": str(dataset), "sequences": list(sequences)},
-    )
+    details: dict[str, Any] = {
+        "batch_size": batch_size,
+        "dataset": None if dataset is None else str(dataset),
+        "sequences": list(sequences),
+        **(extra or {}),
+    }
+    if inputs is not None:
+        details["inputs"] = [dict(i) for i in inputs]
+    return write_run_record(Path(out) / RUN_INFO, network, runner=runner, details=details)
 
 
 def write_run_record(

@@ -1,7 +1,9 @@
 """POST /v1/scans: label one scan, answered as raw `.label` bytes or, when asked for, as JSON.
 
 The body holds the served profile's point records (SemanticKITTI: x, y, z, remission, 16 bytes per
-point; PandaSet adds the laser id, 20 bytes); the labels are raw ids of its label configuration.
+point; PandaSet adds the laser id, 20 bytes), or a PCD, PLY, LAS or LAZ file
+(`service.scan_bodies`); the labels are raw ids of its label configuration, one per point in the
+body's order.
 """
 
 from __future__ import annotations
@@ -13,16 +15,24 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, Response
 
 from rangeret.dataset.labels import LabelConfig
+from rangeret.inference.results import ScanPrediction
 from rangeret.io.scans import ScanFormatError, parse_scan
 from service.admission import RETRY_AFTER_S, QueueFull
 from service.batching import BackendError, BackendTimeout, ScanRejected
 from service.dependencies import GatewayDep
 from service.errors import ApiError, error_responses
 from service.gateway import Gateway
+from service.scan_bodies import (
+    CONTENT_TYPES,
+    OCTET,
+    FileBody,
+    body_format,
+    check_declared,
+    decode_file_body,
+    spread,
+)
 from service.schemas import BINARY_CONTENT, ScanLabels
 from service.uploads import declared_length, drain, media_type, read_body
-
-OCTET = "application/octet-stream"
 
 router = APIRouter(prefix="/v1")
 
@@ -61,8 +71,13 @@ def _class_counts(labels: np.ndarray, config: LabelConfig) -> dict[str, int]:
     description=(
         "The body is the raw bytes of one `.bin` scan in the served profile's point record "
         "(`/healthz` names the profile and its point fields: SemanticKITTI's are float32 x, y, z, "
-        "remission, PandaSet's add laser_id). The answer is the raw `.label` bytes (uint32 raw "
-        "ids of the profile's label configuration, one per point), or with "
+        "remission, PandaSet's add laser_id), or a point-cloud file: PCD (`application/x-pcd`), "
+        "PLY (`application/x-ply` or `application/ply`), LAS (`application/vnd.las`) or LAZ "
+        "(`application/vnd.laszip`); an `application/octet-stream` body that starts with a PCD, "
+        "PLY or LAS signature is read as that file. A file's declared point count over the limit "
+        "is refused with 413 before it is decoded. The answer is the raw `.label` bytes (uint32 "
+        "raw ids of the profile's label configuration, one per point in the body's order; a "
+        "file's points with a NaN or infinite value get the unlabelled raw id), or with "
         "`Accept: application/json` the labels with their class counts. Concurrent requests are "
         "labelled together in batches."
     ),
@@ -77,7 +92,12 @@ def _class_counts(labels: np.ndarray, config: LabelConfig) -> dict[str, int]:
         },
         **error_responses(400, 408, 413, 415, 503, 504),
     },
-    openapi_extra={"requestBody": {"required": True, "content": {OCTET: BINARY_CONTENT}}},
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {kind: BINARY_CONTENT for kind in CONTENT_TYPES},
+        }
+    },
 )
 async def label_scan(
     request: Request,
@@ -97,11 +117,11 @@ async def label_scan(
             "Confidences come only in the JSON answer: send 'Accept: application/json' with "
             "confidence=true, or leave confidence out for the raw label bytes.",
         )
-    if media_type(request) != OCTET:
+    if media_type(request) not in CONTENT_TYPES:
         await drain(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
         raise ApiError(
             415,
-            f"Send the scan as {OCTET}; "
+            f"Send the scan as {', '.join(CONTENT_TYPES)}; "
             + (
                 f"this request's Content-Type is {media_type(request)[:100]}."
                 if media_type(request)
@@ -126,6 +146,9 @@ async def _label(request: Request, gw: Gateway, knn: bool, confidence: bool) -> 
     """Read, check and label an admitted scan, and answer in the form the client asked for."""
     limits = gw.settings
     body = await read_body(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
+    fmt = body_format(media_type(request), body[:16])
+    if fmt != "bin":
+        return await _label_file(request, gw, body, fmt, knn, confidence)
     record = gw.profile.points
     if len(body) // record.point_bytes > limits.max_points:
         raise ApiError(
@@ -144,10 +167,36 @@ async def _label(request: Request, gw: Gateway, knn: bool, confidence: bool) -> 
         points = await asyncio.to_thread(parse_scan, body, "the scan", record=record)
     except ScanFormatError as exc:
         raise ApiError(400, f"The scan is malformed: {exc.problem}.") from exc
+    labelled = await _labelled(gw, points, body, knn, confidence)
+    return _answer(request, gw, labelled.labels, labelled.confidence)
+
+
+async def _label_file(
+    request: Request, gw: Gateway, body: bytes, fmt: str, knn: bool, confidence: bool
+) -> Response:
+    """Label a PCD, PLY, LAS or LAZ body: its declared count checked before it is decoded, its
+    valid points labelled, the answer one label per point of the body."""
+    check_declared(body, fmt, gw.profile.points, gw.settings.max_points)
+    decoded: FileBody = await asyncio.to_thread(decode_file_body, body, fmt, gw.profile)
+    if len(decoded.points):
+        points = decoded.points
+        labelled = await _labelled(gw, points, points.tobytes(), knn, confidence)
+        labels, scores = labelled.labels, labelled.confidence
+    else:
+        labels = np.zeros(0, dtype=np.uint32)
+        scores = np.zeros(0, dtype=np.float32) if confidence else None
+    every, every_score = spread(decoded, labels, scores, gw.profile.labels)
+    return _answer(request, gw, every, every_score)
+
+
+async def _labelled(
+    gw: Gateway, points: np.ndarray, raw: bytes, knn: bool, confidence: bool
+) -> ScanPrediction:
+    """The labeller's answer for checked points, its failures as the HTTP errors they mean."""
     if not gw.started:
         raise ApiError(503, "The gateway is starting; try again in a moment.")
     try:
-        labelled = await gw.labeller.label(points, body, knn, confidence)
+        labelled = await gw.labeller.label(points, raw, knn, confidence)
     except ScanRejected as exc:
         raise ApiError(400, f"The scan cannot be projected: {exc}.") from exc
     except BackendTimeout as exc:
@@ -156,15 +205,20 @@ async def _label(request: Request, gw: Gateway, knn: bool, confidence: bool) -> 
         raise ApiError(503, _sentence(exc), {"Retry-After": str(RETRY_AFTER_S)}) from exc
     gw.metrics.scans.labels(source="request").inc()
     gw.metrics.points.inc(len(points))
-    raw = labelled.labels.astype("<u4", copy=False)
+    return labelled
+
+
+def _answer(
+    request: Request, gw: Gateway, labels: np.ndarray, confidence: np.ndarray | None
+) -> Response:
+    """Raw label bytes, or the JSON answer when the client asked for it."""
+    raw = labels.astype("<u4", copy=False)
     if wants_json(request.headers.get("accept")):
         body = ScanLabels(
             num_points=len(raw),
             labels=raw.tolist(),
             class_counts=_class_counts(raw, gw.profile.labels),
-            confidence=None
-            if labelled.confidence is None
-            else np.round(labelled.confidence, 4).tolist(),
+            confidence=None if confidence is None else np.round(confidence, 4).tolist(),
         )
         return JSONResponse(body.model_dump(exclude_none=True))
     return Response(raw.tobytes(), media_type=OCTET)

@@ -1,0 +1,181 @@
+"""Point-cloud files of any supported format as named columns, and their labelled copies.
+
+The format comes from the extension (`.pcd`, `.ply`, `.las`, `.laz`, `.bin`), else from the
+file's first bytes (`# .PCD`, `VERSION` or `FIELDS` for PCD, `ply` for PLY, `LASF` for LAS/LAZ);
+anything else whose size is a whole number of the profile's point records is a `.bin` scan. A file
+reads as `{field name: 1-D array}` in the file's point order plus notes on how values were
+converted (LAS intensity's scaling), which `rangeret.io.point_fields.to_record` turns into the
+profile's record. A malformed or truncated file is a `ScanFormatError` naming it and the problem.
+PCD and LAS/LAZ need the `files` extra; PLY and `.bin` do not.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rangeret.exceptions import InputFileMissing
+from rangeret.io import las, pcd, ply
+from rangeret.io.atomic import atomic_write_bytes
+from rangeret.io.scans import PointRecord, ScanFormatError, parse_scan
+
+#: File extensions and the format each names (`.laz` is LAS whose points are compressed).
+EXTENSIONS = {".pcd": "pcd", ".ply": "ply", ".las": "las", ".laz": "las", ".bin": "bin"}
+#: The formats read, as `PointFile.format` names them.
+FORMATS = ("pcd", "ply", "las", "laz", "bin")
+
+
+class PointFileError(ScanFormatError):
+    """A file whose format cannot be told, or that cannot be written back in its format."""
+
+
+@dataclass(frozen=True)
+class PointFile:
+    """One decoded point-cloud file: its columns in point order, and what it was."""
+
+    source: str
+    #: pcd, ply, las, laz or bin.
+    format: str
+    #: PCD: ascii, binary, binary_compressed; PLY: ascii, binary_little_endian,
+    #: binary_big_endian; LAS/LAZ: the LAS version and point format; bin: the record.
+    encoding: str
+    columns: dict[str, np.ndarray]
+    notes: tuple[str, ...] = ()
+    #: The format's decoded form, kept to write the file back with labels.
+    decoded: Any = field(default=None, repr=False)
+
+    @property
+    def num_points(self) -> int:
+        """Points of the file."""
+        return len(next(iter(self.columns.values()))) if self.columns else 0
+
+    @property
+    def extension(self) -> str:
+        """The extension of a file in this format (`.laz` for compressed LAS)."""
+        return f".{self.format}"
+
+    @property
+    def can_write_labelled(self) -> bool:
+        """Whether the format has room for added fields (a `.bin` record has none)."""
+        return self.format != "bin"
+
+    def describe(self) -> dict[str, Any]:
+        """Format, encoding, points, fields and notes, for run records."""
+        return {
+            "format": self.format,
+            "encoding": self.encoding,
+            "points": self.num_points,
+            "file_fields": list(self.columns),
+            "notes": list(self.notes),
+        }
+
+
+def sniff_format(head: bytes, size: int, *, record: PointRecord, source: str) -> str:
+    """The format of bytes from their signature (`bin` for a whole number of `record`s);
+    PointFileError when it is none of them."""
+    if pcd.is_pcd(head):
+        return "pcd"
+    if ply.is_ply(head):
+        return "ply"
+    if las.is_las(head):
+        return "las"
+    if size and size % record.point_bytes == 0:
+        return "bin"
+    raise PointFileError(
+        source,
+        "is not a PCD, PLY or LAS/LAZ file (no signature) nor a .bin scan "
+        f"({size} bytes is not a multiple of {record.point_bytes}: {record.describe()})",
+    )
+
+
+def format_of(name: str | os.PathLike[str], head: bytes, size: int, *, record: PointRecord) -> str:
+    """The format of a file: its extension's, else its signature's (see `sniff_format`)."""
+    known = EXTENSIONS.get(Path(name).suffix.lower())
+    return known or sniff_format(head, size, record=record, source=str(name))
+
+
+def declared_points(data: bytes | memoryview, fmt: str, *, record: PointRecord, source: str) -> int:
+    """The points a file says it holds, from its header alone (a `.bin`: its size), so that a
+    caller can refuse it before decoding or decompressing anything."""
+    if fmt == "pcd":
+        return pcd.declared_points(data, source)
+    if fmt == "ply":
+        return ply.declared_points(data, source)
+    if fmt in ("las", "laz"):
+        return las.declared_points(data, source)
+    return len(data) // record.point_bytes
+
+
+def read_point_file(
+    path: str | os.PathLike[str], *, record: PointRecord, fmt: str | None = None
+) -> PointFile:
+    """Read a point-cloud file (format from `fmt`, else its extension, else its signature)."""
+    try:
+        data = Path(path).read_bytes()
+    except FileNotFoundError as exc:
+        raise InputFileMissing.of(exc) from exc
+    except IsADirectoryError as exc:
+        raise PointFileError(path, "is a folder, not a point-cloud file") from exc
+    fmt = fmt or format_of(path, data[:16], len(data), record=record)
+    return decode_point_file(data, fmt, record=record, source=str(path))
+
+
+def decode_point_file(
+    data: bytes | memoryview, fmt: str, *, record: PointRecord, source: str
+) -> PointFile:
+    """Decode a file's bytes in format `fmt` (pcd, ply, las, laz or bin; las and laz alike)."""
+    if fmt == "pcd":
+        cloud = pcd.read_pcd(data, source)
+        padded = len(cloud.array.dtype.names or ()) - len(cloud.columns())
+        notes = (f"{padded} padding field(s) '_' skipped",) if padded else ()
+        return PointFile(source, "pcd", cloud.header.encoding, cloud.columns(), notes, cloud)
+    if fmt == "ply":
+        cloud = ply.read_ply_cloud(data, source)
+        return PointFile(source, "ply", cloud.header.format, cloud.columns(), (), cloud)
+    if fmt in ("las", "laz"):
+        cloud = las.read_las(data, source)
+        info = cloud.header
+        columns = cloud.columns()
+        notes = (las.INTENSITY_NOTE,) if "intensity" in columns else ()
+        encoding = f"LAS {info.version} point format {info.point_format}"
+        kind = "laz" if info.compressed else "las"
+        return PointFile(source, kind, encoding, columns, notes, cloud)
+    if fmt == "bin":
+        points = parse_scan(data, source, record=record)
+        columns = {name: points[:, i] for i, name in enumerate(record.fields)}
+        return PointFile(source, "bin", record.describe(), columns)
+    raise PointFileError(source, f"format {fmt!r} is not one of {', '.join(FORMATS)}")
+
+
+def labelled_bytes(point_file: PointFile, labels: np.ndarray, confidence: np.ndarray) -> bytes:
+    """The file again in its own format and encoding, with `label` (uint32 raw ids) and
+    `confidence` (float32) per point added."""
+    labels = np.asarray(labels, dtype=np.uint32)
+    confidence = np.asarray(confidence, dtype=np.float32)
+    if len(labels) != point_file.num_points or len(confidence) != point_file.num_points:
+        raise ValueError(
+            f"{point_file.source}: {len(labels)} labels and {len(confidence)} confidences for "
+            f"{point_file.num_points} points"
+        )
+    if point_file.format == "pcd":
+        return pcd.labelled_pcd_bytes(point_file.decoded, labels, confidence)
+    if point_file.format == "ply":
+        return ply.labelled_ply_bytes(point_file.decoded, labels, confidence)
+    if point_file.format in ("las", "laz"):
+        return las.labelled_las_bytes(point_file.decoded, labels, confidence)
+    raise PointFileError(
+        point_file.source,
+        "a .bin scan has no room for added fields (its .label file is the labels)",
+    )
+
+
+def write_labelled(
+    path: str | os.PathLike[str], point_file: PointFile, labels: np.ndarray, confidence: np.ndarray
+) -> Path:
+    """Write `labelled_bytes` atomically to `path`."""
+    atomic_write_bytes(path, labelled_bytes(point_file, labels, confidence))
+    return Path(path)
