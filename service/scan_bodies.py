@@ -14,7 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rangeret.dataset.labels import LabelConfig
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.extras import MissingExtraError
 from rangeret.io import las, pcd, ply
@@ -104,18 +103,3 @@ def decode_file_body(body: bytes, fmt: str, profile: DatasetProfile) -> FileBody
         ) from exc
     points = cloud.points if cloud.num_invalid == 0 else cloud.points[cloud.valid]
     return FileBody(np.ascontiguousarray(points), cloud.valid, point_file.format)
-
-
-def spread(
-    body: FileBody, labels: np.ndarray, confidence: np.ndarray | None, config: LabelConfig
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """Labels (and confidences) of the valid points as one per point of the body: invalid
-    points get the unlabelled class's raw id and confidence 0."""
-    unlabelled = int(config.to_raw(np.array([config.unlabeled_class]))[0])
-    every = np.full(body.num_points, unlabelled, dtype=np.uint32)
-    every[body.valid] = labels
-    if confidence is None:
-        return every, None
-    scores = np.zeros(body.num_points, dtype=np.float32)
-    scores[body.valid] = confidence
-    return every, scores

@@ -1,20 +1,25 @@
 """Labels for one cloud in any point order, invalid points included: the step every runner of
-files, bags and robot messages shares.
+files, bags, robot messages and the gateway's file bodies shares.
 
 The network labels the cloud's valid points (`RecordPoints.valid`); a point with a NaN or
 infinite value gets the raw id of the profile's unlabelled class and confidence 0, so the answer
-holds one label per input point, in the input's order.
+holds one label per input point, in the input's order. Torch-free: the gateway spreads the
+labels its network workers return with `spread_labels` without loading torch.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rangeret.inference.predictor import Predictor
-from rangeret.inference.timing import StageTimes
+from rangeret.dataset.labels import LabelConfig
 from rangeret.io.point_fields import RecordPoints
+
+if TYPE_CHECKING:
+    from rangeret.inference.predictor import Predictor
+    from rangeret.inference.timing import StageTimes
 
 
 @dataclass(frozen=True)
@@ -25,10 +30,26 @@ class CloudLabels:
     confidence: np.ndarray
 
 
-def unlabelled_raw_id(predictor: Predictor) -> int:
+def unlabelled_raw_id(config: LabelConfig) -> int:
     """The raw id written for points the network does not label."""
-    config = predictor.label_config
     return int(config.to_raw(np.array([config.unlabeled_class]))[0])
+
+
+def spread_labels(
+    valid: np.ndarray,
+    labels: np.ndarray,
+    confidence: np.ndarray | None,
+    *,
+    config: LabelConfig,
+) -> CloudLabels:
+    """The labels and confidences of a cloud's valid points as one per point of the cloud:
+    the invalid ones get the unlabelled raw id and confidence 0 (0 for all without confidences)."""
+    every = np.full(len(valid), unlabelled_raw_id(config), dtype=np.uint32)
+    every[valid] = labels
+    scores = np.zeros(len(valid), dtype=np.float32)
+    if confidence is not None:
+        scores[valid] = confidence
+    return CloudLabels(labels=every, confidence=scores)
 
 
 def label_cloud(
@@ -39,15 +60,11 @@ def label_cloud(
     A projection error (a laser id outside the sensor's rows, say) propagates as the
     `ProjectionError` it is, for the caller to report against its source.
     """
-    n = cloud.num_points
-    labels = np.full(n, unlabelled_raw_id(predictor), dtype=np.uint32)
-    confidence = np.zeros(n, dtype=np.float32)
     valid = cloud.valid
-    if np.any(valid):
-        points = cloud.points if cloud.num_invalid == 0 else cloud.points[valid]
-        (result,) = predictor.finish_batch(
-            [predictor.project(points, times)], times=times, with_confidence=True
-        )
-        labels[valid] = result.labels
-        confidence[valid] = result.confidence
-    return CloudLabels(labels=labels, confidence=confidence)
+    if not np.any(valid):
+        return spread_labels(valid, np.empty(0, np.uint32), None, config=predictor.label_config)
+    points = cloud.points if cloud.num_invalid == 0 else cloud.points[valid]
+    (result,) = predictor.finish_batch(
+        [predictor.project(points, times)], times=times, with_confidence=True
+    )
+    return spread_labels(valid, result.labels, result.confidence, config=predictor.label_config)

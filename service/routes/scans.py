@@ -15,6 +15,7 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, Response
 
 from rangeret.dataset.labels import LabelConfig
+from rangeret.inference.clouds import spread_labels
 from rangeret.inference.results import ScanPrediction
 from rangeret.io.scans import ScanFormatError, parse_scan
 from service.admission import RETRY_AFTER_S, QueueFull
@@ -29,7 +30,6 @@ from service.scan_bodies import (
     body_format,
     check_declared,
     decode_file_body,
-    spread,
 )
 from service.schemas import BINARY_CONTENT, ScanLabels
 from service.uploads import declared_length, drain, media_type, read_body
@@ -185,8 +185,8 @@ async def _label_file(
     else:
         labels = np.zeros(0, dtype=np.uint32)
         scores = np.zeros(0, dtype=np.float32) if confidence else None
-    every, every_score = spread(decoded, labels, scores, gw.profile.labels)
-    return _answer(request, gw, every, every_score)
+    every = spread_labels(decoded.valid, labels, scores, config=gw.profile.labels)
+    return _answer(request, gw, every.labels, every.confidence if confidence else None)
 
 
 async def _labelled(

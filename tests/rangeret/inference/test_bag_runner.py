@@ -120,7 +120,7 @@ def test_each_cloud_gets_the_labels_of_its_points_and_the_rest_is_kept(
     assert k == 4
     nan = np.isnan(np.asarray(clouds[2].fields[1][2]))
     _, odd = decode([m[4] for m in after if m[0] == "/points"][2], "odd")
-    assert nan.any() and np.all(odd["label"][nan] == unlabelled_raw_id(predictor))
+    assert nan.any() and np.all(odd["label"][nan] == unlabelled_raw_id(predictor.label_config))
     assert np.all(odd["confidence"][nan] == 0)
 
     record = json.loads((tmp_path / (target.name + ".run.json")).read_text())
