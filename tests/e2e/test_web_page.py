@@ -441,7 +441,7 @@ def test_the_demo_weights_are_named_beside_the_model(browser, tmp_path, capsys):
     from rangeret.models.weights.demo import DEMO_CHECKPOINT
 
     env = gateway_env(tmp_path / "state", [tmp_path], token=None)
-    gw = start_gateway(DEMO_CHECKPOINT, env, tmp_path / "gateway.log")
+    gw = start_gateway(DEMO_CHECKPOINT, env, tmp_path / "gateway.log", net=["--device", "cpu"])
     context = browser.new_context(viewport=VIEWPORT)
     try:
         with gw.client(auth=False) as client:
