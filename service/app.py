@@ -28,6 +28,7 @@ from service.metrics import MetricsMiddleware
 from service.origins import OriginGuard
 from service.routes.health import router as health_router
 from service.routes.jobs import router as jobs_router
+from service.routes.model import router as model_router
 from service.routes.page import router as page_router
 from service.routes.profile import router as profile_router
 from service.routes.scans import router as scans_router
@@ -131,6 +132,7 @@ def create_app(
     app.include_router(scans_router, **guarded)
     app.include_router(jobs_router, **guarded)
     app.include_router(profile_router, **guarded)
+    app.include_router(model_router, **guarded)
     app.include_router(health_router)
     app.include_router(page_router)
     app.openapi = lambda: _openapi(app)

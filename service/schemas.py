@@ -330,3 +330,45 @@ class ServedProfile(BaseModel):
         "map); a raw id not listed, after masking it to its low 16 bits, is the unlabeled class"
     )
     unlabeled_class: int = Field(ge=0, description="the class of raw ids the map does not list")
+
+
+class ServedModel(BaseModel):
+    """The network the gateway serves: its name, its checkpoint and whether it is the demo's."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "name": "rangeret-cir",
+                    "checkpoint_sha256": "9b1d...",
+                    "profile": "semantickitti",
+                    "demo_weights": False,
+                    "note": None,
+                },
+                {
+                    "name": "rangeret-thesis",
+                    "checkpoint_sha256": "4c07...",
+                    "profile": "semantickitti",
+                    "demo_weights": True,
+                    "note": "Demo weights: trained on simulated scenes only, so their labels of "
+                    "real scans are not meaningful. Serve a published model with rangeret serve "
+                    "--checkpoint rangeret-kitti-657 (see rangeret weights list).",
+                },
+            ]
+        }
+    )
+
+    name: str | None = Field(description="the served network (rangeret-cir, rangeret-thesis)")
+    checkpoint_sha256: str | None = Field(
+        description="SHA-256 of the checkpoint file the gateway loaded"
+    )
+    profile: str = Field(description="the dataset profile the gateway serves")
+    demo_weights: bool = Field(
+        description="whether the checkpoint is the bundled demo weights, trained on simulated "
+        "scenes only: their labels of real scans are not meaningful"
+    )
+    note: str | None = Field(
+        default=None,
+        description="with the demo weights: what they are and how to serve a published model "
+        "instead (one or two sentences, for a page to show beside the model's name)",
+    )

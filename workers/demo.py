@@ -9,10 +9,15 @@ ground truth and prediction. The demo weights were trained on simulated scenes o
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import sys
+import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 
@@ -90,22 +95,12 @@ def run_demo(
     )
     log.info("simulated %d scans into %s", n, dataset)
 
-    own_ray = not ray.is_initialized()
-    if own_ray:
-        ray.init(
-            address="local",
-            num_cpus=os.cpu_count() or 2,
-            include_dashboard=False,
-            log_to_driver=False,
-        )
-    try:
+    with contextlib.ExitStack() as stack:
+        ray_logs = None if ray.is_initialized() else stack.enter_context(_local_ray())
         entries = discover(dataset, list(sequences), layout=profile.layout).scans
         run = run_pipeline(
             spec, profile, entries, preds, PipelineOptions(read_cpus=0.25, write_cpus=0.1)
         )
-    finally:
-        if own_ray:
-            ray.shutdown()
     if not run.summary.ok:
         raise RuntimeError(f"the demo could not predict {sorted(run.summary.failed)}")
 
@@ -155,6 +150,8 @@ def run_demo(
         print(f"  plot:                                     {p}")
     if benchmark:
         print(f"  submission archive (partial, for tests):  {archive}")
+    if ray_logs is not None:
+        print(f"  Ray's own logs:                           {ray_logs}")
     if weights.resolve() == DEMO_CHECKPOINT.resolve():
         print(f"\nNote: {DEMO_WARNING}.")
     print("\nOn real SemanticKITTI data with a published checkpoint:")
@@ -193,3 +190,115 @@ def _range_image_png(
         config=config,
         title=f"simulated scan {entry.key}",
     )
+
+
+#: The file in a Ray session's log folder that takes what Ray writes to the demo's stderr.
+RAY_STDERR_LOG = "driver-stderr.log"
+
+
+@contextlib.contextmanager
+def _local_ray() -> Iterator[Path]:
+    """A local Ray for the demo, shut down at the end, whose own output stays out of the demo's:
+    what Ray writes to this process's stderr (its loggers, its core worker's C++ log lines) goes
+    to `RAY_STDERR_LOG` in the session's log folder, beside the logs Ray keeps there, while the
+    demo's log lines still reach the terminal. Yields that folder."""
+    import ray
+
+    redirect = _StderrRedirect()
+    try:
+        context = ray.init(
+            address="local",
+            num_cpus=os.cpu_count() or 2,
+            include_dashboard=False,
+            log_to_driver=False,
+        )
+    except BaseException:
+        redirect.stop(show=True)
+        raise
+    logs = Path(context.address_info["session_dir"]) / "logs"
+    redirect.move(logs / RAY_STDERR_LOG)
+    try:
+        yield logs
+    except BaseException:
+        log.warning("what Ray wrote to stderr in this run is in %s", logs / RAY_STDERR_LOG)
+        raise
+    finally:
+        try:
+            ray.shutdown()
+        finally:
+            redirect.stop(show=False)
+
+
+class _StderrRedirect:
+    """File descriptor 2, `sys.stderr` and the other libraries' log handlers that wrote to it
+    pointed at a file (first a temporary one, then `move`'s), with the root logger's handlers
+    (this program's log lines) still writing to the terminal."""
+
+    def __init__(self) -> None:
+        self.saved = sys.stderr
+        self.saved.flush()
+        self.terminal_fd = os.dup(2)
+        self.terminal: IO[str] | None = None
+        loggers = [logging.getLogger()] + [
+            logger
+            for logger in logging.Logger.manager.loggerDict.values()
+            if isinstance(logger, logging.Logger)
+        ]
+        handlers = {
+            handler: logger is loggers[0]
+            for logger in loggers
+            for handler in logger.handlers
+            if isinstance(handler, logging.StreamHandler) and handler.stream is self.saved
+        }
+        self.ours = [h for h, root in handlers.items() if root]
+        self.theirs = [h for h, root in handlers.items() if not root]
+        if _fileno(self.saved) == 2:
+            self.terminal = open(  # noqa: SIM115 (closed by stop)
+                self.terminal_fd, "w", buffering=1, closefd=False, errors="backslashreplace"
+            )
+            for handler in self.ours:
+                handler.setStream(self.terminal)
+        self.file: IO[str] = tempfile.TemporaryFile("w+", errors="backslashreplace")  # noqa: SIM115
+        self._point_at(self.file)
+
+    def _point_at(self, file: IO[str]) -> None:
+        sys.stderr.flush()
+        os.dup2(file.fileno(), 2)
+        sys.stderr = file
+        for handler in self.theirs:
+            handler.setStream(file)
+
+    def move(self, path: Path) -> None:
+        """Go on in `path` (appended to), with what was written so far."""
+        self.file.flush()
+        self.file.seek(0)
+        written = self.file.read()
+        target = open(path, "a", buffering=1, errors="backslashreplace")  # noqa: SIM115
+        target.write(written)
+        self._point_at(target)
+        self.file.close()
+        self.file = target
+
+    def stop(self, show: bool) -> None:
+        """Point everything back at the terminal; with `show`, write there what the file got."""
+        self.file.flush()
+        os.dup2(self.terminal_fd, 2)
+        sys.stderr = self.saved
+        for handler in self.ours + self.theirs:
+            handler.setStream(self.saved)
+        if show:
+            self.file.seek(0)
+            self.saved.write(self.file.read())
+            self.saved.flush()
+        self.file.close()
+        if self.terminal is not None:
+            self.terminal.close()
+        os.close(self.terminal_fd)
+
+
+def _fileno(stream: object) -> int | None:
+    """The file descriptor a stream writes to, None when it has none."""
+    try:
+        return stream.fileno()  # type: ignore[attr-defined]
+    except (AttributeError, OSError, ValueError):
+        return None

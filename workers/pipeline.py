@@ -39,6 +39,7 @@ from rangeret.evaluation.metrics import RawLabelEvaluator
 from rangeret.inference.loading import batches
 from rangeret.inference.results import RunSummary
 from workers.cluster import cluster_layout
+from workers.progress import TimeLeft
 from workers.sizing import ClusterCapacityError, Layout, PipelineOptions
 from workers.stages import BatchRecord, ModelWorker, Reader, Writer
 
@@ -155,6 +156,7 @@ def run_pipeline(
     start = time.perf_counter()
     last_log = start
     total = len(entries)
+    time_left = TimeLeft(total)
     devices: set[str] = set()
     try:
         rows = iter(ds.iter_rows())
@@ -180,16 +182,15 @@ def run_pipeline(
         if progress is not None:
             progress(summary.done, len(summary.failed), total)
         now = time.perf_counter()
+        left = time_left.update(summary.done)
         if now - last_log >= options.progress_interval or summary.done == total:
-            rate = summary.done / (now - start)
-            left = (total - summary.done) / rate if rate else float("inf")
             log.info(
-                "%d / %d scans done (%d failed), %.2f scans/s, about %.0f s left",
+                "%d / %d scans done (%d failed), %.2f scans/s%s",
                 summary.done,
                 total,
                 len(summary.failed),
-                rate,
-                left,
+                summary.done / (now - start),
+                f", about {left:.0f} s left" if left else "",
             )
             last_log = now
     summary.seconds = time.perf_counter() - start

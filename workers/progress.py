@@ -147,3 +147,47 @@ class ProgressWriter:
     def _write(self) -> None:
         write_progress(self.out, self.progress)
         self._last = self.clock()
+
+
+#: Scans a run completes after its first before `TimeLeft` estimates anything.
+MIN_SCANS_FOR_ESTIMATE = 3
+#: Seconds a run goes on after its first scan before `TimeLeft` estimates anything.
+MIN_SECONDS_FOR_ESTIMATE = 5.0
+
+
+class TimeLeft:
+    """Seconds a run of `total` scans has left, from its rate since its first scan came through.
+
+    The first scan carries the start-up (actors, weights, the first batch's compilation), so the
+    rate is measured from it on, and there is no estimate (None) until `min_scans` more scans
+    came through over at least `min_seconds`: an early estimate is mostly start-up and far off.
+    """
+
+    def __init__(
+        self,
+        total: int,
+        min_scans: int = MIN_SCANS_FOR_ESTIMATE,
+        min_seconds: float = MIN_SECONDS_FOR_ESTIMATE,
+        clock: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        self.total = total
+        self.min_scans = min_scans
+        self.min_seconds = min_seconds
+        self.clock = clock
+        self._first: tuple[int, float] | None = None
+
+    def update(self, done: int) -> float | None:
+        """The estimate once `done` scans are through; 0 once all are, None while it would
+        mean nothing."""
+        now = self.clock()
+        if done >= self.total:
+            return 0.0
+        if self._first is None:
+            if done > 0:
+                self._first = (done, now)
+            return None
+        since, started = self._first
+        scans, seconds = done - since, now - started
+        if scans < self.min_scans or seconds < self.min_seconds:
+            return None
+        return (self.total - done) * seconds / scans

@@ -15,8 +15,12 @@ log = logging.getLogger("rangeret")
 
 
 def predictor_from_args(args: argparse.Namespace) -> Predictor:
-    """A loaded `Predictor` from the shared network options, announced in the log."""
-    predictor = spec_from_args(args).build()
+    """A loaded `Predictor` from the shared network options, announced in the log (a first
+    onnxruntime export says how long it has run, except with -q)."""
+    from rangeret.inference.runtime.onnx_backend import export_heartbeat
+
+    with export_heartbeat(not getattr(args, "quiet", False)):
+        predictor = spec_from_args(args).build()
     info = predictor.describe()
     log.info(
         "%s from %s (sha256 %s), %s profile, at %dx%d on %s",

@@ -240,6 +240,22 @@ class EvaluationReport:
             else None,
         )
 
+    def points_line(self) -> str:
+        """How many points were predicted and how many of them scored: those whose ground truth
+        is an ignored class (unlabeled) are predicted but count in no score."""
+        scored = self.confusion.evaluated_points()
+        line = (
+            f"{self.num_scans:,} scans, {self.num_points:,} points predicted, {scored:,} of them "
+            "scored"
+        )
+        if self.num_points > scored:
+            ignored = " or ".join(self.class_names[c] for c in self.confusion.ignore) or "ignored"
+            line += (
+                f" (the other {self.num_points - scored:,} have the ground truth {ignored}, "
+                "which is not scored)"
+            )
+        return line
+
     def table(self) -> str:
         """A readable per-class table with IoU in percent, followed by mIoU and accuracy."""
         tp, fp, fn = self.confusion.stats()
@@ -254,7 +270,7 @@ class EvaluationReport:
         lines.append("-" * len(lines[0]))
         lines.append(f"{'mIoU':<{width}}  {100 * self.miou:6.2f}")
         lines.append(f"{'accuracy':<{width}}  {100 * self.accuracy:6.2f}")
-        lines.append(f"{self.num_scans:,} scans, {self.num_points:,} points")
+        lines.append(self.points_line())
         parts = [
             ("sequence", list(self.by_sequence.items())),
             ("distance", [(band_name(b), cm) for b, cm in enumerate(self.by_distance)]),
@@ -273,9 +289,9 @@ class EvaluationReport:
 
 
 def _parts_table(title: str, rows: list[tuple[str, ConfusionMatrix]]) -> list[str]:
-    """Lines of points, mIoU and accuracy (percent) per part, headed by `title`."""
+    """Lines of scored points, mIoU and accuracy (percent) per part, headed by `title`."""
     width = max(len(title), *(len(name) for name, _ in rows))
-    lines = [f"{title:<{width}}  {'points':>13}  {'mIoU %':>6}  {'accuracy %':>10}"]
+    lines = [f"{title:<{width}}  {'scored points':>13}  {'mIoU %':>6}  {'accuracy %':>10}"]
     for name, cm in rows:
         lines.append(
             f"{name:<{width}}  {cm.evaluated_points():>13,}  {100 * cm.miou():6.2f}  "

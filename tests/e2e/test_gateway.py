@@ -674,7 +674,7 @@ def test_fuzz_no_server_error(gateway):
         )
 
     operations = [result.ok() for result in schema.get_all_operations()]
-    assert len(operations) == 11  # GET /v1/profile and the report PNGs among them
+    assert len(operations) == 12  # GET /v1/profile, /v1/model and the report PNGs among them
     for operation in operations:
         for mode in (GenerationMode.POSITIVE, GenerationMode.NEGATIVE):
             run = settings(

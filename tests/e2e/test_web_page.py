@@ -2,8 +2,10 @@
 against a real `rangeret serve` with a token and RANGERET_ROOT_PATH=/rangeret.
 
 The real scan is dropped and drawn with the gateway's labels, counts and scores; its screenshot
-shows the palette; an uploaded archive is followed to its report; the token rule holds; the page
-works behind a reverse proxy's path prefix; the policy header is sent and the console stays clean.
+shows the palette; an uploaded archive is followed to its report, the status line to the job's
+end; the colour modes wrap inside their panel; the demo weights are named beside the model; the
+token rule holds; the page works behind a reverse proxy's path prefix; the policy header is sent
+and the console stays clean.
 The screenshots are kept in runs/page/ for a person to look at.
 """
 
@@ -183,6 +185,7 @@ def test_without_the_token_the_page_shows_the_sign_in_and_no_data(setup, page):
     assert tab.inner_text("#health dd[data-field=backend]") == "local"
     assert tab.inner_text("#health dd[data-field=model]") == "rangeret-cir"
     assert tab.inner_text("#health dd[data-field=profile]") == "semantickitti"
+    assert state(tab, ".model")["demo_weights"] is False and tab.is_hidden("#model-note")
     assert tab.inner_text("#health dd[data-field='queue depth']") == "0"
     assert tab.evaluate("() => sessionStorage.getItem('rangeret.token')") == TOKEN
     assert tab.evaluate("() => localStorage.length") == 0
@@ -308,6 +311,10 @@ def test_an_archive_job_from_upload_to_report(setup, page, capsys):
     row = f"#jobs-table tr[data-job='{job_id}']"
     tab.wait_for_selector(f"{row}[data-state=succeeded]", timeout=180_000)
     assert "2 / 2" in tab.inner_text(row)
+    # The status line follows the job it announced to its end.
+    status = tab.inner_text("#jobs-status")
+    shown = re.fullmatch(rf"Job {job_id[:8]} succeeded: 2 / 2 scans, mIoU (\d+\.\d) %\.", status)
+    assert shown, status
 
     tab.click(f"{row} button:text-is('Report')")
     tab.wait_for_selector("#report-distance tbody tr")
@@ -336,6 +343,7 @@ def test_an_archive_job_from_upload_to_report(setup, page, capsys):
     bands = tab.locator("#report-distance tbody tr").all_inner_texts()
     assert [b.split()[0] for b in bands] == ["0-10", "10-20", "20-30", "30-40", "40-50", "50+"]
     assert tab.locator("#report-classes tbody tr").count() == len(report["iou"])
+    assert float(shown.group(1)) == pytest.approx(100 * report["miou"], abs=0.051)
     overall = tab.inner_text("#report-overall")
     assert f"{100 * report['miou']:.1f}" in overall and "semantickitti" in overall
     shoot(tab, "job-report.png", capsys)
@@ -381,6 +389,90 @@ def test_a_dataset_job_is_started_from_the_page(setup, page):
     # The 404 of the missing dataset was the gateway's answer to a request the page made.
     assert [f for f in log.failed if "/v1/jobs" in f] == [f"404 {setup['gateway'].url}/v1/jobs"]
     assert [e for e in log.errors if "404" not in e] == []
+
+
+# Layout ---------------------------------------------------------------------------------------------
+
+
+def test_the_colour_modes_wrap_inside_the_side_panel(setup, page):
+    """At 1400 px the colour modes wrap as wholes (each button on one line with its words)
+    inside their box and the side panel, and nothing overflows sideways."""
+    tab, log = page
+    tab.goto(setup["gateway"].url + "/")
+    sign_in(tab)
+    tab.wait_for_selector("#tab-scan:not([hidden])")
+    boxes = tab.evaluate(
+        """() => {
+          const box = (node) => {
+            const r = node.getBoundingClientRect();
+            return { left: r.left, right: r.right, top: r.top, bottom: r.bottom };
+          };
+          const side = document.querySelector('.scan-side');
+          const modes = document.getElementById('color-modes');
+          return {
+            page: [document.documentElement.scrollWidth, window.innerWidth],
+            side: { ...box(side), scroll: side.scrollWidth, client: side.clientWidth },
+            modes: box(modes),
+            labels: [...modes.querySelectorAll('label')].map((label) => ({
+              ...box(label),
+              lines: label.getClientRects().length,
+            })),
+          };
+        }"""
+    )
+    assert boxes["page"][0] <= boxes["page"][1] == VIEWPORT["width"]
+    side, modes = boxes["side"], boxes["modes"]
+    assert side["scroll"] <= side["client"]
+    assert side["left"] <= modes["left"] and modes["right"] <= side["right"]
+    assert len(boxes["labels"]) == 3
+    for label in boxes["labels"]:
+        assert label["lines"] == 1, boxes["labels"]
+        assert modes["left"] <= label["left"] and label["right"] <= modes["right"], label
+        assert modes["top"] <= label["top"] and label["bottom"] <= modes["bottom"], label
+    assert log.errors == []
+
+
+# The demo weights -------------------------------------------------------------------------------------
+
+
+def test_the_demo_weights_are_named_beside_the_model(browser, tmp_path, capsys):
+    """A gateway on the bundled demo weights: the API says so, and the page shows it beside
+    the model's name with how to serve a published model."""
+    from rangeret.models.weights.demo import DEMO_CHECKPOINT
+
+    env = gateway_env(tmp_path / "state", [tmp_path], token=None)
+    gw = start_gateway(DEMO_CHECKPOINT, env, tmp_path / "gateway.log", net=["--device", "cpu"])
+    context = browser.new_context(viewport=VIEWPORT)
+    try:
+        with gw.client(auth=False) as client:
+            model = client.get("/v1/model").json()
+        assert model["demo_weights"] is True and model["name"] == "rangeret-thesis"
+        tab = context.new_page()
+        log = PageLog()
+        log.watch(tab)
+        tab.goto(gw.url + "/")
+        tab.wait_for_selector("#model-note:not([hidden])")
+        tab.wait_for_function(
+            "() => document.getElementById('served').textContent.includes('rangeret-thesis')"
+        )
+        note = tab.inner_text("#model-note")
+        assert note == model["note"]
+        assert note.startswith("Demo weights: trained on simulated scenes only")
+        assert "--checkpoint rangeret-kitti-657" in note and "rangeret weights list" in note
+        served = tab.locator("#served").bounding_box()
+        shown = tab.locator("#model-note").bounding_box()
+        # Beside the model's name: on its row, right after it.
+        assert shown["x"] >= served["x"] + served["width"]
+        assert (
+            shown["y"] < served["y"] + served["height"]
+            and served["y"] < shown["y"] + shown["height"]
+        )
+        assert shown["x"] + shown["width"] <= VIEWPORT["width"]
+        shoot(tab, "demo-weights.png", capsys)
+        assert log.errors == [] and log.failed == []
+    finally:
+        context.close()
+        gw.stop()
 
 
 # Behind a reverse proxy's path prefix ----------------------------------------------------------------

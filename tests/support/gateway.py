@@ -9,6 +9,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -75,7 +76,11 @@ def gateway_env(
     return env
 
 
-def start_gateway(weights: Path, env: dict[str, str], log: Path, *args: str) -> Gateway:
+def start_gateway(
+    weights: Path, env: dict[str, str], log: Path, *args: str, net: Sequence[str] = NET
+) -> Gateway:
+    """`rangeret serve` of `weights` with the network options `net` (default: the small
+    weights' 32 x 256 on the CPU) and `args`, once it answers /healthz."""
     port = free_port()
     cmd = [
         sys.executable,
@@ -83,7 +88,7 @@ def start_gateway(weights: Path, env: dict[str, str], log: Path, *args: str) -> 
         "service",
         "--checkpoint",
         str(weights),
-        *NET,
+        *net,
         "--port",
         str(port),
         "--log-level",

@@ -4,7 +4,9 @@ announces exists and is valid."""
 from __future__ import annotations
 
 import json
+import re
 import zipfile
+from pathlib import Path
 
 import pytest
 
@@ -15,16 +17,29 @@ from rangeret.submission.leaderboard import LeaderboardEntry
 pytestmark = pytest.mark.slow
 
 
-def test_demo_end_to_end(tmp_path, capsys):
+def test_demo_end_to_end(tmp_path, capfd):
+    """Also: Ray's own lines (its loggers, its core worker's C++ lines, written to the
+    process's file descriptors) stay out of the output, in its session's log folder, which the
+    demo names; the table names both point counts."""
     ray = pytest.importorskip("ray")
-    from workers.demo import run_demo
+    from workers.demo import RAY_STDERR_LOG, run_demo
 
     entry = LeaderboardEntry("RangeRet demo", "https://example.org/paper.pdf")
     out = run_demo(
         tmp_path / "demo", valid_scans=2, test_scans=1, progress=False, leaderboard=entry
     )
     assert not ray.is_initialized()
-    printed = capsys.readouterr().out
+    captured = capfd.readouterr()
+    printed = captured.out
+    for line in (captured.out + captured.err).splitlines():
+        assert not re.search(r"core_worker|streaming_executor|worker\.py:\d+", line), line
+    logs = next(
+        line.split(":", 1)[1].strip()
+        for line in printed.splitlines()
+        if line.strip().startswith("Ray's own logs")
+    )
+    assert (Path(logs) / RAY_STDERR_LOG).is_file()
+    assert re.search(r"2 scans, [\d,]+ points predicted, [\d,]+ of them scored", printed)
     report = json.loads((out / "report.json").read_text())
     assert report["num_scans"] == 2 and report["sequences"] == ["08"]
     assert len(report["checkpoint_sha256"]) == 64

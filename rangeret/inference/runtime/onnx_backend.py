@@ -4,16 +4,24 @@ The first run of a set of weights exports the network (dynamic batch, the profil
 through `rangeret.inference.runtime.onnx_export.write_export`, which checks it against torch and writes it
 atomically into the cache folder (`$RANGERET_CACHE/onnx`, else `~/.cache/rangeret/onnx`) under a
 name keyed by the checkpoint's SHA-256, the network, the resolution, the batch and the rest of
-what the file records; later runs, other processes and other actors load that file. Everything
-around the forward pass (projection, kNN, raw ids) is the predictor's one code path.
+what the file records; later runs, other processes and other actors load that file. The export
+takes minutes for a full-size network and the exporter reports nothing meanwhile, so it is
+announced with its cache file, followed by a "still exporting" line every `HEARTBEAT_S` seconds
+(`export_heartbeat(False)` for -q) and closed with the time it took. Everything around the
+forward pass (projection, kNN, raw ids) is the predictor's one code path.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
 import os
+import threading
+import time
+from collections.abc import Iterator
+from contextvars import ContextVar
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +42,10 @@ log = logging.getLogger(__name__)
 
 #: The environment variable naming the cache folder (its `onnx/` holds the exports).
 CACHE_VARIABLE = "RANGERET_CACHE"
+#: Seconds between two "still exporting" lines while an export runs.
+HEARTBEAT_S = 15.0
+#: Whether exports say "still exporting" while they run (`export_heartbeat`).
+_HEARTBEAT: ContextVar[bool] = ContextVar("onnx_export_heartbeat", default=True)
 
 
 def cache_dir() -> Path:
@@ -108,10 +120,49 @@ def cached_export(
         if problem is None:
             return path
         log.warning("the cached export %s %s: exporting it again", path, problem)
-    log.info("exporting %s to ONNX for onnxruntime, once, into %s", network.config.name, path)
-    check = write_export(network, profile, path, dynamic_batch=True, checkpoint_sha256=sha)
+    with export_progress(network.config.name, path):
+        check = write_export(network, profile, path, dynamic_batch=True, checkpoint_sha256=sha)
     log.info("%s", check.text())
     return path
+
+
+@contextlib.contextmanager
+def export_heartbeat(enabled: bool) -> Iterator[None]:
+    """Whether exports made inside say "still exporting (N s)" while they run (off for -q);
+    the lines before and after an export are logged either way."""
+    token = _HEARTBEAT.set(enabled)
+    try:
+        yield
+    finally:
+        _HEARTBEAT.reset(token)
+
+
+@contextlib.contextmanager
+def export_progress(name: str, path: Path, interval: float | None = None) -> Iterator[None]:
+    """Log an export of network `name` into `path`: a line before, one every `interval` seconds
+    while it runs (default `HEARTBEAT_S`; none under `export_heartbeat(False)`), since the
+    exporter reports nothing for minutes, and one with the time taken once it is written."""
+    interval = HEARTBEAT_S if interval is None else interval
+    started = time.monotonic()
+    log.info("exporting %s to ONNX for onnxruntime (first use; cached at %s)", name, path)
+    stop = threading.Event()
+
+    def beat() -> None:
+        while not stop.wait(interval):
+            log.info("still exporting %s to ONNX (%.0f s)", name, time.monotonic() - started)
+
+    beats = threading.Thread(target=beat, name="onnx-export-progress", daemon=True)
+    if _HEARTBEAT.get():
+        beats.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        if beats.is_alive():
+            beats.join()
+    log.info(
+        "exported %s to ONNX in %.0f s; later runs load %s", name, time.monotonic() - started, path
+    )
 
 
 class OnnxForward:

@@ -12,6 +12,7 @@ const state = {
   signedIn: false,
   tokenRequired: null,
   profile: null,
+  model: null,
   health: null,
   jobs: [],
   report: null,
@@ -47,14 +48,24 @@ function signOut(message = '') {
   byId('tabs').hidden = true;
   byId('sign-out').hidden = true;
   byId('served').textContent = '';
+  showModel(null);
   byId('sign-in').hidden = false;
   byId('sign-in-error').textContent = message;
   pageStatus.hidden = true;
 }
 
+/** Say beside the model's name when the served weights are the bundled demo weights. */
+function showModel(model) {
+  state.model = model;
+  const note = byId('model-note');
+  note.textContent = model && model.demo_weights ? model.note : '';
+  note.hidden = !(model && model.demo_weights);
+}
+
 async function signedIn() {
-  const profile = await api.json('v1/profile');
+  const [profile, model] = await Promise.all([api.json('v1/profile'), api.json('v1/model')]);
   state.profile = profile;
+  showModel(model);
   state.signedIn = true;
   scans.setProfile(profile);
   byId('sign-in').hidden = true;

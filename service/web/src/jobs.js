@@ -18,6 +18,8 @@ export class JobsPanel {
     this.profile = null;
     this.timer = null;
     this.running = false;
+    /** The id of the job whose state the status line follows (the one started last). */
+    this.followed = null;
     this.table = document.getElementById('jobs-table');
     this.status = document.getElementById('jobs-status');
     this.report = document.getElementById('report');
@@ -34,6 +36,24 @@ export class JobsPanel {
   say(text, isError = false) {
     this.status.textContent = text;
     this.status.classList.toggle('error', isError);
+  }
+
+  /** Keep the status line on the job started last until it ends, in its final state. */
+  follow(job) {
+    const name = `Job ${job.id.slice(0, 8)}`;
+    const scans = `${count(job.done)} / ${count(job.total)} scans`;
+    const failed = job.failed ? `, ${count(job.failed)} failed` : '';
+    const miou = job.metrics ? `, mIoU ${percent(job.metrics.miou)} %` : '';
+    const reason = job.reason ? `: ${job.reason.replace(/\.$/, '')}` : '';
+    const text = {
+      queued: `${name} is queued.`,
+      running: `${name} is running: ${scans}${failed}.`,
+      succeeded: `${name} succeeded: ${scans}${failed}${miou}.`,
+      failed: `${name} failed${reason}.`,
+      cancelled: `${name} was cancelled${reason}.`,
+    }[job.state];
+    this.say(text || `${name} is ${job.state}.`, job.state === 'failed');
+    if (!ACTIVE.has(job.state)) this.followed = null;
   }
 
   start(profile) {
@@ -63,6 +83,8 @@ export class JobsPanel {
   }
 
   draw(jobs) {
+    const followed = this.followed && jobs.find((job) => job.id === this.followed);
+    if (followed) this.follow(followed);
     fillBody(
       this.table,
       jobs.map((job) => {
@@ -163,6 +185,7 @@ export class JobsPanel {
   }
 
   async remove(job) {
+    if (this.followed === job.id) this.followed = null;
     try {
       await this.api.json(`v1/jobs/${job.id}`, { method: 'DELETE' });
       if (this.state.report && this.state.report.job === job.id) {
@@ -204,6 +227,7 @@ export class JobsPanel {
   async create(body, headers = {}) {
     try {
       const created = await this.api.json('v1/jobs', { method: 'POST', headers, body });
+      this.followed = created.id;
       this.say(`Job ${created.id.slice(0, 8)} is queued.`);
     } catch (error) {
       this.say(error.message, true);

@@ -136,3 +136,31 @@ def test_report_json_table_and_plots(tmp_path, real_gt, real_bands):
     for path in write_plots(report, tmp_path / "plots", config=semantickitti()):
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert path.stat().st_size > 10_000
+
+
+def test_the_table_says_which_points_were_predicted_and_which_scored():
+    """Points whose ground truth is unlabeled are predicted but scored nowhere: the table's
+    totals say both counts, and the per-sequence count is the scored one."""
+    ev = RawLabelEvaluator(config=semantickitti())
+    gt = np.array([10, 10, 40, 0, 0], np.uint32)
+    pred = np.array([10, 40, 40, 40, 10], np.uint32)
+    ev.add(pred, gt, "08", np.zeros(gt.size, np.uint8))
+    table = ev.report(sequences=["08"]).table()
+    assert (
+        "1 scans, 5 points predicted, 3 of them scored (the other 2 have the ground truth "
+        "unlabeled, which is not scored)"
+    ) in table
+    header, row = next(
+        (line, following)
+        for line, following in zip(table.splitlines(), table.splitlines()[1:], strict=False)
+        if line.startswith("sequence")
+    )
+    assert "scored points" in header and row.split()[:2] == ["08", "3"]
+
+
+def test_a_table_with_every_point_scored_names_one_count():
+    ev = RawLabelEvaluator(config=semantickitti())
+    labels = np.array([10, 40, 40], np.uint32)
+    ev.add(labels, labels, "08", np.zeros(3, np.uint8))
+    table = ev.report(sequences=["08"]).table()
+    assert "3 points predicted, 3 of them scored\n" in table + "\n" and "the other" not in table

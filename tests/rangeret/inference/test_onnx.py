@@ -10,7 +10,10 @@ import contextlib
 import hashlib
 import io
 import json
+import logging
 import re
+import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -23,7 +26,12 @@ from rangeret.dataset.labels import semantickitti
 from rangeret.dataset.layout import KITTI_LAYOUT, prediction_path, velodyne_dir
 from rangeret.dataset.projection import CHANNEL_MEANS, CHANNEL_STDS
 from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
-from rangeret.inference.runtime.onnx_backend import CACHE_VARIABLE
+from rangeret.inference.runtime import onnx_backend
+from rangeret.inference.runtime.onnx_backend import (
+    CACHE_VARIABLE,
+    export_heartbeat,
+    export_progress,
+)
 from rangeret.inference.runtime.onnx_export import (
     INPUT_NAME,
     MAX_LOGIT_DIFFERENCE,
@@ -98,14 +106,41 @@ def _predict(setup, out: Path, *options: str) -> Path:
     return out
 
 
+class Lines(logging.Handler):
+    """The messages of the records it is given."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.INFO)
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(record.getMessage())
+
+
 @pytest.fixture(scope="module")
-def predictions(setup) -> dict[str, Path]:
+def ort_run(setup) -> tuple[Path, list[str]]:
+    """`rangeret predict -q --backend onnxruntime` of the real scan, the first run to export
+    this network into the module's cache, with a heartbeat far shorter than its export: the
+    tree and the backend's log lines."""
+    lines = Lines()
+    backend_log = logging.getLogger(onnx_backend.__name__)
+    level = backend_log.level
+    backend_log.addHandler(lines)
+    backend_log.setLevel(logging.INFO)
+    try:
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(onnx_backend, "HEARTBEAT_S", 0.01)
+            tree = _predict(setup, setup["base"] / "pred-ort", "--backend", "onnxruntime")
+    finally:
+        backend_log.setLevel(level)
+        backend_log.removeHandler(lines)
+    return tree, lines.lines
+
+
+@pytest.fixture(scope="module")
+def predictions(setup, ort_run) -> dict[str, Path]:
     """`rangeret predict` of the real scan with each backend."""
-    base = setup["base"]
-    return {
-        "torch": _predict(setup, base / "pred-torch"),
-        "onnxruntime": _predict(setup, base / "pred-ort", "--backend", "onnxruntime"),
-    }
+    return {"torch": _predict(setup, setup["base"] / "pred-torch"), "onnxruntime": ort_run[0]}
 
 
 # Export --------------------------------------------------------------------------------------
@@ -190,8 +225,13 @@ def test_onnxruntime_labels_the_real_scan_as_torch_does(setup, predictions):
     assert len(list((setup["cache"] / "onnx").glob("rangeret-cir-32x256-*.onnx"))) == 1
 
 
-def test_a_driver_exports_once_for_the_predictors_its_workers_build(setup, tmp_path, monkeypatch):
+def test_a_driver_exports_once_for_the_predictors_its_workers_build(
+    setup, tmp_path, monkeypatch, caplog
+):
+    """The first use exports, saying so with its cache file, that it is still at it while it
+    runs and how long it took; the predictor built next loads the file without a word."""
     monkeypatch.setenv(CACHE_VARIABLE, str(tmp_path))
+    monkeypatch.setattr(onnx_backend, "HEARTBEAT_S", 0.01)
     spec = PredictorSpec(
         checkpoint=str(setup["weights"]["rangeret-cir"]),
         height=32,
@@ -199,10 +239,24 @@ def test_a_driver_exports_once_for_the_predictors_its_workers_build(setup, tmp_p
         device="cpu",
         backend="onnxruntime",
     )
-    checkpoint_profile(spec)  # what the Ray job and the gateway do before starting workers
+    with caplog.at_level(logging.INFO, logger=onnx_backend.__name__):
+        checkpoint_profile(spec)  # what the Ray job and the gateway do before starting workers
     exported = list((tmp_path / "onnx").glob("*.onnx"))
     assert len(exported) == 1
-    predictor = spec.build()
+    said = [r.getMessage() for r in caplog.records if r.name == onnx_backend.__name__]
+    assert said[0] == (
+        f"exporting rangeret-cir to ONNX for onnxruntime (first use; cached at {exported[0]})"
+    )
+    assert re.fullmatch(r"still exporting rangeret-cir to ONNX \(\d+ s\)", said[1])
+    done = [line for line in said if line.startswith("exported ")]
+    assert len(done) == 1 and re.fullmatch(
+        rf"exported rangeret-cir to ONNX in \d+ s; later runs load {re.escape(str(exported[0]))}",
+        done[0],
+    )
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger=onnx_backend.__name__):
+        predictor = spec.build()
+    assert not [r for r in caplog.records if "export" in r.getMessage()]
     assert predictor.onnx is not None and predictor.onnx.path == exported[0]
     assert predictor.describe()["backend"] == "onnxruntime"
     without_knn = predictor.with_knn(None)
@@ -354,3 +408,27 @@ def test_a_cached_export_of_other_weights_is_made_again(setup, tmp_path, monkeyp
     scan = read_scan(data_path("semantickitti-scan", "000000.bin"))
     torch_labels = second.build().predict(scan).labels
     assert np.array_equal(predictor.predict(scan).labels, torch_labels)
+
+
+def test_with_q_a_first_export_names_its_start_and_end_only(ort_run):
+    """`rangeret predict -q`: the export is announced and closed, with no "still exporting"
+    lines, though it ran far longer than the heartbeat."""
+    said = ort_run[1]
+    assert said[0].startswith("exporting rangeret-cir to ONNX for onnxruntime (first use;")
+    assert any(line.startswith("exported rangeret-cir to ONNX in ") for line in said)
+    assert not [line for line in said if line.startswith("still exporting")]
+
+
+def test_the_heartbeat_beats_while_an_export_runs_unless_turned_off(tmp_path, caplog):
+    path = tmp_path / "n.onnx"
+    with caplog.at_level(logging.INFO, logger=onnx_backend.__name__):
+        with export_progress("net", path, interval=0.02):
+            time.sleep(0.2)
+        beats = [r for r in caplog.records if r.getMessage().startswith("still exporting net")]
+        assert len(beats) >= 2
+        caplog.clear()
+        with export_heartbeat(False), export_progress("net", path, interval=0.02):
+            time.sleep(0.2)
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 2 and said[0].startswith("exporting net") and said[1].startswith("exported")
+    assert not [t for t in threading.enumerate() if t.name == "onnx-export-progress"]

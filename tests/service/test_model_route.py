@@ -1,0 +1,93 @@
+"""GET /v1/model in process: the served network's name and checkpoint, whether they are the
+bundled demo weights (with the note the page shows), under the token rule."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+
+from fastapi.testclient import TestClient
+
+from rangeret.dataset.profiles import load_profile
+from rangeret.models.weights.demo import DEMO_CHECKPOINT
+from service.app import create_app
+from service.local_labeller import LocalLabeller
+from service.settings import Settings
+
+TOKEN = "model-test-token"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+class FakePool:
+    """A healthy worker pool whose one worker runs `model`; never asked to label here."""
+
+    def __init__(self, model: str = "rangeret-cir") -> None:
+        self.model = model
+
+    async def predict_async(self, scans, knn=True, confidence=False):
+        raise AssertionError("no scan is labelled in these tests")
+
+    def queue_depth(self):
+        return 0
+
+    def info(self):
+        return {"pid": os.getpid(), "model": self.model}
+
+
+class FakeExecutor:
+    """Never asked to run a job here."""
+
+    backend = "fake"
+    precision = "fp32"
+
+    def predict(self, entries, dataset, sequences, out, progress, cancel):
+        raise AssertionError("no job runs in these tests")
+
+
+def _client(tmp_path, sha256: str | None, model: str | None) -> TestClient:
+    settings = Settings(state_dir=tmp_path / "state", api_token=TOKEN)
+    app = create_app(
+        settings,
+        LocalLabeller(FakePool()),
+        FakeExecutor(),
+        profile=load_profile("semantickitti"),
+        checkpoint_sha256=sha256,
+        model=model,
+    )
+    return TestClient(app)
+
+
+def test_the_demo_weights_are_named_with_how_to_serve_a_published_model(tmp_path):
+    demo = hashlib.sha256(DEMO_CHECKPOINT.read_bytes()).hexdigest()
+    with _client(tmp_path, demo, "rangeret-thesis") as client:
+        body = client.get("/v1/model", headers=AUTH).json()
+    assert body["name"] == "rangeret-thesis" and body["checkpoint_sha256"] == demo
+    assert body["profile"] == "semantickitti" and body["demo_weights"] is True
+    assert "simulated scenes only" in body["note"]
+    assert "--checkpoint rangeret-kitti-657" in body["note"]
+    assert "rangeret weights list" in body["note"]
+
+
+def test_other_weights_are_not_the_demo_and_carry_no_note(tmp_path):
+    with _client(tmp_path, "ab" * 32, "rangeret-cir") as client:
+        answer = client.get("/v1/model", headers=AUTH)
+        anonymous = client.get("/v1/model")
+        described = client.get("/openapi.json").json()
+    assert answer.status_code == 200
+    assert answer.json() == {
+        "name": "rangeret-cir",
+        "checkpoint_sha256": "ab" * 32,
+        "profile": "semantickitti",
+        "demo_weights": False,
+        "note": None,
+    }
+    assert anonymous.status_code == 401
+    schema = described["paths"]["/v1/model"]["get"]["responses"]["200"]["content"]
+    assert schema["application/json"]["schema"] == {"$ref": "#/components/schemas/ServedModel"}
+
+
+def test_without_a_name_the_workers_name_the_model(tmp_path):
+    with _client(tmp_path, None, None) as client:
+        body = client.get("/v1/model", headers=AUTH).json()
+    assert body["name"] == "rangeret-cir" and body["checkpoint_sha256"] is None
+    assert body["demo_weights"] is False
