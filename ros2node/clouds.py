@@ -32,9 +32,7 @@ class FieldMapping:
     overrides: Mapping[str, str]
 
 
-def cloud_record(
-    msg: Any, source: str, mapping: FieldMapping
-) -> tuple[CloudLayout, RecordPoints]:
+def cloud_record(msg: Any, source: str, mapping: FieldMapping) -> tuple[CloudLayout, RecordPoints]:
     """The message's layout and its points as the record; a bad message is a
     `CloudMessageError` or a `PointFieldsError` naming `source`."""
     layout, columns = decode(msg, source)
@@ -73,8 +71,7 @@ def labelled_message(
     out.height = layout.height
     out.width = layout.width
     out.fields = [
-        PointField(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count)
-        for f in fields
+        PointField(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count) for f in fields
     ]
     out.is_bigendian = layout.is_bigendian
     out.point_step = step

@@ -102,9 +102,8 @@ class LabellingNode(Node):
             "device": str(self.predictor.device),
             "precision": str(self.predictor.precision),
             "knn": "off" if self.predictor.knn is None else "on",
-            "fields": ", ".join(
-                f"{k}={v}" for k, v in self.mapping.overrides.items()
-            ) or "by name or alias",
+            "fields": ", ".join(f"{k}={v}" for k, v in self.mapping.overrides.items())
+            or "by name or alias",
         }
 
     def announce(self) -> None:

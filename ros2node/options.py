@@ -96,7 +96,10 @@ def settings_from_args(args: argparse.Namespace) -> NodeSettings:
         )
     if not args.report_every > 0:
         raise CommandError(f"--report-every must be more than 0 seconds, got {args.report_every}")
-    for option, topic in (("--input-topic", args.input_topic), ("--output-topic", args.output_topic)):
+    for option, topic in (
+        ("--input-topic", args.input_topic),
+        ("--output-topic", args.output_topic),
+    ):
         if not topic.strip():
             raise CommandError(f"{option} must name a topic")
     if args.input_topic == args.output_topic:

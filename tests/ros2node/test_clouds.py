@@ -115,6 +115,6 @@ def test_the_rgb_field_is_the_palette_colour_of_each_label(points):
     ids=["missing z", "fields past the point step"],
 )  # fmt: skip
 def test_a_bad_message_names_its_source_and_kind(points, cloud, error, kind):
-    with pytest.raises(error, match="^/points: ") as raised:
+    with pytest.raises(error, match=r"^/points: ") as raised:
         cloud_record(to_message(cloud(points)), "/points", MAPPING)
     assert problem_kind(raised.value) == kind

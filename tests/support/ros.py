@@ -37,9 +37,7 @@ def namespace_prefix() -> tuple[str, ...] | None:
         return None
     for flags in (("-n",), ("-rn",)) if os.geteuid() == 0 else (("-rn",),):
         prefix = ("unshare", *flags, "sh", "-c", _LOOPBACK, "sh")
-        probe = subprocess.run(
-            [*prefix, "true"], capture_output=True, timeout=30, check=False
-        )
+        probe = subprocess.run([*prefix, "true"], capture_output=True, timeout=30, check=False)
         if probe.returncode == 0:
             return prefix
     return None
@@ -147,9 +145,7 @@ def make_cloud(
     width = n // height
     rows = records.view(np.uint8).reshape(height, width * step)
     data = np.concatenate([rows, np.zeros((height, row_padding), np.uint8)], axis=1).tobytes()
-    return Cloud(
-        fields, height, width, step, width * step + row_padding, data, bigendian, **kwargs
-    )
+    return Cloud(fields, height, width, step, width * step + row_padding, data, bigendian, **kwargs)
 
 
 @dataclass
@@ -194,7 +190,10 @@ def drive_node(
         "clouds": [c.meta() for c in clouds],
         "folder": str(folder),
     }
-    np.savez(folder / "clouds.npz", **{f"c{i}": np.frombuffer(c.data, np.uint8) for i, c in enumerate(clouds)})
+    np.savez(
+        folder / "clouds.npz",
+        **{f"c{i}": np.frombuffer(c.data, np.uint8) for i, c in enumerate(clouds)},
+    )
     (folder / "job.json").write_text(json.dumps(job))
     run = subprocess.run(
         [*prefix, sys.executable, "-m", "tests.support.ros_driver", str(folder / "job.json")],

@@ -132,8 +132,10 @@ def main(job_path: str) -> int:
     try:
         ready = spin_until(
             node,
-            lambda: node.publisher.get_subscription_count() > 0
-            and node.answer_sub.get_publisher_count() > 0,
+            lambda: (
+                node.publisher.get_subscription_count() > 0
+                and node.answer_sub.get_publisher_count() > 0
+            ),
             STARTUP_S,
             child,
         )
