@@ -31,6 +31,9 @@ BLOCKED = (
     "onnxscript",
     "onnxruntime",
     "huggingface_hub",
+    "rclpy",
+    "sensor_msgs",
+    "diagnostic_msgs",
 )
 #: Runs the `main` of a module with the named modules made unimportable.
 RUNNER = """\
@@ -105,6 +108,7 @@ def _line(feature: str, extra: str) -> str:
         (["serve"], _line("rangeret serve", "gateway")),
         (["serve", "--port", "8123", "--no-knn"], _line("rangeret serve", "gateway")),
         (["-q", "demo", "--out", "demo"], _line("rangeret demo", "ray")),
+        (["ros2", "--rgb"], _line("rangeret ros2", "ros2")),
         (["export", "--out", "net.onnx"], _line("rangeret export", "onnx")),
         (
             ["train", "--dataset", "d", "--model", "rangeret-thesis", "--out", "o", "--ray"],
@@ -133,6 +137,7 @@ def _line(feature: str, extra: str) -> str:
         "serve",
         "serve-options",
         "demo",
+        "ros2",
         "export",
         "train-ray",
         "onnxruntime",
