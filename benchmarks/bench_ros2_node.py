@@ -91,7 +91,7 @@ def run_network(path: Path, points, args: argparse.Namespace) -> dict[str, float
     from rangeret.inference.clouds import label_cloud
     from rangeret.inference.predictor import PredictorSpec
     from ros2node.clouds import FieldMapping, cloud_record, labelled_message
-    from ros2node.node import LabellingNode
+    from ros2node.node import LabellingNode, qos_profile
     from ros2node.options import NodeSettings
 
     predictor = PredictorSpec(str(path), device=args.device).build()
@@ -127,8 +127,16 @@ def run_network(path: Path, points, args: argparse.Namespace) -> dict[str, float
         executor.add_node(driver)
         while publisher.get_subscription_count() == 0:
             executor.spin_once(timeout_sec=0.05)
+        # publishing alone, on a probe topic of the output's QoS (its answers would otherwise
+        # reach the driver's subscription and be taken for the node's)
+        probe = node.create_publisher(PointCloud2, "publish_probe", qos_profile("reliable"))
+        driver.create_subscription(PointCloud2, "publish_probe", lambda _m: None, qos)
+        while probe.get_subscription_count() == 0:
+            executor.spin_once(timeout_sec=0.05)
         answer = labelled_message(msg, layout, labels)
-        figures["publish"] = 1e3 * median_time(lambda: node.publisher.publish(answer), repeat=20)
+        figures["publish"] = 1e3 * median_time(lambda: probe.publish(answer), repeat=20)
+        for _ in range(10):  # let the probe's messages be taken before the node's run
+            executor.spin_once(timeout_sec=0.05)
         round_trips = []
         for i in range(args.messages + 1):
             if i == 1:  # the first message warms up; the node's report starts after it
