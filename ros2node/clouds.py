@@ -1,0 +1,83 @@
+"""A PointCloud2 message as the profile's point record, and the labelled message built from it.
+
+The record is read with `rangeret.io.pointcloud2.decode` and `rangeret.io.point_fields.to_record`
+(any datatype, byte order, point step, padding or row step); the answer keeps the input's header,
+points, order and every field, and adds `label` (UINT32 raw id) and `confidence` (FLOAT32), and
+with colours a packed `rgb` (FLOAT32), after them (`append_fields`).
+"""
+
+from __future__ import annotations
+
+import array
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from sensor_msgs.msg import PointCloud2, PointField
+
+from rangeret.dataset.labels import SEMANTIC_MASK, LabelConfig
+from rangeret.inference.clouds import CloudLabels
+from rangeret.io.point_fields import RecordPoints, to_record
+from rangeret.io.pointcloud2 import FLOAT32, UINT32, CloudLayout, append_fields, decode, pack_rgb
+from rangeret.io.scans import PointRecord
+
+
+@dataclass(frozen=True)
+class FieldMapping:
+    """How a message's fields fill the profile's record."""
+
+    record: PointRecord
+    reflectance_fill: float
+    overrides: Mapping[str, str]
+
+
+def cloud_record(msg: Any, source: str, mapping: FieldMapping) -> tuple[CloudLayout, RecordPoints]:
+    """The message's layout and its points as the record; a bad message is a
+    `CloudMessageError` or a `PointFieldsError` naming `source`."""
+    layout, columns = decode(msg, source)
+    points = to_record(
+        columns,
+        record=mapping.record,
+        source=source,
+        reflectance_fill=mapping.reflectance_fill,
+        overrides=mapping.overrides,
+    )
+    return layout, points
+
+
+def palette_of(config: LabelConfig) -> np.ndarray:
+    """The packed `rgb` value (float32, see `pack_rgb`) of every 16-bit raw id in the label
+    configuration's palette, made once so each message needs one look-up per point."""
+    from rangeret.evaluation.view import raw_palette
+
+    return pack_rgb(raw_palette(config))
+
+
+def labelled_message(
+    msg: Any, layout: CloudLayout, labels: CloudLabels, palette: np.ndarray | None = None
+) -> PointCloud2:
+    """The answer to `msg`: its header and points with `label`, `confidence` (and, given a
+    `palette_of` table, `rgb`) added."""
+    new: dict[str, tuple[int, np.ndarray]] = {
+        "label": (UINT32, labels.labels),
+        "confidence": (FLOAT32, labels.confidence),
+    }
+    if palette is not None:
+        new["rgb"] = (FLOAT32, palette[labels.labels & SEMANTIC_MASK])
+    fields, step, data = append_fields(layout, msg.data, new)
+    out = PointCloud2()
+    out.header = msg.header
+    out.height = layout.height
+    out.width = layout.width
+    out.fields = [
+        PointField(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count) for f in fields
+    ]
+    out.is_bigendian = layout.is_bigendian
+    out.point_step = step
+    out.row_step = step * layout.width
+    buffer = array.array("B")
+    buffer.frombytes(data)
+    out.data = buffer
+    out.is_dense = bool(msg.is_dense)
+    return out
