@@ -15,8 +15,9 @@ OUT ?= runs/demo
 WEB := service/web
 WEB_STAMP := $(WEB)/node_modules/.installed
 CHROMIUM_INSTALL := apt-get update && apt-get install -y --no-install-recommends chromium
+IPROUTE_INSTALL := apt-get update && apt-get install -y --no-install-recommends iproute2
 
-.PHONY: demo test lint web browser bench gpu-check clean
+.PHONY: demo test lint web browser netns bench gpu-check clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -45,7 +46,13 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
-test: lint $(WEB_STAMP) browser
+# The ROS 2 tests bring up loopback in their own network namespace with iproute2's `ip`.
+netns:
+	@command -v ip >/dev/null 2>&1 || { \
+	  if [ "$$(id -u)" = 0 ]; then $(IPROUTE_INSTALL); \
+	  else echo "The ROS 2 tests need iproute2: run  sudo sh -c '$(IPROUTE_INSTALL)'" >&2; exit 1; fi; }
+
+test: lint $(WEB_STAMP) browser netns
 	$(BIN)/python -m pytest
 
 bench: $(STAMP)

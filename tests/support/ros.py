@@ -3,7 +3,8 @@
 Every run has its own `ROS_DOMAIN_ID`, discovery limited to the host
 (`ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`, and `ROS_LOCALHOST_ONLY=1` for older RMWs), and runs
 inside a network namespace holding only a loopback interface (`unshare -n`, or `unshare -rn`
-where not root), so no DDS packet can leave the machine. The driver (`tests.support.ros_driver`)
+where not root), so no DDS packet can leave the machine. As root the namespace is required (a
+run fails without one); a user who cannot make one runs with the host-only discovery alone. The driver (`tests.support.ros_driver`)
 runs in that namespace: it starts the node as its child, publishes the test's messages, collects
 the answers and `/diagnostics`, stops the node with a signal and writes everything to files.
 """
@@ -30,17 +31,22 @@ _LOOPBACK = 'ip link set lo up && exec "$@"'
 
 
 @functools.cache
-def namespace_prefix() -> tuple[str, ...] | None:
-    """The command prefix that runs a command in a fresh loopback-only network namespace, or
-    None where this machine cannot make one."""
-    if shutil.which("unshare") is None or shutil.which("ip") is None:
-        return None
-    for flags in (("-n",), ("-rn",)) if os.geteuid() == 0 else (("-rn",),):
+def namespace_prefix() -> tuple[str, ...]:
+    """The command prefix that runs a command in a fresh loopback-only network namespace; empty
+    for a user who cannot make one (host-only discovery still applies). As root, a machine that
+    cannot make one fails the test: no DDS packet may leave it."""
+    root = os.geteuid() == 0
+    tools = shutil.which("unshare") is not None and shutil.which("ip") is not None
+    for flags in (("-n",), ("-rn",)) if root else (("-rn",),):
+        if not tools:
+            break
         prefix = ("unshare", *flags, "sh", "-c", _LOOPBACK, "sh")
         probe = subprocess.run([*prefix, "true"], capture_output=True, timeout=30, check=False)
         if probe.returncode == 0:
             return prefix
-    return None
+    if root:
+        pytest.fail("as root, the ROS 2 tests run in a loopback-only namespace: unshare -n failed")
+    return ()
 
 
 def ros_environment(domain_id: int) -> dict[str, str]:
@@ -176,10 +182,8 @@ def drive_node(
 ) -> Drive:
     """Start `rangeret ros2 NODE_ARGS` in an isolated namespace, publish `clouds` one after
     the other (waiting for each answer, or for /diagnostics to count each bad one), stop it with
-    `stop_signal` and return what came back. Skips the test where no namespace can be made."""
+    `stop_signal` and return what came back."""
     prefix = namespace_prefix()
-    if prefix is None:
-        pytest.skip("needs a loopback-only network namespace (unshare -n) to keep DDS local")
     folder.mkdir(parents=True, exist_ok=True)
     job = {
         "node_args": node_args,
