@@ -2,8 +2,11 @@
 
 It records the network (model, checkpoint and its SHA-256, whether these are the demo weights,
 projection, kNN, test-time augmentation, device), the data (dataset, sequences), the batch size,
-the runner and the start time, so that any tree can be traced back to what produced it. An
-output that is not a tree (a labelled bag) gets the same record at an explicit path
+the runner and the start time, so that any tree can be traced back to what produced it. Its
+top-level keys describe the latest run into the tree; `runs` lists every run that wrote into it,
+oldest first (a record written before runs were listed becomes the first entry). A run with
+other weights than those whose predictions the tree holds is refused unless it overwrites. An
+output that is not a tree (a labelled bag) gets one run's record at an explicit path
 (`write_run_record`).
 """
 
@@ -20,9 +23,32 @@ from rangeret.io.atomic import atomic_write_text
 
 RUN_INFO = "run.json"
 
+#: What each entry of `runs` keeps of its run: what it predicted, with which weights and how.
+RUN_KEYS = (
+    "runner",
+    "started",
+    "dataset",
+    "sequences",
+    "files",
+    "model",
+    "checkpoint",
+    "checkpoint_sha256",
+    "demo_weights",
+    "profile",
+    "precision",
+    "backend",
+    "device",
+    "batch_size",
+    "overwrite",
+)
+
 
 class RunInfoError(InputError, ValueError):
     """A run record (run.json) that cannot be read."""
+
+
+class WeightsMismatchError(InputError, ValueError):
+    """A run with other weights than those whose predictions the tree already holds."""
 
 
 def write_run_info(
@@ -35,23 +61,79 @@ def write_run_info(
     batch_size: int,
     inputs: Sequence[Mapping[str, Any]] | None = None,
     extra: Mapping[str, Any] | None = None,
+    overwrite: bool = False,
+    started: str | None = None,
 ) -> Path:
-    """Write `OUT/run.json` atomically and return its path.
+    """Add this run to `OUT/run.json` (read, merged and written atomically) and return its path.
 
     `network` is the description of the network and its options (`Predictor.describe()`, or
     `describe_network` where no predictor is loaded in this process). `dataset` is None for runs
     on single files; `inputs` describes each file read (format, points, how its fields filled the
-    record) and `extra` adds run-wide keys.
+    record) and `extra` adds run-wide keys. The top-level keys become this run's and `runs` gains
+    its entry; other weights than the tree's are a `WeightsMismatchError` unless `overwrite`
+    (`check_weights`).
     """
+    out = Path(out)
+    previous = check_weights(out, network.get("checkpoint_sha256"), overwrite=overwrite)
     details: dict[str, Any] = {
         "batch_size": batch_size,
         "dataset": None if dataset is None else str(dataset),
         "sequences": list(sequences),
         **(extra or {}),
+        "overwrite": overwrite,
     }
     if inputs is not None:
         details["inputs"] = [dict(i) for i in inputs]
-    return write_run_record(Path(out) / RUN_INFO, network, runner=runner, details=details)
+        details["files"] = [str(i.get("file")) for i in inputs]
+    record = run_record(network, runner=runner, details=details, started=started)
+    record["runs"] = [*recorded_runs(previous, out / RUN_INFO), run_entry(record)]
+    path = out / RUN_INFO
+    atomic_write_text(path, json.dumps(record, indent=2) + "\n")
+    return path
+
+
+def check_weights(
+    out: Path | str, sha256: str | None, *, overwrite: bool = False
+) -> dict[str, Any]:
+    """The tree's run record, after checking that the runs in it used the weights of `sha256`;
+    a run recorded with other weights is a `WeightsMismatchError` naming both hashes and the
+    tree, unless `overwrite` (mixing is then allowed). Called before anything is written."""
+    record = read_run_info(out)
+    if overwrite or sha256 is None or not record:
+        return record
+    others = sorted(
+        {
+            str(run["checkpoint_sha256"])
+            for run in recorded_runs(record, Path(out) / RUN_INFO)
+            if run.get("checkpoint_sha256") not in (None, sha256)
+        }
+    )
+    if others:
+        theirs = ", ".join(h[:12] for h in others)
+        raise WeightsMismatchError(
+            f"{out} holds predictions from other weights (checkpoint sha256 {theirs}) than "
+            f"this run's ({sha256[:12]}); write to another folder, or pass --overwrite to "
+            "predict into it anyway"
+        )
+    return record
+
+
+def recorded_runs(record: Mapping[str, Any], path: Path) -> list[dict[str, Any]]:
+    """The runs a record lists, oldest first: its `runs`, or for a record written before runs
+    were listed, the one run its top-level keys describe ([] for no record)."""
+    if not record:
+        return []
+    if "runs" not in record:
+        return [run_entry(record)]
+    runs = record["runs"]
+    if not isinstance(runs, list) or not all(isinstance(r, dict) for r in runs):
+        raise RunInfoError(f"{path}: `runs` is not a list of run records")
+    return [dict(r) for r in runs]
+
+
+def run_entry(record: Mapping[str, Any]) -> dict[str, Any]:
+    """The entry of `runs` for one run's record: the keys of `RUN_KEYS` it has."""
+    return {key: record[key] for key in RUN_KEYS if key in record}
 
 
 def write_run_record(
@@ -62,18 +144,29 @@ def write_run_record(
     details: Mapping[str, Any],
     started: str | None = None,
 ) -> Path:
-    """Write a run record at the explicit `path` atomically (for outputs that are not a tree,
-    such as a labelled bag's `OUT.run.json`): the network, `details` (what the run read and
-    wrote), the runner and its start time (`started`, else now)."""
-    record = {
+    """Write one run's record at the explicit `path` atomically (for outputs that are not a
+    tree, such as a labelled bag's `OUT.run.json`, which its run replaces whole)."""
+    record = run_record(network, runner=runner, details=details, started=started)
+    path = Path(path)
+    atomic_write_text(path, json.dumps(record, indent=2) + "\n")
+    return path
+
+
+def run_record(
+    network: Mapping[str, Any],
+    *,
+    runner: str,
+    details: Mapping[str, Any],
+    started: str | None = None,
+) -> dict[str, Any]:
+    """One run's record: the network, `details` (what the run read and wrote), the runner and
+    its start time (`started`, else now)."""
+    return {
         **network,
         **details,
         "runner": runner,
         "started": started or started_now(),
     }
-    path = Path(path)
-    atomic_write_text(path, json.dumps(record, indent=2) + "\n")
-    return path
 
 
 def started_now() -> str:
