@@ -8,6 +8,7 @@ network is loaded only when a command runs.
 from __future__ import annotations
 
 import argparse
+import logging
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -15,7 +16,7 @@ from typing import TYPE_CHECKING
 
 from rangeret.commands import CommandError
 from rangeret.dataset.labels import load_label_config
-from rangeret.dataset.layout import resolve_sequences
+from rangeret.dataset.layout import missing_sequences, resolve_sequences
 from rangeret.dataset.profiles import BUILTIN_PROFILES, DatasetProfile, load_profile
 from rangeret.extras import MissingExtraError
 from rangeret.inference.runtime.backends import BACKENDS, check_backend
@@ -24,6 +25,8 @@ from rangeret.submission.leaderboard import DEFAULT_NAME, DEFAULT_URL, Leaderboa
 
 if TYPE_CHECKING:
     from rangeret.inference.predictor import PredictorSpec
+
+log = logging.getLogger("rangeret")
 
 #: The splits every label configuration names.
 SPLITS = ("train", "valid", "test")
@@ -36,9 +39,14 @@ def add_output_options(parser: argparse.ArgumentParser) -> None:
 
 
 def add_selection(
-    parser: argparse.ArgumentParser, splits: Sequence[str] = SPLITS, *, required: bool = True
+    parser: argparse.ArgumentParser,
+    splits: Sequence[str] = SPLITS,
+    *,
+    required: bool = True,
+    partial_help: str = "",
 ) -> None:
-    """--split or --sequences, exactly one of them (at most one where not `required`)."""
+    """--split or --sequences, exactly one of them (at most one where not `required`), and
+    --allow-partial (`partial_help` adds what else it allows in this command)."""
     group = parser.add_mutually_exclusive_group(required=required)
     group.add_argument(
         "--split", choices=list(splits), help="an official split of the label configuration"
@@ -47,16 +55,52 @@ def add_selection(
         "--sequences",
         nargs="+",
         metavar="XX",
-        help="sequence folder names (also data outside the official splits)",
+        help="sequence folder names (also data outside the official splits); each must be there",
+    )
+    parser.add_argument(
+        "--allow-partial",
+        action="store_true",
+        help="with --split: work on those of the split's sequences the dataset holds, naming the "
+        "missing ones (without it a split with missing sequences is refused)" + partial_help,
     )
 
 
-def selected_sequences(args: argparse.Namespace, profile: DatasetProfile) -> list[str]:
+def selected_sequences(
+    args: argparse.Namespace,
+    profile: DatasetProfile,
+    root: Path | str | None = None,
+    *,
+    doing: str = "using",
+) -> list[str]:
     """The sequences chosen by --split or --sequences, as the profile writes their ids on disk
-    (`--sequences 1` is "01" for SemanticKITTI, "001" for PandaSet)."""
-    return resolve_sequences(
+    (`--sequences 1` is "01" for SemanticKITTI, "001" for PandaSet).
+
+    With the dataset `root`, a split whose sequences are not all there is a CommandError naming
+    the missing ones, unless --allow-partial: then one warning names them and says what the
+    command is `doing` with the others ("predicting 11, 12"). Named --sequences are not checked
+    here: each missing one is an error where the scans are listed.
+    """
+    sequences = resolve_sequences(
         split=args.split, sequences=args.sequences, labels=profile.labels, layout=profile.layout
     )
+    if root is None or args.split is None:
+        return sequences
+    missing = missing_sequences(root, sequences, layout=profile.layout)
+    if not missing:
+        return sequences
+    present = [s for s in sequences if s not in missing]
+    absent = f"the {args.split} split's sequences {', '.join(missing)} are not in {root}"
+    if not present:
+        raise CommandError(
+            f"none of the {args.split} split's sequences ({', '.join(sequences)}) is in {root}"
+        )
+    if not getattr(args, "allow_partial", False):
+        raise CommandError(
+            f"{absent} (it holds {', '.join(present)}); pass --allow-partial to go on with "
+            "those, or name them with --sequences"
+        )
+    log.warning("--allow-partial: %s; %s %s", absent, doing, ", ".join(present))
+    return present
 
 
 def add_profile_option(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:

@@ -35,6 +35,12 @@ def _demo_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="other weights (default: the bundled demo weights)",
     )
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="run into an --out whose predictions are another checkpoint's (the demo predicts "
+        "every scan again; predictions/run.json lists both runs)",
+    )
     add_profile_option(parser)
     add_precision_option(parser)
     add_leaderboard_options(
@@ -53,6 +59,7 @@ def _run_demo(args: argparse.Namespace) -> int:
         profile=requested_profile(args),
         precision=args.precision,
         leaderboard=leaderboard,
+        overwrite=args.overwrite,
     )
     return 0
 

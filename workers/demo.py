@@ -4,7 +4,8 @@ It simulates a small dataset in the SemanticKITTI layout (a labelled validation 
 short unlabelled test sequences 11 to 21), starts a local Ray, predicts every scan through the
 workers' pipeline with the bundled demo weights, evaluates the validation sequence (table, JSON,
 PNGs), writes and validates a partial submission archive, and renders one range image with its
-ground truth and prediction. The demo weights were trained on simulated scenes only.
+ground truth and prediction. The predictions tree gets its `run.json` like every other runner's.
+The demo weights were trained on simulated scenes only.
 """
 
 from __future__ import annotations
@@ -27,12 +28,13 @@ from rangeret.dataset.projection import project_with
 from rangeret.evaluation.evaluate import evaluate_predictions
 from rangeret.evaluation.plots import plot_range_image, write_plots
 from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
+from rangeret.io.run_info import check_weights, write_run_info
 from rangeret.io.scans import read_labels, read_scan
 from rangeret.models.weights.demo import DEMO_CHECKPOINT, DEMO_WARNING, resolve_checkpoint
 from rangeret.sim import SensorConfig, simulate_dataset
 from rangeret.submission.archives import TEST_SEQUENCES, validate_submission, write_submission
 from rangeret.submission.leaderboard import LeaderboardEntry, description_text
-from workers.pipeline import run_pipeline
+from workers.pipeline import describe_spec, run_pipeline
 from workers.sizing import PipelineOptions
 
 log = logging.getLogger(__name__)
@@ -47,11 +49,13 @@ def run_demo(
     profile: DatasetProfile | None = None,
     precision: str = "auto",
     leaderboard: LeaderboardEntry | None = None,
+    overwrite: bool = False,
 ) -> Path:
     """Run the demo into `out` (default: a new timestamped folder) and return the folder.
 
     `leaderboard` gives the first lines of the archive's description.txt (default: the
-    benchmark's defaults).
+    benchmark's defaults). An `out` whose predictions tree holds predictions from other weights
+    is refused before anything is written unless `overwrite` (every scan is predicted again).
 
     With a `profile` other than SemanticKITTI's the scans are that dataset's (layout, point
     record, labels), the checkpoint must be a network for it (the demo weights are SemanticKITTI's)
@@ -73,6 +77,7 @@ def run_demo(
         checkpoint=str(weights), profile=profile, device="auto", precision=precision
     )
     info, profile = checkpoint_profile(spec)
+    check_weights(preds, info.sha256, overwrite=overwrite)
     benchmark = profile.name == DEFAULT_PROFILE
 
     if benchmark:
@@ -95,12 +100,20 @@ def run_demo(
     )
     log.info("simulated %d scans into %s", n, dataset)
 
+    options = PipelineOptions(read_cpus=0.25, write_cpus=0.1)
+    write_run_info(
+        preds,
+        describe_spec(spec, info, profile),
+        runner="rangeret demo",
+        dataset=dataset,
+        sequences=list(sequences),
+        batch_size=options.batch_size,
+        overwrite=overwrite,
+    )
     with contextlib.ExitStack() as stack:
         ray_logs = None if ray.is_initialized() else stack.enter_context(_local_ray())
         entries = discover(dataset, list(sequences), layout=profile.layout).scans
-        run = run_pipeline(
-            spec, profile, entries, preds, PipelineOptions(read_cpus=0.25, write_cpus=0.1)
-        )
+        run = run_pipeline(spec, profile, entries, preds, options)
     if not run.summary.ok:
         raise RuntimeError(f"the demo could not predict {sorted(run.summary.failed)}")
 

@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING
 from rangeret.dataset.layout import ScanEntry
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.evaluation.metrics import RawLabelEvaluator
+from rangeret.inference.description import describe_network
 from rangeret.inference.loading import batches
 from rangeret.inference.results import RunSummary
 from workers.cluster import cluster_layout
@@ -45,6 +46,7 @@ from workers.stages import BatchRecord, ModelWorker, Reader, Writer
 
 if TYPE_CHECKING:  # torch stays out of the driver until a model actor needs it
     from rangeret.inference.predictor import PredictorSpec
+    from rangeret.models.weights.checkpoint_info import CheckpointInfo
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +79,23 @@ class PipelineRun:
                 {resolve_precision(spec.precision, torch.device(k), spec.backend) for k in kinds}
             )
         )
+
+
+def describe_spec(spec: PredictorSpec, info: CheckpointInfo, profile: DatasetProfile) -> dict:
+    """The network description `run.json` records for a pipeline run of `spec` (the device and
+    precision asked for: the model actors resolve them)."""
+    return describe_network(
+        model=info.name,
+        checkpoint=spec.checkpoint,
+        sha256=info.sha256,
+        profile=profile.name,
+        projection=profile.projection,
+        knn=spec.knn,
+        tta=spec.tta,
+        device=spec.device,
+        precision=spec.precision,
+        backend=spec.backend,
+    )
 
 
 def run_pipeline(

@@ -7,7 +7,8 @@ Connects to the cluster in RAY_ADDRESS (set by `ray job submit`), or starts a lo
 none is set. On a multi-node cluster ROOT and PRED must be on storage every node mounts. The job
 writes the predictions tree; for labelled scans the evaluation report (JSON and PNGs); with
 `--submission` the validated archive. Scans already predicted are skipped (resume); the job
-exits non-zero when any scan could not be predicted, naming each one. It keeps its progress in
+exits non-zero when any scan could not be predicted, naming each one. The run is added to
+PRED/run.json; a tree holding predictions from other weights is refused unless `--overwrite`. It keeps its progress in
 PRED/progress.json (`workers.progress`): a record at the start, after batches, and a final one at
 the very end, also when scans failed or bad input stopped it.
 """
@@ -24,12 +25,10 @@ from pathlib import Path
 
 from rangeret.commands import CommandError, run_command
 from rangeret.dataset.layout import is_complete, list_scans
-from rangeret.dataset.profiles import DEFAULT_PROFILE, DatasetProfile
+from rangeret.dataset.profiles import DEFAULT_PROFILE
 from rangeret.exceptions import RangeRetError
-from rangeret.inference.description import describe_network
-from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
+from rangeret.inference.predictor import checkpoint_profile
 from rangeret.io.run_info import write_run_info
-from rangeret.models.weights.checkpoint_info import CheckpointInfo
 from rangeret.models.weights.demo import DEMO_WARNING, is_demo_checkpoint
 from rangeret.options import (
     add_leaderboard_options,
@@ -40,7 +39,7 @@ from rangeret.options import (
     spec_from_args,
 )
 from rangeret.submission.leaderboard import description_text
-from workers.pipeline import run_pipeline
+from workers.pipeline import describe_spec, run_pipeline
 from workers.progress import ProgressWriter
 from workers.sizing import PipelineOptions
 from workers.stages import count_labels
@@ -54,17 +53,23 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m workers.predict_job", description=__doc__.split("\n\n")[0]
     )
     p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
-    add_selection(p, ("train", "valid", "test"))
+    add_selection(
+        p,
+        ("train", "valid", "test"),
+        partial_help="; also writes --submission as a partial archive (for tests only)",
+    )
     p.add_argument(
         "--out", type=Path, required=True, metavar="PRED", help="predictions tree to write"
     )
     p.add_argument(
-        "--submission", type=Path, metavar="FILE.zip", help="also write the validated archive"
+        "--overwrite",
+        action="store_true",
+        help="predict every chosen scan again, replacing its prediction, also where PRED holds "
+        "predictions from other weights (without it, scans already predicted are kept and a "
+        "tree from other weights is refused); PRED/run.json lists every run",
     )
     p.add_argument(
-        "--allow-partial",
-        action="store_true",
-        help="accept a dataset with missing sequences or scans, and archive it (for tests only)",
+        "--submission", type=Path, metavar="FILE.zip", help="also write the validated archive"
     )
     add_leaderboard_options(p.add_argument_group("leaderboard (description.txt of --submission)"))
     p.add_argument(
@@ -147,11 +152,11 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
         raise CommandError(f"--actors must be at least 1, got {args.actors}")
     info, profile = checkpoint_profile(spec)
     label_config = profile.labels
-    sequences = selected_sequences(args, profile)
-    entries = list_scans(
-        args.dataset, sequences, missing_ok=args.allow_partial, layout=profile.layout
-    )
-    complete = [is_complete(e, args.out, record=profile.points) for e in entries]
+    sequences = selected_sequences(args, profile, args.dataset, doing="predicting")
+    entries = list_scans(args.dataset, sequences, layout=profile.layout)
+    complete = [
+        not args.overwrite and is_complete(e, args.out, record=profile.points) for e in entries
+    ]
     done = [e for e, finished in zip(entries, complete, strict=True) if finished]
     pending = [e for e, finished in zip(entries, complete, strict=True) if not finished]
     log.info(
@@ -162,7 +167,15 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
         len(done),
     )
     demo = is_demo_checkpoint(info.sha256)
-    _write_run_info(args, spec, info, profile, sequences)
+    write_run_info(
+        args.out,
+        describe_spec(spec, info, profile),
+        runner="workers.predict_job",
+        dataset=args.dataset,
+        sequences=sequences,
+        batch_size=args.batch_size,
+        overwrite=args.overwrite,
+    )
     recorder.start(len(entries), len(done))
 
     connect(None)
@@ -235,35 +248,6 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
         print(check.summary())
     recorder.finish(precision=precision)
     return 0
-
-
-def _write_run_info(
-    args: argparse.Namespace,
-    spec: PredictorSpec,
-    info: CheckpointInfo,
-    profile: DatasetProfile,
-    sequences: Sequence[str],
-) -> None:
-    network = describe_network(
-        model=info.name,
-        checkpoint=spec.checkpoint,
-        sha256=info.sha256,
-        profile=profile.name,
-        projection=profile.projection,
-        knn=spec.knn,
-        tta=spec.tta,
-        device=spec.device,
-        precision=spec.precision,
-        backend=spec.backend,
-    )
-    write_run_info(
-        args.out,
-        network,
-        runner="workers.predict_job",
-        dataset=args.dataset,
-        sequences=sequences,
-        batch_size=args.batch_size,
-    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:

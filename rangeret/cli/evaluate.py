@@ -38,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     from rangeret.evaluation.evaluate import evaluate_predictions
 
     profile = profile_from_args(args)
-    sequences = selected_sequences(args, profile)
+    sequences = selected_sequences(args, profile, args.dataset, doing="evaluating")
     report = evaluate_predictions(
         args.dataset, args.predictions, sequences, progress=not args.quiet, profile=profile
     )

@@ -49,6 +49,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "pixel) as float16 in PRED/sequences/XX/confidence/NNNNNN.npy (with --files: "
         "OUT/<stem>.npy)",
     )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="--dataset: predict every chosen scan again, replacing its prediction, also where "
+        "OUT holds predictions from other weights (without it, scans already predicted are "
+        "kept and a tree from other weights is refused); --files: label into a folder of other "
+        "weights' labels; either way other predictions stay and OUT/run.json lists every run. "
+        "--bag: replace an existing OUT and OUT.run.json",
+    )
     add_bag_options(p)
     p.add_argument(
         "--write-labelled",
@@ -63,11 +72,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Predict the scans of the source chosen (a dataset's split or sequences, files, or a bag)."""
     if args.bag is None:
-        for option, value in (
-            ("--topic", args.topic),
-            ("--bag-format", args.bag_format),
-            ("--overwrite", args.overwrite),
-        ):
+        for option, value in (("--topic", args.topic), ("--bag-format", args.bag_format)):
             if value:
                 raise CommandError(f"{option} is for --bag")
     elif args.write_labelled:
@@ -94,7 +99,7 @@ def run_dataset(args: argparse.Namespace) -> int:
     from rangeret.inference.runner import predict_tree
 
     predictor = predictor_from_args(args)
-    sequences = selected_sequences(args, predictor.profile)
+    sequences = selected_sequences(args, predictor.profile, args.dataset, doing="predicting")
     summary = predict_tree(
         predictor,
         args.dataset,
@@ -103,6 +108,7 @@ def run_dataset(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         progress=not args.quiet,
         save_confidence=args.save_confidence,
+        overwrite=args.overwrite,
     )
     print(summary.text())
     if not summary.ok:

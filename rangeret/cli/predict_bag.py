@@ -16,17 +16,14 @@ BAG_FORMATS = ("rosbag2-sqlite3", "rosbag2-mcap", "ros1")
 
 
 def add_bag_options(p: argparse.ArgumentParser) -> None:
-    """--topic, --bag-format and --overwrite, the options of `--bag` (which joins the source
-    group of `rangeret predict`)."""
+    """--topic and --bag-format, the options of `--bag` (which joins the source group of
+    `rangeret predict`; --overwrite, shared with the other sources, replaces an existing OUT)."""
     g = p.add_argument_group("bags (with --bag)")
     g.add_argument("--topic", metavar="T", help="the sensor_msgs/PointCloud2 topic to label")
     g.add_argument(
         "--bag-format",
         choices=list(BAG_FORMATS),
         help="the kind of bag to write (default: the input's)",
-    )
-    g.add_argument(
-        "--overwrite", action="store_true", help="replace an existing OUT (and OUT.run.json)"
     )
 
 
@@ -38,10 +35,15 @@ def run_bag(args: argparse.Namespace) -> int:
 
     if not args.topic:
         raise CommandError("--bag needs --topic (the PointCloud2 topic to label)")
-    if args.split is not None or args.sequences is not None or args.save_confidence:
+    if (
+        args.split is not None
+        or args.sequences is not None
+        or args.save_confidence
+        or args.allow_partial
+    ):
         raise CommandError(
-            "--split, --sequences and --save-confidence are for --dataset (a labelled bag "
-            "always carries each point's confidence)"
+            "--split, --sequences, --allow-partial and --save-confidence are for --dataset (a "
+            "labelled bag always carries each point's confidence)"
         )
     fmt = args.bag_format or bag_format(args.bag)
     check_target(args.out, fmt, overwrite=args.overwrite, source=args.bag)

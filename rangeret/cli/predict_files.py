@@ -9,7 +9,9 @@ input, DIR gets `<stem>.label` (uint32 raw ids, one per point in the file's orde
 `confidence` added (a `.bin` has no room for them: its `.label` is its labelled form). Files are
 labelled one at a time. A file that cannot be read or labelled is reported and the others still
 run; the command then exits 1 naming every failure. DIR/run.json records the network and, for
-each file, its format, points, invalid points and which field (or fill value) gave each value.
+each file, its format, points, invalid points and which field (or fill value) gave each value; its
+`runs` lists every run into DIR. Labelling into a DIR of another checkpoint's labels is refused
+before any file is read unless --overwrite.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from rangeret.cli.shared import predictor_from_args
 from rangeret.commands import CommandError
 from rangeret.io.point_fields import parse_field_overrides
 from rangeret.io.point_files import EXTENSIONS
-from rangeret.io.run_info import write_run_info
+from rangeret.io.run_info import check_weights, started_now, write_run_info
 
 RUNNER = "rangeret predict --files"
 
@@ -61,13 +63,15 @@ def run_files(args: argparse.Namespace) -> int:
     """Label every file of --files into --out (see the module docstring)."""
     from rangeret.inference.files_runner import label_files
 
-    if args.split is not None or args.sequences is not None:
-        raise CommandError("--split and --sequences are for --dataset, not --files")
+    if args.split is not None or args.sequences is not None or args.allow_partial:
+        raise CommandError("--split, --sequences and --allow-partial are for --dataset, not --files")
+    started = started_now()
     files = collect_inputs(args.files)
     predictor = predictor_from_args(args)
     profile = predictor.profile
     overrides = parse_field_overrides(args.field, record=profile.points)
     out: Path = args.out
+    check_weights(out, predictor.checkpoint_sha256, overwrite=args.overwrite)
     summary, inputs = label_files(
         predictor,
         files,
@@ -90,6 +94,8 @@ def run_files(args: argparse.Namespace) -> int:
             "point_record": list(profile.points.fields),
             "field_overrides": dict(overrides),
         },
+        overwrite=args.overwrite,
+        started=started,
     )
     print(summary.text())
     if not summary.ok:

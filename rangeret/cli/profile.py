@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
         profile = load_profile(args.profile)
         stats = profile_stats(
             args.dataset,
-            selected_sequences(args, profile),
+            selected_sequences(args, profile, args.dataset, doing="measuring"),
             profile,
             max_scans=args.max_scans,
             progress=not args.quiet,

@@ -173,6 +173,13 @@ def resolve_sequences(
     return list(labels.split(split))
 
 
+def missing_sequences(
+    root: Path | str, sequences: Sequence[str], *, layout: SequenceLayout
+) -> list[str]:
+    """Those of `sequences` that `root` does not hold (no velodyne folder), in their order."""
+    return [s for s in sequences if not velodyne_dir(root, s, layout=layout).is_dir()]
+
+
 def _stems(folder: Path, suffix: str) -> dict[str, Path]:
     if not folder.is_dir():
         return {}

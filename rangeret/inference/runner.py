@@ -2,7 +2,9 @@
 
 Every scan of the chosen sequences ends with exactly one complete prediction file, or is named as
 failed with its error. A scan whose prediction already exists with the right size is skipped, so
-an interrupted run picks up where it stopped. Reading and projection of the next batch overlap
+an interrupted run picks up where it stopped; with `overwrite` every scan is predicted again.
+The run is added to the tree's `run.json` before any scan is written, and a tree holding
+predictions from other weights is refused unless `overwrite` (`rangeret.io.run_info`). Reading and projection of the next batch overlap
 with the network on the current one.
 """
 
@@ -46,13 +48,17 @@ def predict_tree(
     cancel: threading.Event | None = None,
     save_confidence: bool = False,
     read_roots: Sequence[str] | None = None,
+    overwrite: bool = False,
+    runner: str = "rangeret predict",
 ) -> RunSummary:
     """Write `OUT/sequences/XX/predictions/NNNNNN.label` for every scan of `sequences` (and, with
     `save_confidence`, each point's confidence in `OUT/sequences/XX/confidence/NNNNNN.npy`).
 
     `on_progress(done, failed, total)` is called after every batch; setting `cancel` stops the
     run after the current batch (files already written stay complete). With `read_roots`, a scan
-    file that leads outside those folders when it is read is that scan's failure.
+    file that leads outside those folders when it is read is that scan's failure. With
+    `overwrite`, scans already predicted are predicted again and replaced, also when the tree
+    holds predictions from other weights; `runner` names the run in `run.json`.
     """
     check_batch_size(batch_size)
     out = Path(out)
@@ -62,7 +68,8 @@ def predict_tree(
     pending = [
         e
         for e in entries
-        if not is_complete(e, out, record=profile.points, with_confidence=save_confidence)
+        if overwrite
+        or not is_complete(e, out, record=profile.points, with_confidence=save_confidence)
     ]
     summary.skipped = len(entries) - len(pending)
     if summary.skipped:
@@ -72,10 +79,11 @@ def predict_tree(
     write_run_info(
         out,
         predictor.describe(),
-        runner="rangeret predict",
+        runner=runner,
         dataset=dataset,
         sequences=sequences,
         batch_size=batch_size,
+        overwrite=overwrite,
     )
 
     times = summary.times

@@ -133,5 +133,6 @@ class LocalExecutor:
             on_progress=progress,
             cancel=cancel,
             read_roots=None if self.read_roots is None else [str(r) for r in self.read_roots],
+            runner="service job",
         )
         return summary.failed

@@ -156,6 +156,10 @@ def test_job_resumes_and_names_bad_scans(ray_local, setup, tmp_path, capsys):
     assert job_main(args) == 0
     assert "1 written, 4 already done, 0 failed" in capsys.readouterr().out
     assert tree_bytes(tmp_path / "p") == first
+    record = json.loads((tmp_path / "p" / "run.json").read_text())
+    assert [r["runner"] for r in record["runs"]] == ["workers.predict_job"] * 2
+    assert record["runs"][0]["started"] == run["started"] == run["runs"][0]["started"]
+    assert record["runs"][1]["started"] == record["started"]
 
     bad = tmp_path / "bad"
     build_tree(bad, labelled=2, unlabelled=1)
@@ -247,9 +251,10 @@ def test_scan_worker_labels_batches_as_the_predictor_does(setup):
     assert (sure.confidence >= 0).all() and (sure.confidence <= 1).all()
 
 
-def test_a_job_runs_beside_actors_that_hold_cpus(ray_local, setup, tmp_path, capsys):
+def test_a_job_runs_beside_actors_that_hold_cpus(ray_local, setup, tmp_path, capsys, caplog):
     """Regression: CPU model actors were sized from a node's total CPUs, so a job never started
-    while other actors (Serve replicas, say) held some of them."""
+    while other actors (Serve replicas, say) held some of them. Also: --allow-partial predicts
+    the sequences of the split that the dataset holds, naming the others."""
     data, weights = setup
 
     @ray_local.remote(num_cpus=1)
@@ -267,16 +272,47 @@ def test_a_job_runs_beside_actors_that_hold_cpus(ray_local, setup, tmp_path, cap
                 str(data),
                 "--out",
                 str(tmp_path / "p"),
-                "--sequences",
-                "08",
-                "11",
+                "--split",
+                "test",
+                "--allow-partial",
                 *_net(weights),
             ]
         )
-        assert code == 0 and len(tree_bytes(tmp_path / "p")) == 5
+        assert code == 0 and sorted(tree_bytes(tmp_path / "p")) == [
+            "sequences/11/predictions/000003.label",
+            "sequences/11/predictions/000004.label",
+        ]
+        assert "the test split's sequences 12, 13" in caplog.text and "; predicting 11" in caplog.text
+        assert json.loads((tmp_path / "p" / "run.json").read_text())["sequences"] == ["11"]
     finally:
         ray_local.kill(holder)
     capsys.readouterr()
+
+
+def test_the_job_refuses_partial_splits_and_other_weights_before_it_starts(setup, tmp_path, capsys):
+    """Both refusals come before Ray starts and before any scan or run record is written."""
+    from rangeret.io.run_info import write_run_info
+
+    data, weights = setup
+    out = tmp_path / "p"
+    base = ["-q", "--dataset", str(data), "--out", str(out), *_net(weights)]
+    assert job_main([*base, "--split", "test"]) == 1
+    err = capsys.readouterr().err
+    assert "the test split's sequences 12, 13" in err and "--allow-partial" in err
+    assert not out.exists()
+    write_run_info(
+        out,
+        {"checkpoint_sha256": "c" * 64},
+        runner="rangeret predict",
+        dataset=data,
+        sequences=["08"],
+        batch_size=1,
+    )
+    before = (out / "run.json").read_bytes()
+    assert job_main([*base, "--sequences", "08"]) == 1
+    err = capsys.readouterr().err
+    assert "cccccccccccc" in err and str(out) in err and "--overwrite" in err
+    assert (out / "run.json").read_bytes() == before and tree_bytes(out) == {}
 
 
 def test_cpu_layout_defaults_to_one_single_threaded_actor_per_free_cpu(ray_local):

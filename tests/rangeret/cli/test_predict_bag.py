@@ -114,7 +114,8 @@ def test_a_bad_message_exits_1_naming_how_many_failed(tmp_path, network, capsys)
         (["--topic", "/imu"], "topic /imu holds sensor_msgs/msg/Imu, not sensor_msgs/msg/PointCloud2"),
         (["--topic", "/lidar"], "has no topic '/lidar'; its topics: /chat (std_msgs/msg/String)"),
         ([], "--bag needs --topic (the PointCloud2 topic to label)"),
-        (["--topic", "/points", "--split", "valid"], "--split, --sequences and --save-confidence are for --dataset"),
+        (["--topic", "/points", "--split", "valid"], "--split, --sequences, --allow-partial and --save-confidence are for --dataset"),
+        (["--topic", "/points", "--allow-partial"], "--split, --sequences, --allow-partial and --save-confidence are for --dataset"),
         (["--topic", "/points", "--bag-format", "ros1"], "the name of a ros1 bag must end in .bag"),
     ],
 )  # fmt: skip
