@@ -83,8 +83,8 @@ def selected_sequences(
     sequences = resolve_sequences(
         split=args.split, sequences=args.sequences, labels=profile.labels, layout=profile.layout
     )
-    if root is None or args.split is None:
-        return sequences
+    if root is None or args.split is None or not Path(root).is_dir():
+        return sequences  # a missing root is named where the scans are listed
     missing = missing_sequences(root, sequences, layout=profile.layout)
     if not missing:
         return sequences

@@ -64,7 +64,9 @@ def run_files(args: argparse.Namespace) -> int:
     from rangeret.inference.files_runner import label_files
 
     if args.split is not None or args.sequences is not None or args.allow_partial:
-        raise CommandError("--split, --sequences and --allow-partial are for --dataset, not --files")
+        raise CommandError(
+            "--split, --sequences and --allow-partial are for --dataset, not --files"
+        )
     started = started_now()
     files = collect_inputs(args.files)
     predictor = predictor_from_args(args)

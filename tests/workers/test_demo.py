@@ -64,6 +64,26 @@ def test_demo_end_to_end(tmp_path, capfd):
     assert check.warnings == []
     assert not (out / "dataset" / "sequences" / "11" / "labels").exists()
     assert "--checkpoint rangeret-kitti-657" in printed
+    run = json.loads((out / "predictions" / "run.json").read_text())
+    assert run["runner"] == "rangeret demo" and run["demo_weights"] is True
+    assert run["checkpoint_sha256"] == report["checkpoint_sha256"]
+    assert run["sequences"] == ["08", *(str(s) for s in range(11, 22))]
+    assert [r["runner"] for r in run["runs"]] == ["rangeret demo"]
+
+    from rangeret.io.run_info import WeightsMismatchError, write_run_info
+
+    other = tmp_path / "other"
+    write_run_info(
+        other / "predictions",
+        {"checkpoint_sha256": "d" * 64},
+        runner="rangeret predict",
+        dataset=None,
+        sequences=["08"],
+        batch_size=1,
+    )
+    with pytest.raises(WeightsMismatchError, match="dddddddddddd"):
+        run_demo(other, progress=False)
+    assert sorted(p.name for p in other.iterdir()) == ["predictions"], "refused before simulating"
 
 
 def test_demo_on_another_profile_needs_its_network(tmp_path, capsys):

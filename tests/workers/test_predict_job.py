@@ -282,7 +282,9 @@ def test_a_job_runs_beside_actors_that_hold_cpus(ray_local, setup, tmp_path, cap
             "sequences/11/predictions/000003.label",
             "sequences/11/predictions/000004.label",
         ]
-        assert "the test split's sequences 12, 13" in caplog.text and "; predicting 11" in caplog.text
+        assert (
+            "the test split's sequences 12, 13" in caplog.text and "; predicting 11" in caplog.text
+        )
         assert json.loads((tmp_path / "p" / "run.json").read_text())["sequences"] == ["11"]
     finally:
         ray_local.kill(holder)

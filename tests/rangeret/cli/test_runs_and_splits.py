@@ -43,11 +43,8 @@ def _sha(path) -> str:
 
 
 def _predict(data, out, weights, *extra):
-    return main(
-        ["predict", "-q", "--dataset", str(data), "--out", str(out), "--checkpoint", str(weights)]
-        + NET
-        + list(extra)
-    )
+    base = ["predict", "-q", "--dataset", str(data), "--out", str(out)]
+    return main([*base, "--checkpoint", str(weights), *NET, *extra])
 
 
 def test_two_runs_into_one_tree_are_both_recorded(data, weights, tmp_path, capsys):
@@ -111,17 +108,26 @@ def test_predict_a_partial_split_only_with_allow_partial(data, weights, tmp_path
     assert _predict(data, out, weights[0], "--split", "test") == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--allow-partial" in err
-    assert f"the test split's sequences 12, 13, 14, 15, 16, 17, 18, 19, 20, 21 are not in {data}" in err
+    assert (
+        f"the test split's sequences 12, 13, 14, 15, 16, 17, 18, 19, 20, 21 are not in {data}"
+        in err
+    )
     assert not out.exists()
     with caplog.at_level(logging.WARNING, logger="rangeret"):
         assert _predict(data, out, weights[0], "--split", "test", "--allow-partial") == 0
-    assert f"--allow-partial: the test split's sequences 12, 13, 14, 15, 16, 17, 18, 19, 20, 21 are not in {data}; predicting 11" in caplog.text
+    assert (
+        f"--allow-partial: the test split's sequences 12, 13, 14, 15, 16, 17, 18, 19, 20, 21 are not in {data}; predicting 11"
+        in caplog.text
+    )
     assert sorted(tree_bytes(out)) == ["sequences/11/predictions/000002.label"]
     assert json.loads((out / "run.json").read_text())["sequences"] == ["11"]
     assert _predict(data, out, weights[0], "--sequences", "11", "12", "--allow-partial") == 1
     assert "sequence 12 is missing" in capsys.readouterr().err, "--sequences stay strict"
     assert _predict(data, out, weights[0], "--split", "train", "--allow-partial") == 1
-    assert "none of the train split's sequences (00, 01, 02, 03, 04, 05, 06, 07, 09, 10)" in capsys.readouterr().err
+    assert (
+        "none of the train split's sequences (00, 01, 02, 03, 04, 05, 06, 07, 09, 10)"
+        in capsys.readouterr().err
+    )
 
 
 @pytest.fixture
@@ -137,7 +143,16 @@ def train_tree(tmp_path):
 
 def test_evaluate_a_partial_split_only_with_allow_partial(train_tree, tmp_path, capsys, caplog):
     root, pred = train_tree
-    base = ["evaluate", "-q", "--dataset", str(root), "--predictions", str(pred), "--split", "train"]
+    base = [
+        "evaluate",
+        "-q",
+        "--dataset",
+        str(root),
+        "--predictions",
+        str(pred),
+        "--split",
+        "train",
+    ]
     assert main(base) == 1
     err = capsys.readouterr().err
     assert "the train split's sequences 02, 03, 04, 05, 06, 07, 09, 10 are not in" in err
