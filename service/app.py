@@ -6,6 +6,8 @@ store and runner, and the metrics. The endpoints are in `service.routes` (one mo
 resource), the error answers in `service.error_handlers`: every error is
 `{"detail": "<one sentence>"}`. With RANGERET_API_TOKEN set, every /v1 request needs
 `Authorization: Bearer TOKEN` (/metrics and the API description do not; /healthz gives its details only with it).
+The API description is the same whether or not a token is set, with stable operation ids, one
+request body per operation and every error answer described, so client generators can use it.
 The web page at `/` (`service.routes.page`) needs no token itself and sends it on its API calls.
 """
 
@@ -17,6 +19,8 @@ from typing import Any
 
 from fastapi import Depends, FastAPI
 from fastapi.openapi.utils import get_openapi
+from pydantic import BaseModel
+from pydantic.json_schema import JsonSchemaMode, models_json_schema
 
 from rangeret.dataset.profiles import DatasetProfile
 from service.dependencies import require_token
@@ -32,36 +36,49 @@ from service.routes.model import router as model_router
 from service.routes.page import router as page_router
 from service.routes.profile import router as profile_router
 from service.routes.scans import router as scans_router
-from service.schemas import ErrorResponse
+from service.schemas import ARCHIVE_UPLOAD, DatasetJobRequest, ErrorResponse, ScanLabels
 from service.security_headers import NoSniff
 from service.settings import Settings
 
+#: The groups of operations in the API description (and the modules of a generated client).
+TAGS = [
+    {"name": "scans", "description": "Label one scan."},
+    {"name": "jobs", "description": "Jobs over whole sequences: start, follow, fetch, cancel."},
+    {"name": "service", "description": "What the gateway serves, and its health."},
+]
+
+
+#: Bodies the routes describe by hand (they read them themselves), added to the components.
+_BODY_MODELS: tuple[tuple[type[BaseModel], JsonSchemaMode], ...] = (
+    (DatasetJobRequest, "validation"),
+    (ScanLabels, "serialization"),
+    (ErrorResponse, "serialization"),
+)
+
 
 def _openapi(app: FastAPI) -> dict[str, Any]:
-    """The OpenAPI description, with 400 (not FastAPI's 422) for request validation."""
+    """The OpenAPI description: 400 (not FastAPI's 422) for request validation, the bodies the
+    routes read themselves among the components, and `/healthz` open to callers without a token."""
     if app.openapi_schema:
         return app.openapi_schema
     schema = get_openapi(
-        title=app.title, version=app.version, description=app.description, routes=app.routes
+        title=app.title,
+        version=app.version,
+        description=app.description,
+        routes=app.routes,
+        tags=TAGS,
     )
-    error_ref = {"$ref": "#/components/schemas/ErrorResponse"}
     for path in schema.get("paths", {}).values():
         for operation in path.values():
-            responses = operation.get("responses", {})
-            responses.pop("422", None)
-            queries = [p for p in operation.get("parameters", []) if p.get("in") == "query"]
-            if queries or operation.get("requestBody"):
-                responses.setdefault(
-                    "400",
-                    {
-                        "description": "Malformed request",
-                        "content": {"application/json": {"schema": error_ref}},
-                    },
-                )
+            operation.get("responses", {}).pop("422", None)
+    health = schema["paths"]["/healthz"]["get"]
+    health["security"] = [{}, *health.get("security", [])]
     components = schema.setdefault("components", {}).setdefault("schemas", {})
     components.pop("HTTPValidationError", None)
     components.pop("ValidationError", None)
-    components["ErrorResponse"] = ErrorResponse.model_json_schema()
+    _, described = models_json_schema(_BODY_MODELS, ref_template="#/components/schemas/{model}")
+    components.update(described.get("$defs", {}))
+    components["ArchiveUpload"] = ARCHIVE_UPLOAD
     app.openapi_schema = schema
     return schema
 
@@ -124,11 +141,13 @@ def create_app(
     app.add_middleware(OriginGuard, allowed_hosts=settings.host_allow_list())
     app.add_middleware(NoSniff)
     install_error_handlers(app)
-    # The token guard is added only when a token is set, so the API description shows the bearer
-    # scheme and the 401 answers exactly when they apply.
-    guarded: dict[str, Any] = {}
-    if settings.token is not None:
-        guarded = {"dependencies": [Depends(require_token)], "responses": error_responses(401)}
+    # The token guard is on every /v1 route whatever the settings (it lets every request through
+    # on a gateway without a token), so the API description, and a client generated from it, is
+    # the same for every gateway: the bearer scheme and the 401 answers are always described.
+    guarded: dict[str, Any] = {
+        "dependencies": [Depends(require_token)],
+        "responses": error_responses(401),
+    }
     app.include_router(scans_router, **guarded)
     app.include_router(jobs_router, **guarded)
     app.include_router(profile_router, **guarded)

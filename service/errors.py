@@ -23,16 +23,16 @@ _KINDS = {
 }
 
 _DESCRIPTIONS = {
-    400: "Malformed scan, archive or request",
-    401: "Missing or wrong bearer token",
-    403: "Dataset path outside the configured data roots",
+    400: "Malformed request, or a Host the gateway does not answer to (RANGERET_ALLOWED_HOSTS)",
+    401: "Missing or wrong bearer token, where the gateway has one (RANGERET_API_TOKEN)",
+    403: "A state-changing request from another origin's page",
     404: "No such job or result",
     408: "The body did not arrive in time (RANGERET_BODY_TIMEOUT_S, RANGERET_UPLOAD_TIMEOUT_S)",
     409: "The job has not succeeded (yet)",
     413: "Body, scan or archive over the configured limits",
     415: "Wrong media type",
     429: "Too many jobs are waiting (RANGERET_MAX_QUEUED_JOBS)",
-    503: "The labelling backend is unavailable or overloaded, or the single-scan queue is full",
+    503: "The gateway is starting",
     504: "The Serve application did not answer in time (RANGERET_SERVE_TIMEOUT_S)",
     507: "No room: the job folders' limit (RANGERET_MAX_JOB_BYTES) or disk, or a full disk under the job database",
 }
@@ -89,6 +89,13 @@ def validation_sentence(errors: Sequence[Mapping[str, Any]], where: str | None =
     return sentence(f"The request is invalid: {message}{more}")
 
 
-def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
-    """OpenAPI `responses` entries for error codes, all with the `ErrorResponse` body."""
-    return {code: {"model": ErrorResponse, "description": _DESCRIPTIONS[code]} for code in codes}
+def error_responses(
+    *codes: int, described: Mapping[int, str] | None = None
+) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI `responses` entries for error codes, all with the `ErrorResponse` body; `described`
+    gives a route's own description of some of them."""
+    described = described or {}
+    return {
+        code: {"model": ErrorResponse, "description": described.get(code, _DESCRIPTIONS[code])}
+        for code in codes
+    }

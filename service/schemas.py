@@ -12,6 +12,37 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 SEQUENCE_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
 #: The OpenAPI content of a binary body (a scan, its labels, an archive).
 BINARY_CONTENT: dict[str, Any] = {"schema": {"type": "string", "format": "binary"}}
+OCTET = "application/octet-stream"
+#: The multipart form of an archive upload (`POST /v1/jobs/uploads`), as an OpenAPI schema.
+ARCHIVE_UPLOAD: dict[str, Any] = {
+    "title": "ArchiveUpload",
+    "type": "object",
+    "description": "An archive of sequences to predict (and, with labels, to evaluate).",
+    "properties": {
+        "archive": {
+            "type": "string",
+            "format": "binary",
+            "description": ".zip, .tar or .tar.gz with sequences/XX/velodyne/*.bin (the served "
+            "profile's point records) and optional sequences/XX/labels/*.label, whatever the "
+            "profile",
+        }
+    },
+    "required": ["archive"],
+    "additionalProperties": False,
+}
+
+
+def file_content(media: str) -> dict[str, Any]:
+    """The OpenAPI content of a file answer sent as `media`, listed as `application/octet-stream`
+    too, so that client generators that do not know `media` still type it as a file."""
+    return {media: BINARY_CONTENT, OCTET: BINARY_CONTENT}
+
+
+class LabelFormat(str, Enum):
+    """The form of a labelled scan: raw `.label` bytes, or JSON."""
+
+    raw = "raw"
+    json = "json"
 
 
 class ErrorResponse(BaseModel):
@@ -26,7 +57,7 @@ class ErrorResponse(BaseModel):
 
 
 class ScanLabels(BaseModel):
-    """The JSON form of a labelled scan (asked for with `Accept: application/json`)."""
+    """The JSON form of a labelled scan (asked for with `format=json` or `Accept: application/json`)."""
 
     model_config = ConfigDict(
         json_schema_extra={

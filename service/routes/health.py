@@ -17,9 +17,10 @@ from fastapi.responses import JSONResponse, Response
 from fastapi.security import HTTPAuthorizationCredentials
 
 from service.dependencies import BEARER, GatewayDep, token_matches
+from service.errors import error_responses
 from service.schemas import Health, HealthSummary
 
-router = APIRouter()
+router = APIRouter(tags=["service"])
 
 
 def software_version() -> str:
@@ -37,6 +38,7 @@ def software_version() -> str:
         "Without the token (where the gateway has one): status, model, profile and version only. "
         "With it, or on a gateway without a token: the workers, precision, queue and batching too."
     ),
+    operation_id="health",
     response_model=Health | HealthSummary,
     responses={
         503: {"model": Health | HealthSummary, "description": "The worker backend is unavailable"}
@@ -78,12 +80,14 @@ async def healthz(
 @router.get(
     "/metrics",
     summary="Prometheus metrics",
+    operation_id="get_metrics",
     response_class=Response,
     responses={
         200: {
             "description": "Prometheus text exposition",
             "content": {"text/plain": {"schema": {"type": "string"}}},
-        }
+        },
+        **error_responses(400),
     },
 )
 async def metrics(gw: GatewayDep) -> Response:

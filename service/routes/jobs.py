@@ -1,9 +1,11 @@
 """/v1/jobs: start a job over whole sequences, list and follow jobs, fetch results, cancel.
 
-A job comes from an uploaded archive (multipart field `archive`) or names a dataset under the data
-roots (JSON). The routes parse the request and reply; `service.jobs.intake` prepares, checks and
-queues a new job, and `service.jobs.results` names a job's result files. The job store is only
-ever called through a worker thread, never on the event loop.
+A job comes from an uploaded archive (`POST /v1/jobs/uploads`, multipart field `archive`) or names
+a dataset under the data roots (`POST /v1/jobs`, JSON; that operation also takes the upload form,
+which the API description leaves out so that client generators see one body per operation). The
+routes parse the request and reply; `service.jobs.intake` prepares, checks and queues a new job,
+and `service.jobs.results` names a job's result files. The job store is only ever called through
+a worker thread, never on the event loop.
 """
 
 from __future__ import annotations
@@ -24,38 +26,37 @@ from service.jobs import JobManager, JobRecord
 from service.jobs.intake import JobIntake
 from service.jobs.results import plot_path, report_plots
 from service.schemas import (
-    BINARY_CONTENT,
     DatasetJobRequest,
     JobCreated,
     JobList,
     JobMetrics,
     JobState,
     JobStatus,
+    file_content,
 )
 from service.uploads import declared_length, drain, media_type, read_body, receive_archive
 
-router = APIRouter(prefix="/v1")
+router = APIRouter(prefix="/v1", tags=["jobs"])
 
-_JOB_BODY = {
+MULTIPART = "multipart/form-data"
+_DATASET_BODY = {
     "required": True,
-    "content": {
-        "multipart/form-data": {
-            "schema": {
-                "type": "object",
-                "properties": {
-                    "archive": {
-                        "type": "string",
-                        "format": "binary",
-                        "description": ".zip, .tar or .tar.gz with sequences/XX/velodyne/*.bin "
-                        "(the served profile's point records) and optional "
-                        "sequences/XX/labels/*.label, whatever the profile",
-                    }
-                },
-                "required": ["archive"],
-            }
-        },
-        "application/json": {"schema": DatasetJobRequest.model_json_schema()},
-    },
+    "content": {"application/json": {"schema": {"$ref": "#/components/schemas/DatasetJobRequest"}}},
+}
+_UPLOAD_BODY = {
+    "required": True,
+    "content": {MULTIPART: {"schema": {"$ref": "#/components/schemas/ArchiveUpload"}}},
+}
+#: The errors of every operation that reads a job.
+_READ_ERRORS = error_responses(400, 404, 503)
+#: The errors of the operations that read a succeeded job's results.
+_RESULT_ERRORS = error_responses(400, 404, 409, 503)
+#: The errors of both operations that start a job (the upload's 404 aside).
+_START_DESCRIBED = {
+    400: "Malformed request or archive, or a Host the gateway does not answer to",
+    403: "A dataset path outside the configured data roots, or a request from another "
+    "origin's page",
+    404: "No dataset folder at that path under the data roots",
 }
 
 
@@ -89,44 +90,93 @@ def job_status(record: JobRecord) -> JobStatus:
 
 @router.post(
     "/jobs",
-    summary="Start a job over sequences",
+    summary="Start a job over a dataset on the server",
     description=(
-        "Either upload an archive (multipart field `archive`) laid out as sequences/XX/velodyne/*.bin "
-        "with optional sequences/XX/labels/*.label (for every profile; the scans hold the served "
-        "profile's point records), or name a dataset in the served profile's layout under the "
-        "configured data roots in JSON. The job predicts every scan; with labels it also evaluates "
-        "them."
+        "Name a dataset in the served profile's layout under the configured data roots, and the "
+        "split or sequences to run. The job predicts every scan; with labels it also evaluates "
+        "them. (An archive upload is `POST /v1/jobs/uploads`.)"
     ),
+    operation_id="create_job",
     status_code=202,
     response_model=JobCreated,
-    responses=error_responses(400, 403, 404, 408, 413, 415, 429, 507),
-    openapi_extra={"requestBody": _JOB_BODY},
+    responses=error_responses(
+        400, 403, 404, 408, 413, 415, 429, 503, 507, described=_START_DESCRIBED
+    ),
+    openapi_extra={"requestBody": _DATASET_BODY},
 )
 async def create_job(request: Request, gw: GatewayDep, jobs: JobsDep) -> JSONResponse:
-    kind = media_type(request)
     intake = JobIntake(jobs, gw.settings, gw.profile)
+    await _check_queue(request, gw, intake)
+    kind = media_type(request)
+    if kind == MULTIPART:
+        record = await _archive_job(request, gw, intake)
+    elif kind == "application/json":
+        record = await intake.dataset_job(await _dataset_request(request, gw))
+    else:
+        raise await _wrong_media(
+            request,
+            gw,
+            "Send a dataset job as application/json, or upload an archive to /v1/jobs/uploads "
+            "as multipart/form-data (an 'archive' file).",
+        )
+    return _created(record)
+
+
+@router.post(
+    "/jobs/uploads",
+    summary="Start a job over an uploaded archive",
+    description=(
+        "Upload an archive (multipart field `archive`: .zip, .tar or .tar.gz) laid out as "
+        "sequences/XX/velodyne/*.bin with optional sequences/XX/labels/*.label (for every "
+        "profile; the scans hold the served profile's point records). The job predicts every "
+        "scan; with labels it also evaluates them."
+    ),
+    operation_id="upload_job",
+    status_code=202,
+    response_model=JobCreated,
+    responses=error_responses(400, 403, 408, 413, 415, 429, 503, 507, described=_START_DESCRIBED),
+    openapi_extra={"requestBody": _UPLOAD_BODY},
+)
+async def upload_job(request: Request, gw: GatewayDep, jobs: JobsDep) -> JSONResponse:
+    intake = JobIntake(jobs, gw.settings, gw.profile)
+    await _check_queue(request, gw, intake)
+    if media_type(request) != MULTIPART:
+        raise await _wrong_media(
+            request, gw, "Upload the archive as multipart/form-data, in a file field 'archive'."
+        )
+    return _created(await _archive_job(request, gw, intake))
+
+
+async def _check_queue(request: Request, gw: Gateway, intake: JobIntake) -> None:
+    """429 while too many jobs wait, checked before the body is read (and dropped)."""
     try:
         await asyncio.to_thread(intake.check_queue)
     except ApiError:
         await drain(request, gw.settings.max_body_bytes, timeout=gw.settings.body_timeout_s)
         raise
-    if kind == "multipart/form-data":
-        record = await _archive_job(request, gw, intake)
-    elif kind == "application/json":
-        record = await intake.dataset_job(await _dataset_request(request, gw))
-    else:
-        await drain(request, gw.settings.max_body_bytes, timeout=gw.settings.body_timeout_s)
-        raise ApiError(
-            415,
-            "Send a job as multipart/form-data (an 'archive' file) or as application/json (a dataset).",
-        )
+
+
+async def _wrong_media(request: Request, gw: Gateway, detail: str) -> ApiError:
+    """The 415 answer saying `detail`, once the body it refuses is dropped."""
+    await drain(request, gw.settings.max_body_bytes, timeout=gw.settings.body_timeout_s)
+    return ApiError(415, detail)
+
+
+def _created(record: JobRecord) -> JSONResponse:
+    """The 202 answer to a new job: its id, and where to follow it (also as `Location`)."""
     created = JobCreated(id=record.id, status_url=f"/v1/jobs/{record.id}")
     return JSONResponse(
         created.model_dump(), status_code=202, headers={"Location": created.status_url}
     )
 
 
-@router.get("/jobs", summary="List jobs", response_model=JobList)
+@router.get(
+    "/jobs",
+    summary="List jobs",
+    operation_id="list_jobs",
+    response_model=JobList,
+    responses=error_responses(400, 503),
+)
 async def list_jobs(jobs: JobsDep) -> JobList:
     records = await asyncio.to_thread(jobs.store.list)
     return JobList(jobs=await asyncio.to_thread(lambda: [job_status(r) for r in records]))
@@ -135,8 +185,9 @@ async def list_jobs(jobs: JobsDep) -> JobList:
 @router.get(
     "/jobs/{job_id}",
     summary="A job's state and progress",
+    operation_id="get_job",
     response_model=JobStatus,
-    responses=error_responses(404),
+    responses=_READ_ERRORS,
 )
 async def get_job(job_id: str, jobs: JobsDep) -> JobStatus:
     return await asyncio.to_thread(job_status, await _record_or_404(jobs, job_id))
@@ -146,13 +197,11 @@ async def get_job(job_id: str, jobs: JobsDep) -> JobStatus:
     "/jobs/{job_id}/predictions",
     summary="A succeeded job's predictions (zip)",
     description="A zip of sequences/XX/predictions/*.label with directory entries for the job's sequences.",
+    operation_id="get_job_predictions",
     response_class=FileResponse,
     responses={
-        200: {
-            "description": "The predictions archive",
-            "content": {"application/zip": BINARY_CONTENT},
-        },
-        **error_responses(404, 409),
+        200: {"description": "The predictions archive", "content": file_content("application/zip")},
+        **_RESULT_ERRORS,
     },
 )
 async def get_predictions(job_id: str, jobs: JobsDep) -> FileResponse:
@@ -174,8 +223,9 @@ async def get_predictions(job_id: str, jobs: JobsDep) -> FileResponse:
             "description": "The evaluation report",
             "content": {"application/json": {"schema": {"type": "object"}}},
         },
-        **error_responses(404, 409),
+        **_RESULT_ERRORS,
     },
+    operation_id="get_job_report",
 )
 async def get_report(job_id: str, jobs: JobsDep) -> FileResponse:
     record = await _succeeded_or_409(jobs, job_id)
@@ -191,10 +241,11 @@ async def get_report(job_id: str, jobs: JobsDep) -> FileResponse:
     summary="A succeeded labelled job's report PNG",
     description="One of the job's `plots`: IoU per class, the confusion matrix, IoU by distance "
     "band, mIoU per sequence, as `rangeret evaluate --plots` draws them.",
+    operation_id="get_job_plot",
     response_class=FileResponse,
     responses={
-        200: {"description": "The PNG", "content": {"image/png": BINARY_CONTENT}},
-        **error_responses(404, 409),
+        200: {"description": "The PNG", "content": file_content("image/png")},
+        **_RESULT_ERRORS,
     },
 )
 async def get_plot(job_id: str, name: str, jobs: JobsDep) -> FileResponse:
@@ -209,10 +260,18 @@ async def get_plot(job_id: str, name: str, jobs: JobsDep) -> FileResponse:
     "/jobs/{job_id}",
     summary="Cancel a job and remove its files",
     description="A queued or running job is cancelled and its files removed; a finished job's files and record are removed.",
+    operation_id="cancel_job",
     response_model=JobStatus,
-    responses=error_responses(404),
+    responses=error_responses(
+        400,
+        403,
+        404,
+        503,
+        507,
+        described={507: "A full disk under the job database"},
+    ),
 )
-async def delete_job(job_id: str, jobs: JobsDep) -> JobStatus:
+async def cancel_job(job_id: str, jobs: JobsDep) -> JobStatus:
     record = await asyncio.to_thread(jobs.cancel, job_id)
     if record is None:
         raise ApiError(404, f"There is no job {job_id[:64]!r}.")

@@ -12,9 +12,10 @@ from fastapi import APIRouter
 
 from rangeret.models.weights.demo import is_demo_checkpoint
 from service.dependencies import GatewayDep
+from service.errors import error_responses
 from service.schemas import ServedModel
 
-router = APIRouter(prefix="/v1")
+router = APIRouter(prefix="/v1", tags=["service"])
 
 #: What the page shows beside the model's name when the demo weights are served.
 DEMO_NOTE = (
@@ -32,7 +33,9 @@ DEMO_NOTE = (
         "demo weights (trained on simulated scenes only), with a note saying how to serve a "
         "published model instead."
     ),
+    operation_id="get_model",
     response_model=ServedModel,
+    responses=error_responses(400),
 )
 async def model(gw: GatewayDep) -> ServedModel:
     name = gw.model

@@ -10,9 +10,10 @@ from fastapi import APIRouter
 
 from rangeret.dataset.profiles import DatasetProfile
 from service.dependencies import GatewayDep
+from service.errors import error_responses
 from service.schemas import ProfileClass, ServedProfile
 
-router = APIRouter(prefix="/v1")
+router = APIRouter(prefix="/v1", tags=["service"])
 
 
 def served_profile(profile: DatasetProfile) -> ServedProfile:
@@ -48,7 +49,9 @@ def served_profile(profile: DatasetProfile) -> ServedProfile:
         "uses them: enough to colour a scan's labels and to score a prediction against ground "
         "truth the way the benchmark does."
     ),
+    operation_id="get_profile",
     response_model=ServedProfile,
+    responses=error_responses(400),
 )
 async def profile(gw: GatewayDep) -> ServedProfile:
     return served_profile(gw.profile)

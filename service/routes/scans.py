@@ -3,12 +3,14 @@
 The body holds the served profile's point records (SemanticKITTI: x, y, z, remission, 16 bytes per
 point; PandaSet adds the laser id, 20 bytes), or a PCD, PLY, LAS or LAZ file
 (`service.scan_bodies`); the labels are raw ids of its label configuration, one per point in the
-body's order.
+body's order. The answer's form is chosen with `?format=json` (or `raw`), else by the
+`Accept` header.
 """
 
 from __future__ import annotations
 
 import asyncio
+from typing import Annotated
 
 import numpy as np
 from fastapi import APIRouter, Query, Request
@@ -31,10 +33,10 @@ from service.scan_bodies import (
     check_declared,
     decode_file_body,
 )
-from service.schemas import BINARY_CONTENT, ScanLabels
+from service.schemas import BINARY_CONTENT, LabelFormat, ScanLabels
 from service.uploads import declared_length, drain, media_type, read_body
 
-router = APIRouter(prefix="/v1")
+router = APIRouter(prefix="/v1", tags=["scans"])
 
 
 def wants_json(accept: str | None) -> bool:
@@ -60,6 +62,14 @@ def wants_json(accept: str | None) -> bool:
     return as_json > weights[OCTET]
 
 
+def json_answer(form: LabelFormat | None, accept: str | None) -> bool:
+    """Whether to answer in JSON: as the `format` query says where it is given, else as the
+    `Accept` header prefers."""
+    if form is not None:
+        return form is LabelFormat.json
+    return wants_json(accept)
+
+
 def _class_counts(labels: np.ndarray, config: LabelConfig) -> dict[str, int]:
     counts = np.bincount(config.to_class(labels), minlength=config.num_classes)
     return {config.class_names[c]: int(n) for c, n in enumerate(counts) if n}
@@ -78,19 +88,33 @@ def _class_counts(labels: np.ndarray, config: LabelConfig) -> dict[str, int]:
         "is refused with 413 before it is decoded. The answer is the raw `.label` bytes (uint32 "
         "raw ids of the profile's label configuration, one per point in the body's order; a "
         "file's points with a NaN or infinite value get the unlabelled raw id), or with "
-        "`Accept: application/json` the labels with their class counts. Concurrent requests are "
-        "labelled together in batches."
+        "`format=json` (or, without `format`, `Accept: application/json`) the labels with their "
+        "class counts. Concurrent requests are labelled together in batches."
     ),
+    operation_id="label_scan",
     response_class=Response,
     responses={
         200: {
-            "description": "One raw label per point",
+            "description": "One raw label per point (the JSON form with `format=json`)",
             "content": {
                 OCTET: BINARY_CONTENT,
-                "application/json": {"schema": ScanLabels.model_json_schema()},
+                "application/json": {"schema": {"$ref": "#/components/schemas/ScanLabels"}},
             },
         },
-        **error_responses(400, 408, 413, 415, 503, 504),
+        **error_responses(
+            400,
+            403,
+            408,
+            413,
+            415,
+            503,
+            504,
+            described={
+                400: "Malformed scan or query, or a Host the gateway does not answer to",
+                503: "The single-scan queue is full (with Retry-After), the labelling backend "
+                "is unavailable, or the gateway is starting",
+            },
+        ),
     },
     openapi_extra={
         "requestBody": {
@@ -106,16 +130,26 @@ async def label_scan(
     confidence: bool = Query(
         default=False,
         description="also return each point's confidence (the softmax probability of its label "
-        "at its pixel); needs `Accept: application/json`",
+        "at its pixel); needs the JSON answer",
     ),
+    form: Annotated[
+        LabelFormat | None,
+        Query(
+            alias="format",
+            description="the answer's form: `raw` label bytes or `json`; without it, the "
+            "`Accept` header chooses (raw bytes unless it prefers application/json)",
+        ),
+    ] = None,
 ) -> Response:
     limits = gw.settings
-    if confidence and not wants_json(request.headers.get("accept")):
+    as_json = json_answer(form, request.headers.get("accept"))
+    if confidence and not as_json:
         await drain(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
         raise ApiError(
             400,
-            "Confidences come only in the JSON answer: send 'Accept: application/json' with "
-            "confidence=true, or leave confidence out for the raw label bytes.",
+            "Confidences come only in the JSON answer: send format=json (or 'Accept: "
+            "application/json') with confidence=true, or leave confidence out for the raw label "
+            "bytes.",
         )
     if media_type(request) not in CONTENT_TYPES:
         await drain(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
@@ -139,16 +173,18 @@ async def label_scan(
         gw.metrics.refused.inc()
         raise ApiError(503, str(exc), {"Retry-After": str(RETRY_AFTER_S)}) from exc
     with place:
-        return await _label(request, gw, knn, confidence)
+        return await _label(request, gw, knn, confidence, as_json)
 
 
-async def _label(request: Request, gw: Gateway, knn: bool, confidence: bool) -> Response:
+async def _label(
+    request: Request, gw: Gateway, knn: bool, confidence: bool, as_json: bool
+) -> Response:
     """Read, check and label an admitted scan, and answer in the form the client asked for."""
     limits = gw.settings
     body = await read_body(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
     fmt = body_format(media_type(request), body[:16])
     if fmt != "bin":
-        return await _label_file(request, gw, body, fmt, knn, confidence)
+        return await _label_file(gw, body, fmt, knn, confidence, as_json)
     record = gw.profile.points
     if len(body) // record.point_bytes > limits.max_points:
         raise ApiError(
@@ -168,11 +204,11 @@ async def _label(request: Request, gw: Gateway, knn: bool, confidence: bool) -> 
     except ScanFormatError as exc:
         raise ApiError(400, f"The scan is malformed: {exc.problem}.") from exc
     labelled = await _labelled(gw, points, body, knn, confidence)
-    return _answer(request, gw, labelled.labels, labelled.confidence)
+    return _answer(gw, labelled.labels, labelled.confidence, as_json)
 
 
 async def _label_file(
-    request: Request, gw: Gateway, body: bytes, fmt: str, knn: bool, confidence: bool
+    gw: Gateway, body: bytes, fmt: str, knn: bool, confidence: bool, as_json: bool
 ) -> Response:
     """Label a PCD, PLY, LAS or LAZ body: its declared count checked before it is decoded, its
     valid points labelled, the answer one label per point of the body."""
@@ -186,7 +222,7 @@ async def _label_file(
         labels = np.zeros(0, dtype=np.uint32)
         scores = np.zeros(0, dtype=np.float32) if confidence else None
     every = spread_labels(decoded.valid, labels, scores, config=gw.profile.labels)
-    return _answer(request, gw, every.labels, every.confidence if confidence else None)
+    return _answer(gw, every.labels, every.confidence if confidence else None, as_json)
 
 
 async def _labelled(
@@ -209,11 +245,11 @@ async def _labelled(
 
 
 def _answer(
-    request: Request, gw: Gateway, labels: np.ndarray, confidence: np.ndarray | None
+    gw: Gateway, labels: np.ndarray, confidence: np.ndarray | None, as_json: bool
 ) -> Response:
     """Raw label bytes, or the JSON answer when the client asked for it."""
     raw = labels.astype("<u4", copy=False)
-    if wants_json(request.headers.get("accept")):
+    if as_json:
         body = ScanLabels(
             num_points=len(raw),
             labels=raw.tolist(),

@@ -309,6 +309,7 @@ def test_token_rule(setup, gateway):
         assert_error(anon.get("/v1/jobs", headers={"Authorization": f"Basic {TOKEN}"}), 401)
         assert_error(anon.get("/v1/jobs"), 401)
         assert_error(anon.post("/v1/jobs", json={"dataset": "/etc", "split": "valid"}), 401)
+        assert_error(anon.post("/v1/jobs/uploads", files={"archive": ("a.zip", b"x")}), 401)
         assert_error(anon.delete("/v1/jobs/0123"), 401)
         health = anon.get("/healthz")
         assert health.status_code == 200 and health.json()["status"] == "ok"
@@ -674,7 +675,7 @@ def test_fuzz_no_server_error(gateway):
         )
 
     operations = [result.ok() for result in schema.get_all_operations()]
-    assert len(operations) == 12  # GET /v1/profile, /v1/model and the report PNGs among them
+    assert len(operations) == 13  # POST /v1/jobs/uploads, /v1/profile and the PNGs among them
     for operation in operations:
         for mode in (GenerationMode.POSITIVE, GenerationMode.NEGATIVE):
             run = settings(

@@ -391,7 +391,9 @@ def bounded(tmp_path_factory) -> Iterator[tuple[Gateway, Path, bytes]]:
 
 
 def _upload(client: httpx.Client, data: bytes, name: str) -> httpx.Response:
-    return client.post("/v1/jobs", files={"archive": (name, data, "application/octet-stream")})
+    return client.post(
+        "/v1/jobs/uploads", files={"archive": (name, data, "application/octet-stream")}
+    )
 
 
 def _job_folders(jobs_dir: Path) -> set[str]:

@@ -208,7 +208,7 @@ export class JobsPanel {
     const body = new FormData();
     body.append('archive', file, file.name);
     this.say(`Uploading ${file.name}…`);
-    await this.create(body);
+    await this.create(body, {}, 'v1/jobs/uploads');
     form.reset();
   }
 
@@ -224,9 +224,10 @@ export class JobsPanel {
     await this.create(JSON.stringify(request), { 'Content-Type': 'application/json' });
   }
 
-  async create(body, headers = {}) {
+  /** Start a job: a dataset's JSON at `v1/jobs`, an archive's form at `v1/jobs/uploads`. */
+  async create(body, headers = {}, path = 'v1/jobs') {
     try {
-      const created = await this.api.json('v1/jobs', { method: 'POST', headers, body });
+      const created = await this.api.json(path, { method: 'POST', headers, body });
       this.followed = created.id;
       this.say(`Job ${created.id.slice(0, 8)} is queued.`);
     } catch (error) {
