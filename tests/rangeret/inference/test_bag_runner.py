@@ -19,6 +19,8 @@ from rangeret.io.bags import BagError
 from rangeret.io.point_fields import to_record
 from rangeret.io.pointcloud2 import FLOAT32, FLOAT64, UINT16, UINT32, decode
 from rangeret.io.scans import read_scan
+from rangeret.sim.raycast import SensorConfig, simulate_scan
+from rangeret.sim.street import make_scene
 from tests.support.bags import FORMATS, Cloud, pointcloud2, read_bag, write_bag
 from tests.support.workers import small_weights
 
@@ -57,11 +59,17 @@ def _odd(pts: np.ndarray) -> Cloud:
                  bigendian=True, stamp=(1_700_000_000, 123), frame="lidar_top")  # fmt: skip
 
 
+def _simulated(pose_x: float) -> np.ndarray:
+    """A small simulated scan of a street (32 beams x 512 columns)."""
+    scene = make_scene(np.random.default_rng(3))
+    sensor = SensorConfig(beams=32, azimuth_steps=512)
+    points, _ = simulate_scan(scene, pose_x, sensor, np.random.default_rng(4))
+    return points
+
+
 def _clouds(points: np.ndarray) -> list[Cloud]:
-    rng = np.random.default_rng(1)
-    small = rng.uniform(-30, 30, size=(300, 4)).astype(np.float32)
-    small[:, 3] = rng.uniform(0, 1, size=300)
-    return [_dense(points), _dense(points[1::9]), _odd(points[::5]), _dense(small)]
+    """The real scan, a subsampled and an odd-layout copy of it, and a simulated scan."""
+    return [_dense(points), _dense(points[1::9]), _odd(points[::5]), _dense(_simulated(80.0))]
 
 
 def _expected(predictor, cloud: Cloud) -> tuple[np.ndarray, np.ndarray]:
