@@ -1,9 +1,9 @@
 """A PointCloud2 message as the profile's point record, and the labelled message built from it.
 
-The record is read with `rangeret.io.pointcloud2.decode` and `rangeret.io.point_fields.to_record`
-(any datatype, byte order, point step, padding or row step); the answer keeps the input's header,
-points, order and every field, and adds `label` (UINT32 raw id) and `confidence` (FLOAT32), and
-with colours a packed `rgb` (FLOAT32), after them (`append_fields`).
+The record is read with `rangeret.io.pointcloud2.read_cloud` (any datatype, byte order, point
+step, padding or row step); the answer keeps the input's header, points, order and every field,
+and adds `label` (UINT32 raw id) and `confidence` (FLOAT32), and with colours a packed `rgb`
+(FLOAT32), after them (`append_labels`), as a labelled bag's clouds do.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from sensor_msgs.msg import PointCloud2, PointField
 
 from rangeret.dataset.labels import SEMANTIC_MASK, LabelConfig
 from rangeret.inference.clouds import CloudLabels
-from rangeret.io.point_fields import RecordPoints, to_record
-from rangeret.io.pointcloud2 import FLOAT32, UINT32, CloudLayout, append_fields, decode, pack_rgb
+from rangeret.io.point_fields import RecordPoints
+from rangeret.io.pointcloud2 import CloudLayout, append_labels, pack_rgb, read_cloud
 from rangeret.io.scans import PointRecord
 
 
@@ -35,15 +35,13 @@ class FieldMapping:
 def cloud_record(msg: Any, source: str, mapping: FieldMapping) -> tuple[CloudLayout, RecordPoints]:
     """The message's layout and its points as the record; a bad message is a
     `CloudMessageError` or a `PointFieldsError` naming `source`."""
-    layout, columns = decode(msg, source)
-    points = to_record(
-        columns,
+    return read_cloud(
+        msg,
+        source,
         record=mapping.record,
-        source=source,
         reflectance_fill=mapping.reflectance_fill,
         overrides=mapping.overrides,
     )
-    return layout, points
 
 
 def palette_of(config: LabelConfig) -> np.ndarray:
@@ -59,13 +57,8 @@ def labelled_message(
 ) -> PointCloud2:
     """The answer to `msg`: its header and points with `label`, `confidence` (and, given a
     `palette_of` table, `rgb`) added."""
-    new: dict[str, tuple[int, np.ndarray]] = {
-        "label": (UINT32, labels.labels),
-        "confidence": (FLOAT32, labels.confidence),
-    }
-    if palette is not None:
-        new["rgb"] = (FLOAT32, palette[labels.labels & SEMANTIC_MASK])
-    fields, step, data = append_fields(layout, msg.data, new)
+    rgb = None if palette is None else palette[labels.labels & SEMANTIC_MASK]
+    fields, step, data = append_labels(layout, msg.data, labels.labels, labels.confidence, rgb)
     out = PointCloud2()
     out.header = msg.header
     out.height = layout.height

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import threading
 import time
+from functools import cached_property
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
@@ -17,7 +18,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_
 from sensor_msgs.msg import PointCloud2
 
 from rangeret.exceptions import InputError
-from rangeret.inference.clouds import label_cloud
+from rangeret.inference.clouds import label_cloud, problem_kind
 from rangeret.inference.predictor import Predictor
 from ros2node.clouds import FieldMapping, cloud_record, labelled_message, palette_of
 from ros2node.diagnostics import diagnostic_array
@@ -48,15 +49,6 @@ def input_qos_profile(choice: str) -> QoSProfile:
     )
 
 
-def problem_kind(exc: Exception) -> str:
-    """The short key a bad message's problem is counted (and logged once) under."""
-    kind = getattr(exc, "kind", None)
-    if isinstance(kind, str):
-        return kind
-    name = type(exc).__name__
-    return {"PointFieldsError": "fields", "ProjectionError": "projection"}.get(name, "input")
-
-
 class LabellingNode(Node):
     """Labels every PointCloud2 of the input topic (the newest one when busy) and publishes it."""
 
@@ -85,8 +77,9 @@ class LabellingNode(Node):
         self._worker = threading.Thread(target=self._work, name="rangeret-labelling", daemon=True)
         self._worker.start()
 
+    @cached_property
     def facts(self) -> dict[str, str]:
-        """The run's fixed facts, for the log and the diagnostics."""
+        """The run's fixed facts, for the log and the diagnostics (made once)."""
         info = self.predictor.describe()
         projection = self.predictor.projection_config
         return {
@@ -108,7 +101,7 @@ class LabellingNode(Node):
 
     def announce(self) -> None:
         """The startup log line: weights, profile, device, topics and QoS."""
-        f = self.facts()
+        f = self.facts
         self.get_logger().info(
             f"labelling {f['input_topic']} ({f['input_qos']}) into {f['output_topic']} "
             f"({f['output_qos']}{', with rgb' if self.settings.rgb else ''}) with {f['model']} "
@@ -166,7 +159,7 @@ class LabellingNode(Node):
                 report,
                 name=self.get_name(),
                 hardware_id=str(self.predictor.device),
-                facts=self.facts(),
+                facts=self.facts,
                 stamp=self.get_clock().now().to_msg(),
             )
         )

@@ -16,9 +16,8 @@ import numpy as np
 
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.extras import MissingExtraError
-from rangeret.io import las, pcd, ply
 from rangeret.io.point_fields import PointFieldsError, to_record
-from rangeret.io.point_files import declared_points, decode_point_file
+from rangeret.io.point_files import declared_points, decode_point_file, signature_format
 from rangeret.io.scans import PointRecord, ScanFormatError
 from service.errors import ApiError
 
@@ -39,14 +38,7 @@ SOURCE = "the scan"
 
 def body_format(media: str, head: bytes) -> str:
     """The format of a body of media type `media` (one of `CONTENT_TYPES`) starting with `head`."""
-    declared = CONTENT_TYPES[media]
-    if declared is not None:
-        return declared
-    if pcd.is_pcd(head):
-        return "pcd"
-    if ply.is_ply(head):
-        return "ply"
-    return "las" if las.is_las(head) else "bin"
+    return CONTENT_TYPES[media] or signature_format(head) or "bin"
 
 
 def check_declared(body: bytes, fmt: str, record: PointRecord, max_points: int) -> int:

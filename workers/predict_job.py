@@ -216,11 +216,7 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
 
     if not summary.ok:
         recorder.finish(failures=summary.failed, precision=precision)
-        raise CommandError(
-            f"{len(summary.failed)} of {summary.total} scans could not be predicted "
-            f"(every other scan was written to {args.out})",
-            [f"{k}: {v}" for k, v in summary.failed.items()],
-        )
+        summary.raise_failures(args.out)
     if args.submission and profile.name != DEFAULT_PROFILE:
         raise CommandError(
             f"submission archives are the SemanticKITTI benchmark's format; the {profile.name} "

@@ -111,12 +111,7 @@ def run_dataset(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
     )
     print(summary.text())
-    if not summary.ok:
-        raise CommandError(
-            f"{len(summary.failed)} of {summary.total} scans could not be predicted "
-            f"(every other scan was written to {args.out})",
-            [f"{k}: {v}" for k, v in summary.failed.items()],
-        )
+    summary.raise_failures(args.out)
     return 0
 
 

@@ -100,10 +100,5 @@ def run_files(args: argparse.Namespace) -> int:
         started=started,
     )
     print(summary.text())
-    if not summary.ok:
-        raise CommandError(
-            f"{len(summary.failed)} of {summary.total} files could not be labelled "
-            f"(every other file was written to {out})",
-            [f"{k}: {v}" for k, v in summary.failed.items()],
-        )
+    summary.raise_failures(out, unit="file", verb="labelled")
     return 0

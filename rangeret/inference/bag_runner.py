@@ -1,9 +1,9 @@
 """Labelling a bag: every PointCloud2 message of one topic gets `label` and `confidence` fields,
 everything else in the bag is copied as it was.
 
-Each message of the topic is decoded (`rangeret.io.pointcloud2.decode`), filled into the
-profile's point record (`to_record`), labelled (`label_cloud`, the path every runner shares) and
-written back with the two fields after its own (`append_fields`: every field and point kept in
+Each message of the topic is read into the profile's point record
+(`rangeret.io.pointcloud2.read_cloud`), labelled (`label_cloud`, the path every runner shares) and
+written back with the two fields after its own (`append_labels`: every field and point kept in
 order; header and timestamp unchanged). A message that cannot be labelled (a bad layout, a missing
 field, a laser id outside the sensor's rows) is written through unchanged and listed in the run
 record, so no message is lost; the run then ends as failed. The new bag appears at its name only
@@ -22,12 +22,12 @@ from typing import Any
 from tqdm import tqdm
 
 from rangeret.dataset.projection import ProjectionError
-from rangeret.inference.clouds import label_cloud
+from rangeret.inference.clouds import label_cloud, problem_kind
 from rangeret.inference.predictor import Predictor
 from rangeret.io.bags import SourceBag, atomic_bag, bag_format, check_target, open_bag
 from rangeret.io.bags import run_record_path as record_path
-from rangeret.io.point_fields import PointFieldsError, to_record
-from rangeret.io.pointcloud2 import FLOAT32, UINT32, CloudMessageError, append_fields, decode
+from rangeret.io.point_fields import PointFieldsError
+from rangeret.io.pointcloud2 import CloudMessageError, append_labels, read_cloud
 from rangeret.io.run_info import started_now, write_run_record
 
 log = logging.getLogger(__name__)
@@ -154,17 +154,16 @@ def _labelled(
     profile = predictor.profile
     try:
         msg = bag.decode(raw, "sensor_msgs/msg/PointCloud2", source)
-        layout, columns = decode(msg, source)
-        cloud = to_record(
-            columns,
+        layout, cloud = read_cloud(
+            msg,
+            source,
             record=profile.points,
-            source=source,
             reflectance_fill=profile.reflectance_fill,
             overrides=overrides,
         )
         labels = label_cloud(predictor, cloud)
     except (CloudMessageError, PointFieldsError, ProjectionError) as exc:
-        kind = getattr(exc, "kind", "fields" if isinstance(exc, PointFieldsError) else "projection")
+        kind = problem_kind(exc)
         if all(f["kind"] != kind for f in summary.failed):
             log.warning(
                 "%s; written through unlabelled (further %s problems: debug log)", exc, kind
@@ -175,11 +174,7 @@ def _labelled(
             {"index": index, "timestamp": timestamp, "kind": kind, "reason": str(exc)}
         )
         return raw
-    fields, step, data = append_fields(
-        layout,
-        msg.data,
-        {"label": (UINT32, labels.labels), "confidence": (FLOAT32, labels.confidence)},
-    )
+    fields, step, data = append_labels(layout, msg.data, labels.labels, labels.confidence)
     summary.labelled += 1
     summary.points += cloud.num_points
     summary.invalid_points += cloud.num_invalid

@@ -15,7 +15,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from rangeret.dataset.labels import LabelConfig
-from rangeret.io.point_fields import RecordPoints
+from rangeret.dataset.projection import ProjectionError
+from rangeret.io.point_fields import PointFieldsError, RecordPoints
 
 if TYPE_CHECKING:
     from rangeret.inference.predictor import Predictor
@@ -33,6 +34,17 @@ class CloudLabels:
 def unlabelled_raw_id(config: LabelConfig) -> int:
     """The raw id written for points the network does not label."""
     return int(config.to_raw(np.array([config.unlabeled_class]))[0])
+
+
+def problem_kind(exc: Exception) -> str:
+    """The short key a cloud that could not be labelled is counted (and logged once) under: a
+    message layout's own kind (`CloudMessageError.kind`), `fields`, `projection`, else `input`."""
+    kind = getattr(exc, "kind", None)
+    if isinstance(kind, str):
+        return kind
+    if isinstance(exc, PointFieldsError):
+        return "fields"
+    return "projection" if isinstance(exc, ProjectionError) else "input"
 
 
 def spread_labels(

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from rangeret.exceptions import CommandError
 from rangeret.inference.timing import StageTimes
 
 
@@ -77,3 +78,13 @@ class RunSummary:
     def text(self) -> str:
         """The report as one printable text."""
         return "\n".join(self.lines())
+
+    def raise_failures(self, out: object, *, unit: str = "scan", verb: str = "predicted") -> None:
+        """A CommandError naming every failed `unit` when one failed (the others were written
+        to `out`): how each runner's command ends a run that lost some of its inputs."""
+        if self.failed:
+            raise CommandError(
+                f"{len(self.failed)} of {self.total} {unit}s could not be {verb} "
+                f"(every other {unit} was written to {out})",
+                [f"{k}: {v}" for k, v in self.failed.items()],
+            )

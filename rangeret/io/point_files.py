@@ -74,15 +74,21 @@ class PointFile:
         }
 
 
-def sniff_format(head: bytes, size: int, *, record: PointRecord, source: str) -> str:
-    """The format of bytes from their signature (`bin` for a whole number of `record`s);
-    PointFileError when it is none of them."""
+def signature_format(head: bytes) -> str | None:
+    """`pcd`, `ply` or `las` when bytes start with that format's signature, else None."""
     if pcd.is_pcd(head):
         return "pcd"
     if ply.is_ply(head):
         return "ply"
-    if las.is_las(head):
-        return "las"
+    return "las" if las.is_las(head) else None
+
+
+def sniff_format(head: bytes, size: int, *, record: PointRecord, source: str) -> str:
+    """The format of bytes from their signature (`bin` for a whole number of `record`s);
+    PointFileError when it is none of them."""
+    signed = signature_format(head)
+    if signed is not None:
+        return signed
     if size and size % record.point_bytes == 0:
         return "bin"
     raise PointFileError(

@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 
 from rangeret.exceptions import InputError
+from rangeret.io.point_fields import RecordPoints, to_record
+from rangeret.io.scans import PointRecord
 
 #: `sensor_msgs/PointField` datatypes and their numpy types (byte order applied per message).
 DATATYPES: dict[int, str] = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -189,6 +191,46 @@ def append_fields(
     for f, (_datatype, values) in zip(added, new.values(), strict=True):
         records[f.name] = values
     return kept + added, step, out.tobytes()
+
+
+def read_cloud(
+    msg: Any,
+    source: str,
+    *,
+    record: PointRecord,
+    reflectance_fill: float,
+    overrides: Mapping[str, str] | None = None,
+) -> tuple[CloudLayout, RecordPoints]:
+    """A PointCloud2's layout and its points as `record` (see `to_record`): what every reader
+    of messages (a bag's, a topic's) labels. A bad message is a CloudMessageError or a
+    PointFieldsError naming `source`."""
+    layout, columns = decode(msg, source)
+    points = to_record(
+        columns,
+        record=record,
+        source=source,
+        reflectance_fill=reflectance_fill,
+        overrides=overrides,
+    )
+    return layout, points
+
+
+def append_labels(
+    layout: CloudLayout,
+    data: Any,
+    labels: np.ndarray,
+    confidence: np.ndarray,
+    rgb: np.ndarray | None = None,
+) -> tuple[list[CloudField], int, bytes]:
+    """The message's points with `label` (UINT32 raw id), `confidence` (FLOAT32) and, given
+    packed colours, `rgb` (FLOAT32) after its own fields (see `append_fields`)."""
+    new: dict[str, tuple[int, np.ndarray]] = {
+        "label": (UINT32, labels),
+        "confidence": (FLOAT32, confidence),
+    }
+    if rgb is not None:
+        new["rgb"] = (FLOAT32, rgb)
+    return append_fields(layout, data, new)
 
 
 def pack_rgb(rgb: np.ndarray) -> np.ndarray:
