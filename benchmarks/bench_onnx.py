@@ -59,6 +59,7 @@ def run(args: argparse.Namespace) -> None:
 
     from rangeret.dataset.profiles import load_profile
     from rangeret.inference.predictor import Predictor
+    from rangeret.inference.spec import InferenceSpec
     from rangeret.io.scans import read_scan
     from rangeret.models import build_model
 
@@ -73,10 +74,11 @@ def run(args: argparse.Namespace) -> None:
         blocks = args.blocks or blocks
         torch.manual_seed(0)
         network = build_model(name, args.height, args.width, layers=blocks)
-        predictors = {"torch": Predictor(network, profile, device="cpu", precision="fp32")}
+        fp32 = InferenceSpec(device="cpu", precision="fp32")
+        predictors = {"torch": Predictor.from_network(network, profile, fp32)}
         start = time.perf_counter()
-        predictors["onnxruntime"] = Predictor(
-            network, profile, device="cpu", precision="fp32", backend="onnxruntime"
+        predictors["onnxruntime"] = Predictor.from_network(
+            network, profile, fp32.replace(backend="onnxruntime")
         )
         exported = time.perf_counter() - start
         projection = predictors["torch"].project(points)

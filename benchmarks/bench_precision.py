@@ -19,6 +19,7 @@ from _common import REAL_SCAN, require_real_scan
 
 from rangeret.dataset.profiles import load_profile
 from rangeret.inference.predictor import Predictor
+from rangeret.inference.spec import InferenceSpec
 from rangeret.io.scans import read_scan
 from rangeret.models import build_model
 
@@ -43,7 +44,10 @@ def main() -> None:
         torch.manual_seed(0)
         network = build_model(name, args.height, args.width)
         predictors = {
-            p: Predictor(network, profile, device=args.device, precision=p) for p in precisions
+            p: Predictor.from_network(
+                network, profile, InferenceSpec(device=args.device, precision=p)
+            )
+            for p in precisions
         }
         projection = predictors["fp32"].project(points)
         labels = {p: pred.predict(points).labels for p, pred in predictors.items()}

@@ -21,6 +21,7 @@ from rangeret.dataset.layout import KITTI_LAYOUT, velodyne_dir
 from rangeret.dataset.profiles import load_profile
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.runner import predict_tree
+from rangeret.inference.spec import InferenceSpec
 from rangeret.io.scans import KITTI_RECORD, read_scan, write_labels, write_scan
 from rangeret.models import build_model
 
@@ -64,7 +65,9 @@ def main() -> None:
         tmp = Path(tmp)
         torch.save(release, tmp / "cir.pt")
         cir = Predictor.from_checkpoint(tmp / "cir.pt", device=args.device)
-        thesis = Predictor(build_model("rangeret-thesis"), load_profile(), device=args.device)
+        thesis = Predictor.from_network(
+            build_model("rangeret-thesis"), load_profile(), InferenceSpec(device=args.device)
+        )
         print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, device {cir.device}")
         print(f"one scan of {len(points):,} points at 64 x 1024, median of {args.repeat} (ms):")
         print(

@@ -89,12 +89,13 @@ def run_network(path: Path, points, args: argparse.Namespace) -> dict[str, float
     from sensor_msgs.msg import PointCloud2
 
     from rangeret.inference.clouds import label_cloud
-    from rangeret.inference.predictor import PredictorSpec
+    from rangeret.inference.predictor import Predictor
+    from rangeret.inference.spec import InferenceSpec
     from ros2node.clouds import FieldMapping, cloud_record, labelled_message
     from ros2node.node import LabellingNode, qos_profile
     from ros2node.options import NodeSettings
 
-    predictor = PredictorSpec(str(path), device=args.device).build()
+    predictor = Predictor.from_spec(InferenceSpec(checkpoint=str(path), device=args.device))
     profile = predictor.profile
     mapping = FieldMapping(profile.points, profile.reflectance_fill, {})
     msg = real_scan_message(points)

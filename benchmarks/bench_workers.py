@@ -20,8 +20,10 @@ import torch
 from _common import REAL_SCAN, require_real_scan, small_state_dict
 
 from rangeret.dataset.layout import KITTI_LAYOUT, list_scans, velodyne_dir
-from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
+from rangeret.inference.loader import load_weights
+from rangeret.inference.predictor import Predictor
 from rangeret.inference.runner import predict_tree
+from rangeret.inference.spec import InferenceSpec
 from rangeret.inference.timing import StageTimes
 from rangeret.io.scans import KITTI_RECORD, read_scan, write_scan
 from rangeret.models import build_model
@@ -59,11 +61,11 @@ def main() -> None:
                 points[i % 7 :: 1 + i % 2],
                 record=KITTI_RECORD,
             )
-        spec = PredictorSpec(checkpoint=str(tmp / "w.pt"), height=h, width=w, device="cpu")
+        spec = InferenceSpec(checkpoint=str(tmp / "w.pt"), height=h, width=w, device="cpu")
         entries = list_scans(tmp / "data", ["08"], layout=KITTI_LAYOUT)
 
         ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-        _, profile = checkpoint_profile(spec)
+        profile = load_weights(spec).profile
         print(
             f"{args.scans} scans at {h} x {w}, {torch.get_num_threads()} torch threads, {args.rounds} rounds"
         )
@@ -72,7 +74,7 @@ def main() -> None:
         for r in range(args.rounds):  # interleaved, so that a noisy spell hits every runner alike
             start = time.perf_counter()  # both sides include loading the network, as a command does
             summary = predict_tree(
-                spec.build(), tmp / "data", ["08"], tmp / f"single{r}", progress=False
+                Predictor.from_spec(spec), tmp / "data", ["08"], tmp / f"single{r}", progress=False
             )
             single = summary.written / (time.perf_counter() - start)
             rates.setdefault("predict", []).append(single)

@@ -44,10 +44,11 @@ from _common import REAL_SCAN, REPO, SMALL_VECTORS
 from rangeret.dataset.layout import KITTI_LAYOUT, ScanEntry, discover, prediction_path
 from rangeret.dataset.profiles import DatasetProfile, load_profile
 from rangeret.dataset.projection import project
-from rangeret.inference.loading import LoadedScan, batches, load_batch
-from rangeret.inference.predictor import Predictor, PredictorSpec
+from rangeret.inference.loading import LoadedScan, batches, load_batch, predict_loaded
+from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import RunSummary
 from rangeret.inference.runtime.precision import forward_precision
+from rangeret.inference.spec import InferenceSpec
 from rangeret.io.atomic import atomic_write_text
 from rangeret.io.scans import read_scan, write_labels
 from rangeret.knn import refine
@@ -546,8 +547,10 @@ def section_correctness(ctx: Context, figures: dict[str, Any]) -> None:
         found: dict[str, np.ndarray] = {}
         seconds: dict[str, float] = {}
         for where in ("cpu", plan.device):
-            predictor = Predictor(
-                seeded_network(name, plan), profile, device=where, precision="fp32"
+            predictor = Predictor.from_network(
+                seeded_network(name, plan),
+                profile,
+                InferenceSpec(device=where, precision="fp32"),
             )
             if where != "cpu":  # the first call on a device pays for its start-up
                 predictor.predict(points)
@@ -932,7 +935,7 @@ def label_in_process(
         while pending:
             loaded = pending.popleft().result()
             refill()
-            results = predictor.label_loaded(loaded, times)
+            results = predict_loaded(predictor, loaded, times)
             done_at.append(time.perf_counter())
             for scan, found in zip(loaded, results, strict=True):
                 if isinstance(found, str):
@@ -968,7 +971,7 @@ def label_in_process(
 
 
 def label_on_ray(
-    spec: PredictorSpec,
+    spec: InferenceSpec,
     profile: DatasetProfile,
     entries: Sequence[ScanEntry],
     out: Path,
@@ -1029,14 +1032,14 @@ def section_pipeline(ctx: Context, figures: dict[str, Any]) -> None:
         tmp_path = Path(tmp)
         checkpoint = tmp_path / "rangeret-cir.pt"
         torch.save(seeded_network("rangeret-cir", plan).state_dict(), checkpoint)
-        spec = PredictorSpec(
+        spec = InferenceSpec(
             checkpoint=str(checkpoint),
             height=plan.height,
             width=plan.width,
             device=plan.device,
             precision="auto",
         )
-        predictor = spec.build()
+        predictor = Predictor.from_spec(spec)
         figures["precision"] = predictor.precision
         if device.type == "cuda":
             torch.cuda.empty_cache()

@@ -1,8 +1,9 @@
 """Command-line options shared by every entry point, written once so each takes them the same way.
 
 `rangeret` subcommands, `rangeret serve` / `python -m service` and `python -m workers.predict_job`
-all build their parsers from these. Torch-free: the network options are checked here and the
-network is loaded only when a command runs.
+all build their parsers from these. The network options are derived from `InferenceSpec`'s
+fields (`rangeret.inference.spec`), which `InferenceSpec.from_args` reads back and checks.
+Torch-free: the network is loaded only when a command runs.
 """
 
 from __future__ import annotations
@@ -10,21 +11,14 @@ from __future__ import annotations
 import argparse
 import logging
 from collections.abc import Sequence
-from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from rangeret.commands import CommandError
 from rangeret.dataset.labels import load_label_config
 from rangeret.dataset.layout import missing_sequences, resolve_sequences
-from rangeret.dataset.profiles import BUILTIN_PROFILES, DatasetProfile, load_profile
-from rangeret.extras import MissingExtraError
-from rangeret.inference.runtime.backends import BACKENDS, check_backend
-from rangeret.inference.runtime.precision import PRECISIONS
+from rangeret.dataset.profiles import DatasetProfile, load_profile
+from rangeret.inference.spec import WEIGHTS, add_spec_options, group_fields
 from rangeret.submission.leaderboard import DEFAULT_NAME, DEFAULT_URL, LeaderboardEntry
-
-if TYPE_CHECKING:
-    from rangeret.inference.predictor import PredictorSpec
 
 log = logging.getLogger("rangeret")
 
@@ -105,13 +99,7 @@ def selected_sequences(
 
 def add_profile_option(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
     """--profile NAME|FILE: the dataset profile (sensor, point record, labels, layout, splits)."""
-    parser.add_argument(
-        "--profile",
-        metavar="NAME|FILE",
-        help=f"dataset profile: {', '.join(BUILTIN_PROFILES)} or a YAML file "
-        "(`rangeret profile show NAME` prints one to start from); default: the checkpoint's, "
-        "else semantickitti",
-    )
+    add_spec_options(parser, ("profile",))
 
 
 def requested_profile(args: argparse.Namespace) -> DatasetProfile | None:
@@ -182,235 +170,22 @@ def leaderboard_from_args(args: argparse.Namespace) -> LeaderboardEntry:
 def add_projection_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
     """--height, --width, --fov-up, --fov-down: explicit values in place of the profile's (the
     project's own checkpoints fix their resolution)."""
-    parser.add_argument("--height", type=int, help="range image rows (default: the profile's)")
-    parser.add_argument("--width", type=int, help="range image columns (default: the profile's)")
-    parser.add_argument(
-        "--fov-up",
-        type=float,
-        metavar="DEG",
-        help="upper vertical field of view (default: the profile's)",
-    )
-    parser.add_argument(
-        "--fov-down",
-        type=float,
-        metavar="DEG",
-        help="lower vertical field of view (default: the profile's)",
-    )
+    add_spec_options(parser, ("height", "width", "fov_up", "fov_down"))
 
 
 def add_precision_option(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
     """--precision auto|fp32|fp16|bf16: the forward pass's precision."""
-    parser.add_argument(
-        "--precision",
-        default="auto",
-        choices=list(PRECISIONS),
-        help="precision of the network's passes; auto is fp16 on CUDA and fp32 on the CPU "
-        "(default; always fp32 with --backend onnxruntime)",
-    )
+    add_spec_options(parser, ("precision",))
 
 
 def add_weights_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    """--profile, --model, --checkpoint and the projection options: which weights load, and for
+    """--checkpoint, --profile, --model and the projection options: which weights load, and for
     which sensor (every command that loads a network, `rangeret export` included)."""
-    add_profile_option(parser)
-    parser.add_argument(
-        "--model",
-        choices=["rangeret-thesis", "rangeret-cir"],
-        help="network name; recognised from the checkpoint when omitted",
-    )
-    parser.add_argument(
-        "--checkpoint",
-        type=Path,
-        metavar="FILE",
-        help="weights: a published model's name (`rangeret weights list`: rangeret-kitti-657, "
-        "rangeret-panda-600, rangeret-poss-528; fetched from the cache or the model hub, with "
-        "its profile), the project's own checkpoint or a published .pt file (default: the "
-        "bundled demo weights, trained on simulated scenes only)",
-    )
-    add_projection_options(parser)
-
-
-def add_backend_option(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    """--backend torch|onnxruntime: where the network's forward pass runs."""
-    parser.add_argument(
-        "--backend",
-        default="torch",
-        choices=list(BACKENDS),
-        help="run the network in torch (default) or in onnxruntime on its ONNX export, made "
-        "once per checkpoint into $RANGERET_CACHE/onnx (else ~/.cache/rangeret/onnx); "
-        "onnxruntime runs fp32 only, and on CUDA needs the onnxruntime-gpu package",
-    )
+    add_spec_options(parser, group_fields(WEIGHTS))
 
 
 def add_network_options(parser: argparse.ArgumentParser) -> None:
-    """The options shared by every command that runs a network (predict, serve, the Ray job)."""
-    g = parser.add_argument_group("network")
-    add_weights_options(g)
-    g.add_argument(
-        "--batch-size",
-        type=int,
-        default=1,
-        metavar="N",
-        help="scans per network pass (default 1)",
-    )
-    g.add_argument(
-        "--no-knn",
-        action="store_true",
-        help="take each point's pixel class, without kNN refinement",
-    )
-    g.add_argument(
-        "--device",
-        default="auto",
-        choices=["auto", "cpu", "cuda"],
-        help="auto picks CUDA when present (default)",
-    )
-    add_precision_option(g)
-    add_backend_option(g)
-    g.add_argument(
-        "--tta-flip", action="store_true", help="test-time augmentation: add the mirrored view"
-    )
-    g.add_argument(
-        "--tta-shifts",
-        type=int,
-        default=0,
-        metavar="N",
-        help="test-time augmentation: add N azimuth-rotated views",
-    )
-
-
-def spec_from_args(args: argparse.Namespace) -> PredictorSpec:
-    """A `PredictorSpec` from the shared network options (checked, not loaded yet)."""
-    from rangeret.inference.settings import KnnSettings, TtaSettings
-
-    if args.batch_size < 1:
-        raise CommandError(f"--batch-size must be at least 1, got {args.batch_size}")
-    if args.tta_shifts < 0:
-        raise CommandError(f"--tta-shifts must not be negative, got {args.tta_shifts}")
-    try:
-        check_backend(args.backend, args.precision)
-    except MissingExtraError:
-        raise
-    except ValueError as exc:
-        raise CommandError(str(exc)) from exc
-    tta = (
-        TtaSettings(flip=args.tta_flip, shifts=args.tta_shifts)
-        if (args.tta_flip or args.tta_shifts)
-        else None
-    )
-    return replace(
-        weights_spec_from_args(args),
-        device=args.device,
-        precision=args.precision,
-        knn=None if args.no_knn else KnnSettings(),
-        tta=tta,
-        backend=args.backend,
-    )
-
-
-def weights_spec_from_args(args: argparse.Namespace) -> PredictorSpec:
-    """A `PredictorSpec` of the weights options (a published model's name fetched, with its
-    profile, network and resolution), the run's own settings left at their defaults."""
-    from rangeret.inference.predictor import PredictorSpec
-    from rangeret.models.weights.demo import resolve_checkpoint
-    from rangeret.models.weights.hub import resolve_weights
-
-    weights = resolve_weights(
-        args.checkpoint if args.checkpoint is not None else resolve_checkpoint(None),
-        requested_profile(args),
-        args.model,
-        args.height,
-        args.width,
-    )
-    return PredictorSpec(
-        checkpoint=str(weights.path),
-        model=weights.model,
-        profile=weights.profile,
-        height=weights.height,
-        width=weights.width,
-        fov_up=args.fov_up,
-        fov_down=args.fov_down,
-    )
-
-
-#: The network options by name, as Serve application arguments and job submissions spell them:
-#: each is the `dest` of its command-line option, except `knn` (a bool; `knn: false` is
-#: `--no-knn`).
-NETWORK_OPTIONS = (
-    "checkpoint",
-    "profile",
-    "model",
-    "height",
-    "width",
-    "fov_up",
-    "fov_down",
-    "batch_size",
-    "knn",
-    "device",
-    "precision",
-    "backend",
-    "tta_flip",
-    "tta_shifts",
-)
-
-
-def network_values(args: argparse.Namespace) -> dict[str, object]:
-    """The network options a command was given, by name (see `NETWORK_OPTIONS`), those left
-    unset omitted: what another process needs to build the same network."""
-    values: dict[str, object] = {}
-    for name in NETWORK_OPTIONS:
-        value = (not args.no_knn) if name == "knn" else getattr(args, name, None)
-        if value is None or (value is False and name == "tta_flip"):
-            continue
-        values[name] = str(value) if isinstance(value, Path) else value
-    return values
-
-
-def network_argv(values: dict[str, object]) -> list[str]:
-    """The command-line options for network options by name (the inverse of `network_values`);
-    an unknown name or a value of the wrong kind is a `CommandError` naming it."""
-    unknown = sorted(set(values) - set(NETWORK_OPTIONS))
-    if unknown:
-        raise CommandError(
-            f"unknown network option(s) {', '.join(unknown)}; the known ones are "
-            f"{', '.join(NETWORK_OPTIONS)}"
-        )
-    argv: list[str] = []
-    for name in NETWORK_OPTIONS:
-        if name not in values or values[name] is None:
-            continue
-        value = values[name]
-        flag = "--" + name.replace("_", "-")
-        if name in ("knn", "tta_flip"):
-            if not isinstance(value, bool):
-                raise CommandError(f"the network option {name} is true or false, got {value!r}")
-            if name == "knn" and not value:
-                argv.append("--no-knn")
-            elif name == "tta_flip" and value:
-                argv.append(flag)
-            continue
-        if isinstance(value, bool) or not isinstance(value, str | int | float):
-            raise CommandError(
-                f"the network option {name} takes a number or a string, got {value!r}"
-            )
-        argv += [flag, str(value)]
-    return argv
-
-
-def network_args(values: dict[str, object]) -> argparse.Namespace:
-    """The parsed network options for options by name, checked as the command line checks them;
-    a bad one is a `CommandError` naming it."""
-    parser = argparse.ArgumentParser(prog="network options", add_help=False, exit_on_error=False)
-    add_network_options(parser)
-    argv = network_argv(values)
-    try:
-        args, unknown = parser.parse_known_args(argv)
-    except argparse.ArgumentError as exc:
-        raise CommandError(f"bad network option: {exc}") from exc
-    if unknown:
-        raise CommandError(f"bad network options: {' '.join(unknown)}")
-    return args
-
-
-def spec_from_values(values: dict[str, object]) -> PredictorSpec:
-    """A `PredictorSpec` from network options by name (a published model's name resolved)."""
-    return spec_from_args(network_args(values))
+    """Every field of `InferenceSpec` as an option, in the group "network": the options shared by
+    every command that runs a network (predict, serve, the Ray job, the ROS 2 node), which
+    `InferenceSpec.from_args` reads back."""
+    add_spec_options(parser.add_argument_group("network"))

@@ -17,7 +17,7 @@ import numpy as np
 from sensor_msgs.msg import PointCloud2, PointField
 
 from rangeret.dataset.labels import SEMANTIC_MASK, LabelConfig
-from rangeret.inference.clouds import CloudLabels
+from rangeret.inference.results import ScanPrediction
 from rangeret.io.point_fields import RecordPoints
 from rangeret.io.pointcloud2 import CloudLayout, append_labels, pack_rgb, read_cloud
 from rangeret.io.scans import PointRecord
@@ -53,7 +53,7 @@ def palette_of(config: LabelConfig) -> np.ndarray:
 
 
 def labelled_message(
-    msg: Any, layout: CloudLayout, labels: CloudLabels, palette: np.ndarray | None = None
+    msg: Any, layout: CloudLayout, labels: ScanPrediction, palette: np.ndarray | None = None
 ) -> PointCloud2:
     """The answer to `msg`: its header and points with `label`, `confidence` (and, given a
     `palette_of` table, `rgb`) added."""

@@ -14,8 +14,8 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+from rangeret.inference.spec import InferenceSpec
 from rangeret.io.point_fields import parse_field_overrides
-from rangeret.options import spec_from_args
 from ros2node.clouds import FieldMapping
 from ros2node.options import settings_from_args
 
@@ -42,7 +42,9 @@ def run_node(args: argparse.Namespace) -> int:
     """Run the labelling node until SIGINT or SIGTERM; 0 when stopped by one."""
     settings = settings_from_args(args)
     with stop_on_signals() as stop:
-        predictor = spec_from_args(args).build()
+        from rangeret.inference.predictor import Predictor
+
+        predictor = Predictor.from_spec(InferenceSpec.from_args(args))
         profile = predictor.profile
         mapping = FieldMapping(
             record=profile.points,

@@ -1,10 +1,11 @@
 """Dynamic batching of single-scan requests in front of the in-process network.
 
-Requests wait in one queue. Each dispatcher (one per model worker) takes the oldest request and up
-to `batch_size - 1` more with the same options, waiting at most `max_wait` seconds after the oldest
-arrived for the batch to fill, and awaits the pool on the whole batch. While a batch is in the
-network, new requests gather, so under load batches fill without waiting. The event loop only
-moves arrays around: the pool runs the network in a worker thread.
+Requests wait in one queue. The dispatcher takes the oldest request and up to `batch_size - 1`
+more, waiting at most `max_wait` seconds after the oldest arrived for the batch to fill, and
+hands the whole batch to the scan worker in a worker thread; the worker runs one network pass per
+set of equal options (`rangeret.inference.scan_worker.group_by_options`, as a Serve replica
+does). While a batch is in the network, new requests gather, so under load batches fill without
+waiting. The event loop only moves arrays around.
 """
 
 from __future__ import annotations
@@ -13,134 +14,90 @@ import asyncio
 import contextlib
 import logging
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING
 
-import numpy as np
+from service.labeller_errors import BackendError, ScanRejected
 
 if TYPE_CHECKING:
     from rangeret.inference.results import ScanPrediction
+    from rangeret.inference.scan_worker import ScanRequest, ScanWorker
 
 log = logging.getLogger(__name__)
 
 
-class ScanBackend(Protocol):
-    """What the batcher needs from a pool (`service.local_labeller.LocalPool`)."""
-
-    async def predict_async(
-        self, scans: Sequence[np.ndarray], knn: bool = True, confidence: bool = False
-    ) -> list[ScanPrediction | str]:
-        """Each scan of a batch labelled (with confidences when asked), or the reason a scan
-        cannot be labelled."""
-        ...
-
-    def queue_depth(self) -> int:
-        """Batches sent and not answered yet."""
-        ...
-
-
-class BackendError(RuntimeError):
-    """The labelling backend failed or cannot be reached (not the request's fault): 503, to be
-    retried."""
-
-
-class BackendTimeout(BackendError):
-    """The labelling backend did not answer in time: 504."""
-
-
-class ScanRejected(ValueError):
-    """The workers cannot label this scan because of what it holds (a laser id off the image)."""
-
-
 @dataclass
-class _Request:
-    points: np.ndarray
-    options: tuple[bool, bool]  # (knn, confidence): requests share a batch only with equal ones
+class _Waiting:
+    request: ScanRequest
     arrived: float
     future: asyncio.Future[ScanPrediction]
 
 
 class ScanBatcher:
-    """Gathers concurrent single-scan requests into batches of at most `batch_size` for the pool."""
+    """Gathers concurrent single-scan requests into batches of at most `batch_size` for the
+    worker; `on_batch(size, seconds)` is called after each batch."""
 
     def __init__(
         self,
-        pool: ScanBackend,
+        worker: ScanWorker,
         batch_size: int = 1,
         max_wait: float = 0.01,
-        dispatchers: int = 1,
         on_batch: Callable[[int, float], None] | None = None,
     ) -> None:
-        if batch_size < 1 or dispatchers < 1 or max_wait < 0:
-            raise ValueError(
-                "batch_size and dispatchers must be at least 1 and max_wait not negative"
-            )
-        self.pool = pool
+        if batch_size < 1 or max_wait < 0:
+            raise ValueError("batch_size must be at least 1 and max_wait not negative")
+        self.worker = worker
         self.batch_size = batch_size
         self.max_wait = max_wait
-        self.dispatchers = dispatchers
         self.on_batch = on_batch
-        self._queue: deque[_Request] = deque()
+        self._queue: deque[_Waiting] = deque()
         self._arrived = asyncio.Event()
-        self._tasks: list[asyncio.Task[None]] = []
+        self._task: asyncio.Task[None] | None = None
+        self._running = 0
 
     async def start(self) -> None:
-        """Start the dispatchers (call from the serving event loop)."""
-        self._tasks = [
-            asyncio.create_task(self._dispatch(), name=f"batcher-{i}")
-            for i in range(self.dispatchers)
-        ]
+        """Start the dispatcher (call from the serving event loop)."""
+        self._task = asyncio.create_task(self._dispatch(), name="batcher")
 
     async def stop(self) -> None:
-        """Stop the dispatchers and fail the requests still waiting."""
-        for task in self._tasks:
-            task.cancel()
-        for task in self._tasks:
+        """Stop the dispatcher and fail the requests still waiting."""
+        if self._task is not None:
+            self._task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
-                await task
-        self._tasks = []
+                await self._task
+            self._task = None
         while self._queue:
-            request = self._queue.popleft()
-            if not request.future.done():
-                request.future.set_exception(BackendError("the gateway is shutting down"))
+            waiting = self._queue.popleft()
+            if not waiting.future.done():
+                waiting.future.set_exception(BackendError("the gateway is shutting down"))
 
-    async def label(
-        self, points: np.ndarray, knn: bool = True, confidence: bool = False
-    ) -> ScanPrediction:
-        """One scan (the profile's point records) labelled within a batch: raw labels (uint32,
-        one per point) and, when asked, their confidences; `ScanRejected` when the workers refuse
-        the scan itself."""
+    async def label(self, request: ScanRequest) -> ScanPrediction:
+        """One scan labelled within a batch: raw labels (uint32, one per point) and, when asked,
+        their confidences; `ScanRejected` when the worker refuses the scan itself."""
         loop = asyncio.get_running_loop()
-        request = _Request(points, (knn, confidence), loop.time(), loop.create_future())
-        self._queue.append(request)
+        self._queue.append(_Waiting(request, loop.time(), loop.create_future()))
         self._arrived.set()
-        return await request.future
+        return await self._queue[-1].future
 
     def waiting(self) -> int:
-        """Requests queued and not yet sent to the pool."""
+        """Requests queued and not yet sent to the worker."""
         return len(self._queue)
 
     def depth(self) -> int:
-        """Requests waiting plus batches in the workers: the gateway's queue depth."""
-        return self.waiting() + self.pool.queue_depth()
+        """Requests waiting plus batches in the worker: the gateway's queue depth."""
+        return self.waiting() + self._running
 
-    def _matching(self, options: tuple[bool, bool]) -> int:
-        return sum(1 for r in self._queue if r.options == options and not r.future.done())
+    def _live(self) -> int:
+        return sum(1 for w in self._queue if not w.future.done())
 
-    def _take(self, options: tuple[bool, bool]) -> list[_Request]:
-        """Remove and return up to `batch_size` live requests with these options, oldest first."""
-        batch: list[_Request] = []
-        kept: deque[_Request] = deque()
-        while self._queue:
-            request = self._queue.popleft()
-            if request.future.done():
-                continue  # its client went away
-            if request.options == options and len(batch) < self.batch_size:
-                batch.append(request)
-            else:
-                kept.append(request)
-        self._queue = kept
+    def _take(self) -> list[_Waiting]:
+        """Remove and return up to `batch_size` live requests, oldest first."""
+        batch: list[_Waiting] = []
+        while self._queue and len(batch) < self.batch_size:
+            waiting = self._queue.popleft()
+            if not waiting.future.done():  # else its client went away
+                batch.append(waiting)
         return batch
 
     async def _wait_for_arrival(self, timeout: float | None) -> bool:
@@ -160,38 +117,39 @@ class ScanBatcher:
         while True:
             while not self._queue:
                 await self._wait_for_arrival(None)
-            head = self._queue[0]
-            deadline = head.arrived + self.max_wait
-            while self._matching(head.options) < self.batch_size:
+            deadline = self._queue[0].arrived + self.max_wait
+            while self._live() < self.batch_size:
                 remaining = deadline - loop.time()
                 if remaining <= 0 or not await self._wait_for_arrival(remaining):
                     break
-            batch = self._take(head.options)
+            batch = self._take()
             if batch:
-                await self._run(batch, head.options, loop.time())
+                await self._run(batch, loop.time())
 
-    async def _run(self, batch: list[_Request], options: tuple[bool, bool], sent: float) -> None:
-        """Send one batch to the pool and hand each request its labels (or the failure)."""
-        knn, confidence = options
+    async def _run(self, batch: list[_Waiting], sent: float) -> None:
+        """Send one batch to the worker and hand each request its labels (or the failure)."""
+        self._running += 1
         try:
-            results = await self.pool.predict_async([r.points for r in batch], knn, confidence)
+            results = await asyncio.to_thread(self.worker.label, [w.request for w in batch])
         except asyncio.CancelledError:
-            for request in batch:
-                if not request.future.done():
-                    request.future.set_exception(BackendError("the gateway is shutting down"))
+            for waiting in batch:
+                if not waiting.future.done():
+                    waiting.future.set_exception(BackendError("the gateway is shutting down"))
             raise
         except Exception as exc:
             log.exception("the worker backend failed on a batch of %d scans", len(batch))
-            for request in batch:
-                if not request.future.done():
-                    request.future.set_exception(BackendError(f"the worker backend failed: {exc}"))
+            for waiting in batch:
+                if not waiting.future.done():
+                    waiting.future.set_exception(BackendError(f"the worker backend failed: {exc}"))
             return
+        finally:
+            self._running -= 1
         if self.on_batch is not None:
             self.on_batch(len(batch), asyncio.get_running_loop().time() - sent)
-        for request, labels in zip(batch, results, strict=True):
-            if request.future.done():
+        for waiting, labels in zip(batch, results, strict=True):
+            if waiting.future.done():
                 continue
             if isinstance(labels, str):
-                request.future.set_exception(ScanRejected(labels))
+                waiting.future.set_exception(ScanRejected(labels))
             else:
-                request.future.set_result(labels)
+                waiting.future.set_result(labels)

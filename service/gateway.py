@@ -44,9 +44,9 @@ class ScanLabeller(Protocol):
         ...
 
     async def label(
-        self, points: np.ndarray, raw: bytes, knn: bool = True, confidence: bool = False
+        self, points: np.ndarray, knn: bool = True, confidence: bool = False
     ) -> ScanPrediction:
-        """One scan labelled: its points parsed and its bytes as received."""
+        """One scan labelled: its points, in the served profile's point record."""
         ...
 
     def depth(self) -> int:
@@ -54,7 +54,7 @@ class ScanLabeller(Protocol):
         ...
 
     async def health(self) -> dict:
-        """`{"backend", "ok", "actors": [descriptions], "error"}` for /healthz."""
+        """`{"backend", "ok", "workers": [descriptions], "error"}` for /healthz."""
         ...
 
 

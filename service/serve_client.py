@@ -1,6 +1,6 @@
 """Single scans labelled by the Serve application (`workers.serve_app`) through Serve's HTTP proxy.
 
-`ServeLabeller` posts each admitted scan's bytes to `<serve url>/scans` (the proxy's scheme, host
+`ServeLabeller` posts each admitted scan's point records to `<serve url>/scans` (the proxy's scheme, host
 and port, then the application's route prefix) and reads the labels back in the exchange of
 `workers.scan_wire`; Serve batches concurrent requests on its replicas. An answer that does not
 come within `timeout` seconds is `BackendTimeout` (504); an unreachable, overloaded (503) or
@@ -20,7 +20,7 @@ import numpy as np
 from rangeret.commands import CommandError
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.inference.results import ScanPrediction
-from service.batching import BackendError, BackendTimeout, ScanRejected
+from service.labeller_errors import BackendError, BackendTimeout, ScanRejected
 from workers.scan_wire import INFO_PATH, OCTET, SCANS_PATH, decode_labels, options_query
 
 log = logging.getLogger(__name__)
@@ -60,9 +60,9 @@ class ServeLabeller:
             self._client = None
 
     async def label(
-        self, points: np.ndarray, raw: bytes, knn: bool = True, confidence: bool = False
+        self, points: np.ndarray, knn: bool = True, confidence: bool = False
     ) -> ScanPrediction:
-        """One scan (`raw`, its bytes; `points`, them parsed) labelled by the application."""
+        """One scan labelled by the application, sent as its point records' bytes."""
         if self._client is None:
             raise BackendError("the gateway is starting; try again in a moment")
         self._in_flight += 1
@@ -71,7 +71,7 @@ class ServeLabeller:
                 self._client.post(
                     self.url + SCANS_PATH,
                     params=options_query(knn, confidence),
-                    content=raw,
+                    content=np.ascontiguousarray(points, dtype="<f4").tobytes(),
                     headers={"Content-Type": OCTET},
                 ),
                 self.timeout,
@@ -126,7 +126,7 @@ class ServeLabeller:
         try:
             response = await client.get(self.url + INFO_PATH, timeout=PROBE_TIMEOUT_S)
             response.raise_for_status()
-            return {"backend": self.backend, "ok": True, "actors": [response.json()]}
+            return {"backend": self.backend, "ok": True, "workers": [response.json()]}
         except (httpx.HTTPError, ValueError) as exc:
             return {
                 "backend": self.backend,

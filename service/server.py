@@ -4,27 +4,32 @@ uvicorn.
 On a cluster, single scans go to the Serve application at `--serve-url` (RANGERET_SERVE_URL,
 `workers.serve_app`) and jobs become Ray jobs through the Jobs API at `--jobs-address`
 (RANGERET_JOBS_ADDRESS); without them, each runs in this process (`LocalLabeller`,
-`predict_tree`). Options given on the command line win over RANGERET_* variables. The gateway
-serves one dataset profile: the checkpoint's, or the one given with `--profile`.
+`predict_tree`) on one network: the checkpoint is read once, and single scans and job batches
+take turns on the network, one pass at a time. Options given on the command line win over
+RANGERET_* variables. The gateway serves one dataset profile: the checkpoint's, or the one given
+with `--profile`.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
-from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 from pydantic import ValidationError
 
 from rangeret.commands import CommandError
-from rangeret.dataset.profiles import DatasetProfile
 from rangeret.extras import require_extra
-from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
-from rangeret.options import add_network_options, network_values, spec_from_args
+from rangeret.inference.spec import InferenceSpec
+from rangeret.options import add_network_options
 from service.errors import validation_sentence
 from service.gateway import ScanLabeller
 from service.jobs import JobExecutor
 from service.settings import Settings
+
+if TYPE_CHECKING:  # torch is imported when the gateway starts, not to build its parser
+    from rangeret.inference.loader import LoadedWeights
+    from rangeret.inference.predictor import Predictor
 
 log = logging.getLogger("rangeret.serve")
 
@@ -98,53 +103,39 @@ def settings_from_args(args: argparse.Namespace) -> Settings:
         raise CommandError(validation_sentence(exc.errors(), "setting")) from exc
 
 
-@dataclass(frozen=True)
-class CheckpointFacts:
-    """What the gateway needs to know about the weights without running them."""
-
-    profile: DatasetProfile
-    sha256: str
-    model: str
-
-
-def checkpoint_facts(spec: PredictorSpec) -> CheckpointFacts:
-    """Load the checkpoint once to check it and resolve the profile it runs with, and its hash."""
-    info, profile = checkpoint_profile(spec)
-    return CheckpointFacts(profile, info.sha256, info.name)
-
-
-def build_labeller(settings: Settings, spec: PredictorSpec, facts: CheckpointFacts) -> ScanLabeller:
+def build_labeller(
+    settings: Settings, weights: LoadedWeights, predictor: Predictor | None
+) -> ScanLabeller:
     """What labels single scans: the Serve application at `serve_url` (once it answers with the
-    same checkpoint and profile), or else the network in this process behind the local batcher."""
+    same checkpoint and profile), or else `predictor` in this process behind the local batcher."""
     if settings.serve_url:
         from service.serve_client import ServeLabeller
 
-        labeller = ServeLabeller(settings.serve_url, facts.profile, settings.serve_timeout_s)
-        labeller.check_serves(facts.sha256, settings.serve_timeout_s)
+        labeller = ServeLabeller(settings.serve_url, weights.profile, settings.serve_timeout_s)
+        labeller.check_serves(weights.sha256 or "", settings.serve_timeout_s)
         return labeller
-    from service.local_labeller import LocalLabeller, LocalPool
+    from rangeret.inference.scan_worker import ScanWorker
+    from service.local_labeller import LocalLabeller
 
-    served = replace(spec, profile=facts.profile)
-    return LocalLabeller(LocalPool(served), settings.batch_size, settings.batch_wait_ms / 1000)
+    assert predictor is not None  # `run_serve` builds one whenever a part runs in this process
+    return LocalLabeller(ScanWorker(predictor), settings.batch_size, settings.batch_wait_ms / 1000)
 
 
 def build_executor(
-    settings: Settings, values: dict[str, object], spec: PredictorSpec, facts: CheckpointFacts
+    settings: Settings, spec: InferenceSpec, weights: LoadedWeights, predictor: Predictor | None
 ) -> JobExecutor:
     """What runs the gateway's jobs: Ray jobs through the Jobs API at `jobs_address` (the same
-    entrypoint as `ray job submit`, given the gateway's network options `values`), or else
-    `predict_tree` in this process."""
+    entrypoint as `ray job submit`, given the gateway's spec), or else `predict_tree` in this
+    process with `predictor`, the network single scans share."""
     from service.jobs import LocalExecutor
 
-    served = replace(spec, profile=facts.profile)
     roots = [*settings.data_roots, settings.jobs_folder.resolve()]  # checked again at read time
     if settings.jobs_address:
         from service.jobs.ray_jobs import RayJobExecutor
 
-        return RayJobExecutor(
-            settings.jobs_address, values, facts.profile, settings.batch_size, read_roots=roots
-        )
-    return LocalExecutor(served, settings.batch_size, read_roots=roots)
+        return RayJobExecutor(settings.jobs_address, spec, weights.profile, read_roots=roots)
+    assert predictor is not None  # `run_serve` builds one whenever a part runs in this process
+    return LocalExecutor(predictor, spec.batch_size, read_roots=roots)
 
 
 def check_state(settings: Settings) -> None:
@@ -169,6 +160,8 @@ def run_serve(args: argparse.Namespace) -> int:
     """Run the gateway until it is stopped (Ctrl-C or SIGTERM); returns the exit code."""
     import uvicorn
 
+    from rangeret.inference.loader import load_weights
+    from rangeret.inference.predictor import Predictor
     from service.app import create_app
     from service.protocols import GatewayProtocol
 
@@ -180,15 +173,19 @@ def run_serve(args: argparse.Namespace) -> int:
         require_extra("rangeret serve --jobs-address", "ray")  # Ray jobs go through Ray's client
     check_state(settings)  # before minutes of loading weights
     args.batch_size = settings.batch_size
-    spec = spec_from_args(args)
-    facts = checkpoint_facts(spec)
-    labeller = build_labeller(settings, spec, facts)
-    executor = build_executor(settings, network_values(args), spec, facts)
+    spec = InferenceSpec.from_args(args)
+    weights = load_weights(spec)
+    if spec.backend == "onnxruntime":
+        weights.export_onnx()  # once here, so that workers started next load it from the cache
+    in_process = not (settings.serve_url and settings.jobs_address)
+    predictor = Predictor(weights, spec) if in_process else None
+    labeller = build_labeller(settings, weights, predictor)
+    executor = build_executor(settings, spec, weights, predictor)
     log.info(
         "%s (sha256 %s, profile %s): single scans %s, jobs %s; batches of up to %d scans",
-        facts.model,
-        facts.sha256[:12],
-        facts.profile.name,
+        weights.model,
+        (weights.sha256 or "")[:12],
+        weights.profile.name,
         f"on the Serve application at {settings.serve_url}"
         if settings.serve_url
         else "in this process",
@@ -199,9 +196,9 @@ def run_serve(args: argparse.Namespace) -> int:
         settings,
         labeller,
         executor,
-        profile=facts.profile,
-        checkpoint_sha256=facts.sha256,
-        model=facts.model,
+        profile=weights.profile,
+        checkpoint_sha256=weights.sha256,
+        model=weights.model,
     )
     uvicorn.run(
         app,

@@ -102,7 +102,7 @@ def test_every_package_has_sources():
         "from service import app",
         "def f():\n    from workers.demo import run_demo\n",
         "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    import service.settings\n",
-        "import importlib\nimportlib.import_module('workers.scans')\n",
+        "import importlib\nimportlib.import_module('workers.stages')\n",
     ],
 )
 def test_the_checker_sees_every_kind_of_import(source):

@@ -27,10 +27,11 @@ from rangeret.dataset.profiles import DEFAULT_PROFILE, DatasetProfile, ProfileEr
 from rangeret.dataset.projection import project_with
 from rangeret.evaluation.evaluate import evaluate_predictions
 from rangeret.evaluation.plots import plot_range_image, write_plots
-from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
+from rangeret.inference.loader import load_weights
+from rangeret.inference.spec import InferenceSpec
 from rangeret.io.run_info import check_weights, write_run_info
 from rangeret.io.scans import read_labels, read_scan
-from rangeret.models.weights.demo import DEMO_CHECKPOINT, DEMO_WARNING, resolve_checkpoint
+from rangeret.models.weights.demo import DEMO_CHECKPOINT, DEMO_WARNING
 from rangeret.sim import SensorConfig, simulate_dataset
 from rangeret.submission.archives import TEST_SEQUENCES, validate_submission, write_submission
 from rangeret.submission.leaderboard import LeaderboardEntry, description_text
@@ -72,11 +73,12 @@ def run_demo(
     out = Path(out) if out else Path(f"rangeret-demo-{time.strftime('%Y%m%d-%H%M%S')}")
     out.mkdir(parents=True, exist_ok=True)
     dataset, preds = out / "dataset", out / "predictions"
-    weights = resolve_checkpoint(checkpoint)
-    spec = PredictorSpec(
-        checkpoint=str(weights), profile=profile, device="auto", precision=precision
+    spec = InferenceSpec(
+        checkpoint=None if checkpoint is None else str(checkpoint), precision=precision
     )
-    info, profile = checkpoint_profile(spec)
+    loaded = load_weights(spec, profile=profile)
+    info, profile = loaded.info, loaded.profile
+    weights = Path(info.path)
     check_weights(preds, info.sha256, overwrite=overwrite)
     benchmark = profile.name == DEFAULT_PROFILE
 

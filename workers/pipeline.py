@@ -29,7 +29,7 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -39,13 +39,13 @@ from rangeret.evaluation.metrics import RawLabelEvaluator
 from rangeret.inference.description import describe_network
 from rangeret.inference.loading import batches
 from rangeret.inference.results import RunSummary
+from rangeret.inference.spec import InferenceSpec
 from workers.cluster import cluster_layout
 from workers.progress import TimeLeft
 from workers.sizing import ClusterCapacityError, Layout, PipelineOptions
 from workers.stages import BatchRecord, ModelWorker, Reader, Writer
 
 if TYPE_CHECKING:  # torch stays out of the driver until a model actor needs it
-    from rangeret.inference.predictor import PredictorSpec
     from rangeret.models.weights.checkpoint_info import CheckpointInfo
 
 log = logging.getLogger(__name__)
@@ -64,7 +64,7 @@ class PipelineRun:
     layout: Layout | None = None
     devices: list[str] = field(default_factory=list)
 
-    def precision(self, spec: PredictorSpec) -> str | None:
+    def precision(self, spec: InferenceSpec) -> str | None:
         """The precision the network ran at on the run's devices (`auto` resolved per device
         type, as each model actor resolved it), comma-separated; None when no batch ran."""
         import torch
@@ -81,16 +81,16 @@ class PipelineRun:
         )
 
 
-def describe_spec(spec: PredictorSpec, info: CheckpointInfo, profile: DatasetProfile) -> dict:
+def describe_spec(spec: InferenceSpec, info: CheckpointInfo, profile: DatasetProfile) -> dict:
     """The network description `run.json` records for a pipeline run of `spec` (the device and
     precision asked for: the model actors resolve them)."""
     return describe_network(
         model=info.name,
-        checkpoint=spec.checkpoint,
+        checkpoint=info.path,
         sha256=info.sha256,
         profile=profile.name,
         projection=profile.projection,
-        knn=spec.knn,
+        knn=spec.knn_settings,
         tta=spec.tta,
         device=spec.device,
         precision=spec.precision,
@@ -99,7 +99,7 @@ def describe_spec(spec: PredictorSpec, info: CheckpointInfo, profile: DatasetPro
 
 
 def run_pipeline(
-    spec: PredictorSpec,
+    spec: InferenceSpec,
     profile: DatasetProfile,
     entries: Sequence[ScanEntry],
     out: Path | str,
@@ -109,9 +109,9 @@ def run_pipeline(
 ) -> PipelineRun:
     """Predict `entries` into the tree at `out` on the connected Ray cluster.
 
-    `profile` must be the one `spec`'s predictor runs with
-    (`rangeret.models.weights.run_profile.profile_for_checkpoint`): the readers take its point
-    record and projection, the writers its labels. The run's summary counts `entries` only.
+    `profile` must be the one `spec`'s weights run with (`rangeret.inference.loader.load_weights`
+    settled it): the readers take its point record and projection, the model actors load the
+    weights for it, the writers take its labels. The run's summary counts `entries` only.
     `progress(done, failed, total)` is called after every batch; setting `cancel` stops the run
     after the batch in flight (files already written stay complete).
     """
@@ -152,12 +152,12 @@ def run_pipeline(
         compute=ray.data.ActorPoolStrategy(min_size=1, max_size=layout.readers),
         num_cpus=options.read_cpus,
     )
-    worker_spec = replace(spec, profile=profile)
+    worker_spec = spec
     if layout.model == "cpu" and spec.device == "auto":
-        worker_spec = replace(worker_spec, device="cpu")
+        worker_spec = spec.replace(device="cpu")
     ds = ds.map_batches(
         ModelWorker,
-        fn_constructor_kwargs={"spec": worker_spec, "cpus": layout.actor_cpus},
+        fn_constructor_kwargs={"spec": worker_spec, "profile": profile, "cpus": layout.actor_cpus},
         compute=ray.data.ActorPoolStrategy(
             size=layout.actors, max_tasks_in_flight_per_actor=layout.in_flight
         ),

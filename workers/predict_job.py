@@ -16,6 +16,7 @@ the very end, also when scans failed or bad input stopped it.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import sys
@@ -27,7 +28,8 @@ from rangeret.commands import CommandError, run_command
 from rangeret.dataset.layout import is_complete, list_scans
 from rangeret.dataset.profiles import DEFAULT_PROFILE
 from rangeret.exceptions import RangeRetError
-from rangeret.inference.predictor import checkpoint_profile
+from rangeret.inference.loader import load_weights
+from rangeret.inference.spec import InferenceSpec
 from rangeret.io.run_info import write_run_info
 from rangeret.models.weights.demo import DEMO_WARNING, is_demo_checkpoint
 from rangeret.options import (
@@ -36,7 +38,6 @@ from rangeret.options import (
     add_selection,
     leaderboard_from_args,
     selected_sequences,
-    spec_from_args,
 )
 from rangeret.submission.leaderboard import description_text
 from workers.pipeline import describe_spec, run_pipeline
@@ -103,7 +104,34 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("-q", "--quiet", action="store_true", help="less logging")
     add_network_options(p)
+    p.add_argument(
+        "--inference-spec",
+        metavar="JSON",
+        help="the network options as one JSON object by field name, as a gateway submits them "
+        '(e.g. \'{"checkpoint": "/models/w.pt", "batch_size": 8}\'); not together with the '
+        "network options above",
+    )
     return p
+
+
+def spec_of(args: argparse.Namespace) -> InferenceSpec:
+    """The job's `InferenceSpec`: from --inference-spec when given (then no network option may
+    be), else from the network options."""
+    spec = InferenceSpec.from_args(args)
+    if args.inference_spec is None:
+        return spec
+    if spec != InferenceSpec():
+        given = ", ".join(sorted(spec.to_mapping()))
+        raise CommandError(
+            f"--inference-spec holds every network option: give {given} in it, not as options"
+        )
+    try:
+        values = json.loads(args.inference_spec)
+    except ValueError as exc:
+        raise CommandError(f"--inference-spec is not JSON: {exc}") from exc
+    if not isinstance(values, dict):
+        raise CommandError(f"--inference-spec must be a JSON object, got {type(values).__name__}")
+    return InferenceSpec.from_mapping(values, where=" in --inference-spec")
 
 
 def connect(address: str | None) -> None:
@@ -147,10 +175,13 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
     """The job's body, keeping its progress with `recorder`."""
     leaderboard = leaderboard_from_args(args)
-    spec = spec_from_args(args)
+    spec = spec_of(args)
     if args.actors is not None and args.actors < 1:
         raise CommandError(f"--actors must be at least 1, got {args.actors}")
-    info, profile = checkpoint_profile(spec)
+    weights = load_weights(spec)
+    if spec.backend == "onnxruntime":
+        weights.export_onnx()  # once here, so that the model actors load it from the cache
+    info, profile = weights.info, weights.profile
     label_config = profile.labels
     sequences = selected_sequences(args, profile, args.dataset, doing="predicting")
     entries = list_scans(args.dataset, sequences, layout=profile.layout)
@@ -173,18 +204,18 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
         runner="workers.predict_job",
         dataset=args.dataset,
         sequences=sequences,
-        batch_size=args.batch_size,
+        batch_size=spec.batch_size,
         overwrite=args.overwrite,
     )
     recorder.start(len(entries), len(done))
 
     connect(None)
     options = PipelineOptions(
-        batch_size=args.batch_size,
+        batch_size=spec.batch_size,
         actors=args.actors,
         read_cpus=args.read_cpus,
         actor_cpus=args.actor_cpus,
-        use_gpu=None if args.device == "auto" else args.device == "cuda",
+        use_gpu=None if spec.device == "auto" else spec.device == "cuda",
         read_roots=tuple(str(r.resolve()) for r in args.read_roots) if args.read_roots else None,
     )
     run = run_pipeline(spec, profile, pending, args.out, options, progress=recorder.batch)

@@ -10,10 +10,8 @@ back by `BatchRecord.decode`.
 from __future__ import annotations
 
 import logging
-import math
 import os
 import pickle
-import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,12 +26,13 @@ from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.projection import ProjectionConfig
 from rangeret.evaluation.evaluate import count_scan
 from rangeret.evaluation.metrics import RawLabelEvaluator
-from rangeret.inference.loading import LoadedScan, load_batch
+from rangeret.inference.loading import LoadedScan, load_batch, predict_loaded
+from rangeret.inference.spec import InferenceSpec
 from rangeret.inference.timing import StageTimes
 from rangeret.io.scans import PointRecord, ScanFormatError, read_labels, write_labels
 
 if TYPE_CHECKING:  # torch stays out of the CPU stages' processes
-    from rangeret.inference.predictor import Predictor, PredictorSpec
+    from rangeret.inference.predictor import Predictor
 
 log = logging.getLogger(__name__)
 
@@ -124,34 +123,14 @@ def write_results(record: BatchRecord, out: str, label_config: LabelConfig) -> B
     return record
 
 
-def warm_up(predictor: Predictor) -> float:
-    """Run the network once on an empty scan's range image (zeros of (1, 5, H, W)), so that the
-    decay tables and the device's kernels are built before the first real batch; the time it took
-    is logged and returned, and recorded in no stage."""
-    start = time.perf_counter()
-    empty = predictor.project(np.zeros((0, 5), np.float32), StageTimes())
-    predictor.logits([empty], StageTimes())
-    seconds = time.perf_counter() - start
-    config = predictor.projection_config
-    log.info(
-        "model actor %d warmed up on %s (%d x %d) in %.2f s",
-        os.getpid(),
-        predictor.device,
-        config.height,
-        config.width,
-        seconds,
-    )
-    return seconds
-
-
 def label_batch(predictor: Predictor, encoded: bytes) -> bytes:
     """Stage 2 on one encoded `BatchRecord`: the network, kNN refinement and raw ids of its
-    scans (`Predictor.label_loaded`: labels or a named failure per scan); the record names the
-    device and process that ran it."""
+    scans (`predict_loaded`: labels or a named failure per scan); the record names the device and
+    process that ran it."""
     record = BatchRecord.decode({ROW_COLUMN: encoded})
     record.results = [
         (None, found) if isinstance(found, str) else (found.labels, None)
-        for found in predictor.label_loaded(record.loaded, record.times)
+        for found in predict_loaded(predictor, record.loaded, record.times)
     ]
     record.loaded = []
     record.worker = f"{predictor.device}@{os.getpid()}"
@@ -190,14 +169,17 @@ class Writer:
 
 
 class ModelWorker:
-    """Stage 2 (an actor): the network on a batch, then kNN refinement and raw ids. It warms the
-    network up before it takes a batch, so the first batch's times are those of any other."""
+    """Stage 2 (an actor): the network on a batch, then kNN refinement and raw ids. It loads the
+    spec's weights once, for the profile the driver settled, and warms the network up before it
+    takes a batch, so the first batch's times are those of any other."""
 
-    def __init__(self, spec: PredictorSpec, cpus: float) -> None:
-        import torch
+    def __init__(self, spec: InferenceSpec, profile: DatasetProfile, cpus: float) -> None:
+        from rangeret.inference.loader import load_weights
+        from rangeret.inference.predictor import Predictor
+        from rangeret.inference.scan_worker import use_cpus, warm_up
 
-        torch.set_num_threads(max(1, math.ceil(cpus)))
-        self.predictor = spec.build()
+        use_cpus(cpus)
+        self.predictor = Predictor(load_weights(spec, profile=profile), spec)
         self.warm_up_seconds = warm_up(self.predictor)
 
     def __call__(self, batch: dict) -> dict:

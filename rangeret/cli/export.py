@@ -6,7 +6,8 @@ import argparse
 from pathlib import Path
 
 from rangeret.commands import CommandError
-from rangeret.options import add_weights_options, weights_spec_from_args
+from rangeret.inference.spec import InferenceSpec
+from rangeret.options import add_weights_options
 from rangeret.plugins import Subcommand
 
 
@@ -32,13 +33,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Export a network to ONNX with the metadata a consumer needs, checked against torch."""
-    from dataclasses import replace
-
+    from rangeret.inference.predictor import Predictor
     from rangeret.inference.runtime.onnx_export import ExportError, write_export
     from rangeret.io.scans import read_scan
 
-    spec = replace(weights_spec_from_args(args), device="cpu", precision="fp32")
-    predictor = spec.build()
+    spec = InferenceSpec.from_args(args).replace(device="cpu", precision="fp32")
+    predictor = Predictor.from_spec(spec)
     profile, config = predictor.profile, predictor.network.config
     scan = read_scan(args.check_scan, profile.points) if args.check_scan else None
     try:

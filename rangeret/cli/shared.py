@@ -6,7 +6,7 @@ import argparse
 import logging
 from typing import TYPE_CHECKING
 
-from rangeret.options import spec_from_args
+from rangeret.inference.spec import InferenceSpec
 
 if TYPE_CHECKING:
     from rangeret.inference.predictor import Predictor
@@ -17,10 +17,12 @@ log = logging.getLogger("rangeret")
 def predictor_from_args(args: argparse.Namespace) -> Predictor:
     """A loaded `Predictor` from the shared network options, announced in the log (a first
     onnxruntime export says how long it has run, except with -q)."""
+    from rangeret.inference.predictor import Predictor
     from rangeret.inference.runtime.onnx_backend import export_heartbeat
 
+    spec = InferenceSpec.from_args(args)
     with export_heartbeat(not getattr(args, "quiet", False)):
-        predictor = spec_from_args(args).build()
+        predictor = Predictor.from_spec(spec)
     info = predictor.describe()
     log.info(
         "%s from %s (sha256 %s), %s profile, at %dx%d on %s",

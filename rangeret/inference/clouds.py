@@ -9,26 +9,18 @@ labels its network workers return with `spread_labels` without loading torch.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from rangeret.dataset.labels import LabelConfig
 from rangeret.dataset.projection import ProjectionError
+from rangeret.inference.results import ScanPrediction
 from rangeret.io.point_fields import PointFieldsError, RecordPoints
 
 if TYPE_CHECKING:
     from rangeret.inference.predictor import Predictor
     from rangeret.inference.timing import StageTimes
-
-
-@dataclass(frozen=True)
-class CloudLabels:
-    """Raw ids (uint32) and confidences (float32, 0..1), one per point of the cloud."""
-
-    labels: np.ndarray
-    confidence: np.ndarray
 
 
 def unlabelled_raw_id(config: LabelConfig) -> int:
@@ -53,20 +45,21 @@ def spread_labels(
     confidence: np.ndarray | None,
     *,
     config: LabelConfig,
-) -> CloudLabels:
-    """The labels and confidences of a cloud's valid points as one per point of the cloud:
-    the invalid ones get the unlabelled raw id and confidence 0 (0 for all without confidences)."""
+) -> ScanPrediction:
+    """The labels and confidences of a cloud's valid points as one per point of the cloud (raw
+    ids and confidences both set): the invalid ones get the unlabelled raw id and confidence 0
+    (0 for all without confidences)."""
     every = np.full(len(valid), unlabelled_raw_id(config), dtype=np.uint32)
     every[valid] = labels
     scores = np.zeros(len(valid), dtype=np.float32)
     if confidence is not None:
         scores[valid] = confidence
-    return CloudLabels(labels=every, confidence=scores)
+    return ScanPrediction(labels=every, confidence=scores)
 
 
 def label_cloud(
     predictor: Predictor, cloud: RecordPoints, times: StageTimes | None = None
-) -> CloudLabels:
+) -> ScanPrediction:
     """Raw labels and confidences for every point of `cloud` (see the module docstring).
 
     A projection error (a laser id outside the sensor's rows, say) propagates as the
@@ -76,7 +69,5 @@ def label_cloud(
     if not np.any(valid):
         return spread_labels(valid, np.empty(0, np.uint32), None, config=predictor.label_config)
     points = cloud.points if cloud.num_invalid == 0 else cloud.points[valid]
-    (result,) = predictor.finish_batch(
-        [predictor.project(points, times)], times=times, with_confidence=True
-    )
+    (result,) = predictor.label([predictor.project(points, times)], times, with_confidence=True)
     return spread_labels(valid, result.labels, result.confidence, config=predictor.label_config)

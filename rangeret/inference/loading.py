@@ -1,23 +1,28 @@
-"""Batches of scans, read and projected, with every unreadable scan kept as a named failure.
+"""Batches of scans, read and projected, with every unreadable scan kept as a named failure,
+and their labelling with a predictor, a failing network pass naming every scan it held.
 
-The first step of every prediction runner (`rangeret predict`, the Ray pipeline's driver and
-readers, the GPU check's in-process labeller, and for scans already in memory the Serve replicas
-and the gateway), written once. Torch-free, so the pipeline's reader processes start without torch.
+The first steps of every prediction runner (`rangeret predict`, the Ray pipeline's readers and
+model actors, the GPU check, and for scans already in memory the single-scan workers), written
+once. Torch-free, so the pipeline's reader processes start without torch.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
 from rangeret.dataset.layout import ScanEntry
 from rangeret.dataset.projection import Projection, ProjectionConfig, project_with
+from rangeret.inference.results import ScanOutcome
 from rangeret.inference.runtime.backends import RuntimeChoiceError
 from rangeret.inference.timing import StageTimes
 from rangeret.io.scans import PointRecord, ScanFormatError, read_scan
+
+if TYPE_CHECKING:
+    from rangeret.inference.predictor import Predictor
 
 T = TypeVar("T")
 
@@ -42,6 +47,13 @@ class LoadedScan:
     entry: ScanEntry
     projection: Projection | None = None
     error: str | None = None
+
+    @property
+    def ready(self) -> Projection | str:
+        """What `Predictor.label` takes for the scan: its projection, or why it has none."""
+        if self.projection is not None:
+            return self.projection
+        return self.error or "the scan was not read"
 
 
 def load_batch(
@@ -89,3 +101,20 @@ def project_scans(
         except ValueError as exc:
             projected.append(str(exc))
     return projected
+
+
+def predict_loaded(
+    predictor: Predictor,
+    scans: Sequence[LoadedScan],
+    times: StageTimes | None = None,
+    *,
+    with_confidence: bool = False,
+) -> list[ScanOutcome]:
+    """A prediction or the named failure of each scan of a loaded batch, in order, in one
+    network pass; when the pass itself fails (out of device memory, say), each readable scan
+    becomes that failure instead of stopping the run, so a dataset run loses no scan unnamed."""
+    try:
+        return predictor.label([s.ready for s in scans], times, with_confidence=with_confidence)
+    except RuntimeError as exc:
+        reason = f"the network failed: {exc}"
+        return [s.error or reason for s in scans]

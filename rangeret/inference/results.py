@@ -1,8 +1,8 @@
-"""What every runner gives: one `ScanPrediction` or a named failure per scan, and the
-`RunSummary` of a run.
+"""What every runner gives: one `ScanOutcome` per scan (a `ScanPrediction`, or the reason the
+scan has none), and the `RunSummary` of a run.
 
-`rangeret predict`, the Ray job (`workers.pipeline`), the GPU check's in-process labeller, the
-Serve replicas and the gateway all answer in these types, so each reports its scans the same way.
+The dataset, files and bag runners, the Ray job (`workers.pipeline`), the Serve replicas, the
+gateway and the ROS 2 node all answer in these types, so each reports its scans the same way.
 Torch-free, so the Ray driver, the pipeline's CPU stages and the gateway import it without torch.
 """
 
@@ -18,8 +18,8 @@ from rangeret.inference.timing import StageTimes
 
 @dataclass
 class ScanPrediction:
-    """The result for one scan: raw labels (uint32, one per point) and, when asked, each point's
-    confidence in its label (float32) and its training classes."""
+    """The labels of one scan or cloud: raw ids (uint32, one per point) and, when asked, each
+    point's confidence in its label (float32, 0..1) and its training classes."""
 
     labels: np.ndarray
     #: Each point's softmax probability of its final class at its pixel (float32), when asked.

@@ -25,7 +25,13 @@ from rangeret.dataset.layout import (
     list_scans,
     prediction_path,
 )
-from rangeret.inference.loading import LoadedScan, batches, check_batch_size, load_batch
+from rangeret.inference.loading import (
+    LoadedScan,
+    batches,
+    check_batch_size,
+    load_batch,
+    predict_loaded,
+)
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import RunSummary
 from rangeret.io.run_info import write_run_info
@@ -109,7 +115,7 @@ def predict_tree(
             if not loaded or (cancel is not None and cancel.is_set()):
                 break
             future = read_next()
-            results = predictor.label_loaded(loaded, times, with_confidence=save_confidence)
+            results = predict_loaded(predictor, loaded, times, with_confidence=save_confidence)
             for scan, found in zip(loaded, results, strict=True):
                 entry = scan.entry
                 if isinstance(found, str):

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Protocol
 
 from rangeret.dataset.layout import ScanEntry
-from rangeret.inference.predictor import Predictor, PredictorSpec
+from rangeret.inference.predictor import Predictor
 from rangeret.inference.runner import predict_tree
 from service.jobs.store import JobRecord, JobStore
 from service.schemas import JobState
@@ -89,25 +89,24 @@ class JobExecutor(Protocol):
 
 
 class LocalExecutor:
-    """`predict_tree` in this process, with its own predictor (built on first use), which reads
-    the dataset in the layout and point record of the profile the spec's network runs with, and,
-    with `read_roots`, only scans that lie under those folders when they are read."""
+    """`predict_tree` in this process with `predictor` (the network the gateway's single scans
+    share, one pass at a time), which reads the dataset in the layout and point record of its
+    profile, and, with `read_roots`, only scans that lie under those folders when they are read."""
 
     backend = "local"
 
     def __init__(
-        self, spec: PredictorSpec, batch_size: int = 1, read_roots: list[Path] | None = None
+        self, predictor: Predictor, batch_size: int = 1, read_roots: list[Path] | None = None
     ) -> None:
-        self.spec = spec
+        self.predictor = predictor
         self.batch_size = batch_size
         self.read_roots = read_roots
-        self.precision: str | None = None
-        self._predictor: Predictor | None = None
+        self.precision: str | None = predictor.precision
 
     @property
     def inference_backend(self) -> str:
-        """The backend the spec runs the network with."""
-        return self.spec.backend
+        """The backend the predictor runs the network with."""
+        return self.predictor.backend
 
     def predict(
         self,
@@ -120,11 +119,8 @@ class LocalExecutor:
     ) -> dict[str, str]:
         """Predict the dataset's sequences into `out`, skipping scans already done; a cancel
         or a gateway stop both stop it after the batch in flight."""
-        if self._predictor is None:
-            self._predictor = self.spec.build()
-        self.precision = self._predictor.precision
         summary = predict_tree(
-            self._predictor,
+            self.predictor,
             dataset,
             sequences,
             out,

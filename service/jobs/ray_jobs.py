@@ -21,6 +21,7 @@ the predictions zip and the report from those files, as for a job run in-process
 from __future__ import annotations
 
 import enum
+import json
 import logging
 import shlex
 import time
@@ -30,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 
 from rangeret.dataset.layout import ScanEntry, is_complete
 from rangeret.dataset.profiles import DatasetProfile
-from rangeret.options import network_argv
+from rangeret.inference.spec import InferenceSpec
 from service.jobs.executors import JobControl, JobError, Progress
 from workers.progress import JobProgress, progress_path, read_progress
 
@@ -203,10 +204,9 @@ def _first_line(text: str) -> str:
 class RayJobExecutor:
     """Runs each gateway job as a Ray job through the Jobs API at `address` (see the module).
 
-    `values` are the gateway's network options by name (`rangeret.options.network_values`),
-    given to the entrypoint as flags with `batch_size`; a checkpoint or profile file named by a
-    relative path is named by its absolute path, as are the job's folders, since the Ray job runs
-    elsewhere. `profile` is the served profile, whose point record tells which predictions are
+    `spec` is the gateway's `InferenceSpec`, given to the entrypoint as its one JSON option
+    `--inference-spec`; a checkpoint or profile file named by a relative path is named by its
+    absolute path, as are the job's folders, since the Ray job runs elsewhere. `profile` is the served profile, whose point record tells which predictions are
     already whole. `api`, `poll_s`, `unreachable_s` and `max_submissions` default to the module's
     constants. With `read_roots`, the Ray job reads scans only from under those folders
     (`--read-roots`: a scan that leads elsewhere when it is read is its failure).
@@ -217,9 +217,8 @@ class RayJobExecutor:
     def __init__(
         self,
         address: str,
-        values: dict[str, object],
+        spec: InferenceSpec,
         profile: DatasetProfile,
-        batch_size: int = 1,
         *,
         api: JobsApi | None = None,
         poll_s: float = POLL_S,
@@ -229,25 +228,28 @@ class RayJobExecutor:
     ) -> None:
         self.address = address
         self.read_roots = read_roots
-        self.values = {**values, "batch_size": batch_size}
-        for name in ("checkpoint", "profile"):
-            value = self.values.get(name)
-            if isinstance(value, str) and not Path(value).is_absolute() and Path(value).exists():
-                self.values[name] = str(Path(value).absolute())
-        self.network = network_argv(self.values)  # bad options fail the gateway at start
+        files = {
+            name: str(Path(value).absolute())
+            for name in ("checkpoint", "profile")
+            if (value := getattr(spec, name)) is not None
+            and not Path(value).is_absolute()
+            and Path(value).exists()
+        }
+        self.spec = spec.replace(**files)
         self.profile = profile
         self.api = api or JobsApi(address)
         self.poll_s = poll_s
         self.unreachable_s = unreachable_s
         self.max_submissions = max_submissions
         self.precision: str | None = None
-        self.inference_backend = str(values.get("backend") or "torch")
+        self.inference_backend = spec.backend
 
     def entrypoint(self, dataset: Path, sequences: list[str], out: Path) -> str:
         """The shell command of a job's Ray job: `python -m workers.predict_job` on the dataset's
-        sequences into `out`, with the gateway's network options."""
+        sequences into `out`, with the gateway's spec."""
         argv = ["python", "-m", "workers.predict_job", "--dataset", str(Path(dataset).absolute())]
-        argv += ["--sequences", *sequences, "--out", str(Path(out).absolute()), *self.network]
+        argv += ["--sequences", *sequences, "--out", str(Path(out).absolute())]
+        argv += ["--inference-spec", json.dumps(self.spec.to_mapping(), sort_keys=True)]
         if self.read_roots:
             argv += ["--read-roots", *(str(Path(r).absolute()) for r in self.read_roots)]
         return shlex.join(argv)

@@ -50,7 +50,7 @@ async def healthz(
 ) -> JSONResponse:
     state = await gw.labeller.health()
     ok = bool(state.get("ok"))
-    workers = state.get("actors", [])
+    workers = state.get("workers", [])
     model = gw.model or next((w["model"] for w in workers if w.get("model")), None)
     summary = HealthSummary(
         status="ok" if ok else "unavailable",

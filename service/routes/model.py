@@ -40,7 +40,7 @@ DEMO_NOTE = (
 async def model(gw: GatewayDep) -> ServedModel:
     name = gw.model
     if name is None:
-        workers = (await gw.labeller.health()).get("actors", [])
+        workers = (await gw.labeller.health()).get("workers", [])
         name = next((w["model"] for w in workers if w.get("model")), None)
     demo = is_demo_checkpoint(gw.checkpoint_sha256)
     return ServedModel(

@@ -21,10 +21,10 @@ from rangeret.inference.clouds import spread_labels
 from rangeret.inference.results import ScanPrediction
 from rangeret.io.scans import ScanFormatError, parse_scan
 from service.admission import RETRY_AFTER_S, QueueFull
-from service.batching import BackendError, BackendTimeout, ScanRejected
 from service.dependencies import GatewayDep
 from service.errors import ApiError, error_responses
 from service.gateway import Gateway
+from service.labeller_errors import BackendError, BackendTimeout, ScanRejected
 from service.scan_bodies import (
     CONTENT_TYPES,
     OCTET,
@@ -203,7 +203,7 @@ async def _label(
         points = await asyncio.to_thread(parse_scan, body, "the scan", record=record)
     except ScanFormatError as exc:
         raise ApiError(400, f"The scan is malformed: {exc.problem}.") from exc
-    labelled = await _labelled(gw, points, body, knn, confidence)
+    labelled = await _labelled(gw, points, knn, confidence)
     return _answer(gw, labelled.labels, labelled.confidence, as_json)
 
 
@@ -216,7 +216,7 @@ async def _label_file(
     decoded: FileBody = await asyncio.to_thread(decode_file_body, body, fmt, gw.profile)
     if len(decoded.points):
         points = decoded.points
-        labelled = await _labelled(gw, points, points.tobytes(), knn, confidence)
+        labelled = await _labelled(gw, points, knn, confidence)
         labels, scores = labelled.labels, labelled.confidence
     else:
         labels = np.zeros(0, dtype=np.uint32)
@@ -225,14 +225,12 @@ async def _label_file(
     return _answer(gw, every.labels, every.confidence if confidence else None, as_json)
 
 
-async def _labelled(
-    gw: Gateway, points: np.ndarray, raw: bytes, knn: bool, confidence: bool
-) -> ScanPrediction:
+async def _labelled(gw: Gateway, points: np.ndarray, knn: bool, confidence: bool) -> ScanPrediction:
     """The labeller's answer for checked points, its failures as the HTTP errors they mean."""
     if not gw.started:
         raise ApiError(503, "The gateway is starting; try again in a moment.")
     try:
-        labelled = await gw.labeller.label(points, raw, knn, confidence)
+        labelled = await gw.labeller.label(points, knn, confidence)
     except ScanRejected as exc:
         raise ApiError(400, f"The scan cannot be projected: {exc}.") from exc
     except BackendTimeout as exc:

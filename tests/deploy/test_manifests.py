@@ -375,9 +375,7 @@ def test_the_serve_application():
     """The RayService's Serve config: the application, route and deployment the gateway and
     workers.serve_app agree on, GPUs per replica, autoscaling within the GPU group, and builder
     args that are network options the command line takes."""
-    import argparse
-
-    from rangeret.options import NETWORK_OPTIONS, add_network_options, network_argv
+    from rangeret.inference.spec import InferenceSpec
 
     service = _service()
     config = serve_config(service)
@@ -402,11 +400,9 @@ def test_the_serve_application():
 
     args = dict(app["args"])
     assert args.pop("batch_wait_ms") >= 0
-    assert set(args) <= set(NETWORK_OPTIONS)
-    parser = argparse.ArgumentParser(exit_on_error=False)
-    add_network_options(parser)
-    parsed = parser.parse_args(network_argv(args))
-    assert str(parsed.checkpoint).startswith("/models/") and parsed.batch_size == args["batch_size"]
+    spec = InferenceSpec.from_mapping(args)
+    assert spec.checkpoint.startswith("/models/") and spec.batch_size == args["batch_size"]
+    assert spec.to_mapping() == args
 
 
 def test_the_serve_application_builds_from_the_rayservices_arguments():
@@ -477,7 +473,7 @@ def test_gateway_manifest_names_the_serve_command_and_settings():
     """The gateway's args parse with `rangeret serve`'s parser, name the Serve application's
     network options, and its RANGERET_* variables are settings that exist."""
     from rangeret.cli.main import build_parser
-    from rangeret.options import network_values
+    from rangeret.inference.spec import InferenceSpec
     from service.settings import Settings
 
     container = _gateway()["spec"]["template"]["spec"]["containers"][0]
@@ -486,7 +482,7 @@ def test_gateway_manifest_names_the_serve_command_and_settings():
     assert str(args.checkpoint).startswith("/models/")
     served = dict(serve_config(_service())["applications"][0]["args"])
     served.pop("batch_wait_ms")
-    values = network_values(args)
+    values = InferenceSpec.from_args(args).to_mapping()
     assert {k: values.get(k) for k in served} == served
     job = job_parser().parse_args(shlex.split(_job()["spec"]["entrypoint"])[3:])
     assert job.checkpoint == args.checkpoint

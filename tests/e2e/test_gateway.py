@@ -29,7 +29,8 @@ import torch
 from rangeret.cli.main import main as rangeret_main
 from rangeret.dataset.labels import semantickitti
 from rangeret.dataset.layout import KITTI_LAYOUT, prediction_path, velodyne_dir
-from rangeret.inference.predictor import PredictorSpec
+from rangeret.inference.predictor import Predictor
+from rangeret.inference.spec import InferenceSpec
 from rangeret.io.scans import KITTI_RECORD, read_labels, read_scan, write_scan
 from rangeret.submission.archives import validate_submission
 from service.jobs import SCHEMA_VERSION, JobStore
@@ -189,12 +190,11 @@ def test_json_form(setup, gateway):
 def test_confidences_come_with_the_json_form_only(setup, gateway):
     scan = setup["data"] / "sequences" / "08" / "velodyne" / "000000.bin"
     expected = read_labels(prediction_path(setup["ref"], "08", "000000"))
-    predictor = PredictorSpec(
-        checkpoint=str(setup["weights"]), height=32, width=256, device="cpu"
-    ).build()
-    reference = predictor.finish_batch([predictor.project(read_scan(scan))], with_confidence=True)[
-        0
-    ].confidence
+    predictor = Predictor.from_spec(
+        InferenceSpec(checkpoint=str(setup["weights"]), height=32, width=256, device="cpu")
+    )
+    projected = [predictor.project(read_scan(scan))]
+    reference = predictor.label(projected, with_confidence=True)[0].confidence
     json_accept = {**OCTET, "Accept": "application/json"}
     with gateway.client() as client:
         r = client.post(

@@ -63,12 +63,17 @@ def test_the_exchange_round_trips_labels_and_confidences():
 def test_the_builder_names_a_bad_argument_before_any_replica_starts():
     from workers.serve_app import DEPLOYMENT, build_app
 
-    with pytest.raises(ValueError, match=r"unknown argument\(s\) heigth .* takes checkpoint"):
+    where = "of the rangeret Serve application"
+    with pytest.raises(ValueError, match=rf"^unknown network option heigth {where}; the known"):
         build_app({"heigth": 32})
-    with pytest.raises(ValueError, match=r"--device: invalid choice: 'tpu'"):
+    with pytest.raises(ValueError, match=rf"^device {where} must be one of auto, cpu, cuda"):
         build_app({"device": "tpu"})
-    with pytest.raises(ValueError, match=r"the network option knn is true or false"):
+    with pytest.raises(ValueError, match=rf"^knn {where} takes true or false, got 'no'"):
         build_app({"knn": "no", "device": "cpu"})
+    with pytest.raises(ValueError, match=rf"^batch_size {where} takes an integer, got 'eight'"):
+        build_app({"batch_size": "eight"})
+    with pytest.raises(ValueError, match=r"^batch_wait_ms must not be negative"):
+        build_app({"batch_wait_ms": -1})
     app = build_app({"batch_size": 4, "device": "cpu", "knn": False})
     deployment = app._bound_deployment
     assert deployment.name == DEPLOYMENT

@@ -7,7 +7,7 @@ import pytest
 
 from rangeret.dataset.profiles import load_profile
 from rangeret.evaluation.view import label_colours
-from rangeret.inference.clouds import CloudLabels
+from rangeret.inference.results import ScanPrediction
 from rangeret.io.point_fields import PointFieldsError
 from rangeret.io.pointcloud2 import FLOAT32, FLOAT64, UINT16, UINT32, CloudMessageError, decode
 from rangeret.io.scans import KITTI_RECORD, read_scan
@@ -71,7 +71,7 @@ def test_the_answer_keeps_the_input_and_adds_label_and_confidence(points):
     cloud = variants(points)["padding and a wider point step"]
     msg = to_message(cloud)
     layout, _ = cloud_record(msg, "padded", MAPPING)
-    labels = CloudLabels(
+    labels = ScanPrediction(
         np.arange(len(points), dtype=np.uint32) % 260,
         np.linspace(0, 1, len(points), dtype=np.float32),
     )
@@ -96,7 +96,7 @@ def test_the_rgb_field_is_the_palette_colour_of_each_label(points):
     msg = to_message(float32_cloud(points))
     layout, _ = cloud_record(msg, "cloud", MAPPING)
     raw = np.array([0, 10, 40, 44, 48, 70, 252], dtype=np.uint32)
-    labels = CloudLabels(np.resize(raw, len(points)), np.zeros(len(points), np.float32))
+    labels = ScanPrediction(np.resize(raw, len(points)), np.zeros(len(points), np.float32))
     answer = labelled_message(msg, layout, labels, palette_of(PROFILE.labels))
     _, got = decode(answer, "answer")
     packed = got["rgb"].view(np.uint32)

@@ -164,15 +164,18 @@ def test_scans_outside_the_read_roots_fail_the_job_before_it_predicts(store, tmp
 
 def test_the_local_executor_records_each_job_run_in_run_json(store, tmp_path):
     """The gateway's in-process jobs write run.json like every runner."""
-    from rangeret.inference.predictor import PredictorSpec
+    from rangeret.inference.predictor import Predictor
+    from rangeret.inference.spec import InferenceSpec
     from rangeret.io.run_info import read_run_info
     from service.jobs.executors import LocalExecutor
     from tests.support.workers import build_tree, small_weights
 
     data = build_tree(tmp_path / "data", labelled=1, unlabelled=1)
     job, folder = _claimed(store, tmp_path, data, ["08", "11"])
-    spec = PredictorSpec(str(small_weights(tmp_path)), height=32, width=256, device="cpu")
-    executor = LocalExecutor(spec)
+    spec = InferenceSpec(
+        checkpoint=str(small_weights(tmp_path)), height=32, width=256, device="cpu"
+    )
+    executor = LocalExecutor(Predictor.from_spec(spec))
     work = JobWork(store, executor, KITTI)
     assert work.run(job, folder, JobControl(job.id, store)) is True
     assert store.get(job.id).state is JobState.succeeded

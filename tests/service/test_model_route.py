@@ -18,17 +18,14 @@ TOKEN = "model-test-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 
-class FakePool:
-    """A healthy worker pool whose one worker runs `model`; never asked to label here."""
+class FakeWorker:
+    """A healthy scan worker that runs `model`; never asked to label here."""
 
     def __init__(self, model: str = "rangeret-cir") -> None:
         self.model = model
 
-    async def predict_async(self, scans, knn=True, confidence=False):
+    def label(self, requests):
         raise AssertionError("no scan is labelled in these tests")
-
-    def queue_depth(self):
-        return 0
 
     def info(self):
         return {"pid": os.getpid(), "model": self.model}
@@ -48,7 +45,7 @@ def _client(tmp_path, sha256: str | None, model: str | None) -> TestClient:
     settings = Settings(state_dir=tmp_path / "state", api_token=TOKEN)
     app = create_app(
         settings,
-        LocalLabeller(FakePool()),
+        LocalLabeller(FakeWorker()),
         FakeExecutor(),
         profile=load_profile("semantickitti"),
         checkpoint_sha256=sha256,

@@ -14,10 +14,12 @@ from fastapi.testclient import TestClient
 from openapi_spec_validator import validate
 
 from rangeret.dataset.profiles import load_profile
-from rangeret.inference.predictor import PredictorSpec
+from rangeret.inference.predictor import Predictor
+from rangeret.inference.scan_worker import ScanWorker
+from rangeret.inference.spec import InferenceSpec
 from rangeret.io.scans import read_scan
 from service.app import create_app
-from service.local_labeller import LocalLabeller, LocalPool
+from service.local_labeller import LocalLabeller
 from service.routes.scans import json_answer
 from service.scan_bodies import CONTENT_TYPES
 from service.schemas import LabelFormat
@@ -49,20 +51,21 @@ OPERATIONS = {
 
 
 @pytest.fixture(scope="module")
-def pool(tmp_path_factory) -> LocalPool:
+def pool(tmp_path_factory) -> ScanWorker:
     """The small 32 x 256 weights, labelling in process."""
     weights = small_weights(tmp_path_factory.mktemp("openapi"))
-    return LocalPool(PredictorSpec(str(weights), height=32, width=256, device="cpu"))
+    spec = InferenceSpec(checkpoint=str(weights), height=32, width=256, device="cpu")
+    return ScanWorker(Predictor.from_spec(spec))
 
 
-def _app(state: Path, pool: LocalPool, token: str | None = TOKEN):
+def _app(state: Path, pool: ScanWorker, token: str | None = TOKEN):
     settings = Settings(state_dir=state, api_token=token)
     return create_app(
         settings, LocalLabeller(pool), FakeExecutor(), profile=load_profile("semantickitti")
     )
 
 
-def _description(state: Path, pool: LocalPool, token: str | None = TOKEN) -> dict:
+def _description(state: Path, pool: ScanWorker, token: str | None = TOKEN) -> dict:
     with TestClient(_app(state, pool, token), base_url="http://localhost") as client:
         return client.get("/openapi.json").json()
 

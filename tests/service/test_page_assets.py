@@ -32,14 +32,11 @@ TOKEN = "page-test-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 
-class FakePool:
-    """A healthy worker pool that is never asked to label here."""
+class FakeWorker:
+    """A healthy scan worker that is never asked to label here."""
 
-    async def predict_async(self, scans, knn=True, confidence=False):
+    def label(self, requests):
         raise AssertionError("no scan is labelled in these tests")
-
-    def queue_depth(self):
-        return 0
 
     def info(self):
         return {"pid": os.getpid()}
@@ -73,7 +70,7 @@ def _unbuilt_copy(tmp_path: Path) -> Path:
 def _app(tmp_path: Path, token: str | None = TOKEN, web: Path | None = None):
     settings = Settings(state_dir=tmp_path / "state", api_token=token)
     app = create_app(
-        settings, LocalLabeller(FakePool()), FakeExecutor(), profile=load_profile("semantickitti")
+        settings, LocalLabeller(FakeWorker()), FakeExecutor(), profile=load_profile("semantickitti")
     )
     if web is not None:
         app.state.gateway.page = PageFiles(web)
@@ -183,7 +180,7 @@ def test_the_profile_endpoint_follows_the_token_rule_and_describes_the_profile(t
     pandaset = load_profile("pandaset")
     settings = Settings(state_dir=tmp_path / "panda", api_token=None)
     with TestClient(
-        create_app(settings, LocalLabeller(FakePool()), FakeExecutor(), profile=pandaset),
+        create_app(settings, LocalLabeller(FakeWorker()), FakeExecutor(), profile=pandaset),
         base_url="http://localhost",  # a gateway without a token answers to loopback names only
     ) as client:
         body = client.get("/v1/profile").json()

@@ -15,7 +15,8 @@ import pytest
 
 from rangeret.cli.main import main as rangeret_main
 from rangeret.dataset.layout import KITTI_LAYOUT, discover
-from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
+from rangeret.inference.loader import load_weights
+from rangeret.inference.spec import InferenceSpec
 from tests.support.workers import build_tree, small_weights, tree_bytes
 from workers.pipeline import run_pipeline
 from workers.sizing import PipelineOptions
@@ -39,13 +40,13 @@ def cluster():
     c.shutdown()
 
 
-def _spec(weights) -> PredictorSpec:
-    return PredictorSpec(checkpoint=str(weights), height=32, width=256, device="cpu")
+def _spec(weights) -> InferenceSpec:
+    return InferenceSpec(checkpoint=str(weights), height=32, width=256, device="cpu")
 
 
 def _job(weights, data, out, **options):
     spec = _spec(weights)
-    _, profile = checkpoint_profile(spec)
+    profile = load_weights(spec).profile
     entries = discover(data, ["08", "11"], layout=KITTI_LAYOUT).scans
     return run_pipeline(
         spec, profile, entries, out, PipelineOptions(read_cpus=0.25, write_cpus=0.1, **options)
@@ -108,7 +109,7 @@ def test_more_gpu_actors_than_gpus_is_a_named_error_not_a_hang(cluster, tmp_path
     weights = small_weights(tmp_path)
     data = build_tree(tmp_path / "data", labelled=1, unlabelled=1)
     spec = _spec(weights)
-    _, profile = checkpoint_profile(spec)
+    profile = load_weights(spec).profile
     options = PipelineOptions(actors=3, read_cpus=0.25, write_cpus=0.1, actor_start_timeout=10)
     with pytest.raises(
         ClusterCapacityError, match=r"3 model actor.*did not start within 10 s.*1 GPU"

@@ -7,13 +7,12 @@ import json
 import time
 import zipfile
 
-import numpy as np
 import pytest
 import torch
 
 from rangeret.cli.main import main as rangeret_main
 from rangeret.dataset.layout import KITTI_LAYOUT
-from rangeret.inference.predictor import PredictorSpec
+from rangeret.inference.spec import InferenceSpec
 from rangeret.io.scans import read_scan
 from tests.support.workers import build_tree, kill_actor_when, small_weights, tree_bytes
 from workers.predict_job import main as job_main
@@ -230,27 +229,6 @@ def test_a_model_actor_killed_mid_run_costs_no_scan(ray_local, tmp_path, setup, 
     capsys.readouterr()
 
 
-def test_scan_worker_labels_batches_as_the_predictor_does(setup):
-    from workers.scans import ScanWorker
-
-    data, weights = setup
-    spec = PredictorSpec(checkpoint=str(weights), height=32, width=256, device="cpu")
-    predictor = spec.build()
-    scans = [read_scan(p) for p in sorted(data.rglob("*.bin"))[:2]]
-    worker = ScanWorker(spec)
-    assert worker.info()["model"] == "rangeret-cir" and worker.profile.name == "semantickitti"
-    labels = [r.labels for r in worker.predict(scans)]
-    expected = [r.labels for r in predictor.predict_batch(scans)]
-    assert all(np.array_equal(a, b) for a, b in zip(labels, expected, strict=True))
-    raw = worker.predict(scans[:1], knn=False)[0]
-    assert raw.labels.shape == scans[0][:, 0].shape and raw.confidence is None
-    assert not np.array_equal(raw.labels, expected[0])  # kNN changes some labels
-    sure = worker.predict(scans[:1], confidence=True)[0]
-    assert np.array_equal(sure.labels, expected[0])
-    assert sure.confidence.shape == expected[0].shape
-    assert (sure.confidence >= 0).all() and (sure.confidence <= 1).all()
-
-
 def test_a_job_runs_beside_actors_that_hold_cpus(ray_local, setup, tmp_path, capsys, caplog):
     """Regression: CPU model actors were sized from a node's total CPUs, so a job never started
     while other actors (Serve replicas, say) held some of them. Also: --allow-partial predicts
@@ -349,19 +327,21 @@ def test_model_actors_warm_up_before_their_first_batch(setup):
     """The pipeline's model actors and the single-scan worker run the network once when they are
     built: a real batch then finds every decay table made and builds none."""
     from rangeret.dataset.layout import discover
-    from rangeret.inference.predictor import checkpoint_profile
+    from rangeret.inference.loader import load_weights
+    from rangeret.inference.predictor import Predictor
+    from rangeret.inference.scan_worker import ScanRequest, ScanWorker
     from rangeret.models.blocks.decay import GridCache
-    from workers.scans import ScanWorker
     from workers.stages import ROW_COLUMN, BatchRecord, ModelWorker, read_and_project
 
     data, weights = setup
-    spec = PredictorSpec(checkpoint=str(weights), height=32, width=256, device="cpu")
-    _, profile = checkpoint_profile(spec)
+    spec = InferenceSpec(checkpoint=str(weights), height=32, width=256, device="cpu")
+    profile = load_weights(spec).profile
     record = BatchRecord(0, discover(data, ["08"], layout=KITTI_LAYOUT).scans[:2])
     row = read_and_project(record, profile.projection, points=profile.points).encode()[ROW_COLUMN]
     threads = torch.get_num_threads()
     try:
-        model_worker, scan_worker = ModelWorker(spec, 1.0), ScanWorker(spec)
+        model_worker = ModelWorker(spec, profile, 1.0)
+        scan_worker = ScanWorker(Predictor.from_spec(spec))
     finally:
         torch.set_num_threads(threads)
     scans = [read_scan(e.scan_path) for e in record.entries]
@@ -373,11 +353,12 @@ def test_model_actors_warm_up_before_their_first_batch(setup):
         return [error for _, error in labelled.results]
 
     def through_scan_worker() -> list:
-        return [r if isinstance(r, str) else None for r in scan_worker.predict(scans)]
+        labelled = scan_worker.label([ScanRequest(s) for s in scans])
+        return [r if isinstance(r, str) else None for r in labelled]
 
     runs = [
         (model_worker.predictor, through_model_worker),
-        (scan_worker.spec_predictor, through_scan_worker),
+        (scan_worker.predictor, through_scan_worker),
     ]
     for predictor, run in runs:
         caches = [m for m in predictor.network.modules() if isinstance(m, GridCache)]

@@ -93,14 +93,42 @@ def load_checkpoint(
     """The network stored in `path`, in eval mode, with `checkpoint_info` attached.
 
     For published files `model` overrides the recognised name, height/width give the resolution
-    (default `default_resolution`, a dataset profile's) and overrides the switches. For the project's own files everything comes
-    from the file; arguments that contradict it raise CheckpointError.
+    (default `default_resolution`, a dataset profile's) and overrides the switches. For the
+    project's own files everything comes from the file; arguments that contradict it raise
+    CheckpointError.
     """
-    path = Path(path)
+    return network_from_bytes(
+        read_checkpoint_bytes(path),
+        path,
+        model,
+        height,
+        width,
+        default_resolution=default_resolution,
+        **overrides,
+    )
+
+
+def read_checkpoint_bytes(path: str | os.PathLike[str]) -> bytes:
+    """The bytes of a checkpoint file, read once (`InputFileMissing` when it is not there)."""
     try:
-        data = path.read_bytes()
+        return Path(path).read_bytes()
     except FileNotFoundError as exc:
         raise InputFileMissing.of(exc) from exc
+
+
+def network_from_bytes(
+    data: bytes,
+    path: str | os.PathLike[str],
+    model: str | None = None,
+    height: int | None = None,
+    width: int | None = None,
+    *,
+    default_resolution: tuple[int, int] = (64, 1024),
+    **overrides: Any,
+) -> RangeRet:
+    """The network of a checkpoint file's bytes `data` (read from `path`, which errors and the
+    `checkpoint_info` name), as `load_checkpoint` makes it."""
+    path = Path(path)
     digest = hashlib.sha256(data).hexdigest()
     try:
         content = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)

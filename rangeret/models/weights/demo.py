@@ -3,7 +3,6 @@ every run on them says so. Torch-free: reports and descriptions ask about them c
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import logging
 from pathlib import Path
@@ -46,9 +45,24 @@ def is_demo_checkpoint(sha256: str | None) -> bool:
     return bool(sha256) and sha256 == _demo_sha256()
 
 
-@functools.cache
+#: The bundled demo weights' SHA-256 once known: noted by the loader that read them, else read
+#: once (every description of a run asks for it).
+_DEMO_SHA256: dict[str, str | None] = {}
+
+
+def note_loaded(path: Path, sha256: str) -> None:
+    """Remember the hash of a checkpoint a loader has just read when it is the demo weights, so
+    that asking about them later reads the file no second time."""
+    if DEMO_CHECKPOINT.exists() and Path(path).resolve() == DEMO_CHECKPOINT.resolve():
+        _DEMO_SHA256["sha256"] = sha256
+
+
 def _demo_sha256() -> str | None:
-    """The bundled demo weights' SHA-256, read once (every description of a run asks for it)."""
-    if not DEMO_CHECKPOINT.exists():
-        return None
-    return hashlib.sha256(DEMO_CHECKPOINT.read_bytes()).hexdigest()
+    """The bundled demo weights' SHA-256 (None when they are not installed)."""
+    if "sha256" not in _DEMO_SHA256:
+        _DEMO_SHA256["sha256"] = (
+            hashlib.sha256(DEMO_CHECKPOINT.read_bytes()).hexdigest()
+            if DEMO_CHECKPOINT.exists()
+            else None
+        )
+    return _DEMO_SHA256["sha256"]

@@ -59,12 +59,24 @@ def file_sha256(path: Path) -> str:
 def fetch_weights(model: PublishedModel, to: Path | None = None) -> Path:
     """The model's file: from the cache when it is there (no network), else downloaded, into the
     hub cache or, with `to`, into that folder; checked against the registry's SHA-256 pin."""
+    path = locate_weights(model, to)
+    check_pin(model, path, file_sha256(path))
+    return path
+
+
+def locate_weights(model: PublishedModel, to: Path | None = None) -> Path:
+    """The model's file from the cache, else downloaded (as `fetch_weights`), not read: a loader
+    reads it once and checks the pin on the bytes it loads (`check_pin`)."""
     path = None if to is not None else cached_weights(model)
     if path is None:
-        path = _download(model, to)
-    else:
-        log.info("%s: in the local cache at %s", model.name, path)
-    sha256 = file_sha256(path)
+        return _download(model, to)
+    log.info("%s: in the local cache at %s", model.name, path)
+    return path
+
+
+def check_pin(model: PublishedModel, path: Path, sha256: str) -> None:
+    """`WeightsError` (the file removed) when `sha256`, the hash of the file's bytes, is not the
+    registry's pin for the model."""
     if model.sha256 is not None and sha256 != model.sha256:
         _remove(path)
         raise WeightsError(
@@ -73,7 +85,6 @@ def fetch_weights(model: PublishedModel, to: Path | None = None) -> Path:
             f"{weights_url(model)}"
         )
     log.info("%s: %s (sha256 %s)", model.name, path, sha256)
-    return path
 
 
 def _download(model: PublishedModel, to: Path | None) -> Path:
@@ -152,13 +163,15 @@ def published_name(value: str | Path) -> PublishedModel | None:
 @dataclass(frozen=True)
 class ResolvedWeights:
     """Where a `--checkpoint` value leads, and the profile, network and resolution to load it
-    with (what was asked for, completed by a published model's registry entry)."""
+    with (what was asked for, completed by a published model's registry entry, whose pin the
+    loaded bytes must match)."""
 
     path: Path
     profile: DatasetProfile | None
     model: str | None
     height: int | None
     width: int | None
+    published: PublishedModel | None = None
 
 
 def resolve_weights(
@@ -168,17 +181,18 @@ def resolve_weights(
     height: int | None = None,
     width: int | None = None,
 ) -> ResolvedWeights:
-    """The file a `--checkpoint` value leads to: a path as it is; for a published model's name
-    its file (from the cache or the hub), with its profile (another requested one is refused
-    before any download), network and resolution wherever those were not given."""
+    """The file a `--checkpoint` value leads to, not read yet: a path as it is; for a published
+    model's name its file (from the cache or the hub), with its profile (another requested one is
+    refused before any download), network and resolution wherever those were not given."""
     published = published_name(value)
     if published is None:
         return ResolvedWeights(Path(value), profile, model, height, width)
     profile = profile_for_published(published, profile)
     return ResolvedWeights(
-        fetch_weights(published),
+        locate_weights(published),
         profile,
         model or published.model,
         height or published.height or None,
         width or published.width or None,
+        published,
     )

@@ -41,14 +41,25 @@ def profile_for_checkpoint(
     profile = replace(profile, projection=projection).with_overrides(
         fov_up=fov_up, fov_down=fov_down
     )
-    classes = int(info.config["num_classes"])
-    if classes != profile.num_classes:
-        raise CheckpointError(
-            f"{info.path} predicts {classes} classes but the {profile.name} profile has "
-            f"{profile.num_classes}: the network was not made for this dataset "
-            "(choose its profile with --profile)"
-        )
+    check_classes(int(info.config["num_classes"]), profile, info.path)
     return profile
+
+
+def check_classes(classes: int, profile: DatasetProfile, source: str | None = None) -> None:
+    """A CheckpointError naming both counts unless a network of `classes` classes (from the
+    file `source`, when it came from one) was made for `profile`'s labels."""
+    if classes == profile.num_classes:
+        return
+    if source is None:
+        raise CheckpointError(
+            f"the network predicts {classes} classes but the {profile.name} profile has "
+            f"{profile.num_classes}: it was not made for this dataset"
+        )
+    raise CheckpointError(
+        f"{source} predicts {classes} classes but the {profile.name} profile has "
+        f"{profile.num_classes}: the network was not made for this dataset "
+        "(choose its profile with --profile)"
+    )
 
 
 def _recorded_profile(info: CheckpointInfo) -> DatasetProfile:

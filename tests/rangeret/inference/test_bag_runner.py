@@ -14,7 +14,8 @@ import pytest
 from rangeret.inference import bag_runner
 from rangeret.inference.bag_runner import label_bag
 from rangeret.inference.clouds import label_cloud, unlabelled_raw_id
-from rangeret.inference.predictor import PredictorSpec
+from rangeret.inference.predictor import Predictor
+from rangeret.inference.spec import InferenceSpec
 from rangeret.io.bags import BagError
 from rangeret.io.point_fields import to_record
 from rangeret.io.pointcloud2 import FLOAT32, FLOAT64, UINT16, UINT32, decode
@@ -28,7 +29,8 @@ from tests.support.workers import small_weights
 @pytest.fixture(scope="module")
 def predictor(tmp_path_factory):
     weights = small_weights(tmp_path_factory.mktemp("weights"))
-    return PredictorSpec(str(weights), height=32, width=256, device="cpu").build()
+    spec = InferenceSpec(checkpoint=str(weights), height=32, width=256, device="cpu")
+    return Predictor.from_spec(spec)
 
 
 @pytest.fixture(scope="module")

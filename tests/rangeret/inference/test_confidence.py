@@ -11,7 +11,8 @@ from rangeret.cli.main import main as rangeret_main
 from rangeret.dataset.labels import semantickitti
 from rangeret.dataset.layout import KITTI_LAYOUT, confidence_path, prediction_path, velodyne_dir
 from rangeret.inference.point_labels import point_confidences
-from rangeret.inference.predictor import PredictorSpec
+from rangeret.inference.predictor import Predictor
+from rangeret.inference.spec import InferenceSpec
 from rangeret.io.scans import KITTI_RECORD, read_confidence, read_labels, read_scan, write_scan
 from tests.support.paths import data_path
 from tests.support.workers import small_weights
@@ -32,13 +33,13 @@ def test_a_confidence_is_the_softmax_of_the_final_class_at_the_pixel():
 
 
 def test_without_knn_a_confidence_is_the_pixels_top_probability(tmp_path):
-    spec = PredictorSpec(
-        checkpoint=str(small_weights(tmp_path)), height=32, width=256, device="cpu", knn=None
+    spec = InferenceSpec(
+        checkpoint=str(small_weights(tmp_path)), height=32, width=256, device="cpu", knn=False
     )
-    predictor = spec.build()
+    predictor = Predictor.from_spec(spec)
     points = read_scan(data_path("semantickitti-scan", "000000.bin"))[::7]
     projection = predictor.project(points)
-    result = predictor.finish_batch([projection], with_confidence=True)[0]
+    result = predictor.label([projection], with_confidence=True)[0]
     pixel = projection.proj_x >= 0
     assert result.confidence.shape == (len(points),) and result.confidence.dtype == np.float32
     top = torch.softmax(predictor.logits([projection])[0], dim=0).amax(dim=0).numpy()

@@ -25,7 +25,8 @@ from rangeret.cli.main import main as rangeret_main
 from rangeret.dataset.labels import semantickitti
 from rangeret.dataset.layout import KITTI_LAYOUT, prediction_path, velodyne_dir
 from rangeret.dataset.projection import CHANNEL_MEANS, CHANNEL_STDS
-from rangeret.inference.predictor import PredictorSpec, checkpoint_profile
+from rangeret.inference.loader import load_weights
+from rangeret.inference.predictor import Predictor
 from rangeret.inference.runtime import onnx_backend
 from rangeret.inference.runtime.onnx_backend import (
     CACHE_VARIABLE,
@@ -40,9 +41,9 @@ from rangeret.inference.runtime.onnx_export import (
 )
 from rangeret.inference.runtime.onnx_session import make_session, providers_for
 from rangeret.inference.runtime.precision import resolve_precision
+from rangeret.inference.spec import InferenceSpec
 from rangeret.io.scans import KITTI_RECORD, read_labels, read_scan, write_scan
 from rangeret.models import build_model
-from rangeret.options import spec_from_args
 from tests.support.gateway import NET, OCTET, gateway_env, start_gateway
 from tests.support.paths import data_path
 from tests.support.workers import small_weights
@@ -232,7 +233,7 @@ def test_a_driver_exports_once_for_the_predictors_its_workers_build(
     runs and how long it took; the predictor built next loads the file without a word."""
     monkeypatch.setenv(CACHE_VARIABLE, str(tmp_path))
     monkeypatch.setattr(onnx_backend, "HEARTBEAT_S", 0.01)
-    spec = PredictorSpec(
+    spec = InferenceSpec(
         checkpoint=str(setup["weights"]["rangeret-cir"]),
         height=32,
         width=256,
@@ -240,7 +241,7 @@ def test_a_driver_exports_once_for_the_predictors_its_workers_build(
         backend="onnxruntime",
     )
     with caplog.at_level(logging.INFO, logger=onnx_backend.__name__):
-        checkpoint_profile(spec)  # what the Ray job and the gateway do before starting workers
+        load_weights(spec).export_onnx()  # what the Ray job and the gateway do before workers
     exported = list((tmp_path / "onnx").glob("*.onnx"))
     assert len(exported) == 1
     said = [r.getMessage() for r in caplog.records if r.name == onnx_backend.__name__]
@@ -255,7 +256,7 @@ def test_a_driver_exports_once_for_the_predictors_its_workers_build(
     )
     caplog.clear()
     with caplog.at_level(logging.INFO, logger=onnx_backend.__name__):
-        predictor = spec.build()
+        predictor = Predictor.from_spec(spec)
     assert not [r for r in caplog.records if "export" in r.getMessage()]
     assert predictor.onnx is not None and predictor.onnx.path == exported[0]
     assert predictor.describe()["backend"] == "onnxruntime"
@@ -280,9 +281,9 @@ def test_the_ray_job_and_the_gateway_take_the_backend(setup):
     gateway = serve.parse_args(["--checkpoint", weights, "--backend", "onnxruntime"])
     gateway.batch_size = 1
     for args in (job, gateway):
-        assert spec_from_args(args).backend == "onnxruntime"
+        assert InferenceSpec.from_args(args).backend == "onnxruntime"
     default = serve.parse_args(["--checkpoint", weights, "--batch-size", "1"])
-    assert spec_from_args(default).backend == "torch"
+    assert InferenceSpec.from_args(default).backend == "torch"
 
 
 def test_the_gateway_labels_with_onnxruntime_as_torch_does(setup, predictions):
@@ -379,7 +380,7 @@ def test_a_cached_export_of_other_weights_is_made_again(setup, tmp_path, monkeyp
     from rangeret.models.weights.hub import file_sha256
 
     monkeypatch.setenv(CACHE_VARIABLE, str(tmp_path))
-    first = PredictorSpec(
+    first = InferenceSpec(
         checkpoint=str(setup["weights"]["rangeret-cir"]), height=32, width=256, device="cpu"
     )
     other = tmp_path / "other.pt"
@@ -392,21 +393,21 @@ def test_a_cached_export_of_other_weights_is_made_again(setup, tmp_path, monkeyp
         },
         other,
     )
-    second = PredictorSpec(checkpoint=str(other), height=32, width=256, device="cpu")
+    second = InferenceSpec(checkpoint=str(other), height=32, width=256, device="cpu")
     made = []
     for spec in (first, second):
-        predictor = spec.build()
+        predictor = Predictor.from_spec(spec)
         made.append(
             cached_export(predictor.network, predictor.profile, file_sha256(Path(spec.checkpoint)))
         )
     shutil.copyfile(made[0], made[1])  # the first checkpoint's export in the second's place
     with caplog.at_level(logging.WARNING, logger="rangeret.inference.runtime.onnx_backend"):
-        predictor = PredictorSpec(**{**vars(second), "backend": "onnxruntime"}).build()
+        predictor = Predictor.from_spec(second.replace(backend="onnxruntime"))
     warned = " ".join(r.getMessage() for r in caplog.records)
     assert file_sha256(other) in warned and file_sha256(Path(first.checkpoint)) in warned, warned
     assert read_metadata(made[1])["checkpoint_sha256"] == file_sha256(other)
     scan = read_scan(data_path("semantickitti-scan", "000000.bin"))
-    torch_labels = second.build().predict(scan).labels
+    torch_labels = Predictor.from_spec(second).predict(scan).labels
     assert np.array_equal(predictor.predict(scan).labels, torch_labels)
 
 

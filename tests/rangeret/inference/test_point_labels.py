@@ -113,12 +113,14 @@ def test_a_batch_gives_each_scans_classes(scan, knn):
 def _predictor(knn):
     from rangeret.dataset.profiles import load_profile
     from rangeret.inference import predictor as inference
+    from rangeret.inference.spec import InferenceSpec
     from rangeret.models import build_model
 
     torch.manual_seed(0)
     network = build_model("rangeret-cir", 32, 256, layers=1)
     profile = load_profile().with_overrides(height=32, width=256)
-    return inference.Predictor(network, profile, device="cpu", knn=knn)
+    spec = InferenceSpec(device="cpu")
+    return inference.Predictor.from_network(network, profile, spec).with_knn(knn)
 
 
 def test_predictor_labels_go_through_this_step(monkeypatch, real_scan_path):
@@ -137,7 +139,7 @@ def test_predictor_labels_go_through_this_step(monkeypatch, real_scan_path):
         predictor = _predictor(knn)
         result = predictor.predict(points)
         assert result.classes.shape == (123_389,)
-        batch = predictor.predict_batch([points, points[::2], points])
+        batch = predictor.label([predictor.project(p) for p in (points, points[::2], points)])
         assert [len(r.classes) for r in batch] == [123_389, 61_695, 123_389]
         assert np.array_equal(batch[0].classes, result.classes)
         assert np.array_equal(batch[1].classes, predictor.predict(points[::2]).classes)
@@ -146,7 +148,7 @@ def test_predictor_labels_go_through_this_step(monkeypatch, real_scan_path):
 
 @pytest.mark.parametrize("knn", [None, DEFAULT_KNN])
 def test_a_predictor_batch_waits_on_the_host_a_fixed_number_of_times(real_scan_path, knn):
-    """`Predictor.refine_batch` as `finish_batch` runs it: per batch, not per scan or chunk."""
+    """`Predictor.refine_batch` as `Predictor.label` runs it: per batch, not per scan or chunk."""
     from rangeret.io.scans import read_scan
 
     predictor = _predictor(knn)

@@ -12,7 +12,7 @@ from rangeret.cli.main import main
 from rangeret.dataset.labels import semantickitti
 from rangeret.dataset.layout import KITTI_LAYOUT, list_scans, prediction_path, velodyne_dir
 from rangeret.dataset.projection import ProjectionConfig, project
-from rangeret.inference.loading import batches, load_batch, project_scans
+from rangeret.inference.loading import batches, load_batch, predict_loaded, project_scans
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import RunSummary
 from rangeret.inference.settings import KnnSettings, TtaSettings
@@ -62,7 +62,9 @@ def test_predictor_on_the_real_scan_with_release_shaped_weights(tmp_path, scan):
     assert first.labels.shape == (len(scan),) and first.labels.dtype == np.uint32
     assert np.isin(first.labels, VALID_RAW).all()
     np.testing.assert_array_equal(first.labels, second.labels)
-    assert set(predictor.times.per_scan_ms()) == {"project", "network", "refine"}
+    times = StageTimes()
+    predictor.label([predictor.project(scan, times)], times)
+    assert set(times.per_scan_ms()) == {"project", "network", "refine"}
 
 
 def test_stages_compose_to_predict(small_weights, scan):
@@ -94,7 +96,7 @@ def test_without_knn_points_take_their_pixel_class_and_unprojected_get_zero(smal
 def test_batches_give_the_same_labels_as_single_scans(small_weights, scan):
     predictor = Predictor.from_checkpoint(small_weights, height=32, width=256, device="cpu")
     scans = [scan[::7], scan[1::9]]
-    batched = predictor.predict_batch(scans)
+    batched = predictor.label([predictor.project(p) for p in scans])
     for pts, result in zip(scans, batched, strict=True):
         np.testing.assert_array_equal(predictor.predict(pts).labels, result.labels)
 
@@ -228,14 +230,14 @@ def test_each_scan_gets_a_prediction_or_its_named_failure_in_order(tree, small_w
     loaded = load_batch(
         entries, predictor.projection_config, StageTimes(), record=predictor.profile.points
     )
-    found = predictor.label_loaded(loaded)
+    found = predict_loaded(predictor, loaded)
     assert [isinstance(f, str) for f in found] == [False, True, False]
     assert "000001.bin" in found[1] and "multiple of 16" in found[1]
     alone = predictor.predict(read_scan(entries[2].scan_path))
     np.testing.assert_array_equal(found[2].labels, alone.labels)
 
     projected = project_scans([scan[::7], scan[:, :3]], predictor.projection_config, StageTimes())
-    in_memory = predictor.label_projected(projected)
+    in_memory = predictor.label(projected)
     assert in_memory[1] == "points must have shape (N, 4), got (123389, 3)"
     np.testing.assert_array_equal(in_memory[0].labels, predictor.predict(scan[::7]).labels)
 
@@ -244,9 +246,9 @@ def test_each_scan_gets_a_prediction_or_its_named_failure_in_order(tree, small_w
 
     predictor.logits = out_of_memory
     failed = "the network failed: CUDA out of memory"
-    assert predictor.label_loaded(loaded) == [failed, found[1], failed]
+    assert predict_loaded(predictor, loaded) == [failed, found[1], failed]
     with pytest.raises(RuntimeError, match="out of memory"):
-        predictor.label_projected(projected)
+        predictor.label(projected)
 
 
 def test_a_run_summary_tallies_every_scan_and_names_each_failure():

@@ -1,0 +1,100 @@
+"""`load_weights`: from a spec to a loaded network and the profile it runs with, in one pass.
+
+The one path from an `InferenceSpec` to weights, for every runner: a published model's name is
+resolved to its file (the cache, else the hub), the file's bytes are read once, a published
+file's pin is checked on those very bytes, the network is built from them, and the profile is
+settled (the checkpoint's own, or the one asked for, at the network's resolution, its class count
+checked). A process loads its checkpoint from disk exactly once this way.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from rangeret.dataset.profiles import DatasetProfile, load_profile
+from rangeret.inference.spec import InferenceSpec
+from rangeret.models.weights.checkpoint import network_from_bytes, read_checkpoint_bytes
+from rangeret.models.weights.checkpoint_info import CheckpointInfo
+from rangeret.models.weights.demo import note_loaded, resolve_checkpoint
+from rangeret.models.weights.hub import check_pin, resolve_weights
+from rangeret.models.weights.run_profile import (
+    check_classes,
+    default_resolution,
+    profile_for_checkpoint,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class LoadedWeights:
+    """A network in eval mode on the CPU and the profile it runs with (its class count checked),
+    with where its weights came from (`info`; None for a network built in memory)."""
+
+    network: torch.nn.Module
+    profile: DatasetProfile
+    info: CheckpointInfo | None = None
+
+    @property
+    def sha256(self) -> str | None:
+        """The checkpoint file's SHA-256 (None for a network that came from no file)."""
+        return None if self.info is None else self.info.sha256
+
+    @property
+    def model(self) -> str:
+        """The network's name."""
+        return self.info.name if self.info is not None else type(self.network).__name__
+
+    @classmethod
+    def of_network(cls, network: torch.nn.Module, profile: DatasetProfile) -> LoadedWeights:
+        """A network built or loaded by other means, checked against `profile`'s class count."""
+        config = getattr(network, "config", None)
+        classes = getattr(config, "num_classes", None)
+        if classes is not None:
+            check_classes(int(classes), profile)
+        return cls(network.eval(), profile, getattr(network, "checkpoint_info", None))
+
+    def export_onnx(self) -> Path:
+        """The cached onnxruntime export of these weights, made now when missing, so that the
+        workers a driver starts next load it instead of each exporting it."""
+        from rangeret.inference.runtime.onnx_backend import cached_export
+
+        return cached_export(self.network, self.profile, self.sha256)
+
+
+def load_weights(spec: InferenceSpec, *, profile: DatasetProfile | None = None) -> LoadedWeights:
+    """The network and profile of `spec`'s weights fields, the checkpoint read once (see the
+    module). `profile` stands for the profile `spec.profile` names, for callers that hold one
+    already (a label configuration of their own in it)."""
+    requested = profile if profile is not None else _requested_profile(spec.profile)
+    path = resolve_checkpoint(None) if spec.checkpoint is None else spec.checkpoint
+    resolved = resolve_weights(path, requested, spec.model, spec.height, spec.width)
+    data = read_checkpoint_bytes(resolved.path)
+    sha256 = hashlib.sha256(data).hexdigest()
+    if resolved.published is not None:
+        check_pin(resolved.published, resolved.path, sha256)
+    note_loaded(resolved.path, sha256)
+    network = network_from_bytes(
+        data,
+        resolved.path,
+        model=resolved.model,
+        height=resolved.height,
+        width=resolved.width,
+        default_resolution=default_resolution(resolved.profile),
+    )
+    info = network.checkpoint_info
+    settled = profile_for_checkpoint(
+        info, requested=resolved.profile, fov_up=spec.fov_up, fov_down=spec.fov_down
+    )
+    log.debug("loaded %s (sha256 %s) for the %s profile", info.path, sha256[:12], settled.name)
+    return LoadedWeights(network, settled, info)
+
+
+def _requested_profile(name: str | None) -> DatasetProfile | None:
+    """The profile a spec names, or None to let the checkpoint choose."""
+    return load_profile(name) if name else None
