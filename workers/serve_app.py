@@ -16,8 +16,6 @@ backpressure (`max_ongoing_requests`, `max_queued_requests`) and health checks h
 that a Serve config's `deployments` entry overrides.
 """
 
-from __future__ import annotations
-
 import asyncio
 import logging
 import time

@@ -25,6 +25,7 @@ from rangeret.io.scans import read_labels, read_scan
 from rangeret.models.weights.hub import file_sha256 as checkpoint_sha256
 from service.serve_client import ServeLabeller
 from tests.support.gateway import AUTH, OCTET, assert_error, gateway_env, start_gateway
+from tests.support.open_audit import Audit
 from tests.support.workers import build_tree, free_ports, ray_node, small_weights
 from workers.scan_wire import (
     CONFIDENCE_HEADER,
@@ -106,7 +107,8 @@ def deployed(tmp_path_factory) -> Iterator[dict]:
     }
     path = tmp / "serve.yaml"
     path.write_text(yaml.safe_dump(config))
-    with ray_node(tmp, num_cpus=3) as head:
+    audit = Audit(tmp / "audit.log", (weights.name,))
+    with ray_node(tmp, num_cpus=3, base_env=audit.env()) as head:
         serve = str(head.bindir / "serve")
         subprocess.run([serve, "deploy", str(path), "-a", head.dashboard], env=head.env, check=True)
         url = f"http://127.0.0.1:{port}/rangeret"
@@ -123,7 +125,14 @@ def deployed(tmp_path_factory) -> Iterator[dict]:
                 [serve, "status", "-a", head.dashboard], env=head.env, capture_output=True
             )
             pytest.fail(f"the Serve application did not start:\n{status.stdout.decode()}")
-        yield {"url": url, "weights": weights, "tmp": tmp, "head": head}
+        yield {
+            "url": url,
+            "weights": weights,
+            "tmp": tmp,
+            "head": head,
+            "config": config,
+            "audit": audit,
+        }
 
 
 @pytest.fixture(scope="module")
@@ -253,6 +262,51 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             self._send(503, b"Service Unavailable")
         else:
             self._send(500, json.dumps({"detail": "CUDA error: out of memory"}).encode())
+
+
+@pytest.mark.slow
+def test_a_replica_reads_its_checkpoint_once(deployed):
+    """The builder reads no weights; the one replica reads the checkpoint once, for its network
+    with and without kNN."""
+    info = httpx.get(deployed["url"] + "/info", timeout=10).json()
+    audit = deployed["audit"]
+    assert audit.reads() == {info["pid"]: 1}, audit.lines()
+    assert info["batch_size"] == 2
+    missing = httpx.post(deployed["url"] + "/nowhere", timeout=10)
+    assert missing.status_code == 404
+    assert missing.json() == {"detail": "No such operation: POST /rangeret/nowhere."}
+
+
+@pytest.mark.slow
+def test_a_bad_argument_fails_the_deployment_with_its_sentence(deployed):
+    """`serve deploy` of an application whose `batch_size` is not a number: Serve reports the
+    spec's sentence as the application's failure, and the application beside it keeps serving."""
+    head, tmp = deployed["head"], deployed["tmp"]
+    good = deployed["config"]["applications"][0]
+    bad = {
+        **good,
+        "name": "broken",
+        "route_prefix": "/broken",
+        "args": {**good["args"], "batch_size": "eight"},
+    }
+    path = tmp / "broken.yaml"
+    path.write_text(yaml.safe_dump({**deployed["config"], "applications": [good, bad]}))
+    serve = str(head.bindir / "serve")
+    subprocess.run([serve, "deploy", str(path), "-a", head.dashboard], env=head.env, check=True)
+    sentence = "batch_size of the rangeret Serve application takes an integer, got 'eight'"
+    deadline = time.monotonic() + 120
+    status = ""
+    while time.monotonic() < deadline:
+        run = subprocess.run(
+            [serve, "status", "-a", head.dashboard], env=head.env, capture_output=True, text=True
+        )
+        status = run.stdout
+        broken = yaml.safe_load(status)["applications"].get("broken", {})
+        if broken.get("status") == "DEPLOY_FAILED":
+            break
+        time.sleep(1)
+    assert "DEPLOY_FAILED" in status and sentence in " ".join(status.split()), status
+    assert httpx.get(deployed["url"] + "/info", timeout=10).status_code == 200
 
 
 @pytest.mark.slow

@@ -123,13 +123,20 @@ class RayNode:
 
 
 @contextlib.contextmanager
-def ray_node(folder: Path, head: RayNode | None = None, num_cpus: int = 2, num_gpus: int = 0):
+def ray_node(
+    folder: Path,
+    head: RayNode | None = None,
+    num_cpus: int = 2,
+    num_gpus: int = 0,
+    base_env: dict[str, str] | None = None,
+):
     """`ray start --block` as a head (or, given `head`, a node joining it) with ports and a temp
-    folder of its own, stopped afterwards by its own process group only (the Ray CLI's stop
-    command would end every Ray node on the machine, other tests' included)."""
+    folder of its own, in `base_env` (default: this process's environment), stopped afterwards
+    by its own process group only (the Ray CLI's stop command would end every Ray node on the
+    machine, other tests' included)."""
     bindir = Path(sys.executable).parent
     env = dict(
-        os.environ,
+        os.environ if base_env is None else base_env,
         PATH=f"{bindir}{os.pathsep}{os.environ['PATH']}",
         RAY_AUTH_MODE="token",
         RAY_AUTH_TOKEN=head.env["RAY_AUTH_TOKEN"] if head else RAY_TEST_TOKEN,

@@ -28,6 +28,7 @@ from rangeret.dataset.layout import KITTI_LAYOUT, prediction_path, velodyne_dir
 from rangeret.dataset.profiles import load_profile
 from rangeret.io.scans import KITTI_RECORD, read_labels, read_scan, write_scan
 from rangeret.models.weights.registry import load_registry, profile_for_published
+from tests.support.open_audit import Audit
 from tests.support.paths import REPO, data_path
 from tests.support.workers import small_weights
 
@@ -218,6 +219,29 @@ def test_a_name_resolves_to_its_file_profile_and_resolution(env, weights, hub, t
     assert listed.returncode == 0, listed.stderr
     row = next(line for line in listed.stdout.splitlines() if line.startswith("tiny-kitti "))
     assert " yes " in row and "MiB" in row and "val 1.0" in row
+
+
+def test_predict_reads_its_checkpoint_once_by_name_or_by_path(env, weights, hub, tmp_path):
+    """Downloaded, from the cache, or a path: one read of the file per run, its pin checked on
+    the bytes that are loaded."""
+    audit = Audit(tmp_path / "audit.log", ("tiny.pt", weights["path"].name))
+    audited = audit.env(env)
+    small = ("--height", "32", "--width", "256")
+    runs = [
+        _predict(audited, weights, tmp_path / "downloaded", "tiny-kitti"),
+        _predict(audited, weights, tmp_path / "cached", "tiny-kitti"),
+        _predict(audited, weights, tmp_path / "path", str(weights["path"]), *small),
+    ]
+    for run in runs:
+        assert run.returncode == 0, run.stderr
+    reads = audit.reads()
+    assert len(reads) == 3 and set(reads.values()) == {1}, audit.lines()
+
+
+def test_predict_refuses_a_file_that_is_not_the_pinned_one(env, weights, tmp_path):
+    error = _one_sentence_error(_predict(env, weights, tmp_path / "out", "tiny-wrong"))
+    assert "SHA-256" in error and "0" * 64 in error
+    assert not _cached(env) and not (tmp_path / "out").exists()
 
 
 def test_a_cached_file_needs_no_network(env, weights, hub, tmp_path):

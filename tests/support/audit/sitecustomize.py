@@ -36,9 +36,13 @@ def _hook(event: str, args: tuple) -> None:
         path = os.fsdecode(os.fspath(args[0]))
         if os.path.basename(path) in _NAMES and _reads(args[1], args[2]):
             _write(f"read {os.path.realpath(path)}")
-    elif event == "import" and args and isinstance(args[0], str):
-        if args[0] == "workers" or args[0].startswith("workers."):
-            _write(f"import {args[0]}")
+    elif (
+        event == "import"
+        and args
+        and isinstance(args[0], str)
+        and (args[0] == "workers" or args[0].startswith("workers."))
+    ):
+        _write(f"import {args[0]}")
 
 
 if _LOG:
