@@ -1,1 +1,2 @@
-"""RangeRet on Ray: the streaming batch pipeline, the job entrypoint and the single-scan actor pool."""
+"""RangeRet on Ray: the streaming batch pipeline and its job entrypoint, the Serve application
+for single scans, Ray Train, and the demo."""

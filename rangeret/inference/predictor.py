@@ -98,20 +98,10 @@ class Predictor:
         error). Published files record none: they run with `profile` (else SemanticKITTI's),
         which gives their resolution and field of view unless height, width or fov are given.
         """
-        spec = InferenceSpec(
-            checkpoint=str(path),
-            model=model,
-            height=height,
-            width=width,
-            fov_up=fov_up,
-            fov_down=fov_down,
-            device=device,
-            precision=precision,
-            backend=backend,
-            knn=knn is not None,
-            tta_flip=tta is not None and tta.flip,
-            tta_shifts=0 if tta is None else tta.shifts,
-        )
+        weights = dict(model=model, height=height, width=width, fov_up=fov_up, fov_down=fov_down)
+        run = dict(device=device, precision=precision, backend=backend, knn=knn is not None)
+        augmented = dict(tta_flip=tta is not None and tta.flip, tta_shifts=tta.shifts if tta else 0)
+        spec = InferenceSpec(checkpoint=str(path), **weights, **run, **augmented)
         predictor = cls(load_weights(spec, profile=profile), spec)
         return predictor if knn in (None, DEFAULT_KNN) else predictor.with_knn(knn)
 

@@ -32,6 +32,7 @@ DEVICES = ("auto", "cpu", "cuda")
 #: The field groups: which weights load (every command that loads a network, `export`
 #: included), and how a run uses them.
 WEIGHTS, RUN = "weights", "run"
+_FOV = "vertical field of view (default: the profile's)"
 
 
 class InferenceSpecError(InputError, ValueError):
@@ -42,16 +43,17 @@ def option(
     default: Any,
     *,
     help: str,
-    kind: type,
     group: str,
+    kind: type = str,
     metavar: str | None = None,
     choices: tuple[str, ...] | None = None,
     negate: str | None = None,
     minimum: int | None = None,
     cli_type: Callable[[str], Any] | None = None,
 ) -> Any:
-    """An `InferenceSpec` field with its schema: the value's `kind` (bool, int, float or str;
-    None is allowed where the default is None), `help`, `metavar` and `choices` of its option,
+    """An `InferenceSpec` field with its schema: the value's `kind` (bool, int, float or, by
+    default, str; None is allowed where the default is None), `help`, `metavar` and `choices` of
+    its option,
     `group` (`WEIGHTS` or `RUN`), `negate` (a bool option spelt as the flag that turns it off),
     `minimum` (the least integer it takes) and `cli_type` (how the command line reads it)."""
     metadata = {
@@ -79,7 +81,6 @@ class InferenceSpec:
 
     checkpoint: str | None = option(
         None,
-        kind=str,
         group=WEIGHTS,
         metavar="FILE",
         cli_type=Path,
@@ -90,7 +91,6 @@ class InferenceSpec:
     )
     profile: str | None = option(
         None,
-        kind=str,
         group=WEIGHTS,
         metavar="NAME|FILE",
         help=f"dataset profile: {', '.join(BUILTIN_PROFILES)} or a YAML file "
@@ -99,7 +99,6 @@ class InferenceSpec:
     )
     model: str | None = option(
         None,
-        kind=str,
         group=WEIGHTS,
         choices=MODELS,
         help="network name; recognised from the checkpoint when omitted",
@@ -115,18 +114,10 @@ class InferenceSpec:
         help="range image columns (default: the profile's)",
     )
     fov_up: float | None = option(
-        None,
-        kind=float,
-        group=WEIGHTS,
-        metavar="DEG",
-        help="upper vertical field of view (default: the profile's)",
+        None, kind=float, group=WEIGHTS, metavar="DEG", help=f"upper {_FOV}"
     )
     fov_down: float | None = option(
-        None,
-        kind=float,
-        group=WEIGHTS,
-        metavar="DEG",
-        help="lower vertical field of view (default: the profile's)",
+        None, kind=float, group=WEIGHTS, metavar="DEG", help=f"lower {_FOV}"
     )
     batch_size: int = option(
         1, kind=int, group=RUN, metavar="N", minimum=1, help="scans per network pass (default 1)"
@@ -140,14 +131,12 @@ class InferenceSpec:
     )
     device: str = option(
         "auto",
-        kind=str,
         group=RUN,
         choices=DEVICES,
         help="auto picks CUDA when present (default)",
     )
     precision: str = option(
         "auto",
-        kind=str,
         group=RUN,
         choices=PRECISIONS,
         help="precision of the network's passes; auto is fp16 on CUDA and fp32 on the CPU "
@@ -155,7 +144,6 @@ class InferenceSpec:
     )
     backend: str = option(
         "torch",
-        kind=str,
         group=RUN,
         choices=BACKENDS,
         help="run the network in torch (default) or in onnxruntime on its ONNX export, made "
@@ -260,13 +248,6 @@ class InferenceSpec:
         if not (self.tta_flip or self.tta_shifts):
             return None
         return TtaSettings(flip=self.tta_flip, shifts=self.tta_shifts)
-
-    @property
-    def weights(self) -> InferenceSpec:
-        """The spec with only its weights fields kept: what loads the same network."""
-        return InferenceSpec(
-            **{f.name: getattr(self, f.name) for f in _fields(WEIGHTS)},
-        )
 
 
 def _key(name: str) -> str:

@@ -1,5 +1,6 @@
-"""Files on disk: scans and labels, PLY point clouds, atomic writes, reproducible zips, bounded
-YAML and `run.json`.
+"""Files and messages: scans and labels, point-cloud files (PCD, PLY, LAS and LAZ) and their named
+fields as a profile's record, bags (rosbag2 and ROS 1), PointCloud2 messages, atomic writes,
+reproducible zips, bounded YAML and `run.json`.
 
 Scan and label reading is re-exported here (`rangeret.io.read_scan`), its long-standing path.
 """

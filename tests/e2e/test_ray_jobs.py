@@ -17,6 +17,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import shlex
 import signal
 import subprocess
 import sys
@@ -31,6 +32,7 @@ import pytest
 from rangeret.cli.main import main as rangeret_main
 from rangeret.dataset.layout import KITTI_LAYOUT, list_scans, velodyne_dir
 from rangeret.dataset.profiles import load_profile
+from rangeret.inference.spec import InferenceSpec
 from service.jobs import JobControl, JobError, JobManager, JobStore
 from service.jobs.ray_jobs import (
     JobsApi,
@@ -219,9 +221,9 @@ def _setup(tmp_path: Path, api: ScriptedApi, **options) -> Setup:
     store = JobStore(tmp_path / "jobs.sqlite")
     store.create(JOB, "dataset", data, ["08", "11"])
     store.claim_next()
-    values = {"checkpoint": "weights.pt", "height": 32, "width": 256, "device": "cpu"}
+    spec = InferenceSpec(checkpoint="weights.pt", height=32, width=256, device="cpu", batch_size=2)
     options = {"poll_s": 0.01, "unreachable_s": 0.3, **options}
-    executor = RayJobExecutor(ADDRESS, values, load_profile(None), 2, api=api, **options)
+    executor = RayJobExecutor(ADDRESS, spec, load_profile(None), api=api, **options)
     entries = list_scans(data, ["08", "11"], layout=KITTI_LAYOUT)
     return Setup(store, JobControl(JOB, store), executor, entries, data, tmp_path / "out", calls=[])
 
@@ -250,8 +252,15 @@ def test_a_job_is_submitted_once_as_its_id_and_1_and_finishes_with_its_final_rec
     entrypoint = api.submitted[0][1]
     assert entrypoint.startswith("python -m workers.predict_job --dataset ")
     assert f"--sequences 08 11 --out {setup.out}" in entrypoint
-    assert "--batch-size 2" in entrypoint and "--device cpu" in entrypoint
-    assert "--checkpoint weights.pt" in entrypoint  # a name, resolved where the job runs
+    argv = shlex.split(entrypoint)
+    spec = json.loads(argv[argv.index("--inference-spec") + 1])
+    assert spec == {
+        "batch_size": 2,
+        "checkpoint": "weights.pt",  # a name, resolved where the job runs
+        "device": "cpu",
+        "height": 32,
+        "width": 256,
+    }
     assert "--submission" not in entrypoint and "--report" not in entrypoint
     assert setup.calls[-1] == (3, 0, 3)  # every scan written, none failed, of 3 to predict
     assert setup.executor.precision == "fp32" and setup.executor.inference_backend == "torch"
@@ -426,10 +435,12 @@ def test_a_relative_checkpoint_that_exists_here_is_given_as_an_absolute_path(tmp
     monkeypatch.chdir(tmp_path)
     (tmp_path / "w.pt").write_bytes(b"")
     executor = RayJobExecutor(
-        ADDRESS, {"checkpoint": "w.pt"}, load_profile(None), api=ScriptedApi()
+        ADDRESS, InferenceSpec(checkpoint="w.pt"), load_profile(None), api=ScriptedApi()
     )
     command = executor.entrypoint(Path("data"), ["08"], Path("jobs/x/predictions"))
-    assert f"--checkpoint {tmp_path / 'w.pt'}" in command
+    argv = shlex.split(command)
+    spec = json.loads(argv[argv.index("--inference-spec") + 1])
+    assert spec == {"checkpoint": str(tmp_path / "w.pt")}
     assert f"--dataset {tmp_path / 'data'}" in command
     assert f"--out {tmp_path / 'jobs/x/predictions'}" in command
 

@@ -280,9 +280,13 @@ def test_a_replica_reads_its_checkpoint_once(deployed):
 @pytest.mark.slow
 def test_a_bad_argument_fails_the_deployment_with_its_sentence(deployed):
     """`serve deploy` of an application whose `batch_size` is not a number: Serve reports the
-    spec's sentence as the application's failure, and the application beside it keeps serving."""
+    spec's sentence as the application's failure, and the application beside it keeps serving,
+    its batch size changed in place by its `user_config` (the same replica, no second read)."""
     head, tmp = deployed["head"], deployed["tmp"]
-    good = deployed["config"]["applications"][0]
+    before = httpx.get(deployed["url"] + "/info", timeout=10).json()
+    first = deployed["config"]["applications"][0]
+    scan_model = {**first["deployments"][0], "user_config": {"batch_size": 3, "batch_wait_ms": 5}}
+    good = {**first, "deployments": [scan_model]}
     bad = {
         **good,
         "name": "broken",
@@ -306,7 +310,13 @@ def test_a_bad_argument_fails_the_deployment_with_its_sentence(deployed):
             break
         time.sleep(1)
     assert "DEPLOY_FAILED" in status and sentence in " ".join(status.split()), status
-    assert httpx.get(deployed["url"] + "/info", timeout=10).status_code == 200
+    while time.monotonic() < deadline:
+        after = httpx.get(deployed["url"] + "/info", timeout=10).json()
+        if after["batch_size"] == 3:
+            break
+        time.sleep(1)
+    assert after["batch_size"] == 3 and after["pid"] == before["pid"], after
+    assert deployed["audit"].reads() == {before["pid"]: 1}
 
 
 @pytest.mark.slow

@@ -86,26 +86,11 @@ def load_checkpoint(
     model: str | None = None,
     height: int | None = None,
     width: int | None = None,
-    *,
-    default_resolution: tuple[int, int] = (64, 1024),
     **overrides: Any,
 ) -> RangeRet:
-    """The network stored in `path`, in eval mode, with `checkpoint_info` attached.
-
-    For published files `model` overrides the recognised name, height/width give the resolution
-    (default `default_resolution`, a dataset profile's) and overrides the switches. For the
-    project's own files everything comes from the file; arguments that contradict it raise
-    CheckpointError.
-    """
-    return network_from_bytes(
-        read_checkpoint_bytes(path),
-        path,
-        model,
-        height,
-        width,
-        default_resolution=default_resolution,
-        **overrides,
-    )
+    """The network stored in `path`, in eval mode, with `checkpoint_info` attached: its bytes
+    read once, then `network_from_bytes` (`default_resolution` and the switches as there)."""
+    return network_from_bytes(read_checkpoint_bytes(path), path, model, height, width, **overrides)
 
 
 def read_checkpoint_bytes(path: str | os.PathLike[str]) -> bytes:
@@ -127,7 +112,13 @@ def network_from_bytes(
     **overrides: Any,
 ) -> RangeRet:
     """The network of a checkpoint file's bytes `data` (read from `path`, which errors and the
-    `checkpoint_info` name), as `load_checkpoint` makes it."""
+    `checkpoint_info` name), in eval mode.
+
+    For published files `model` overrides the recognised name, height/width give the resolution
+    (default `default_resolution`, a dataset profile's) and overrides the switches. For the
+    project's own files everything comes from the file; arguments that contradict it raise
+    CheckpointError.
+    """
     path = Path(path)
     digest = hashlib.sha256(data).hexdigest()
     try:

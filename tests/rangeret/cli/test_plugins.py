@@ -22,7 +22,7 @@ def test_the_layers_contribute_serve_demo_and_train_on_ray():
     )
     assert args.ray and args.workers == 2
     args = build_parser("serve").parse_args(["serve", "--port", "8123", "--no-knn"])
-    assert args.port == 8123 and args.no_knn
+    assert args.port == 8123 and args.knn is False
 
 
 def test_light_commands_load_no_torch_ray_or_web_stack():
