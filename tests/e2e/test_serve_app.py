@@ -36,6 +36,8 @@ from workers.scan_wire import (
 )
 
 NET_ARGS = {"height": 32, "width": 256, "device": "cpu"}
+#: The applications the failed-deployment test adds beside the good one.
+BAD_APPS = ("broken", "unknown")
 
 
 # The exchange and the builder, without a cluster ----------------------------------------------
@@ -293,8 +295,15 @@ def test_a_bad_argument_fails_the_deployment_with_its_sentence(deployed):
         "route_prefix": "/broken",
         "args": {**good["args"], "batch_size": "eight"},
     }
+    unknown = {
+        **good,
+        "name": "unknown",
+        "route_prefix": "/unknown",
+        "args": {**good["args"], "bogus": 1},
+    }
     path = tmp / "broken.yaml"
-    path.write_text(yaml.safe_dump({**deployed["config"], "applications": [good, bad]}))
+    applications = [good, bad, unknown]
+    path.write_text(yaml.safe_dump({**deployed["config"], "applications": applications}))
     serve = str(head.bindir / "serve")
     subprocess.run([serve, "deploy", str(path), "-a", head.dashboard], env=head.env, check=True)
     sentence = "batch_size of the rangeret Serve application takes an integer, got 'eight'"
@@ -305,11 +314,13 @@ def test_a_bad_argument_fails_the_deployment_with_its_sentence(deployed):
             [serve, "status", "-a", head.dashboard], env=head.env, capture_output=True, text=True
         )
         status = run.stdout
-        broken = yaml.safe_load(status)["applications"].get("broken", {})
-        if broken.get("status") == "DEPLOY_FAILED":
+        apps = yaml.safe_load(status)["applications"]
+        failed = [apps.get(name, {}).get("status") == "DEPLOY_FAILED" for name in BAD_APPS]
+        if all(failed):
             break
         time.sleep(1)
-    assert "DEPLOY_FAILED" in status and sentence in " ".join(status.split()), status
+    said = " ".join(status.split())
+    assert sentence in said and "unknown network option bogus of the rangeret Serve" in said, status
     while time.monotonic() < deadline:
         after = httpx.get(deployed["url"] + "/info", timeout=10).json()
         if after["batch_size"] == 3:
