@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 from typing import TYPE_CHECKING
 
 from pydantic import ValidationError
@@ -114,10 +115,11 @@ def build_labeller(
         labeller = ServeLabeller(settings.serve_url, weights.profile, settings.serve_timeout_s)
         labeller.check_serves(weights.sha256 or "", settings.serve_timeout_s)
         return labeller
-    from rangeret.inference.scan_worker import ScanWorker
+    from rangeret.inference.scan_worker import ScanWorker, use_cpus
     from service.local_labeller import LocalLabeller
 
     assert predictor is not None  # `run_serve` builds one whenever a part runs in this process
+    use_cpus(float(os.cpu_count() or 1))  # the network has the gateway's machine to itself
     return LocalLabeller(ScanWorker(predictor), settings.batch_size, settings.batch_wait_ms / 1000)
 
 
