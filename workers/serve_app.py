@@ -26,7 +26,9 @@ from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse, Response
 from ray import serve
 
+from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import ScanOutcome
+from rangeret.inference.scan_worker import ScanRequest, ScanWorker, use_cpus
 from rangeret.inference.spec import InferenceSpec, InferenceSpecError
 from rangeret.io.scans import ScanFormatError, parse_scan
 from workers.cluster import read_resources
@@ -61,9 +63,6 @@ class ScanModel:
     def __init__(self, spec: Mapping[str, Any]) -> None:
         import ray
 
-        from rangeret.inference.predictor import Predictor
-        from rangeret.inference.scan_worker import ScanWorker, use_cpus
-
         parsed = InferenceSpec.from_mapping(spec)
         use_cpus(ray.get_runtime_context().get_assigned_resources().get("CPU", 1.0))
         self.worker = ScanWorker(Predictor.from_spec(parsed))
@@ -81,11 +80,11 @@ class ScanModel:
         self.described["batch_size"] = size
 
     @serve.batch(max_batch_size=1, batch_wait_timeout_s=DEFAULT_BATCH_WAIT_MS / 1000)
-    async def label_one(self, requests: list[Any]) -> list[ScanOutcome]:
+    async def label_one(self, requests: list[ScanRequest]) -> list[ScanOutcome]:
         """A batch of requests labelled, one network pass per set of equal options."""
         return await asyncio.to_thread(self._label, requests)
 
-    def _label(self, requests: list[Any]) -> list[ScanOutcome]:
+    def _label(self, requests: list[ScanRequest]) -> list[ScanOutcome]:
         try:
             labelled = self.worker.label(requests)
         except Exception as exc:
@@ -102,8 +101,6 @@ class ScanModel:
     @api.post(SCANS_PATH)
     async def scans(self, request: Request) -> Response:
         """The body's scan labelled, in the exchange of `workers.scan_wire`."""
-        from rangeret.inference.scan_worker import ScanRequest
-
         try:
             knn = query_flag(request.query_params.get("knn"), True, "knn")
             confidence = query_flag(request.query_params.get("confidence"), False, "confidence")
