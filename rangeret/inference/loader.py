@@ -86,6 +86,7 @@ def load_weights(spec: InferenceSpec, *, profile: DatasetProfile | None = None) 
         height=resolved.height,
         width=resolved.width,
         default_resolution=default_resolution(resolved.profile),
+        sha256=sha256,
     )
     info = network.checkpoint_info
     settled = profile_for_checkpoint(

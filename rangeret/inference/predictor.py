@@ -53,7 +53,6 @@ class Predictor:
         self.backend = spec.backend
         self.knn: KnnSettings | None = spec.knn_settings
         self.tta: TtaSettings | None = spec.tta
-        self.checkpoint_sha256 = weights.sha256
         self.onnx: OnnxForward | None = None
         if spec.backend == "onnxruntime":
             self.network = weights.network.cpu().eval()
@@ -104,6 +103,11 @@ class Predictor:
         spec = InferenceSpec(checkpoint=str(path), **weights, **run, **augmented)
         predictor = cls(load_weights(spec, profile=profile), spec)
         return predictor if knn in (None, DEFAULT_KNN) else predictor.with_knn(knn)
+
+    @property
+    def checkpoint_sha256(self) -> str | None:
+        """The SHA-256 of the checkpoint file the network came from (None: from no file)."""
+        return self.weights.sha256
 
     @property
     def projection_config(self) -> ProjectionConfig:

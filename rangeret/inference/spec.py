@@ -53,9 +53,9 @@ def option(
 ) -> Any:
     """An `InferenceSpec` field with its schema: the value's `kind` (bool, int, float or, by
     default, str; None is allowed where the default is None), `help`, `metavar` and `choices` of
-    its option,
-    `group` (`WEIGHTS` or `RUN`), `negate` (a bool option spelt as the flag that turns it off),
-    `minimum` (the least integer it takes) and `cli_type` (how the command line reads it)."""
+    its option, `group` (`WEIGHTS` or `RUN`), `negate` (a bool option spelt as the flag that
+    turns it off), `minimum` (the least integer it takes) and `cli_type` (how the command line
+    reads it)."""
     metadata = {
         "help": help,
         "kind": kind,
@@ -163,9 +163,14 @@ class InferenceSpec:
     )
 
     def __post_init__(self) -> None:
+        self._settle(_key)
+
+    def _settle(self, name: Callable[[str], str]) -> None:
+        """A checkpoint path held as its text, then `InferenceSpecError` for the first problem,
+        each field spelt by `name`."""
         if isinstance(self.checkpoint, Path):
             object.__setattr__(self, "checkpoint", str(self.checkpoint))
-        problem = self.problem(_key)
+        problem = self.problem(name)
         if problem is not None:
             raise InferenceSpecError(problem)
 
@@ -202,12 +207,9 @@ class InferenceSpec:
     def from_args(cls, args: argparse.Namespace) -> InferenceSpec:
         """A spec from the options `add_spec_options` added (those a parser lacks keep their
         defaults); a bad value is one `InferenceSpecError` naming its option."""
-        values = {}
-        for f in dataclasses.fields(cls):
-            if not hasattr(args, f.name):
-                continue
-            value = getattr(args, f.name)
-            values[f.name] = str(value) if isinstance(value, Path) else value
+        values = {
+            f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if hasattr(args, f.name)
+        }
         return _made(cls, values, flag)
 
     def replace(self, **changes: Any) -> InferenceSpec:
@@ -276,13 +278,12 @@ def _fields(group: str) -> list[dataclasses.Field]:
 def _made(
     cls: type[InferenceSpec], values: Mapping[str, Any], name: Callable[[str], str]
 ) -> InferenceSpec:
-    """The spec of checked values, its cross-field problems spelt with `name`."""
+    """The spec of checked values, settled as the constructor settles it but with its problems
+    spelt with `name` (the constructor spells them by field name)."""
     spec = object.__new__(cls)
     for f in dataclasses.fields(cls):
         object.__setattr__(spec, f.name, values.get(f.name, f.default))
-    problem = spec.problem(name)
-    if problem is not None:
-        raise InferenceSpecError(problem)
+    spec._settle(name)
     return spec
 
 

@@ -109,10 +109,11 @@ def network_from_bytes(
     width: int | None = None,
     *,
     default_resolution: tuple[int, int] = (64, 1024),
+    sha256: str | None = None,
     **overrides: Any,
 ) -> RangeRet:
     """The network of a checkpoint file's bytes `data` (read from `path`, which errors and the
-    `checkpoint_info` name), in eval mode.
+    `checkpoint_info` name), in eval mode; `sha256` is the bytes' hash when the caller has it.
 
     For published files `model` overrides the recognised name, height/width give the resolution
     (default `default_resolution`, a dataset profile's) and overrides the switches. For the
@@ -120,7 +121,7 @@ def network_from_bytes(
     CheckpointError.
     """
     path = Path(path)
-    digest = hashlib.sha256(data).hexdigest()
+    digest = sha256 or hashlib.sha256(data).hexdigest()
     try:
         content = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as exc:
