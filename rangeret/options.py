@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-from collections.abc import Sequence
 from pathlib import Path
 
 from rangeret.commands import CommandError
@@ -22,9 +21,6 @@ from rangeret.submission.leaderboard import DEFAULT_NAME, DEFAULT_URL, Leaderboa
 
 log = logging.getLogger("rangeret")
 
-#: The splits every label configuration names.
-SPLITS = ("train", "valid", "test")
-
 
 def add_output_options(parser: argparse.ArgumentParser) -> None:
     """-q (no progress bars) and -v (debug logging)."""
@@ -34,22 +30,33 @@ def add_output_options(parser: argparse.ArgumentParser) -> None:
 
 def add_selection(
     parser: argparse.ArgumentParser,
-    splits: Sequence[str] = SPLITS,
     *,
     required: bool = True,
     partial_help: str = "",
 ) -> None:
-    """--split or --sequences, exactly one of them (at most one where not `required`), and
-    --allow-partial (`partial_help` adds what else it allows in this command)."""
+    """--split or --sequences, exactly one of them (at most one where not `required`),
+    --allow-partial (`partial_help` adds what else it allows in this command) and --version.
+
+    The split names are the profile's, checked once the profile is known (`selected_sequences`).
+    """
     group = parser.add_mutually_exclusive_group(required=required)
     group.add_argument(
-        "--split", choices=list(splits), help="an official split of the label configuration"
+        "--split",
+        metavar="SPLIT",
+        help="an official split of the profile: train, valid or test for SemanticKITTI (nuScenes: "
+        "train, val, test, mini_train or mini_val)",
     )
     group.add_argument(
         "--sequences",
         nargs="+",
         metavar="XX",
-        help="sequence folder names (also data outside the official splits); each must be there",
+        help="sequence folder names (also data outside the official splits; nuScenes: scene "
+        "names such as scene-0103); each must be there",
+    )
+    parser.add_argument(
+        "--version",
+        metavar="VERSION",
+        help="a nuScenes tree's version folder, such as v1.0-mini (default: the one ROOT holds)",
     )
     parser.add_argument(
         "--allow-partial",
@@ -79,7 +86,9 @@ def selected_sequences(
     )
     if root is None or args.split is None or not Path(root).is_dir():
         return sequences  # a missing root is named where the scans are listed
-    missing = missing_sequences(root, sequences, layout=profile.layout)
+    missing = missing_sequences(
+        root, sequences, layout=profile.layout, version=getattr(args, "version", None)
+    )
     if not missing:
         return sequences
     present = [s for s in sequences if s not in missing]

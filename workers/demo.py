@@ -22,7 +22,7 @@ from typing import IO
 
 import numpy as np
 
-from rangeret.dataset.layout import discover, prediction_path
+from rangeret.dataset.layout import discover
 from rangeret.dataset.profiles import DEFAULT_PROFILE, DatasetProfile, ProfileError
 from rangeret.dataset.projection import project_with
 from rangeret.evaluation.evaluate import evaluate_predictions
@@ -30,7 +30,7 @@ from rangeret.evaluation.plots import plot_range_image, write_plots
 from rangeret.inference.loader import load_weights
 from rangeret.inference.spec import InferenceSpec
 from rangeret.io.run_info import check_weights, write_run_info
-from rangeret.io.scans import read_labels, read_scan
+from rangeret.io.scans import read_scan
 from rangeret.models.weights.demo import DEMO_CHECKPOINT, DEMO_WARNING
 from rangeret.sim import SensorConfig, simulate_dataset
 from rangeret.submission.archives import TEST_SEQUENCES, validate_submission, write_submission
@@ -193,10 +193,9 @@ def _range_image_png(
     config = profile.labels
     entry = discover(dataset, [sequence], with_labels=True, layout=profile.layout).scans[0]
     proj = project_with(read_scan(entry.scan_path, profile.points), profile.projection)
-    gt = config.to_class(read_labels(entry.label_path)).astype(np.int64)
-    pred = config.to_class(read_labels(prediction_path(preds, entry.sequence, entry.name))).astype(
-        np.int64
-    )
+    gt = config.to_class(entry.label_file.read(entry.label_path)).astype(np.int64)
+    pred = profile.prediction_classes(entry.label_file.read(entry.prediction_in(preds)))
+    pred = pred.astype(np.int64)
     return plot_range_image(
         proj.proj_range,
         proj.to_image(gt),

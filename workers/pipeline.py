@@ -120,7 +120,7 @@ def run_pipeline(
 
     out = str(out)
     summary = RunSummary(total=len(entries))
-    run = PipelineRun(summary, RawLabelEvaluator(config=profile.labels))
+    run = PipelineRun(summary, RawLabelEvaluator.for_profile(profile))
     if not entries:
         return run
     layout = run.layout = cluster_layout(options)
@@ -167,7 +167,7 @@ def run_pipeline(
     )
     ds = ds.map(
         Writer,
-        fn_constructor_kwargs={"out": out, "label_config": profile.labels},
+        fn_constructor_kwargs={"out": out, "profile": profile},
         compute=ray.data.ActorPoolStrategy(min_size=1, max_size=layout.writers),
         num_cpus=options.write_cpus,
     )

@@ -26,7 +26,6 @@ from pathlib import Path
 
 from rangeret.commands import CommandError, run_command
 from rangeret.dataset.layout import is_complete, list_scans
-from rangeret.dataset.profiles import DEFAULT_PROFILE
 from rangeret.exceptions import RangeRetError
 from rangeret.inference.loader import load_weights
 from rangeret.inference.spec import InferenceSpec
@@ -39,6 +38,7 @@ from rangeret.options import (
     leaderboard_from_args,
     selected_sequences,
 )
+from rangeret.submission.benchmarks import no_archive_reason, write_benchmark_archive
 from rangeret.submission.leaderboard import description_text
 from workers.pipeline import describe_spec, run_pipeline
 from workers.progress import ProgressWriter
@@ -56,7 +56,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dataset", type=Path, required=True, metavar="ROOT")
     add_selection(
         p,
-        ("train", "valid", "test"),
         partial_help="; also writes --submission as a partial archive (for tests only)",
     )
     p.add_argument(
@@ -184,7 +183,9 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
     info, profile = weights.info, weights.profile
     label_config = profile.labels
     sequences = selected_sequences(args, profile, args.dataset, doing="predicting")
-    entries = list_scans(args.dataset, sequences, layout=profile.layout)
+    entries = list_scans(
+        args.dataset, sequences, layout=profile.layout, version=args.version, split=args.split
+    )
     complete = [
         not args.overwrite and is_complete(e, args.out, record=profile.points) for e in entries
     ]
@@ -248,19 +249,14 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
     if not summary.ok:
         recorder.finish(failures=summary.failed, precision=precision)
         summary.raise_failures(args.out)
-    if args.submission and profile.name != DEFAULT_PROFILE:
-        raise CommandError(
-            f"submission archives are the SemanticKITTI benchmark's format; the {profile.name} "
-            "profile has no such archive (every prediction was written)"
-        )
+    if args.submission and no_archive_reason(profile) is not None:
+        raise CommandError(f"{no_archive_reason(profile)}; every prediction was written")
     if args.submission:
-        from rangeret.submission.archives import write_submission
-
-        check = write_submission(
+        check = write_benchmark_archive(
+            profile,
             args.out,
             args.dataset,
             args.submission,
-            allow_partial=args.allow_partial,
             description=description_text(
                 leaderboard,
                 written_by="workers.predict_job",
@@ -269,7 +265,11 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
                 profile=profile.name,
                 demo_weights=demo,
             ),
-            labels=label_config,
+            leaderboard=leaderboard,
+            checkpoint_sha256=info.sha256,
+            split=args.split,
+            version=args.version,
+            allow_partial=args.allow_partial,
             progress=not args.quiet,
         )
         print(check.summary())

@@ -20,8 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from rangeret.dataset.distance import distance_bands
-from rangeret.dataset.labels import LabelConfig
-from rangeret.dataset.layout import ScanEntry, prediction_path
+from rangeret.dataset.layout import ScanEntry
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.projection import ProjectionConfig
 from rangeret.evaluation.evaluate import count_scan
@@ -29,7 +28,8 @@ from rangeret.evaluation.metrics import RawLabelEvaluator
 from rangeret.inference.loading import LoadedScan, load_batch, predict_loaded
 from rangeret.inference.spec import InferenceSpec
 from rangeret.inference.timing import StageTimes
-from rangeret.io.scans import PointRecord, ScanFormatError, read_labels, write_labels
+from rangeret.inference.writing import write_prediction
+from rangeret.io.scans import PointRecord, ScanFormatError
 
 if TYPE_CHECKING:  # torch stays out of the CPU stages' processes
     from rangeret.inference.predictor import Predictor
@@ -98,10 +98,10 @@ def read_and_project(
     return record
 
 
-def write_results(record: BatchRecord, out: str, label_config: LabelConfig) -> BatchRecord:
+def write_results(record: BatchRecord, out: str, profile: DatasetProfile) -> BatchRecord:
     """Stage 3: atomic label writes, and the confusion counts of the batch's labelled scans (by
     sequence and by the distance bands the reader found)."""
-    evaluator = RawLabelEvaluator(config=label_config)
+    evaluator = RawLabelEvaluator.for_profile(profile)
     failures: list[str | None] = []
     rows = zip(record.entries, record.results, record.bands, strict=True)
     for entry, (labels, error), bands in rows:
@@ -110,9 +110,9 @@ def write_results(record: BatchRecord, out: str, label_config: LabelConfig) -> B
             continue
         try:
             with record.times.stage("write"):
-                write_labels(prediction_path(out, entry.sequence, entry.name), labels)
+                write_prediction(entry, out, labels)
             if entry.label_path is not None:
-                gt = read_labels(entry.label_path, num_points=labels.size)
+                gt = entry.label_file.read(entry.label_path, num_points=labels.size)
                 evaluator.add(labels, gt, entry.sequence, bands)
         except (OSError, ScanFormatError) as exc:
             failures.append(str(exc))
@@ -160,12 +160,12 @@ class Reader:
 class Writer:
     """`write_results` as a long-lived Ray Data actor."""
 
-    def __init__(self, out: str, label_config: LabelConfig) -> None:
+    def __init__(self, out: str, profile: DatasetProfile) -> None:
         self.out = out
-        self.label_config = label_config
+        self.profile = profile
 
     def __call__(self, row: dict) -> dict:
-        return write_results(BatchRecord.decode(row), self.out, self.label_config).encode()
+        return write_results(BatchRecord.decode(row), self.out, self.profile).encode()
 
 
 class ModelWorker:
@@ -191,9 +191,8 @@ def count_labels(
 ) -> RawLabelEvaluator:
     """Confusion counts of scans predicted earlier (skipped on resume), read from their files as
     `rangeret evaluate` reads them (the scan for its points' distance bands)."""
-    evaluator = RawLabelEvaluator(config=profile.labels)
+    evaluator = RawLabelEvaluator.for_profile(profile)
     for entry in entries:
         if entry.label_path is not None:
-            pred = prediction_path(out, entry.sequence, entry.name)
-            count_scan(evaluator, entry, pred, profile.points)
+            count_scan(evaluator, entry, entry.prediction_in(out), profile.points)
     return evaluator

@@ -40,7 +40,13 @@ def run(args: argparse.Namespace) -> int:
     profile = profile_from_args(args)
     sequences = selected_sequences(args, profile, args.dataset, doing="evaluating")
     report = evaluate_predictions(
-        args.dataset, args.predictions, sequences, progress=not args.quiet, profile=profile
+        args.dataset,
+        args.predictions,
+        sequences,
+        progress=not args.quiet,
+        profile=profile,
+        version=args.version,
+        split=args.split,
     )
     print(report.table())
     for note in report.notes:

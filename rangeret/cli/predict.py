@@ -46,8 +46,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--save-confidence",
         action="store_true",
         help="also write each point's confidence (the softmax probability of its label at its "
-        "pixel) as float16 in PRED/sequences/XX/confidence/NNNNNN.npy (with --files: "
-        "OUT/<stem>.npy)",
+        "pixel) as float16 in PRED/sequences/XX/confidence/NNNNNN.npy (nuScenes: "
+        "PRED/confidence/<split>/<token>.npy; with --files: OUT/<stem>.npy)",
     )
     p.add_argument(
         "--overwrite",
@@ -91,6 +91,8 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.split is None and args.sequences is None:
         raise CommandError("--dataset needs --split or --sequences")
+    if args.version is not None and args.dataset is None:
+        raise CommandError("--version is for --dataset")
     return run_dataset(args)
 
 
@@ -109,6 +111,8 @@ def run_dataset(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         save_confidence=args.save_confidence,
         overwrite=args.overwrite,
+        version=args.version,
+        split=args.split,
     )
     print(summary.text())
     summary.raise_failures(args.out)

@@ -1,4 +1,5 @@
-"""`rangeret simulate`: a simulated dataset of street scenes in a profile's layout."""
+"""`rangeret simulate`: a simulated dataset of street scenes in a profile's layout (folders of
+sequences, or a nuScenes version's tables)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import argparse
 from pathlib import Path
 
 from rangeret.commands import CommandError
-from rangeret.dataset.profiles import load_profile
+from rangeret.dataset.profiles import DatasetProfile, load_profile
 from rangeret.options import add_profile_option, requested_profile
 from rangeret.plugins import Subcommand
 
@@ -14,7 +15,11 @@ from rangeret.plugins import Subcommand
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, required=True, metavar="ROOT")
     p.add_argument(
-        "--sequences", nargs="+", required=True, metavar="XX:N", help="sequences and scan counts"
+        "--sequences",
+        nargs="+",
+        metavar="XX:N",
+        help="sequences and scan counts (nuScenes: scenes and keyframe counts, such as "
+        "scene-0061:3; by default two scenes of each mini split)",
     )
     p.add_argument(
         "--unlabelled", nargs="*", default=[], metavar="XX", help="sequences written without labels"
@@ -32,13 +37,17 @@ def run(args: argparse.Namespace) -> int:
     from rangeret.sim import SensorConfig, simulate_dataset
 
     counts: dict[str, int] = {}
-    for item in args.sequences:
+    for item in args.sequences or ():
         name, _, number = item.partition(":")
         if not number.isdigit():
             raise CommandError(f"--sequences takes NAME:SCANS items such as 08:10, got {item!r}")
         counts[name] = int(number)
-    labelled = [s for s in counts if s not in set(args.unlabelled)]
     profile = requested_profile(args)
+    if profile is not None and profile.layout.kind == "tables":
+        return _run_tables(args, profile, counts or None)
+    if not counts:
+        raise CommandError("--sequences is needed: which sequences, and how many scans each")
+    labelled = [s for s in counts if s not in set(args.unlabelled)]
     if profile is None:
         profile = load_profile(None)
         sensor = SensorConfig(beams=args.beams or 64, azimuth_steps=args.azimuth_steps or 2048)
@@ -59,6 +68,41 @@ def run(args: argparse.Namespace) -> int:
         profile=profile,
     )
     print(f"{n} simulated scans in {args.out} ({', '.join(labelled) or 'none'} labelled)")
+    return 0
+
+
+def _run_tables(
+    args: argparse.Namespace, profile: DatasetProfile, counts: dict[str, int] | None
+) -> int:
+    """A simulated nuScenes tree (v1.0-mini) with the profile's sensor."""
+    from rangeret.sim import SensorConfig
+    from rangeret.sim.nuscenes_tree import (
+        AZIMUTH_STEPS,
+        DEFAULT_SCENES,
+        VERSION,
+        simulate_nuscenes,
+    )
+
+    if args.beams is not None and args.beams != profile.projection.height:
+        raise CommandError(
+            f"--beams {args.beams} contradicts the {profile.name} profile's "
+            f"{profile.projection.height} rows; leave --beams out with --profile"
+        )
+    scenes = counts or DEFAULT_SCENES
+    labelled = [s for s in scenes if s not in set(args.unlabelled)]
+    n = simulate_nuscenes(
+        args.out,
+        scenes,
+        labelled=labelled,
+        sensor=SensorConfig.for_profile(profile, azimuth_steps=args.azimuth_steps or AZIMUTH_STEPS),
+        seed=args.seed,
+        progress=not args.quiet,
+        profile=profile,
+    )
+    print(
+        f"{n} simulated keyframes of {len(scenes)} scenes in {Path(args.out) / VERSION} "
+        f"({', '.join(labelled) or 'none'} labelled)"
+    )
     return 0
 
 

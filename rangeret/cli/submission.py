@@ -1,5 +1,6 @@
-"""`rangeret submission` and `rangeret validate-submission`: the CodaLab/Codabench zip of a
-predictions tree, written and checked."""
+"""`rangeret submission` and `rangeret validate-submission`: the benchmark zip of a predictions
+tree, written and checked: SemanticKITTI's for CodaLab/Codabench, or nuScenes-lidarseg's results
+folder with the `nuscenes` profile."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import logging
 from pathlib import Path
 
 from rangeret.commands import CommandError
-from rangeret.dataset.profiles import DEFAULT_PROFILE, DatasetProfile
+from rangeret.dataset.profiles import DatasetProfile
 from rangeret.options import (
     add_label_config,
     add_leaderboard_options,
@@ -27,6 +28,38 @@ def _allow_partial_option(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="accept a dataset with missing test sequences or scans (an archive for tests only)",
     )
+
+
+#: submission.json's meta flags, as their options' destinations.
+META_OPTIONS = ("use_camera", "use_lidar", "use_radar", "use_map", "use_external")
+
+
+def _nuscenes_options(p: argparse.ArgumentParser, *, meta: bool) -> None:
+    """--split and --version of a nuScenes archive, and with `meta` submission.json's flags."""
+    group = p.add_argument_group("nuScenes-lidarseg (--profile nuscenes)")
+    group.add_argument(
+        "--split",
+        metavar="SPLIT",
+        help="the split the archive is for (default test; also val, mini_val, ...)",
+    )
+    group.add_argument(
+        "--version", metavar="VERSION", help="the version folder (default: the one ROOT holds)"
+    )
+    if not meta:
+        return
+    for key, on in (
+        ("camera", False),
+        ("lidar", True),
+        ("radar", False),
+        ("map", False),
+        ("external", False),
+    ):
+        group.add_argument(
+            f"--use-{key}",
+            action=argparse.BooleanOptionalAction,
+            default=None,
+            help=f"submission.json's meta.use_{key} (default {'true' if on else 'false'})",
+        )
 
 
 def add_submission_arguments(p: argparse.ArgumentParser) -> None:
@@ -50,15 +83,17 @@ def add_submission_arguments(p: argparse.ArgumentParser) -> None:
     )
     add_profile_option(p)
     add_label_config(p)
+    _nuscenes_options(p, meta=True)
 
 
 def run_submission(args: argparse.Namespace) -> int:
-    """Write and validate the CodaLab/Codabench zip of a predictions tree."""
+    """Write and validate the benchmark zip of a predictions tree."""
     from rangeret.io.run_info import read_run_info
-    from rangeret.submission.archives import write_submission
+    from rangeret.submission.benchmarks import write_benchmark_archive
     from rangeret.submission.leaderboard import description_text
+    from rangeret.submission.nuscenes import SubmissionMeta
 
-    profile = _benchmark_profile_only(args)
+    profile = _benchmark_profile(args)
     if args.workers is not None and args.workers < 1:
         raise CommandError(f"--workers must be at least 1, got {args.workers}")
     run = read_run_info(args.predictions)
@@ -71,13 +106,29 @@ def run_submission(args: argparse.Namespace) -> int:
         demo_weights=bool(run.get("demo_weights")),
         notes=[args.description] if args.description else [],
     )
-    check = write_submission(
+    meta = None
+    if profile.layout.kind == "tables":
+        defaults = SubmissionMeta()
+        meta = SubmissionMeta(
+            **{
+                name: getattr(defaults, name)
+                if getattr(args, name) is None
+                else getattr(args, name)
+                for name in META_OPTIONS
+            }
+        )
+    check = write_benchmark_archive(
+        profile,
         args.predictions,
         args.dataset,
         args.out,
-        allow_partial=args.allow_partial,
         description=description,
-        labels=profile.labels,
+        leaderboard=leaderboard_from_args(args),
+        checkpoint_sha256=run.get("checkpoint_sha256"),
+        split=args.split,
+        version=args.version,
+        meta=meta,
+        allow_partial=args.allow_partial,
         progress=not args.quiet,
         workers=args.workers,
     )
@@ -95,20 +146,33 @@ def add_validate_arguments(p: argparse.ArgumentParser) -> None:
     _allow_partial_option(p)
     add_profile_option(p)
     add_label_config(p)
+    _nuscenes_options(p, meta=False)
 
 
 def run_validate(args: argparse.Namespace) -> int:
     """Validate a submission zip against the dataset and the official test split."""
     from rangeret.submission.archives import validate_submission
+    from rangeret.submission.nuscenes import validate_nuscenes_submission
 
-    profile = _benchmark_profile_only(args)
-    check = validate_submission(
-        args.archive,
-        args.dataset,
-        allow_partial=args.allow_partial,
-        labels=profile.labels,
-        progress=not args.quiet,
-    )
+    profile = _benchmark_profile(args)
+    if profile.layout.kind == "tables":
+        check = validate_nuscenes_submission(
+            args.archive,
+            args.dataset,
+            args.split or "test",
+            profile=profile,
+            version=args.version,
+            allow_partial=args.allow_partial,
+            progress=not args.quiet,
+        )
+    else:
+        check = validate_submission(
+            args.archive,
+            args.dataset,
+            allow_partial=args.allow_partial,
+            labels=profile.labels,
+            progress=not args.quiet,
+        )
     if not check.ok:
         raise CommandError(
             f"{args.archive} would be refused: {len(check.problems)} problem(s), the first: "
@@ -119,14 +183,31 @@ def run_validate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _benchmark_profile_only(args: argparse.Namespace) -> DatasetProfile:
-    """The profile of --profile and --label-config, which must be SemanticKITTI's: submission
-    archives are that benchmark's format, other profiles are refused."""
+def _benchmark_profile(args: argparse.Namespace) -> DatasetProfile:
+    """The profile of --profile and --label-config, which must be a benchmark's: SemanticKITTI's
+    or one of nuScenes' tables; other profiles are refused, and so are nuScenes' options with
+    SemanticKITTI."""
+    from rangeret.submission.benchmarks import no_archive_reason
+
     profile = profile_from_args(args)
-    if profile.name != DEFAULT_PROFILE:
+    if profile.layout.kind == "tables":
+        return profile
+    reason = no_archive_reason(profile)
+    if reason is not None:
+        raise CommandError(reason)
+    given = [
+        option
+        for option, value in (
+            ("--split", args.split),
+            ("--version", args.version),
+            *(("--" + k.replace("_", "-"), getattr(args, k, None)) for k in META_OPTIONS),
+        )
+        if value is not None
+    ]
+    if given:
         raise CommandError(
-            f"submission archives are the SemanticKITTI benchmark's format; the {profile.name} "
-            "profile has no such archive (use `rangeret evaluate` on its predictions instead)"
+            f"{given[0]} is for nuScenes-lidarseg archives (--profile nuscenes); a SemanticKITTI "
+            "archive always holds the test split"
         )
     return profile
 

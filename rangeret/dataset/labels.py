@@ -133,8 +133,12 @@ class LabelConfig:
         try:
             return self.splits[name]
         except KeyError:
+            import difflib
+
+            close = difflib.get_close_matches(name, list(self.splits), n=1, cutoff=0.6)
+            hint = f"; did you mean {close[0]}?" if close else ""
             raise LabelConfigError(
-                f"unknown split {name!r}; the label configuration has {sorted(self.splits)}"
+                f"unknown split {name!r}: the splits are {', '.join(self.splits)}{hint}"
             ) from None
 
     def to_dict(self) -> dict:

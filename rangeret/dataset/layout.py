@@ -1,8 +1,13 @@
-"""Dataset folder layouts: finding sequences, scans, labels and predictions.
+"""Dataset layouts: finding sequences, scans, labels and where each scan's prediction goes.
+
+A layout turns a dataset ROOT and the sequences chosen into `ScanEntry`s, each knowing its scan,
+its label file and the relative path of its prediction in a predictions tree. Two kinds exist:
+folders (`SequenceLayout`, below) and a version's tables (nuScenes,
+`rangeret.dataset.table_layout`); both answer the `DatasetLayout` protocol.
 
     ROOT/sequences/XX/velodyne/NNNNNN.bin      scans (SemanticKITTI; `SequenceLayout` says where
     ROOT/sequences/XX/labels/NNNNNN.label      sequence folders sit for other datasets)
-    PRED/sequences/XX/predictions/NNNNNN.label predictions, for every dataset
+    PRED/sequences/XX/predictions/NNNNNN.label predictions, for every folder layout
 
 Scans are listed in sorted order and matched to labels by file stem; anything unmatched is
 reported by name rather than silently skipped.
@@ -15,11 +20,13 @@ import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Protocol
 
 from rangeret.dataset.labels import LabelConfig
 from rangeret.exceptions import DatasetError
 from rangeret.io.scans import (
-    LABEL_BYTES,
+    KITTI_LABELS,
+    LabelFile,
     PointRecord,
     ScanFormatError,
     scan_num_points,
@@ -64,9 +71,79 @@ class SequenceLayout:
         text = str(name).strip()
         return f"{int(text):0{self.id_digits}d}" if text.isdigit() else text
 
-    def to_dict(self) -> dict:
+    @property
+    def kind(self) -> str:
+        """Folders of sequences."""
+        return "folders"
+
+    def to_dict(self) -> dict[str, Any]:
         """Plain-data form."""
         return {"sequence_folders": list(self.sequence_folders), "id_digits": self.id_digits}
+
+    def list_sequences(self, root: Path | str, *, version: str | None = None) -> list[str]:
+        """Sorted names of the sequence folders (those holding a velodyne folder)."""
+        _no_version(version)
+        base = self.sequences_root(root)
+        if not base.is_dir():
+            raise DatasetLayoutError(f"{base} does not exist: expected its sequence folders there")
+        return sorted(p.name for p in base.iterdir() if (p / "velodyne").is_dir())
+
+    def missing(
+        self, root: Path | str, sequences: Sequence[str], *, version: str | None = None
+    ) -> list[str]:
+        """Those of `sequences` without a velodyne folder under `root`, in their order."""
+        _no_version(version)
+        return [s for s in sequences if not velodyne_dir(root, s, layout=self).is_dir()]
+
+    def discover(
+        self,
+        root: Path | str,
+        sequences: Sequence[str],
+        with_labels: bool = False,
+        missing_ok: bool = False,
+        *,
+        version: str | None = None,
+        split: str | None = None,
+    ) -> Discovery:
+        """The scans of `sequences` under `root`, sorted, matched to their labels by file stem
+        (`split` does not change where a folder layout's predictions go)."""
+        _no_version(version)
+        root = Path(root)
+        result = Discovery(root=root, sequences=[])
+        for seq in sequences:
+            vdir = velodyne_dir(root, seq, layout=self)
+            if not vdir.is_dir():
+                if not missing_ok:
+                    result.problems.append(f"{vdir} does not exist (sequence {seq} is missing)")
+                continue
+            result.sequences.append(seq)
+            scans = _stems(vdir, ".bin")
+            if not scans and not missing_ok:
+                result.problems.append(f"{vdir} holds no .bin scan")
+            ldir = labels_dir(root, seq, layout=self)
+            labels = _stems(ldir, ".label")
+            if with_labels:
+                for stem in sorted(scans.keys() - labels.keys()):
+                    result.problems.append(
+                        f"{ldir / (stem + '.label')} is missing "
+                        f"(scan {seq}/{stem} has no ground truth)"
+                    )
+                for stem in sorted(labels.keys() - scans.keys()):
+                    result.problems.append(
+                        f"{labels[stem]} has no matching scan {vdir / (stem + '.bin')}"
+                    )
+            for stem in sorted(scans):
+                result.scans.append(
+                    ScanEntry(
+                        seq,
+                        stem,
+                        scans[stem],
+                        labels.get(stem),
+                        f"sequences/{seq}/predictions/{stem}.label",
+                        f"sequences/{seq}/confidence/{stem}.npy",
+                    )
+                )
+        return result
 
 
 #: SemanticKITTI's layout: ROOT/sequences/XX.
@@ -75,17 +152,30 @@ KITTI_LAYOUT = SequenceLayout()
 
 @dataclass(frozen=True)
 class ScanEntry:
-    """One scan of a dataset: its sequence, its file stem and where its files are."""
+    """One scan of a dataset: its sequence, its name, where its files are, and where its
+    prediction and confidence go in a predictions tree (paths relative to the tree's root)."""
 
     sequence: str
     name: str
     scan_path: Path
     label_path: Path | None
+    prediction: str
+    confidence: str
+    #: How its label file and its prediction hold one label per point.
+    label_file: LabelFile = KITTI_LABELS
 
     @property
     def key(self) -> str:
         """`"XX/NNNNNN"`, the scan's name in messages and reports."""
         return f"{self.sequence}/{self.name}"
+
+    def prediction_in(self, root: Path | str) -> Path:
+        """Where its prediction lives in the predictions tree `root`."""
+        return Path(root) / self.prediction
+
+    def confidence_in(self, root: Path | str) -> Path:
+        """Where its point confidences live in the predictions tree `root`."""
+        return Path(root) / self.confidence
 
 
 @dataclass
@@ -105,6 +195,46 @@ class Discovery:
         return groups
 
 
+class DatasetLayout(Protocol):
+    """What every layout answers: the sequences a ROOT holds and the scans of those chosen."""
+
+    @property
+    def kind(self) -> str:
+        """`folders` or `tables`, for messages and checks."""
+        ...
+
+    def normalise(self, name: str | int) -> str:
+        """A sequence id as the layout writes it."""
+        ...
+
+    def to_dict(self) -> dict[str, Any]:
+        """The profile's `layout` section."""
+        ...
+
+    def discover(
+        self,
+        root: Path | str,
+        sequences: Sequence[str],
+        with_labels: bool = False,
+        missing_ok: bool = False,
+        *,
+        version: str | None = None,
+        split: str | None = None,
+    ) -> Discovery:
+        """The scans of `sequences` under `root` and every problem found on the way."""
+        ...
+
+    def missing(
+        self, root: Path | str, sequences: Sequence[str], *, version: str | None = None
+    ) -> list[str]:
+        """Those of `sequences` that `root` does not hold, in their order."""
+        ...
+
+    def list_sequences(self, root: Path | str, *, version: str | None = None) -> list[str]:
+        """Every sequence `root` holds, sorted."""
+        ...
+
+
 def sequence_dir(root: Path | str, sequence: str, *, layout: SequenceLayout) -> Path:
     """Folder of one sequence of a dataset."""
     return layout.sequences_root(root) / sequence
@@ -121,30 +251,31 @@ def labels_dir(root: Path | str, sequence: str, *, layout: SequenceLayout) -> Pa
 
 
 def predictions_dir(root: Path | str, sequence: str) -> Path:
-    """Folder of a sequence's predictions in a predictions tree."""
+    """Folder of a sequence's predictions in a folder layout's predictions tree."""
     return Path(root) / "sequences" / sequence / "predictions"
 
 
 def prediction_path(pred_root: Path | str, sequence: str, name: str) -> Path:
-    """Where the prediction of scan `sequence/name` lives in a predictions tree."""
+    """Where the prediction of scan `sequence/name` of a folder layout lives in a predictions
+    tree."""
     return predictions_dir(pred_root, sequence) / f"{name}.label"
 
 
 def confidence_path(pred_root: Path | str, sequence: str, name: str) -> Path:
-    """Where the point confidences of scan `sequence/name` live in a predictions tree, beside
-    its prediction (`sequences/XX/confidence/NNNNNN.npy`)."""
+    """Where the point confidences of scan `sequence/name` of a folder layout live in a
+    predictions tree, beside its prediction (`sequences/XX/confidence/NNNNNN.npy`)."""
     return Path(pred_root) / "sequences" / sequence / "confidence" / f"{name}.npy"
 
 
-def list_sequences(root: Path | str, *, layout: SequenceLayout) -> list[str]:
-    """Sorted names of the sequence folders of a dataset (those holding a velodyne folder)."""
-    base = layout.sequences_root(root)
-    if not base.is_dir():
-        raise DatasetLayoutError(f"{base} does not exist: expected its sequence folders there")
-    return sorted(p.name for p in base.iterdir() if (p / "velodyne").is_dir())
+def list_sequences(
+    root: Path | str, *, layout: DatasetLayout, version: str | None = None
+) -> list[str]:
+    """Sorted names of the sequences of a dataset (folders holding a velodyne folder, or the
+    scenes of a version's tables)."""
+    return layout.list_sequences(root, version=version)
 
 
-def normalise_sequence(name: str | int, *, layout: SequenceLayout) -> str:
+def normalise_sequence(name: str | int, *, layout: DatasetLayout) -> str:
     """The on-disk form of a sequence id (8 -> "08" for SemanticKITTI, "008" for 3-digit ids)."""
     return layout.normalise(name)
 
@@ -154,7 +285,7 @@ def resolve_sequences(
     sequences: Iterable[str | int] | None = None,
     *,
     labels: LabelConfig,
-    layout: SequenceLayout,
+    layout: DatasetLayout,
 ) -> list[str]:
     """The sequences a command works on: those named, or those of a split of the label config.
 
@@ -174,10 +305,74 @@ def resolve_sequences(
 
 
 def missing_sequences(
-    root: Path | str, sequences: Sequence[str], *, layout: SequenceLayout
+    root: Path | str,
+    sequences: Sequence[str],
+    *,
+    layout: DatasetLayout,
+    version: str | None = None,
 ) -> list[str]:
-    """Those of `sequences` that `root` does not hold (no velodyne folder), in their order."""
-    return [s for s in sequences if not velodyne_dir(root, s, layout=layout).is_dir()]
+    """Those of `sequences` that `root` does not hold, in their order."""
+    return layout.missing(root, sequences, version=version)
+
+
+def discover(
+    root: Path | str,
+    sequences: Sequence[str],
+    with_labels: bool = False,
+    missing_ok: bool = False,
+    *,
+    layout: DatasetLayout,
+    version: str | None = None,
+    split: str | None = None,
+) -> Discovery:
+    """List the scans of `sequences` under `root`, in order, matched to their labels.
+
+    Label files found are always attached; with `with_labels` they are required, and a scan
+    without a label file (and, in folders, a label file without a scan) is a problem. A missing
+    or empty sequence is a problem unless `missing_ok` (partial copies). `version` chooses a
+    tables layout's version; `split`, the folder its predictions go to.
+    """
+    return layout.discover(root, sequences, with_labels, missing_ok, version=version, split=split)
+
+
+def is_complete(
+    entry: ScanEntry,
+    out: Path,
+    *,
+    record: PointRecord,
+    with_confidence: bool = False,
+) -> bool:
+    """Whether the scan's prediction exists with one label per point (a finished earlier run),
+    and its confidence file too when `with_confidence`."""
+    pred = entry.prediction_in(out)
+    try:
+        points = scan_num_points(entry.scan_path, record=record)
+        whole = pred.stat().st_size == points * entry.label_file.bytes
+    except (OSError, ScanFormatError):
+        return False
+    return whole and (not with_confidence or entry.confidence_in(out).is_file())
+
+
+def list_scans(
+    dataset: Path | str,
+    sequences: Sequence[str],
+    missing_ok: bool = False,
+    *,
+    layout: DatasetLayout,
+    version: str | None = None,
+    split: str | None = None,
+) -> list[ScanEntry]:
+    """The scans of `sequences`, in order; a missing or empty sequence is an error naming it
+    unless `missing_ok` (a partial local copy, logged)."""
+    found = discover(
+        dataset, sequences, missing_ok=missing_ok, layout=layout, version=version, split=split
+    )
+    if found.problems:
+        raise DatasetLayoutError("; ".join(found.problems))
+    absent = sorted(set(sequences) - set(found.sequences))
+    if absent:
+        log.warning("sequences %s are not in %s: predicting the others", ", ".join(absent), dataset)
+    return found.scans
 
 
 def _stems(folder: Path, suffix: str) -> dict[str, Path]:
@@ -191,80 +386,9 @@ def _stems(folder: Path, suffix: str) -> dict[str, Path]:
         }
 
 
-def discover(
-    root: Path | str,
-    sequences: Sequence[str],
-    with_labels: bool = False,
-    missing_ok: bool = False,
-    *,
-    layout: SequenceLayout,
-) -> Discovery:
-    """List the scans of `sequences` under `root`, sorted, matched to their labels by name.
-
-    Label files found are always attached; with `with_labels` they are required, and a scan
-    without a label file and a label file without a scan are problems. A missing or empty
-    sequence folder is a problem unless `missing_ok` (partial copies).
-    """
-    root = Path(root)
-    result = Discovery(root=root, sequences=[])
-    for seq in sequences:
-        vdir = velodyne_dir(root, seq, layout=layout)
-        if not vdir.is_dir():
-            if not missing_ok:
-                result.problems.append(f"{vdir} does not exist (sequence {seq} is missing)")
-            continue
-        result.sequences.append(seq)
-        scans = _stems(vdir, ".bin")
-        if not scans and not missing_ok:
-            result.problems.append(f"{vdir} holds no .bin scan")
-        ldir = labels_dir(root, seq, layout=layout)
-        labels = _stems(ldir, ".label")
-        if with_labels:
-            for stem in sorted(scans.keys() - labels.keys()):
-                result.problems.append(
-                    f"{ldir / (stem + '.label')} is missing (scan {seq}/{stem} has no ground truth)"
-                )
-            for stem in sorted(labels.keys() - scans.keys()):
-                result.problems.append(
-                    f"{labels[stem]} has no matching scan {vdir / (stem + '.bin')}"
-                )
-        for stem in sorted(scans):
-            result.scans.append(ScanEntry(seq, stem, scans[stem], labels.get(stem)))
-    return result
-
-
-def is_complete(
-    entry: ScanEntry,
-    out: Path,
-    *,
-    record: PointRecord,
-    with_confidence: bool = False,
-) -> bool:
-    """Whether the scan's prediction exists with one label per point (a finished earlier run),
-    and its confidence file too when `with_confidence`."""
-    pred = prediction_path(out, entry.sequence, entry.name)
-    try:
-        whole = pred.stat().st_size == scan_num_points(entry.scan_path, record=record) * LABEL_BYTES
-    except (OSError, ScanFormatError):
-        return False
-    return whole and (
-        not with_confidence or confidence_path(out, entry.sequence, entry.name).is_file()
-    )
-
-
-def list_scans(
-    dataset: Path | str,
-    sequences: Sequence[str],
-    missing_ok: bool = False,
-    *,
-    layout: SequenceLayout,
-) -> list[ScanEntry]:
-    """The scans of `sequences`, in order; a missing or empty sequence is an error naming it
-    unless `missing_ok` (a partial local copy, logged)."""
-    found = discover(dataset, sequences, missing_ok=missing_ok, layout=layout)
-    if found.problems:
-        raise DatasetLayoutError("; ".join(found.problems))
-    absent = sorted(set(sequences) - set(found.sequences))
-    if absent:
-        log.warning("sequences %s are not in %s: predicting the others", ", ".join(absent), dataset)
-    return found.scans
+def _no_version(version: str | None) -> None:
+    if version is not None:
+        raise DatasetLayoutError(
+            f"--version {version} is for a dataset of tables (nuScenes); this profile's dataset "
+            "is folders of sequences"
+        )

@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from rangeret.dataset.layout import DatasetLayoutError, ScanEntry, discover
 from rangeret.dataset.profiles import DatasetProfile, ProfileError
-from rangeret.dataset.projection import ProjectionConfig, project_with
+from rangeret.dataset.projection import BEAM_ROWS, ProjectionConfig, project_with
 from rangeret.io.scans import read_scan
 
 #: Above this share of points outside the vertical field of view, the summary flags the fov.
@@ -197,7 +197,7 @@ def profile_stats(
         raise DatasetLayoutError(f"no scans of sequences {', '.join(sequences)} under {root}")
     scans = _chosen(found.scans, max_scans)
     config = profile.projection
-    laser_rows = config.row == "laser_id"
+    laser_rows = config.row in BEAM_ROWS
     moments = _Moments(5)
     points_total = pixels = 0
     counts: list[int] = []

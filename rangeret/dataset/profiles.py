@@ -2,9 +2,10 @@
 
 A profile gathers the sensor's projection (resolution, field of view, input normalisation, where a
 point's row comes from), the point record of its scan files, its label configuration, the kNN
-voting rule, its folder layout and its splits. Three are built in with the release's values
-(`semantickitti`, the default, `semantic-poss` and `pandaset`, in `data/profiles/`); a YAML file
-with exactly the fields that `rangeret profile show NAME` prints describes any other sensor.
+voting rule, its layout (folders of sequences, or a version's tables), its splits and what its
+benchmark accepts. Four are built in: the release's three (`semantickitti`, the default,
+`semantic-poss` and `pandaset`) and `nuscenes`, in `data/profiles/`; a YAML file with exactly the
+fields that `rangeret profile show NAME` prints describes any other sensor.
 Torch-free.
 """
 
@@ -16,11 +17,14 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from rangeret import DATA_DIR
 from rangeret.dataset.fields import Fields
 from rangeret.dataset.labels import LabelConfig, LabelConfigError, parse_label_config
-from rangeret.dataset.layout import SequenceLayout
-from rangeret.dataset.projection import ROW_SOURCES, ProjectionConfig
+from rangeret.dataset.layout import DatasetLayout, SequenceLayout
+from rangeret.dataset.projection import BEAM_ROWS, ROW_SOURCES, ProjectionConfig
+from rangeret.dataset.table_layout import SCHEMAS, TableLayout
 from rangeret.exceptions import ConfigError
 from rangeret.io.scans import PointRecord
 
@@ -29,7 +33,12 @@ PROFILES_DIR = DATA_DIR / "profiles"
 DEFAULT_PROFILE = "semantickitti"
 #: Files written before profiles existed (checkpoints, run records) were all SemanticKITTI's.
 LEGACY_PROFILE = "semantickitti"
-BUILTIN_PROFILES = ("semantickitti", "semantic-poss", "pandaset")
+BUILTIN_PROFILES = ("semantickitti", "semantic-poss", "pandaset", "nuscenes")
+#: What a benchmark's prediction files hold: raw ids (the label configuration's inverse map, as
+#: SemanticKITTI's) or the training classes themselves (nuScenes-lidarseg's challenge indices).
+PREDICTION_IDS = ("raw", "class")
+#: How a benchmark turns a confusion matrix into IoU (`rangeret.evaluation.metrics`).
+SCORINGS = ("semantickitti", "nuscenes")
 
 
 class ProfileError(ConfigError, ValueError):
@@ -45,6 +54,30 @@ class KnnVote:
 
 
 @dataclass(frozen=True)
+class Benchmark:
+    """What a dataset's benchmark accepts and how it scores: the profile's optional `benchmark`
+    section. The defaults are SemanticKITTI's (and the release's for every dataset)."""
+
+    #: What prediction files hold (`PREDICTION_IDS`).
+    predictions: str = "raw"
+    #: The network chooses among classes classes_from..C-1 (nuScenes refuses class 0, ignore).
+    classes_from: int = 0
+    #: The class of a point that projects nowhere; None: the label configuration's unlabeled one.
+    unprojected_class: int | None = None
+    #: How IoU is computed (`SCORINGS`).
+    scoring: str = "semantickitti"
+
+    def to_dict(self) -> dict[str, Any]:
+        """The `benchmark` section."""
+        return {
+            "predictions": self.predictions,
+            "classes_from": self.classes_from,
+            "unprojected_class": self.unprojected_class,
+            "scoring": self.scoring,
+        }
+
+
+@dataclass(frozen=True)
 class DatasetProfile:
     """One dataset's sensor, point record, labels, kNN rule, layout and splits."""
 
@@ -54,7 +87,10 @@ class DatasetProfile:
     points: PointRecord
     labels: LabelConfig
     knn: KnnVote
-    layout: SequenceLayout
+    layout: DatasetLayout
+    benchmark: Benchmark = Benchmark()
+    #: The reflectance a perfect reflector returns: 1 for remission, 255 for 8-bit intensity.
+    reflectance_max: float = 1.0
 
     @property
     def num_classes(self) -> int:
@@ -71,6 +107,28 @@ class DatasetProfile:
     def splits(self) -> dict[str, tuple[str, ...]]:
         """Sequence ids of each split, as written on disk."""
         return self.labels.splits
+
+    @property
+    def unprojected_class(self) -> int:
+        """The class a point without a pixel gets."""
+        chosen = self.benchmark.unprojected_class
+        return self.labels.unlabeled_class if chosen is None else chosen
+
+    def prediction_classes(self, values: np.ndarray) -> np.ndarray:
+        """The training classes (uint8) of what a prediction file holds: `output_labels` undone
+        (a value no class gives reads as the unlabeled class)."""
+        if self.benchmark.predictions == "class":
+            values = np.asarray(values)
+            known = values < self.num_classes
+            return np.where(known, values, self.labels.unlabeled_class).astype(np.uint8)
+        return self.labels.to_class(values)
+
+    def output_labels(self, classes: np.ndarray) -> np.ndarray:
+        """What a prediction file holds for training classes, uint32: raw ids (the inverse map)
+        or the classes themselves, as the benchmark wants."""
+        if self.benchmark.predictions == "class":
+            return np.asarray(classes).astype(np.uint32)
+        return self.labels.to_raw(classes)
 
     def with_overrides(
         self,
@@ -111,6 +169,7 @@ class DatasetProfile:
                 "row": p.row,
                 "means": list(p.means),
                 "stds": list(p.stds),
+                **({"reflectance_max": self.reflectance_max} if self.reflectance_max != 1 else {}),
             },
             "points": {"fields": list(self.points.fields)},
             "layout": self.layout.to_dict(),
@@ -135,6 +194,7 @@ class DatasetProfile:
                 ],
             },
             "splits": {k: list(v) for k, v in labels.splits.items()},
+            **({"benchmark": self.benchmark.to_dict()} if self.benchmark != Benchmark() else {}),
         }
 
     @classmethod
@@ -142,13 +202,17 @@ class DatasetProfile:
         """A profile from `to_dict()`'s form; a wrong, missing or extra field is a ProfileError
         naming it (as `source: field.path: problem`)."""
         f = Fields(data, source, error=ProfileError, kind="profile field")
-        sensor = f.section("sensor", _SENSOR_KEYS)
+        sensor = f.section("sensor", _SENSOR_KEYS, ("reflectance_max",))
         points = f.section("points", ("fields",))
-        layout = f.section("layout", ("sequence_folders", "id_digits"))
+        layout_data = f.get("layout", dict)
+        if "tables" in layout_data:
+            layout = f.section("layout", ("tables", "channel"))
+        else:
+            layout = f.section("layout", ("sequence_folders", "id_digits"))
         knn = f.section("knn", ("votes_from",))
         labels = f.section("labels", ("unlabeled_class", "classes", "raw_labels"))
         splits = f.get("splits", dict)
-        f.finish(_TOP_KEYS)
+        f.finish(_TOP_KEYS, ("benchmark",))
 
         height = sensor.integer("height", 1)
         width = sensor.integer("width", 1)
@@ -174,13 +238,27 @@ class DatasetProfile:
             record = PointRecord(tuple(fields))
         except ValueError as exc:
             points.fail("fields", str(exc))
-        if row == "laser_id" and "laser_id" not in record.fields[4:]:
-            points.fail("fields", "must end with laser_id when sensor.row is laser_id")
+        if row in BEAM_ROWS and row not in record.fields[4:]:
+            points.fail("fields", f"must end with {row} when sensor.row is {row}")
 
-        folders = tuple(layout.strings("sequence_folders"))
-        if not folders:
-            layout.fail("sequence_folders", "must name at least one folder")
-        sequence_layout = SequenceLayout(folders, layout.integer("id_digits", 1, 8))
+        reflectance_max = 1.0
+        if "reflectance_max" in sensor.data:
+            reflectance_max = sensor.number("reflectance_max")
+            if not reflectance_max > 0:
+                sensor.fail("reflectance_max", f"must be positive, got {reflectance_max:g}")
+
+        if "tables" in layout_data:
+            tables = layout.choice("tables", SCHEMAS)
+            channel = layout.get("channel", str)
+            if not channel:
+                layout.fail("channel", "must name a sensor channel")
+            normalise = str
+        else:
+            folders = tuple(layout.strings("sequence_folders"))
+            if not folders:
+                layout.fail("sequence_folders", "must name at least one folder")
+            sequence_layout = SequenceLayout(folders, layout.integer("id_digits", 1, 8))
+            normalise = sequence_layout.normalise
 
         try:
             label_config = parse_label_config(
@@ -188,11 +266,16 @@ class DatasetProfile:
                 source,
                 field="labels",
                 splits=splits,
-                normalise=sequence_layout.normalise,
+                normalise=normalise,
             )
         except LabelConfigError as exc:
             raise ProfileError(str(exc)) from exc
+        if "tables" in layout_data:
+            sequence_layout = TableLayout(
+                tables, channel, label_config.splits, dict(label_config.raw_names)
+            )
         votes_from = knn.integer("votes_from", 0, label_config.num_classes - 1)
+        benchmark = _benchmark(f, label_config.num_classes)
         name = f.get("name", str)
         if not name.strip():
             f.fail("name", "must not be empty")
@@ -204,6 +287,8 @@ class DatasetProfile:
             labels=label_config,
             knn=KnnVote(votes_from),
             layout=sequence_layout,
+            benchmark=benchmark,
+            reflectance_max=reflectance_max,
         )
 
     def to_yaml(self) -> str:
@@ -214,6 +299,25 @@ class DatasetProfile:
 
 
 _TOP_KEYS = ("name", "description", "sensor", "points", "layout", "knn", "labels", "splits")
+_BENCHMARK_KEYS = ("predictions", "classes_from", "unprojected_class", "scoring")
+
+
+def _benchmark(f: Fields, num_classes: int) -> Benchmark:
+    """The optional `benchmark` section (SemanticKITTI's rules where it is left out)."""
+    if "benchmark" not in f.data:
+        return Benchmark()
+    section = f.section("benchmark", _BENCHMARK_KEYS)
+    unprojected = section.data["unprojected_class"]
+    if unprojected is not None:
+        unprojected = section.integer("unprojected_class", 0, num_classes - 1)
+    return Benchmark(
+        predictions=section.choice("predictions", PREDICTION_IDS),
+        classes_from=section.integer("classes_from", 0, num_classes - 1),
+        unprojected_class=unprojected,
+        scoring=section.choice("scoring", SCORINGS),
+    )
+
+
 _SENSOR_KEYS = ("height", "width", "fov_up", "fov_down", "row", "means", "stds")
 
 

@@ -3,8 +3,10 @@
 The convention is the one the published checkpoints were trained with (RangeNet++'s):
 yaw = -atan2(y, x), pitch = asin(z / |p|), u = floor(0.5 (yaw / pi + 1) W),
 v = floor((1 - (pitch + |fov_down|) / fov) H), both clamped into the image, computed in float32.
-Sensors that give each point its laser (PandaSet's Pandar64) take the row from that id instead
-(`row="laser_id"`: v = the point's fifth value as an integer, which must be a row of the image).
+Sensors that give each point its laser take the row from that number instead: `row="laser_id"`
+(PandaSet's Pandar64, laser 0 the top beam) makes v the point's fifth value as an integer, and
+`row="ring"` (Velodyne's numbering, ring 0 the lowest beam, as in nuScenes) makes v = H - 1 - ring,
+so row 0 is the top beam either way; the number must give a row of the image.
 Where several points fall on one pixel the closest wins (equal depths: the lower point index).
 Each point keeps its (u, v), so per-pixel predictions go back to every point losslessly.
 """
@@ -22,8 +24,11 @@ from rangeret.exceptions import InputError
 CHANNEL_MEANS = (12.12, 10.88, 0.23, -1.04, 0.21)
 CHANNEL_STDS = (12.32, 11.47, 6.91, 0.86, 0.16)
 
-#: Where a point's row comes from: its pitch, or its laser id (the fifth value of its record).
-ROW_SOURCES = ("pitch", "laser_id")
+#: Where a point's row comes from: its pitch, or the fifth value of its record, a laser id counted
+#: from the top beam (`laser_id`) or a ring counted from the lowest beam (`ring`).
+ROW_SOURCES = ("pitch", "laser_id", "ring")
+#: The row sources that read the fifth value of a point's record.
+BEAM_ROWS = ("laser_id", "ring")
 
 
 class ProjectionError(InputError, ValueError):
@@ -156,15 +161,19 @@ def check_pixels(
     return height, width
 
 
-def _laser_rows(lasers: np.ndarray, idx: np.ndarray, height: int) -> np.ndarray:
-    """Rows of the projected points `idx` from their laser ids; ProjectionError for an id off the image."""
+def _laser_rows(lasers: np.ndarray, idx: np.ndarray, height: int, row: str) -> np.ndarray:
+    """Rows of the projected points `idx` from their laser ids (`row="laser_id"`) or rings
+    (`row="ring"`, counted from the bottom); ProjectionError for a number off the image."""
     rows = lasers[idx].astype(np.int32).astype(np.int64)
+    if row == "ring":
+        rows = height - 1 - rows
     bad = np.flatnonzero((rows < 0) | (rows >= height))
     if bad.size:
         first = int(idx[bad[0]])
+        name = "laser id" if row == "laser_id" else "ring"
         raise ProjectionError(
-            f"{bad.size} point(s) have a laser id outside the image's rows 0..{height - 1}, "
-            f"the first at point index {first} (laser id {lasers[first]:g})"
+            f"{bad.size} point(s) have a {name} outside the image's rows 0..{height - 1}, "
+            f"the first at point index {first} ({name} {lasers[first]:g})"
         )
     return rows
 
@@ -189,14 +198,14 @@ def project(
 def project_with(points: np.ndarray, config: ProjectionConfig) -> Projection:
     """`project` with its parameters gathered in a `ProjectionConfig`.
 
-    With `row="laser_id"` the points are (N, 5) and a laser id outside the image's rows (for a
-    projected point) is a ValueError naming the first such point.
+    With `row="laser_id"` or `row="ring"` the points are (N, 5) and a number outside the image's
+    rows (for a projected point) is a ValueError naming the first such point.
     """
     pts = np.asarray(points)
-    columns = 5 if config.row == "laser_id" else 4
+    columns = 5 if config.row in BEAM_ROWS else 4
     if pts.ndim != 2 or pts.shape[1] < columns:
         raise ProjectionError(f"points must have shape (N, {columns}), got {pts.shape}")
-    lasers = pts[:, 4] if config.row == "laser_id" else None
+    lasers = pts[:, 4] if config.row in BEAM_ROWS else None
     pts = pts[:, :4].astype(np.float32, copy=False)
     h, w = config.height, config.width
     n = pts.shape[0]
@@ -224,7 +233,7 @@ def project_with(points: np.ndarray, config: ProjectionConfig) -> Projection:
     u = np.clip(np.floor(u), 0, w - 1).astype(np.int64)
     v = np.clip(np.floor(v), 0, h - 1).astype(np.int64)
     if lasers is not None:
-        v = _laser_rows(lasers, idx, h)
+        v = _laser_rows(lasers, idx, h, config.row)
 
     # Closest point wins, among equal depths the lower index: two scatter-minimum passes, first
     # over depths, then over the indices of the points that reach their pixel's minimum.

@@ -18,12 +18,12 @@ import numpy as np
 from tqdm import tqdm
 
 from rangeret.dataset.distance import scan_bands
-from rangeret.dataset.layout import ScanEntry, confidence_path, discover, prediction_path
+from rangeret.dataset.layout import ScanEntry, discover
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.evaluation.calibration import Calibration
 from rangeret.evaluation.metrics import EvaluationReport, RawLabelEvaluator
 from rangeret.exceptions import DatasetError
-from rangeret.io.scans import PointRecord, ScanFormatError, read_confidence, read_labels, read_scan
+from rangeret.io.scans import PointRecord, ScanFormatError, read_confidence, read_scan
 
 log = logging.getLogger(__name__)
 
@@ -52,15 +52,18 @@ def count_scan(
     if entry.label_path is None:
         raise ValueError(f"scan {entry.key} has no ground-truth label file")
     bands = scan_bands(read_scan(entry.scan_path, record=record))
-    gt_raw = read_labels(entry.label_path, num_points=bands.size)
-    pred_raw = read_labels(prediction, num_points=bands.size)
+    gt_raw = entry.label_file.read(entry.label_path, num_points=bands.size)
+    pred_raw = entry.label_file.read(prediction, num_points=bands.size)
+    refusal = evaluator.refusal(pred_raw)
+    if refusal is not None:
+        raise ScanFormatError(prediction, refusal)
     evaluator.add(pred_raw, gt_raw, entry.sequence, bands)
     if calibration is not None and confidence is not None:
         config = evaluator.config
         values = read_confidence(confidence, num_points=bands.size)
         gt = config.to_class(gt_raw)
         evaluated = ~np.asarray(config.ignored)[gt]
-        correct = config.to_class(pred_raw) == gt
+        correct = evaluator.prediction_classes(pred_raw) == gt
         calibration.add(values[evaluated], correct[evaluated])
 
 
@@ -72,18 +75,24 @@ def evaluate_predictions(
     profile: DatasetProfile,
     checkpoint_sha256: str | None = None,
     progress: bool = False,
+    version: str | None = None,
+    split: str | None = None,
 ) -> EvaluationReport:
-    """Evaluate `PRED/sequences/XX/predictions` against the dataset's labels, overall, per
-    sequence and per distance band.
+    """Evaluate a predictions tree against the dataset's labels, overall, per sequence and per
+    distance band.
 
-    The profile gives the dataset's layout, point record and labels. Raises `EvaluationError` listing every missing label or
-    prediction file and every file whose length does not match its scan.
+    The profile gives the dataset's layout (and so where each prediction is), point record,
+    labels and benchmark rules; `version` and `split` are a tables layout's. Raises
+    `EvaluationError` listing every missing label or prediction file, every file whose length
+    does not match its scan and every prediction the benchmark would refuse.
     """
-    found = discover(dataset, sequences, with_labels=True, layout=profile.layout)
+    found = discover(
+        dataset, sequences, with_labels=True, layout=profile.layout, version=version, split=split
+    )
     problems = list(found.problems)
     pairs = []
     for entry in found.scans:
-        pred = prediction_path(predictions, entry.sequence, entry.name)
+        pred = entry.prediction_in(predictions)
         if not pred.is_file():
             problems.append(f"{pred} is missing (no prediction for scan {entry.key})")
         elif entry.label_path is not None:
@@ -93,8 +102,8 @@ def evaluate_predictions(
     if not pairs:
         raise EvaluationError([f"no labelled scan found in sequences {', '.join(sequences)}"])
 
-    evaluator = RawLabelEvaluator(config=profile.labels)
-    confidences = [confidence_path(predictions, e.sequence, e.name) for e, _ in pairs]
+    evaluator = RawLabelEvaluator.for_profile(profile)
+    confidences = [e.confidence_in(predictions) for e, _ in pairs]
     have = sum(path.is_file() for path in confidences)
     calibration = Calibration() if have == len(pairs) else None
     for (entry, pred), confidence in tqdm(

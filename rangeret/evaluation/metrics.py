@@ -4,7 +4,11 @@ The semantics are the official evaluator's: C[pred, gt] over the training classe
 ignored ground-truth classes are zeroed; TP = diagonal, FP = row sum - TP, FN = column sum - TP;
 IoU_c = TP / (TP + FP + FN + 1e-15); mIoU averages every evaluated class, so a class absent from
 both prediction and ground truth counts as 0; accuracy = sum TP / (TP + FP over evaluated classes).
-Matrices are plain counts, so partial results from many workers merge by addition. The evaluator
+With `scoring="nuscenes"` they are nuScenes-lidarseg's devkit's instead: the ignored class's row
+and column are both zeroed, IoU_c = TP / union with the union as float32 (as the devkit divides),
+undefined (NaN, `null` in JSON) for a class absent from both sides, mIoU the mean over the defined
+classes, and the frequency-weighted IoU besides. Matrices are plain counts, so partial results
+from many workers merge by addition. The evaluator
 keeps one matrix per sequence and distance band (`rangeret.dataset.distance`); the report's matrices by
 sequence, by band and overall are sums of those, so the parts add up to the whole exactly.
 """
@@ -15,14 +19,20 @@ import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from rangeret.dataset.distance import NUM_BANDS, band_limits, band_name
 from rangeret.dataset.labels import LabelConfig
+
+if TYPE_CHECKING:
+    from rangeret.dataset.profiles import DatasetProfile
 from rangeret.evaluation.calibration import Calibration
 
 EPS = 1e-15
+#: How a matrix is scored: the SemanticKITTI evaluator's rules or nuScenes-lidarseg's devkit's.
+SCORINGS = ("semantickitti", "nuscenes")
 
 
 def confusion_counts(pred: np.ndarray, gt: np.ndarray, num_classes: int) -> np.ndarray:
@@ -55,6 +65,7 @@ class ConfusionMatrix:
     num_classes: int = 20
     ignore: tuple[int, ...] = (0,)
     matrix: np.ndarray = field(default=None)  # type: ignore[assignment]
+    scoring: str = "semantickitti"
 
     def __post_init__(self) -> None:
         if self.matrix is None:
@@ -66,13 +77,22 @@ class ConfusionMatrix:
                 f"got {self.matrix.shape}"
             )
         self.ignore = tuple(int(c) for c in self.ignore)
+        if self.scoring not in SCORINGS:
+            raise ValueError(f"scoring must be one of {', '.join(SCORINGS)}, got {self.scoring!r}")
 
     @classmethod
-    def for_config(cls, *, config: LabelConfig) -> ConfusionMatrix:
+    def for_config(cls, *, config: LabelConfig, scoring: str = "semantickitti") -> ConfusionMatrix:
         """An empty matrix shaped for a label configuration."""
         return cls(
-            config.num_classes, tuple(c for c in range(config.num_classes) if config.ignored[c])
+            config.num_classes,
+            tuple(c for c in range(config.num_classes) if config.ignored[c]),
+            scoring=scoring,
         )
+
+    @property
+    def devkit(self) -> bool:
+        """Whether it scores as nuScenes-lidarseg's devkit does."""
+        return self.scoring == "nuscenes"
 
     @property
     def include(self) -> list[int]:
@@ -91,27 +111,54 @@ class ConfusionMatrix:
         self.matrix += counts.astype(np.int64, copy=False)
 
     def __add__(self, other: ConfusionMatrix) -> ConfusionMatrix:
-        out = ConfusionMatrix(self.num_classes, self.ignore, self.matrix.copy())
+        out = ConfusionMatrix(self.num_classes, self.ignore, self.matrix.copy(), self.scoring)
         out.merge(other)
         return out
 
-    def stats(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """TP, FP and FN per class after zeroing the ignored ground-truth columns."""
+    def scored(self) -> np.ndarray:
+        """The counts that are scored: the ignored ground-truth columns zeroed (and, scoring as
+        the devkit, the ignored classes' prediction rows too)."""
         conf = self.matrix.copy()
         conf[:, list(self.ignore)] = 0
+        if self.devkit:
+            conf[list(self.ignore), :] = 0
+        return conf
+
+    def stats(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """TP, FP and FN per class of the scored counts."""
+        conf = self.scored()
         tp = np.diag(conf)
         fp = conf.sum(axis=1) - tp
         fn = conf.sum(axis=0) - tp
         return tp, fp, fn
 
     def iou(self) -> np.ndarray:
-        """IoU of every class (ignored ones included, as the official evaluator returns them)."""
+        """IoU of every class (ignored ones included, as the official evaluators return them;
+        NaN where the devkit's union is empty)."""
         tp, fp, fn = self.stats()
+        if self.devkit:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                return tp / (tp + fp + fn).astype(np.float32)
         return tp / (tp + fp + fn + EPS)
 
     def miou(self) -> float:
-        """Mean IoU over the evaluated classes; absent classes count as 0."""
+        """Mean IoU over the evaluated classes; absent classes count as 0, or scoring as the
+        devkit are left out (NaN when no class is defined)."""
+        if self.devkit:
+            iou = self.iou()
+            if np.isnan(iou).all():
+                return float("nan")
+            return float(np.nanmean(iou))
         return float(self.iou()[self.include].mean())
+
+    def freq_weighted_iou(self) -> float:
+        """Each class's IoU weighted by its share of the scored ground-truth points, as the
+        devkit computes it (NaN without scored points)."""
+        conf = self.scored()
+        total = conf.sum()
+        if not total:
+            return float("nan")
+        return float(np.nansum(conf.sum(axis=0) * self.iou()) / total)
 
     def accuracy(self) -> float:
         """Point accuracy: all TP over TP + FP of the evaluated classes."""
@@ -153,29 +200,41 @@ class EvaluationReport:
     def accuracy(self) -> float:
         return self.confusion.accuracy()
 
-    def iou_by_name(self, confusion: ConfusionMatrix | None = None) -> dict[str, float]:
-        """IoU (0..1) of each evaluated class, by class name (of `confusion`, default overall)."""
+    def iou_by_name(self, confusion: ConfusionMatrix | None = None) -> dict[str, float | None]:
+        """IoU (0..1) of each evaluated class, by class name (of `confusion`, default overall);
+        None where it is undefined (scoring as the devkit, a class absent from both sides)."""
         confusion = confusion or self.confusion
         iou = confusion.iou()
-        return {self.class_names[c]: float(iou[c]) for c in confusion.include}
+        return {self.class_names[c]: _number(iou[c]) for c in confusion.include}
 
     def part_dict(self, confusion: ConfusionMatrix) -> dict:
         """The scores of one part of the data (a sequence, a distance band) for the JSON report."""
-        return {
-            "miou": confusion.miou(),
+        out = {
+            "miou": _number(confusion.miou()),
             "accuracy": confusion.accuracy(),
             "iou": self.iou_by_name(confusion),
             "points": confusion.evaluated_points(),
             "confusion": confusion.matrix.tolist(),
         }
+        if confusion.devkit:
+            out["freq_weighted_iou"] = _number(confusion.freq_weighted_iou())
+        return out
 
     def to_dict(self) -> dict:
         """The JSON report: miou, accuracy, iou by name, the raw confusion[pred][gt], context, and
         the same scores per sequence and per distance band."""
         out: dict = {
-            "miou": self.miou,
+            "miou": _number(self.miou),
             "accuracy": self.accuracy,
             "iou": self.iou_by_name(),
+            **(
+                {
+                    "freq_weighted_iou": _number(self.confusion.freq_weighted_iou()),
+                    "scoring": self.confusion.scoring,
+                }
+                if self.confusion.devkit
+                else {}
+            ),
             "confusion": self.confusion.matrix.tolist(),
             "class_names": list(self.class_names),
             "num_scans": self.num_scans,
@@ -214,10 +273,11 @@ class EvaluationReport:
     def from_dict(cls, data: dict, *, config: LabelConfig) -> EvaluationReport:
         """Rebuild a report from its JSON form (class names it lacks are `config`'s)."""
         ignore = tuple(c for c in range(config.num_classes) if config.ignored[c])
+        scoring = data.get("scoring", "semantickitti")
 
         def matrix(counts: list) -> ConfusionMatrix:
             counts = np.asarray(counts, dtype=np.int64)
-            return ConfusionMatrix(counts.shape[0], ignore, counts)
+            return ConfusionMatrix(counts.shape[0], ignore, counts, scoring)
 
         return cls(
             confusion=matrix(data["confusion"]),
@@ -264,11 +324,13 @@ class EvaluationReport:
         lines = [f"{'class':<{width}}  {'IoU %':>6}  {'gt points':>11}  {'predicted':>11}"]
         for c in self.confusion.include:
             lines.append(
-                f"{self.class_names[c]:<{width}}  {100 * iou[c]:6.2f}  {tp[c] + fn[c]:>11,}  "
+                f"{self.class_names[c]:<{width}}  {_percent(iou[c])}  {tp[c] + fn[c]:>11,}  "
                 f"{tp[c] + fp[c]:>11,}"
             )
         lines.append("-" * len(lines[0]))
-        lines.append(f"{'mIoU':<{width}}  {100 * self.miou:6.2f}")
+        lines.append(f"{'mIoU':<{width}}  {_percent(self.miou)}")
+        if self.confusion.devkit:
+            lines.append(f"{'fw IoU':<{width}}  {_percent(self.confusion.freq_weighted_iou())}")
         lines.append(f"{'accuracy':<{width}}  {100 * self.accuracy:6.2f}")
         lines.append(self.points_line())
         parts = [
@@ -288,13 +350,24 @@ class EvaluationReport:
         return "\n".join(lines)
 
 
+def _number(value: float) -> float | None:
+    """A score for the JSON report: None where it is undefined (NaN)."""
+    value = float(value)
+    return None if np.isnan(value) else value
+
+
+def _percent(value: float) -> str:
+    """A score in percent, six characters wide ("   n/a" where it is undefined)."""
+    return "   n/a" if np.isnan(value) else f"{100 * value:6.2f}"
+
+
 def _parts_table(title: str, rows: list[tuple[str, ConfusionMatrix]]) -> list[str]:
     """Lines of scored points, mIoU and accuracy (percent) per part, headed by `title`."""
     width = max(len(title), *(len(name) for name, _ in rows))
     lines = [f"{title:<{width}}  {'scored points':>13}  {'mIoU %':>6}  {'accuracy %':>10}"]
     for name, cm in rows:
         lines.append(
-            f"{name:<{width}}  {cm.evaluated_points():>13,}  {100 * cm.miou():6.2f}  "
+            f"{name:<{width}}  {cm.evaluated_points():>13,}  {_percent(cm.miou())}  "
             f"{100 * cm.accuracy():10.2f}"
         )
     return lines
@@ -310,8 +383,18 @@ class RawLabelEvaluator:
     by band, overall) is a sum of those.
     """
 
-    def __init__(self, *, config: LabelConfig) -> None:
+    def __init__(
+        self,
+        *,
+        config: LabelConfig,
+        predictions: str = "raw",
+        scoring: str = "semantickitti",
+        classes_from: int = 0,
+    ) -> None:
         self.config = config
+        self.scoring = scoring
+        self.predictions = predictions
+        self.classes_from = classes_from
         n = self.config.num_classes
         self._n = n
         # Unknown ids map to the extra class n, folded into the unlabeled class when read.
@@ -319,10 +402,43 @@ class RawLabelEvaluator:
         for raw, cls in self.config.raw_to_class.items():
             lut[raw] = cls
         self._lut = lut
+        # Predictions hold raw ids (the same map) or the classes themselves.
+        if predictions == "class":
+            self._pred_lut = np.full(1 << 16, n, dtype=np.uint8)
+            self._pred_lut[:n] = np.arange(n, dtype=np.uint8)
+        else:
+            self._pred_lut = lut
         #: Counts per sequence: (NUM_BANDS, (n + 1) ** 2), cell band, pred * (n + 1) + gt.
         self._counts: dict[str, np.ndarray] = {}
         self.num_scans = 0
         self.num_points = 0
+
+    @classmethod
+    def for_profile(cls, profile: DatasetProfile) -> RawLabelEvaluator:
+        """An evaluator with a profile's labels, and its benchmark's predictions and scoring."""
+        return cls(
+            config=profile.labels,
+            predictions=profile.benchmark.predictions,
+            scoring=profile.benchmark.scoring,
+            classes_from=profile.benchmark.classes_from,
+        )
+
+    def refusal(self, pred: np.ndarray) -> str | None:
+        """Why a prediction file's values are not what the benchmark takes, or None: where
+        predictions are classes, each must be one of classes_from..C-1 (nuScenes refuses 0)."""
+        if self.predictions != "class" or not pred.size:
+            return None
+        bad = np.flatnonzero((pred < self.classes_from) | (pred >= self._n))
+        if not bad.size:
+            return None
+        return (
+            f"holds {bad.size} value(s) outside the classes {self.classes_from}..{self._n - 1} "
+            f"the benchmark takes, the first {int(pred[bad[0]])} at point {int(bad[0])}"
+        )
+
+    def prediction_classes(self, pred: np.ndarray) -> np.ndarray:
+        """The training classes (uint8) of a prediction file's values; unknown values give C."""
+        return self._pred_lut.take(_low16(pred))
 
     def add(
         self, pred_raw: np.ndarray, gt_raw: np.ndarray, sequence: str, bands: np.ndarray
@@ -340,7 +456,7 @@ class RawLabelEvaluator:
         cells = NUM_BANDS * m * m
         # The lookup gives uint8 classes; all three indices combine in uint16 where they fit.
         wide = np.uint16 if cells <= 1 << 16 else np.intp
-        p = self._lut.take(_low16(pred_raw)).astype(wide)
+        p = self._pred_lut.take(_low16(pred_raw)).astype(wide)
         g = self._lut.take(_low16(gt_raw))
         index = bands.astype(wide) * wide(m * m) + p * wide(m) + g
         counts = np.bincount(index.reshape(-1), minlength=cells).reshape(NUM_BANDS, m * m)
@@ -378,7 +494,7 @@ class RawLabelEvaluator:
         full = counts.reshape(n + 1, n + 1).copy()
         full[u] += full[n]
         full[:, u] += full[:, n]
-        cm = ConfusionMatrix.for_config(config=self.config)
+        cm = ConfusionMatrix.for_config(config=self.config, scoring=self.scoring)
         cm.merge(full[:n, :n])
         return cm
 

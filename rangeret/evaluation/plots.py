@@ -55,6 +55,11 @@ def plot_confusion(report: EvaluationReport, path: Path | str) -> Path:
     return _save(fig, path)
 
 
+def _value(percent: float) -> str:
+    """A bar's label: the value with one decimal, or n/a where it is undefined (NaN)."""
+    return "n/a" if np.isnan(percent) else f"{percent:.1f}"
+
+
 def plot_iou(report: EvaluationReport, path: Path | str, *, config: LabelConfig) -> Path:
     """Bar chart of per-class IoU in the classes' colours (the label configuration's), with the
     mIoU line."""
@@ -69,7 +74,7 @@ def plot_iou(report: EvaluationReport, path: Path | str, *, config: LabelConfig)
 
     fig, ax = plt.subplots(figsize=(11, 4.5))
     bars = ax.bar(range(len(include)), iou, color=colours, edgecolor="black", linewidth=0.5)
-    ax.bar_label(bars, labels=[f"{v:.1f}" for v in iou], fontsize=7, padding=2)
+    ax.bar_label(bars, labels=[_value(v) for v in iou], fontsize=7, padding=2)
     ax.axhline(
         100 * report.miou, color="crimson", linestyle="--", label=f"mIoU {100 * report.miou:.1f} %"
     )
@@ -128,7 +133,7 @@ def plot_miou_by_sequence(report: EvaluationReport, path: Path | str) -> Path:
 
     fig, ax = plt.subplots(figsize=(max(4.0, 1.5 + 0.7 * len(names)), 4))
     bars = ax.bar(range(len(names)), miou, color="steelblue", edgecolor="black", linewidth=0.5)
-    ax.bar_label(bars, labels=[f"{v:.1f}" for v in miou], fontsize=7, padding=2)
+    ax.bar_label(bars, labels=[_value(v) for v in miou], fontsize=7, padding=2)
     ax.axhline(
         100 * report.miou, color="crimson", linestyle="--", label=f"mIoU {100 * report.miou:.1f} %"
     )

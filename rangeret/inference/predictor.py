@@ -175,8 +175,10 @@ class Predictor:
         """Stage 3 for a batch: each scan's per-point classes from (B, C, H, W) logits, refined in
         one call so the device does not wait on the host scan by scan."""
         with self._record(times).stage("refine", len(projections)):
+            first = self.profile.benchmark.classes_from
+            choice = logits.argmax(dim=1) if not first else logits[:, first:].argmax(dim=1) + first
             classes = point_classes_batch(
-                logits.argmax(dim=1),
+                choice,
                 [p.proj_x for p in projections],
                 [p.proj_y for p in projections],
                 [p.proj_range for p in projections],
@@ -184,14 +186,15 @@ class Predictor:
                 self.knn,
                 self.num_classes,
                 votes_from=self.profile.knn.votes_from,
-                unlabeled=self.label_config.unlabeled_class,
+                unlabeled=self.profile.unprojected_class,
             )
             ends = np.cumsum([p.num_points for p in projections])
             return np.split(classes.cpu().numpy(), ends[:-1])
 
     def to_raw(self, classes: np.ndarray) -> np.ndarray:
-        """Stage 4: raw ids (uint32) of the profile's label configuration for training classes."""
-        return self.label_config.to_raw(classes)
+        """Stage 4: what prediction files hold for training classes (uint32): the profile's raw
+        ids, or the classes themselves where its benchmark takes those (nuScenes)."""
+        return self.profile.output_labels(classes)
 
     # Whole scans ---------------------------------------------------------------------------
 

@@ -19,12 +19,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from rangeret.dataset.layout import (
-    confidence_path,
-    is_complete,
-    list_scans,
-    prediction_path,
-)
+from rangeret.dataset.layout import is_complete, list_scans
 from rangeret.inference.loading import (
     LoadedScan,
     batches,
@@ -34,11 +29,8 @@ from rangeret.inference.loading import (
 )
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import RunSummary
+from rangeret.inference.writing import write_prediction
 from rangeret.io.run_info import write_run_info
-from rangeret.io.scans import (
-    write_confidence,
-    write_labels,
-)
 
 log = logging.getLogger(__name__)
 
@@ -56,9 +48,13 @@ def predict_tree(
     read_roots: Sequence[str] | None = None,
     overwrite: bool = False,
     runner: str = "rangeret predict",
+    version: str | None = None,
+    split: str | None = None,
 ) -> RunSummary:
-    """Write `OUT/sequences/XX/predictions/NNNNNN.label` for every scan of `sequences` (and, with
-    `save_confidence`, each point's confidence in `OUT/sequences/XX/confidence/NNNNNN.npy`).
+    """Write a prediction for every scan of `sequences` where the profile's layout puts it
+    (`OUT/sequences/XX/predictions/NNNNNN.label`, or nuScenes' `OUT/lidarseg/<split>/`), and with
+    `save_confidence` each point's confidence beside it (`OUT/sequences/XX/confidence/`); `version`
+    and `split` are a tables layout's.
 
     `on_progress(done, failed, total)` is called after every batch; setting `cancel` stops the
     run after the current batch (files already written stay complete). With `read_roots`, a scan
@@ -69,7 +65,7 @@ def predict_tree(
     check_batch_size(batch_size)
     out = Path(out)
     profile = predictor.profile
-    entries = list_scans(dataset, sequences, layout=profile.layout)
+    entries = list_scans(dataset, sequences, layout=profile.layout, version=version, split=split)
     summary = RunSummary(total=len(entries))
     pending = [
         e
@@ -122,10 +118,7 @@ def predict_tree(
                     summary.add(entry.key, found)
                     continue
                 with times.stage("write"):
-                    if found.confidence is not None:
-                        path = confidence_path(out, entry.sequence, entry.name)
-                        write_confidence(path, found.confidence)
-                    write_labels(prediction_path(out, entry.sequence, entry.name), found.labels)
+                    write_prediction(entry, out, found.labels, found.confidence)
                 summary.add(entry.key, None, scan.projection.num_points)
             bar.update(len(loaded))
             bar.set_postfix(failed=len(summary.failed))

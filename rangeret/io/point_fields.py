@@ -28,6 +28,7 @@ ALIASES: dict[str, tuple[str, ...]] = {
     "remission": ("remission", "intensity", "reflectance", "reflectivity", "i"),
     "intensity": ("intensity", "remission", "reflectance", "reflectivity", "i"),
     "laser_id": ("laser_id", "ring", "laser", "channel", "line"),
+    "ring": ("ring", "laser_id", "laser", "channel", "line"),
 }
 
 

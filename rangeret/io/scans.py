@@ -151,35 +151,74 @@ def scan_num_points(path: str | os.PathLike[str], *, record: PointRecord) -> int
     return size // record.point_bytes
 
 
+@dataclass(frozen=True)
+class LabelFile:
+    """How a dataset's label and prediction files hold one label per point: little-endian
+    unsigned integers of `bytes` each (SemanticKITTI's `.label`: 4, raw id in the low 16 bits and
+    the instance above; nuScenes-lidarseg's `_lidarseg.bin`: 1, a class index)."""
+
+    bytes: int = 4
+
+    def __post_init__(self) -> None:
+        if self.bytes not in (1, 2, 4):
+            raise ValueError(f"a label is 1, 2 or 4 bytes, got {self.bytes}")
+
+    @property
+    def dtype(self) -> np.dtype:
+        """The numpy dtype of one label."""
+        return np.dtype(f"<u{self.bytes}")
+
+    def count(self, path: str | os.PathLike[str]) -> int:
+        """Labels in a file, from its size alone; `ScanFormatError` for a partial label."""
+        path = Path(path)
+        try:
+            size = path.stat().st_size
+        except FileNotFoundError as exc:
+            raise InputFileMissing.of(exc) from exc
+        if size % self.bytes:
+            raise ScanFormatError(
+                path,
+                f"size {size} bytes is not a multiple of {self.bytes} "
+                f"(one uint{8 * self.bytes} per point)",
+            )
+        return size // self.bytes
+
+    def read(self, path: str | os.PathLike[str], num_points: int | None = None) -> np.ndarray:
+        """The file's labels as uint32 (N,); with `num_points`, another count raises
+        `ScanFormatError`."""
+        count = self.count(path)
+        if num_points is not None and count != num_points:
+            raise ScanFormatError(
+                path, f"holds {count} labels but the scan has {num_points} points"
+            )
+        return np.fromfile(path, dtype=self.dtype).astype(np.uint32, copy=False)
+
+    def write(self, path: str | os.PathLike[str], labels: np.ndarray) -> None:
+        """Write labels atomically, each in `bytes` bytes (a value that does not fit is a
+        ValueError naming the file)."""
+        labels = np.asarray(labels)
+        if labels.ndim != 1:
+            raise ValueError(f"{path}: labels must be one-dimensional, got shape {labels.shape}")
+        if labels.size and (labels.min() < 0 or labels.max() > np.iinfo(self.dtype).max):
+            raise ValueError(f"{path}: labels do not fit in uint{self.bytes * 8}")
+        atomic_write_bytes(path, labels.astype(self.dtype, copy=False).tobytes())
+
+
+#: SemanticKITTI's `.label` files: one uint32 per point.
+KITTI_LABELS = LabelFile(LABEL_BYTES)
+
+
 def read_labels(path: str | os.PathLike[str], num_points: int | None = None) -> np.ndarray:
     """Read a `.label` file as uint32 (N,) (raw id in the low 16 bits, instance in the high 16).
 
     With `num_points`, a file with another number of labels raises `ScanFormatError`.
     """
-    path = Path(path)
-    try:
-        size = path.stat().st_size
-    except FileNotFoundError as exc:
-        raise InputFileMissing.of(exc) from exc
-    if size % LABEL_BYTES:
-        raise ScanFormatError(
-            path, f"size {size} bytes is not a multiple of {LABEL_BYTES} (one uint32 per point)"
-        )
-    if num_points is not None and size // LABEL_BYTES != num_points:
-        raise ScanFormatError(
-            path, f"holds {size // LABEL_BYTES} labels but the scan has {num_points} points"
-        )
-    return np.fromfile(path, dtype=LABEL_DTYPE).astype(np.uint32, copy=False)
+    return KITTI_LABELS.read(path, num_points)
 
 
 def write_labels(path: str | os.PathLike[str], labels: np.ndarray) -> None:
     """Write uint32 labels atomically as a `.label` file."""
-    labels = np.asarray(labels)
-    if labels.ndim != 1:
-        raise ValueError(f"{path}: labels must be one-dimensional, got shape {labels.shape}")
-    if labels.size and (labels.min() < 0 or labels.max() > np.iinfo(np.uint32).max):
-        raise ValueError(f"{path}: labels do not fit in uint32")
-    atomic_write_bytes(path, labels.astype(LABEL_DTYPE, copy=False).tobytes())
+    KITTI_LABELS.write(path, labels)
 
 
 def write_confidence(path: str | os.PathLike[str], confidence: np.ndarray) -> None:

@@ -11,7 +11,7 @@
 """
 
 from rangeret.sim.dataset import simulate_dataset
-from rangeret.sim.raycast import SensorConfig, simulate_scan
+from rangeret.sim.raycast import SensorConfig, beam_values, simulate_scan
 from rangeret.sim.scene import Boxes, Cylinders, Ellipsoids, Scene, ground_labels
 from rangeret.sim.street import make_scene
 
@@ -21,6 +21,7 @@ __all__ = [
     "Ellipsoids",
     "Scene",
     "SensorConfig",
+    "beam_values",
     "ground_labels",
     "make_scene",
     "simulate_dataset",

@@ -20,7 +20,8 @@ if TYPE_CHECKING:
     from rangeret.dataset.profiles import DatasetProfile
 
 #: SemanticKITTI class -> the class that stands for it in each built-in profile other than
-#: SemanticKITTI's; classes left out (riders on PandaSet) have no counterpart.
+#: SemanticKITTI's; classes left out (riders on PandaSet) have no counterpart. nuScenes counts a
+#: rider with the vehicle ridden.
 CLASS_TABLES: dict[str, dict[str, str]] = {
     "semantic-poss": {
         "car": "car",
@@ -61,6 +62,27 @@ CLASS_TABLES: dict[str, dict[str, str]] = {
         "trunk": "vegetation",
         "pole": "background",
         "traffic-sign": "traffic-sign",
+    },
+    "nuscenes": {
+        "car": "car",
+        "bicycle": "bicycle",
+        "motorcycle": "motorcycle",
+        "truck": "truck",
+        "other-vehicle": "bus",
+        "person": "pedestrian",
+        "bicyclist": "bicycle",
+        "motorcyclist": "motorcycle",
+        "road": "driveable_surface",
+        "parking": "driveable_surface",
+        "sidewalk": "sidewalk",
+        "other-ground": "other_flat",
+        "terrain": "terrain",
+        "building": "manmade",
+        "fence": "manmade",
+        "vegetation": "vegetation",
+        "trunk": "vegetation",
+        "pole": "manmade",
+        "traffic-sign": "manmade",
     },
 }
 

@@ -8,17 +8,18 @@ profile, in that profile's layout, point record and raw label ids.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 
 import numpy as np
 
 from rangeret.dataset.labels import SEMANTIC_MASK
-from rangeret.dataset.layout import labels_dir, velodyne_dir
+from rangeret.dataset.layout import SequenceLayout, labels_dir, velodyne_dir
 from rangeret.dataset.profiles import DatasetProfile
+from rangeret.dataset.projection import BEAM_ROWS
 from rangeret.io.atomic import atomic_write_bytes
 from rangeret.io.scans import write_labels, write_scan
 from rangeret.sim.classes import raw_label_map
-from rangeret.sim.raycast import SensorConfig, SimulationError, simulate_scan
+from rangeret.sim.raycast import SensorConfig, SimulationError, beam_values, simulate_scan
 from rangeret.sim.street import make_scene
 
 #: Seconds between two scans (the HDL-64E spins at 10 Hz).
@@ -35,18 +36,46 @@ def _matrix_line(values: Iterable[float]) -> str:
     return " ".join(f"{v:.12e}" for v in values)
 
 
-def _check_profile(profile: DatasetProfile, sensor: SensorConfig) -> None:
+def sequence_scans(
+    name: str,
+    count: int,
+    sensor: SensorConfig,
+    seed: int,
+    *,
+    profile: DatasetProfile,
+    period: float = SCAN_PERIOD,
+) -> Iterator[tuple[np.ndarray, np.ndarray, float]]:
+    """The `count` scans of one simulated sequence, `period` seconds apart along its own street:
+    each as (points in the profile's record, uint32 labels as the profile's raw ids with the
+    instance in the high 16 bits, the sensor's x along the street). Reproducible from `seed` and
+    `name`; every dataset writer draws its scans from here."""
+    label_map = raw_label_map(profile)
+    seeds = _sequence_seed(seed, name).spawn(count + 1)
+    length = max(200.0, 1.25 * count * (period / SCAN_PERIOD))
+    scene = make_scene(np.random.default_rng(seeds[0]), length)
+    step = scene.ego_speed * period
+    for k in range(count):
+        points, labels, lasers = simulate_scan(
+            scene, k * step, sensor, np.random.default_rng(seeds[k + 1]), lasers=True
+        )
+        if profile.points.num_fields == 5:
+            points = np.column_stack([points, beam_values(lasers, profile)])
+        raw = label_map[labels & SEMANTIC_MASK] | (labels & ~np.uint32(SEMANTIC_MASK))
+        yield points, raw, k * step
+
+
+def check_profile(profile: DatasetProfile, sensor: SensorConfig) -> None:
     """ValueError when the simulator cannot fill the profile's point record with this sensor."""
     fields = profile.points.fields
-    if fields[4:] not in ((), ("laser_id",)):
+    if fields[4:] not in ((), ("laser_id",), ("ring",)):
         raise SimulationError(
-            f"profile {profile.name}: the simulator fills x, y, z, the reflectance and laser_id, "
-            f"not the point field {fields[4]!r}"
+            f"profile {profile.name}: the simulator fills x, y, z, the reflectance and laser_id "
+            f"or ring, not the point field {fields[4]!r}"
         )
     height = profile.projection.height
-    if profile.projection.row == "laser_id" and sensor.beams > height:
+    if profile.projection.row in BEAM_ROWS and sensor.beams > height:
         raise SimulationError(
-            f"profile {profile.name} takes rows from laser ids 0..{height - 1}, "
+            f"profile {profile.name} takes rows from beam numbers 0..{height - 1}, "
             f"but the sensor has {sensor.beams} beams"
         )
 
@@ -74,9 +103,13 @@ def simulate_dataset(
     `SensorConfig.for_profile(profile)`.
     """
     sensor = sensor or SensorConfig.for_profile(profile)
-    _check_profile(profile, sensor)
+    check_profile(profile, sensor)
     layout, record = profile.layout, profile.points
-    label_map = raw_label_map(profile)
+    if not isinstance(layout, SequenceLayout):
+        raise SimulationError(
+            f"profile {profile.name} reads a version's tables: simulate it with "
+            "rangeret.sim.nuscenes_tree"
+        )
     counts = {layout.normalise(name): int(n) for name, n in sequences.items()}
     if any(n < 0 for n in counts.values()):
         raise SimulationError(f"numbers of scans must be >= 0, got {counts}")
@@ -96,25 +129,17 @@ def simulate_dataset(
     written = 0
     try:
         for name, n in counts.items():
-            seeds = _sequence_seed(seed, name).spawn(n + 1)
-            scene = make_scene(np.random.default_rng(seeds[0]), max(200.0, 1.25 * n))
-            step = scene.ego_speed * SCAN_PERIOD
             seq_dir = velodyne_dir(root, name, layout=layout).parent
             seq_dir.mkdir(parents=True, exist_ok=True)
             poses, times = [], []
-            for k in range(n):
-                points, labels, lasers = simulate_scan(
-                    scene, k * step, sensor, np.random.default_rng(seeds[k + 1]), lasers=True
-                )
-                if record.num_fields == 5:
-                    points = np.column_stack([points, lasers.astype(np.float32)])
+            scans = sequence_scans(name, n, sensor, seed, profile=profile)
+            for k, (points, raw, x) in enumerate(scans):
                 write_scan(
                     velodyne_dir(root, name, layout=layout) / f"{k:06d}.bin", points, record=record
                 )
                 if name in with_labels:
-                    raw = label_map[labels & SEMANTIC_MASK] | (labels & ~np.uint32(SEMANTIC_MASK))
                     write_labels(labels_dir(root, name, layout=layout) / f"{k:06d}.label", raw)
-                poses.append(_matrix_line([1, 0, 0, k * step, 0, 1, 0, 0, 0, 0, 1, 0]))
+                poses.append(_matrix_line([1, 0, 0, x, 0, 1, 0, 0, 0, 0, 1, 0]))
                 times.append(f"{k * SCAN_PERIOD:.6e}")
                 written += 1
                 if bar is not None:

@@ -58,6 +58,8 @@ class SensorConfig:
     max_range: float = 80.0
     range_noise: float = 0.02
     dropout: float = 0.02
+    #: The reflectance written for a perfect reflector: 1 for remission, 255 for 8-bit intensity.
+    reflectance_max: float = 1.0
 
     def __post_init__(self) -> None:
         if self.beams < 1 or self.azimuth_steps < 1:
@@ -72,6 +74,8 @@ class SensorConfig:
             raise SimulationError("height and max_range must be positive")
         if self.range_noise < 0 or not 0 <= self.dropout < 1:
             raise SimulationError("range_noise must be >= 0 and dropout in [0, 1)")
+        if not self.reflectance_max > 0:
+            raise SimulationError(f"reflectance_max must be positive, got {self.reflectance_max}")
 
     @classmethod
     def for_profile(cls, profile: DatasetProfile, azimuth_steps: int | None = None) -> SensorConfig:
@@ -85,7 +89,18 @@ class SensorConfig:
             azimuth_steps=2 * p.width if azimuth_steps is None else azimuth_steps,
             fov_up=top - half_row,
             fov_down=bottom + half_row,
+            reflectance_max=profile.reflectance_max,
         )
+
+
+def beam_values(lasers: np.ndarray, profile: DatasetProfile) -> np.ndarray:
+    """The fifth record value of simulated points, float32, from their beam indices (0 = the top
+    beam): the index itself for a `laser_id` record, the ring counted from the lowest beam of the
+    profile's image for a `ring` record, as Velodyne numbers them."""
+    lasers = np.asarray(lasers)
+    if profile.points.fields[4:] == ("ring",):
+        lasers = profile.projection.height - 1 - lasers
+    return lasers.astype(np.float32)
 
 
 @lru_cache(maxsize=8)
@@ -331,7 +346,7 @@ def simulate_scan(
     keep = (dist > 0.5) & (dist <= sensor.max_range)
     points = np.empty((int(keep.sum()), 4), dtype=np.float32)
     points[:, :3] = d[keep] * dist[keep, None]
-    points[:, 3] = np.clip(remission[keep], 0.0, 1.0)
+    points[:, 3] = np.clip(remission[keep], 0.0, 1.0) * np.float32(sensor.reflectance_max)
     if lasers:
         return points, labels[keep], idx[keep] // sensor.azimuth_steps
     return points, labels[keep]

@@ -29,7 +29,7 @@ import numpy as np
 from tqdm import tqdm
 
 from rangeret.dataset.labels import LabelConfig
-from rangeret.dataset.layout import KITTI_LAYOUT, ScanEntry, discover, prediction_path
+from rangeret.dataset.layout import KITTI_LAYOUT, ScanEntry, discover
 from rangeret.exceptions import DatasetError
 from rangeret.io.atomic import atomic_path
 from rangeret.io.scans import KITTI_RECORD, LABEL_BYTES, ScanFormatError, scan_num_points
@@ -164,7 +164,7 @@ def _read_prediction(
         num_points = scan_num_points(entry.scan_path, record=KITTI_RECORD)
     except ScanFormatError as exc:
         return str(exc), None
-    pred = prediction_path(predictions, entry.sequence, entry.name)
+    pred = entry.prediction_in(predictions)
     if not pred.is_file():
         return f"{pred} is missing (no prediction for test scan {entry.key})", None
     data = pred.read_bytes()
@@ -272,7 +272,7 @@ def validate_submission(
         names = [i.filename for i in infos]
         entries: dict[str, zipfile.ZipInfo] = {}
         for info in infos:
-            problem = _unsafe_entry(info)
+            problem = unsafe_entry(info)
             if problem:
                 check.problems.append(f"{archive}: entry {info.filename!r} {problem}")
             elif info.filename in entries:
@@ -294,7 +294,7 @@ def validate_submission(
                 check.problems.append(f"{archive}: {name} has no matching test scan in {dataset}")
             else:
                 check.problems.append(f"{archive}: unexpected entry {name!r}")
-        check.warnings += _description_warnings(zf, entries.get(DESCRIPTION_NAME), archive)
+        check.warnings += description_warnings(zf, entries.get(DESCRIPTION_NAME), archive)
         for name, entry in tqdm(wanted.items(), desc="validate", unit="scan", disable=not progress):
             try:
                 num_points = scan_num_points(entry.scan_path, record=KITTI_RECORD)
@@ -323,7 +323,7 @@ def validate_submission(
     return check
 
 
-def _description_warnings(
+def description_warnings(
     zf: zipfile.ZipFile, info: zipfile.ZipInfo | None, archive: Path
 ) -> list[str]:
     """What keeps the leaderboard from showing the archive's name and links, or []."""
@@ -340,7 +340,7 @@ def _description_warnings(
     return [f"{archive}: {DESCRIPTION_NAME} {p}" for p in description_problems(text)]
 
 
-def _unsafe_entry(info: zipfile.ZipInfo) -> str | None:
+def unsafe_entry(info: zipfile.ZipInfo) -> str | None:
     """Why an entry could escape the extraction folder or is not a plain file or folder."""
     name = info.filename
     if name.startswith("/") or "\\" in name or re.match(r"^[A-Za-z]:", name):

@@ -15,7 +15,6 @@ from rangeret.dataset.layout import (
     ScanEntry,
     SequenceLayout,
     discover,
-    prediction_path,
 )
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.evaluation.evaluate import evaluate_predictions
@@ -85,13 +84,7 @@ def write_predictions_zip(
         for name in directories:
             zf.add_directory(name)
         zf.add_files(
-            (
-                (
-                    f"sequences/{entry.sequence}/predictions/{entry.name}.label",
-                    prediction_path(pred_root, entry.sequence, entry.name).read_bytes,
-                )
-                for entry in entries
-            ),
+            ((entry.prediction, entry.prediction_in(pred_root).read_bytes) for entry in entries),
             workers,
         )
         zf.add_file("description.txt", description.rstrip("\n") + "\n")

@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from rangeret.dataset.layout import ScanEntry, is_complete, list_scans, prediction_path
+from rangeret.dataset.layout import ScanEntry, is_complete, list_scans
 from rangeret.dataset.profiles import DatasetProfile
 from service.jobs.executors import JobControl, JobExecutor
 from service.jobs.reasons import scrub
@@ -146,10 +146,7 @@ class JobWork:
         if not missing:
             return None
         self.store.progress(job.id, len(entries), len(entries) - len(missing), 0)
-        shown = ", ".join(
-            prediction_path(out, e.sequence, e.name).relative_to(folder).as_posix()
-            for e in missing[:5]
-        )
+        shown = ", ".join(e.prediction_in(out).relative_to(folder).as_posix() for e in missing[:5])
         return (
             f"{len(missing)} of {len(entries)} predictions are missing from the job's "
             f"folder ({shown}{', ...' if len(missing) > 5 else ''}): it was changed or "

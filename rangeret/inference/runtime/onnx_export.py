@@ -229,10 +229,10 @@ def check_images(profile: DatasetProfile, scan: np.ndarray | None = None) -> tup
 
 def simulated_scan(profile: DatasetProfile) -> np.ndarray | None:
     """A street scan of the profile's sensor in its point record, or None for records the
-    simulator does not write (anything but x, y, z, remission and an optional laser id)."""
-    from rangeret.sim import SensorConfig, make_scene, simulate_scan
+    simulator does not write (anything but x, y, z, remission and an optional laser id or ring)."""
+    from rangeret.sim import SensorConfig, beam_values, make_scene, simulate_scan
 
-    if profile.points.fields[4:] not in ((), ("laser_id",)):
+    if profile.points.fields[4:] not in ((), ("laser_id",), ("ring",)):
         return None
     rng = np.random.default_rng(CHECK_SEED)
     scene = make_scene(rng)
@@ -240,7 +240,7 @@ def simulated_scan(profile: DatasetProfile) -> np.ndarray | None:
         scene, 20.0, SensorConfig.for_profile(profile), rng, lasers=True
     )
     if profile.points.num_fields == 5:
-        points = np.column_stack([points, lasers.astype(np.float32)])
+        points = np.column_stack([points, beam_values(lasers, profile)])
     return points
 
 

@@ -21,6 +21,8 @@ from rangeret.io.scans import read_scan
 from rangeret.sim import SensorConfig, simulate_dataset
 
 SEQUENCES = {"1": 3, "2": 2}
+#: The built-in profiles whose datasets are folders of sequences (nuScenes' are tables).
+FOLDER_PROFILES = tuple(n for n in BUILTIN_PROFILES if load_profile(n).layout.kind == "folders")
 
 
 def profile_file(path: Path, base: str, changes: dict[str, Any]) -> Path:
@@ -40,11 +42,11 @@ def profile_file(path: Path, base: str, changes: dict[str, Any]) -> Path:
 def trees(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """A small simulated tree of each built-in profile (coarse azimuth steps, to stay quick)."""
     root = tmp_path_factory.mktemp("trees")
-    for name in BUILTIN_PROFILES:
+    for name in FOLDER_PROFILES:
         profile = load_profile(name)
         sensor = SensorConfig.for_profile(profile, azimuth_steps=384)
         simulate_dataset(root / name, SEQUENCES, sensor=sensor, seed=3, profile=profile)
-    return {name: root / name for name in BUILTIN_PROFILES}
+    return {name: root / name for name in FOLDER_PROFILES}
 
 
 def direct_channels(root: Path, profile: DatasetProfile) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -182,7 +184,8 @@ def test_quiet_before_or_after_the_action(where: str, quiet: bool) -> None:
 def test_profile_list_names_the_builtins(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["profile", "list"]) == 0
     listed = [line.split()[0] for line in capsys.readouterr().out.splitlines()]
-    assert listed == list(BUILTIN_PROFILES) == ["semantickitti", "semantic-poss", "pandaset"]
+    assert listed == list(BUILTIN_PROFILES)
+    assert listed == ["semantickitti", "semantic-poss", "pandaset", "nuscenes"]
 
 
 @pytest.mark.parametrize("name", BUILTIN_PROFILES)

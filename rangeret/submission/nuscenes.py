@@ -1,0 +1,348 @@
+"""nuScenes-lidarseg submission archives, written and checked as the challenge's server takes them.
+
+The archive holds the devkit's results folder at its top:
+
+    lidarseg/<split>/<sample_data token>_lidarseg.bin   one uint8 class 1-16 per point, a file
+                                                        for every keyframe of the split
+    <split>/submission.json                             {"meta": {"use_camera": ..., "use_lidar":
+                                                        ..., "use_radar": ..., "use_map": ...,
+                                                        "use_external": ...}} (five booleans),
+                                                        and the method under "method"
+    description.txt                                     the method's name, links and checkpoint
+
+The validator makes every check of the devkit's `validate_submission` (the folders, the meta
+keys and their types, a file for every sample of the split, its point count: the ground truth's
+where the version has labels, else the sweep's, and values 1..C-1), each failure one line naming
+the file, and more: unsafe zip entries, and a `test` archive with fewer than the official 6,008
+samples of 150 scenes unless `allow_partial` (the devkit only compares with the tables it is
+given, so a partial local test set passes it and the server refuses the archive).
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import zipfile
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from rangeret.dataset.layout import DatasetLayoutError, ScanEntry, discover
+from rangeret.dataset.profiles import DatasetProfile
+from rangeret.dataset.table_layout import TableLayout
+from rangeret.io.atomic import atomic_path
+from rangeret.io.scans import ScanFormatError, scan_num_points
+from rangeret.io.zipfiles import DeflatedFile, ReproducibleZip, deflate_file, map_ahead
+from rangeret.submission.archives import (
+    DESCRIPTION_NAME,
+    SubmissionCheck,
+    SubmissionError,
+    description_warnings,
+    unsafe_entry,
+)
+from rangeret.submission.leaderboard import LeaderboardEntry
+
+#: The official nuScenes-lidarseg test split: scenes and keyframes.
+TEST_SCENES = 150
+TEST_SAMPLES = 6008
+#: The keys of submission.json's "meta", each a boolean.
+META_KEYS = ("use_camera", "use_lidar", "use_radar", "use_map", "use_external")
+
+
+@dataclass(frozen=True)
+class SubmissionMeta:
+    """The modalities and data a method used, as submission.json declares them."""
+
+    use_camera: bool = False
+    use_lidar: bool = True
+    use_radar: bool = False
+    use_map: bool = False
+    use_external: bool = False
+
+    def to_dict(self) -> dict[str, bool]:
+        """The "meta" object."""
+        return {key: bool(getattr(self, key)) for key in META_KEYS}
+
+
+def submission_json(
+    meta: SubmissionMeta, entry: LeaderboardEntry, checkpoint_sha256: str | None
+) -> str:
+    """The text of `<split>/submission.json`: the meta flags, and the method beside them."""
+    method = {
+        "name": entry.name,
+        "pdf_url": entry.pdf_url,
+        "code_url": entry.code_url,
+        "checkpoint_sha256": checkpoint_sha256 or "unknown",
+    }
+    return json.dumps({"meta": meta.to_dict(), "method": method}, indent=2) + "\n"
+
+
+def _tables_layout(profile: DatasetProfile) -> TableLayout:
+    if not isinstance(profile.layout, TableLayout):
+        raise SubmissionError([f"profile {profile.name} does not read nuScenes tables"])
+    return profile.layout
+
+
+def _split_scans(
+    dataset: Path,
+    split: str,
+    profile: DatasetProfile,
+    version: str | None,
+    allow_partial: bool,
+) -> tuple[list[ScanEntry], list[str], list[str], bool]:
+    """The keyframes of the split that the tables hold, its scenes present, problems with
+    completeness, and whether the version has ground truth (which then gives the counts)."""
+    layout = _tables_layout(profile)
+    try:
+        scenes = list(profile.labels.split(split))
+        tables = layout.open(dataset, version)
+    except (DatasetLayoutError, ValueError) as exc:
+        return [], [], [str(exc)], False
+    found = discover(
+        dataset,
+        scenes,
+        with_labels=tables.has_lidarseg,
+        missing_ok=True,
+        layout=layout,
+        version=tables.version,
+        split=split,
+    )
+    problems = list(found.problems)
+    missing = [s for s in scenes if s not in tables.scenes]
+    if missing and not allow_partial:
+        shown = ", ".join(missing[:5]) + (
+            f" and {len(missing) - 5} more" if len(missing) > 5 else ""
+        )
+        problems.append(
+            f"{tables.table_dir} lacks {len(missing)} of the {len(scenes)} scenes of the {split} "
+            f"split ({shown}); the devkit refuses a split whose scenes are not all in the tables"
+        )
+    short = len(found.sequences) < TEST_SCENES or len(found.scans) < TEST_SAMPLES
+    if split == "test" and not allow_partial and short:
+        problems.append(
+            f"{tables.table_dir} holds {len(found.scans):,} test samples of "
+            f"{len(found.sequences)} scenes, but the official test split has {TEST_SAMPLES:,} "
+            f"of {TEST_SCENES}: the local copy is incomplete, so the server would refuse the "
+            "archive (--allow-partial is for testing only)"
+        )
+    return found.scans, found.sequences, problems, tables.has_lidarseg
+
+
+def _expected_points(entry: ScanEntry, profile: DatasetProfile) -> int:
+    """What the devkit compares a prediction's length with: the ground truth's where there is
+    one, else the sweep's points."""
+    if entry.label_path is not None:
+        return entry.label_file.count(entry.label_path)
+    return scan_num_points(entry.scan_path, record=profile.points)
+
+
+def _values_problem(data: bytes, name: str, num_points: int, num_classes: int) -> str | None:
+    """Why a prediction's bytes are not what the devkit takes, or None."""
+    if len(data) != num_points:
+        return f"{name} holds {len(data)} predictions but its point cloud has {num_points} points"
+    values = np.frombuffer(data, dtype=np.uint8)
+    bad = np.flatnonzero((values < 1) | (values >= num_classes))
+    if bad.size:
+        return (
+            f"{name} holds {bad.size} value(s) outside 1..{num_classes - 1}, the first "
+            f"{int(values[bad[0]])} at point {int(bad[0])} (0 is ignore, which is not predicted)"
+        )
+    return None
+
+
+def _entry_name(split: str, entry: ScanEntry) -> str:
+    return f"lidarseg/{split}/{entry.name}_lidarseg.bin"
+
+
+def required_directories(split: str) -> Iterator[str]:
+    """The folders of the results folder, in order."""
+    yield "lidarseg/"
+    yield f"lidarseg/{split}/"
+    yield f"{split}/"
+
+
+def write_nuscenes_submission(
+    predictions: Path | str,
+    dataset: Path | str,
+    out: Path | str,
+    split: str = "test",
+    *,
+    profile: DatasetProfile,
+    meta: SubmissionMeta,
+    submission: str,
+    description: str,
+    version: str | None = None,
+    allow_partial: bool = False,
+    progress: bool = False,
+    workers: int | None = None,
+) -> SubmissionCheck:
+    """Build the zip of the predictions of every keyframe of `split` (`PRED/lidarseg/<split>/`),
+    with `submission` as `<split>/submission.json` and `description` as `description.txt`.
+
+    Raises `SubmissionError` listing every missing or wrong prediction (and an incomplete local
+    test set unless `allow_partial`), writing nothing; the archive is validated before it is
+    moved into place and is the same bytes for the same inputs whatever the `workers`.
+    """
+    predictions, dataset, out = Path(predictions), Path(dataset), Path(out)
+    if out.suffix != ".zip":
+        raise SubmissionError([f"{out}: the archive's name must end with .zip"])
+    scans, _, problems, _ = _split_scans(dataset, split, profile, version, allow_partial)
+    if not scans and not problems:
+        problems.append(f"{dataset} holds no sample of the {split} split")
+    failed = threading.Event()
+    if problems:
+        failed.set()
+    num_classes = profile.num_classes
+
+    def read(entry: ScanEntry) -> tuple[str | None, DeflatedFile | None]:
+        try:
+            num_points = _expected_points(entry, profile)
+        except ScanFormatError as exc:
+            return str(exc), None
+        pred = entry.prediction_in(predictions)
+        if not pred.is_file():
+            return f"{pred} is missing (no prediction for sample_data {entry.key})", None
+        data = pred.read_bytes()
+        problem = _values_problem(data, str(pred), num_points, num_classes)
+        if problem or failed.is_set():
+            return problem, None
+        return None, deflate_file(_entry_name(split, entry), data)
+
+    with atomic_path(out, suffix=".zip") as tmp:
+        with ReproducibleZip(tmp) as zf:
+            for name in required_directories(split):
+                zf.add_directory(name)
+            for problem, file in tqdm(
+                map_ahead(read, scans, workers),
+                total=len(scans),
+                desc="submission",
+                unit="scan",
+                disable=not progress,
+            ):
+                if problem:
+                    problems.append(problem)
+                    failed.set()
+                elif file is not None and not problems:
+                    zf.add_deflated(file)
+            if not problems:
+                zf.add_file(f"{split}/submission.json", submission)
+                zf.add_file(DESCRIPTION_NAME, description.rstrip("\n") + "\n")
+        if problems:
+            raise SubmissionError(problems)
+        check = validate_nuscenes_submission(
+            tmp, dataset, split, profile=profile, version=version, allow_partial=allow_partial
+        )
+        check.path = out
+        check.raise_for_problems()
+    return check
+
+
+def meta_problems(data: object, name: str) -> list[str]:
+    """What the devkit refuses in submission.json's content (`name` names the file)."""
+    if not isinstance(data, Mapping) or not isinstance(data.get("meta"), Mapping):
+        return [f'{name} must hold an object with a "meta" object']
+    meta = data["meta"]
+    keys = set(meta)
+    if keys != set(META_KEYS):
+        missing = [k for k in META_KEYS if k not in keys]
+        extra = sorted(str(k) for k in keys - set(META_KEYS))
+        said = "; ".join(
+            part
+            for part in (
+                f"missing {', '.join(missing)}" if missing else "",
+                f"unknown {', '.join(extra)}" if extra else "",
+            )
+            if part
+        )
+        return [f"{name}: meta must hold exactly {', '.join(META_KEYS)} ({said})"]
+    return [
+        f"{name}: meta.{key} must be true or false, got {json.dumps(meta[key])}"
+        for key in META_KEYS
+        if type(meta[key]) is not bool
+    ]
+
+
+def validate_nuscenes_submission(
+    archive: Path | str,
+    dataset: Path | str,
+    split: str,
+    *,
+    profile: DatasetProfile,
+    version: str | None = None,
+    allow_partial: bool = False,
+    progress: bool = False,
+) -> SubmissionCheck:
+    """Check a nuScenes-lidarseg zip against the version's tables for `split`: every check of
+    the devkit's validator, each failure one line naming the file, and the project's own."""
+    archive, dataset = Path(archive), Path(dataset)
+    check = SubmissionCheck(path=archive, partial=allow_partial)
+    if archive.suffix != ".zip":
+        check.problems.append(f"{archive}: the archive's name must end with .zip")
+    if not archive.is_file():
+        check.problems.append(f"{archive} does not exist")
+        return check
+    scans, present, dataset_problems, _ = _split_scans(
+        dataset, split, profile, version, allow_partial
+    )
+    check.sequences = present
+    check.problems += dataset_problems
+    try:
+        zf = zipfile.ZipFile(archive)
+    except (zipfile.BadZipFile, OSError) as exc:
+        check.problems.append(f"{archive} is not a readable zip archive ({exc})")
+        return check
+    with zf:
+        entries: dict[str, zipfile.ZipInfo] = {}
+        for info in zf.infolist():
+            problem = unsafe_entry(info)
+            if problem:
+                check.problems.append(f"{archive}: entry {info.filename!r} {problem}")
+            elif info.filename in entries:
+                check.problems.append(f"{archive}: entry {info.filename!r} appears more than once")
+            entries[info.filename] = info
+        names = set(entries)
+        meta_name = f"{split}/submission.json"
+        bins = f"lidarseg/{split}/"
+        if not any(n.startswith(f"{split}/") for n in names):
+            check.problems.append(
+                f"{archive}: the folder {split}/ (which holds submission.json) does not exist"
+            )
+        elif meta_name not in names:
+            check.problems.append(f"{archive}: {meta_name} does not exist")
+        else:
+            try:
+                data = json.loads(zf.read(entries[meta_name]).decode("utf-8"))
+            except (zipfile.BadZipFile, OSError, ValueError) as exc:
+                check.problems.append(f"{archive}: {meta_name} is not JSON ({exc})")
+            else:
+                check.problems += meta_problems(data, f"{archive}: {meta_name}")
+        if not any(n.startswith(bins) for n in names):
+            check.problems.append(
+                f"{archive}: the folder {bins} (which holds the .bin files) does not exist"
+            )
+        check.warnings += description_warnings(zf, entries.get(DESCRIPTION_NAME), archive)
+        for entry in tqdm(scans, desc="validate", unit="scan", disable=not progress):
+            name = _entry_name(split, entry)
+            info = entries.get(name)
+            if info is None:
+                check.problems.append(
+                    f"{archive}: {name} does not exist (sample_data {entry.name} of {entry.sequence})"
+                )
+                continue
+            try:
+                num_points = _expected_points(entry, profile)
+                data = zf.read(info)
+            except ScanFormatError as exc:
+                check.problems.append(str(exc))
+                continue
+            except (zipfile.BadZipFile, OSError, ValueError) as exc:
+                check.problems.append(f"{archive}: {name} cannot be read ({exc})")
+                continue
+            problem = _values_problem(data, f"{archive}: {name}", num_points, profile.num_classes)
+            if problem:
+                check.problems.append(problem)
+            check.scans += 1
+    return check
