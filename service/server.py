@@ -177,6 +177,12 @@ def run_serve(args: argparse.Namespace) -> int:
     args.batch_size = settings.batch_size
     spec = InferenceSpec.from_args(args)
     weights = load_weights(spec)
+    if weights.profile.layout.kind == "tables":
+        raise CommandError(
+            f"rangeret serve takes profiles of folder layouts; the {weights.profile.name} profile "
+            "reads a version's tables, which the gateway does not serve: use rangeret predict or "
+            "python -m workers.predict_job for it"
+        )
     if spec.backend == "onnxruntime":
         weights.export_onnx()  # once here, so that workers started next load it from the cache
     in_process = not (settings.serve_url and settings.jobs_address)

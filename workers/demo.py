@@ -5,7 +5,9 @@ short unlabelled test sequences 11 to 21), starts a local Ray, predicts every sc
 workers' pipeline with the bundled demo weights, evaluates the validation sequence (table, JSON,
 PNGs), writes and validates a partial submission archive, and renders one range image with its
 ground truth and prediction. The predictions tree gets its `run.json` like every other runner's.
-The demo weights were trained on simulated scenes only.
+With `--profile nuscenes` the dataset is a simulated v1.0-mini tree (both mini_val scenes, with
+labels), evaluated as the devkit scores it, and the archive is the mini_val results folder,
+whole and validated. The demo weights were trained on simulated scenes only.
 """
 
 from __future__ import annotations
@@ -31,9 +33,11 @@ from rangeret.inference.loader import load_weights
 from rangeret.inference.spec import InferenceSpec
 from rangeret.io.run_info import check_weights, write_run_info
 from rangeret.io.scans import read_scan
-from rangeret.models.weights.demo import DEMO_CHECKPOINT, DEMO_WARNING
+from rangeret.models.weights.demo import DEMO_CHECKPOINTS, DEMO_WARNING, is_demo_path
 from rangeret.sim import SensorConfig, simulate_dataset
-from rangeret.submission.archives import TEST_SEQUENCES, validate_submission, write_submission
+from rangeret.sim.nuscenes_tree import simulate_nuscenes
+from rangeret.submission.archives import TEST_SEQUENCES
+from rangeret.submission.benchmarks import no_archive_reason, write_benchmark_archive
 from rangeret.submission.leaderboard import LeaderboardEntry, description_text
 from workers.pipeline import describe_spec, run_pipeline
 from workers.sizing import PipelineOptions
@@ -59,15 +63,16 @@ def run_demo(
     is refused before anything is written unless `overwrite` (every scan is predicted again).
 
     With a `profile` other than SemanticKITTI's the scans are that dataset's (layout, point
-    record, labels), the checkpoint must be a network for it (the demo weights are SemanticKITTI's)
-    and there is no submission archive (the benchmark's format is SemanticKITTI's).
+    record, labels), the checkpoint must be a network for it (only SemanticKITTI and nuScenes
+    have bundled demo weights), and only nuScenes has a submission archive besides
+    SemanticKITTI.
     """
     import ray
 
-    if profile is not None and profile.name != DEFAULT_PROFILE and checkpoint is None:
+    if profile is not None and profile.name not in DEMO_CHECKPOINTS and checkpoint is None:
         raise ProfileError(
-            f"the bundled demo weights are SemanticKITTI's: rangeret demo --profile {profile.name} "
-            "needs --checkpoint with a network for that profile"
+            f"only the {' and '.join(DEMO_CHECKPOINTS)} profiles have bundled demo weights: "
+            f"rangeret demo --profile {profile.name} needs --checkpoint with a network for it"
         )
     started = time.perf_counter()
     out = Path(out) if out else Path(f"rangeret-demo-{time.strftime('%Y%m%d-%H%M%S')}")
@@ -80,9 +85,15 @@ def run_demo(
     info, profile = loaded.info, loaded.profile
     weights = Path(info.path)
     check_weights(preds, info.sha256, overwrite=overwrite)
-    benchmark = profile.name == DEFAULT_PROFILE
+    benchmark = no_archive_reason(profile) is None
+    demo_weights = is_demo_path(weights)
+    split = None
 
-    if benchmark:
+    if profile.layout.kind == "tables":
+        split = valid = "mini_val"
+        sequences = {scene: max(1, valid_scans // 2) for scene in profile.splits[split]}
+        n = simulate_nuscenes(dataset, sequences, seed=2026, progress=progress, profile=profile)
+    elif profile.name == DEFAULT_PROFILE:
         valid = "08"
         sequences = {valid: valid_scans, **{s: test_scans for s in TEST_SEQUENCES}}
         sensor = SensorConfig(beams=64, azimuth_steps=2048)
@@ -91,15 +102,16 @@ def run_demo(
         tests = [s for s in profile.splits.get("test", ()) if s != valid][:1]
         sequences = {valid: valid_scans, **{s: test_scans for s in tests}}
         sensor = SensorConfig.for_profile(profile)
-    n = simulate_dataset(
-        dataset,
-        sequences,
-        labelled=[valid],
-        sensor=sensor,
-        seed=2026,
-        progress=progress,
-        profile=profile,
-    )
+    if split is None:
+        n = simulate_dataset(
+            dataset,
+            sequences,
+            labelled=[valid],
+            sensor=sensor,
+            seed=2026,
+            progress=progress,
+            profile=profile,
+        )
     log.info("simulated %d scans into %s", n, dataset)
 
     options = PipelineOptions(read_cpus=0.25, write_cpus=0.1)
@@ -114,44 +126,49 @@ def run_demo(
     )
     with contextlib.ExitStack() as stack:
         ray_logs = None if ray.is_initialized() else stack.enter_context(_local_ray())
-        entries = discover(dataset, list(sequences), layout=profile.layout).scans
+        entries = discover(dataset, list(sequences), layout=profile.layout, split=split).scans
         run = run_pipeline(spec, profile, entries, preds, options)
     if not run.summary.ok:
         raise RuntimeError(f"the demo could not predict {sorted(run.summary.failed)}")
 
+    evaluated = list(profile.splits[split]) if split else [valid]
     report = evaluate_predictions(
-        dataset, preds, [valid], checkpoint_sha256=info.sha256, profile=profile
+        dataset, preds, evaluated, checkpoint_sha256=info.sha256, profile=profile, split=split
     )
-    if weights.resolve() == DEMO_CHECKPOINT.resolve():
+    if demo_weights:
         report.notes.append(DEMO_WARNING)
     report.write_json(out / "report.json")
     plots = write_plots(report, out / "plots", config=profile.labels)
     plots.append(
-        _range_image_png(dataset, preds, profile, valid, out / "plots" / "range-image.png")
+        _range_image_png(
+            dataset, preds, profile, evaluated[0], out / "plots" / "range-image.png", split
+        )
     )
 
     archive = out / "submission.zip"
     if benchmark:
-        write_submission(
+        leaderboard = leaderboard or LeaderboardEntry()
+        check = write_benchmark_archive(
+            profile,
             preds,
             dataset,
             archive,
-            allow_partial=True,
-            progress=progress,
             description=description_text(
-                leaderboard or LeaderboardEntry(),
+                leaderboard,
                 written_by="rangeret demo",
                 checkpoint_sha256=info.sha256,
                 model=info.name,
                 profile=profile.name,
-                demo_weights=weights.resolve() == DEMO_CHECKPOINT.resolve(),
+                demo_weights=demo_weights,
                 notes=["simulated scans: not a real submission"],
             ),
-            labels=profile.labels,
+            leaderboard=leaderboard,
+            checkpoint_sha256=info.sha256,
+            split=split,
+            allow_partial=split is None,
+            progress=progress,
         )
-        validate_submission(
-            archive, dataset, allow_partial=True, labels=profile.labels
-        ).raise_for_problems()
+        check.raise_for_problems()
 
     print(report.table())
     print(
@@ -163,12 +180,29 @@ def run_demo(
     print(f"  evaluation report:                        {out / 'report.json'}")
     for p in plots:
         print(f"  plot:                                     {p}")
-    if benchmark:
+    if benchmark and split is None:
         print(f"  submission archive (partial, for tests):  {archive}")
+    elif benchmark:
+        print(f"  submission archive ({split}, validated):".ljust(43) + f"{archive}")
     if ray_logs is not None:
         print(f"  Ray's own logs:                           {ray_logs}")
-    if weights.resolve() == DEMO_CHECKPOINT.resolve():
+    if demo_weights:
         print(f"\nNote: {DEMO_WARNING}.")
+    if split is not None:
+        print("\nOn a real nuScenes tree with weights for it:")
+        print(
+            "  rangeret predict --profile nuscenes --dataset ROOT --split val --out PRED "
+            "--checkpoint FILE"
+        )
+        print(
+            "  rangeret evaluate --profile nuscenes --dataset ROOT --predictions PRED --split val "
+            "--json report.json"
+        )
+        print(
+            "  rangeret submission --profile nuscenes --dataset ROOT --predictions PRED "
+            "--split test --out submission.zip"
+        )
+        return out
     print("\nOn real SemanticKITTI data with a published checkpoint:")
     print(
         "  rangeret predict --dataset ROOT --split valid --out PRED --checkpoint rangeret-kitti-657"
@@ -187,11 +221,18 @@ def run_demo(
 
 
 def _range_image_png(
-    dataset: Path, preds: Path, profile: DatasetProfile, sequence: str, path: Path
+    dataset: Path,
+    preds: Path,
+    profile: DatasetProfile,
+    sequence: str,
+    path: Path,
+    split: str | None = None,
 ) -> Path:
     """The first validation scan's range image, ground truth and prediction as one PNG."""
     config = profile.labels
-    entry = discover(dataset, [sequence], with_labels=True, layout=profile.layout).scans[0]
+    entry = discover(
+        dataset, [sequence], with_labels=True, layout=profile.layout, split=split
+    ).scans[0]
     proj = project_with(read_scan(entry.scan_path, profile.points), profile.projection)
     gt = config.to_class(entry.label_file.read(entry.label_path)).astype(np.int64)
     pred = profile.prediction_classes(entry.label_file.read(entry.prediction_in(preds)))

@@ -76,6 +76,11 @@ class SequenceLayout:
         """Folders of sequences."""
         return "folders"
 
+    @property
+    def label_file(self) -> LabelFile:
+        """SemanticKITTI's `.label` files: one uint32 per point."""
+        return KITTI_LABELS
+
     def to_dict(self) -> dict[str, Any]:
         """Plain-data form."""
         return {"sequence_folders": list(self.sequence_folders), "id_digits": self.id_digits}
@@ -201,6 +206,11 @@ class DatasetLayout(Protocol):
     @property
     def kind(self) -> str:
         """`folders` or `tables`, for messages and checks."""
+        ...
+
+    @property
+    def label_file(self) -> LabelFile:
+        """How its label and prediction files hold one label per point."""
         ...
 
     def normalise(self, name: str | int) -> str:

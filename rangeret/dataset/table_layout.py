@@ -53,6 +53,11 @@ class TableLayout:
         """A version's tables."""
         return "tables"
 
+    @property
+    def label_file(self) -> LabelFile:
+        """nuScenes-lidarseg's `_lidarseg.bin` files: one uint8 per point."""
+        return LIDARSEG_LABELS
+
     def normalise(self, name: str | int) -> str:
         """Scene names are kept as written (`scene-0103`)."""
         return str(name).strip()
@@ -138,7 +143,7 @@ class TableLayout:
                         label,
                         f"lidarseg/{folder}/{frame.token}_lidarseg.bin",
                         f"confidence/{folder}/{frame.token}.npy",
-                        LIDARSEG_LABELS,
+                        self.label_file,
                     )
                 )
         return result

@@ -25,7 +25,7 @@ from rangeret.io.atomic import atomic_path
 from rangeret.io.ply import write_ply
 from rangeret.io.point_fields import to_record
 from rangeret.io.point_files import read_point_file
-from rangeret.io.scans import ScanFormatError, read_labels
+from rangeret.io.scans import LabelFile, ScanFormatError
 
 #: Error map colours (RGB): right, wrong, ignored ground truth; and the background.
 RIGHT_RGB = (44, 160, 44)
@@ -80,8 +80,11 @@ def load_labelled_scan(
         overrides=overrides,
     )
     n, valid = cloud.num_points, cloud.valid
-    prediction = _labels_for(labels, scan, n)
-    truth = _labels_for(ground_truth, scan, n)
+    label_file = profile.layout.label_file
+    prediction = _labels_for(labels, scan, n, label_file)
+    if prediction is not None and profile.benchmark.predictions == "class":
+        prediction = profile.labels.to_raw(profile.prediction_classes(prediction))
+    truth = _labels_for(ground_truth, scan, n, label_file)
     if cloud.num_invalid:
         prediction = None if prediction is None else prediction[valid]
         truth = None if truth is None else truth[valid]
@@ -96,16 +99,18 @@ def load_labelled_scan(
     )
 
 
-def _labels_for(path: Path | str | None, scan: Path, num_points: int) -> np.ndarray | None:
+def _labels_for(
+    path: Path | str | None, scan: Path, num_points: int, label_file: LabelFile
+) -> np.ndarray | None:
     """The labels of `path` for a scan of `num_points` points, or None without a path."""
     if path is None:
         return None
-    labels = read_labels(path)
+    labels = label_file.read(path)
     if len(labels) != num_points:
         raise ScanFormatError(
             path,
             f"holds {len(labels)} labels but the scan {scan} has {num_points} points "
-            "(a label file holds one uint32 per point)",
+            f"(a label file holds one uint{8 * label_file.bytes} per point)",
         )
     return labels
 

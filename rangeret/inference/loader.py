@@ -72,7 +72,11 @@ def load_weights(spec: InferenceSpec, *, profile: DatasetProfile | None = None) 
     module). `profile` stands for the profile `spec.profile` names, for callers that hold one
     already (a label configuration of their own in it)."""
     requested = profile if profile is not None else _requested_profile(spec.profile)
-    path = resolve_checkpoint(None) if spec.checkpoint is None else spec.checkpoint
+    path = (
+        resolve_checkpoint(None, requested.name if requested is not None else None)
+        if spec.checkpoint is None
+        else spec.checkpoint
+    )
     resolved = resolve_weights(path, requested, spec.model, spec.height, spec.width)
     data = read_checkpoint_bytes(resolved.path)
     sha256 = hashlib.sha256(data).hexdigest()

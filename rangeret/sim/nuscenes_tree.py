@@ -83,8 +83,10 @@ def simulate_nuscenes(
     progress: bool = False,
     *,
     profile: DatasetProfile,
+    version: str = VERSION,
 ) -> int:
-    """Write a simulated `v1.0-mini` tree under `root` and return the number of keyframes.
+    """Write a simulated tree of `version` (v1.0-mini) under `root` and return the number of
+    keyframes.
 
     `scenes` maps a scene name to its number of keyframes (`DEFAULT_SCENES` when None);
     `labelled` says which scenes get lidarseg records and label files (True: all, False: none,
@@ -221,7 +223,7 @@ def simulate_nuscenes(
                     }
                 )
                 if scene_name in with_labels:
-                    label_name = f"lidarseg/{VERSION}/{sd}_lidarseg.bin"
+                    label_name = f"lidarseg/{version}/{sd}_lidarseg.bin"
                     LIDARSEG_LABELS.write(root / label_name, raw & np.uint32(SEMANTIC_MASK))
                     tables["lidarseg"].append(
                         {"token": sd, "sample_data_token": sd, "filename": label_name}
@@ -239,7 +241,7 @@ def simulate_nuscenes(
         if not with_labels:
             del tables["lidarseg"]
         for name, records in tables.items():
-            _write_json(root / VERSION / f"{name}.json", records)
+            _write_json(root / version / f"{name}.json", records)
     finally:
         if bar is not None:
             bar.close()

@@ -34,7 +34,7 @@ from rangeret.dataset.labels import LabelConfig
 from rangeret.dataset.layout import DatasetLayoutError, ScanEntry, discover, resolve_sequences
 from rangeret.dataset.profiles import DatasetProfile, ProfileError, profile_of_record
 from rangeret.dataset.projection import ProjectionConfig, project_with
-from rangeret.io.scans import PointRecord, read_labels, read_scan
+from rangeret.io.scans import PointRecord, read_scan
 from rangeret.training.augment import augment_points
 from rangeret.training.config import TrainConfig
 from rangeret.training.range_mixes import MixSettings, RangeImage, rare_classes
@@ -90,14 +90,14 @@ class RangeDataset(Dataset):
         """(N, fields) float32 points and (N,) int64 training classes of scan `index`."""
         entry = self.scans[index]
         points = read_scan(entry.scan_path, record=self.record)
-        raw = read_labels(entry.label_path, num_points=len(points))
+        raw = entry.label_file.read(entry.label_path, num_points=len(points))
         return points, self.label_config.to_class(raw).astype(np.int64)
 
     def class_counts(self) -> np.ndarray:
         """(num_classes,) number of points of each training class over all scans (reads every label)."""
         counts = np.zeros(self.label_config.num_classes, dtype=np.int64)
         for entry in self.scans:
-            classes = self.label_config.to_class(read_labels(entry.label_path))
+            classes = self.label_config.to_class(entry.label_file.read(entry.label_path))
             counts += np.bincount(classes, minlength=counts.size)
         return counts
 
@@ -277,7 +277,8 @@ def run_datasets(config: TrainConfig, profile: DatasetProfile) -> RunData:
     """The training set (augmented and mixed as `config` says) and the validation set (with
     what point-level validation needs) of `config`'s scans; no training scan is an error."""
     train_scans = find_scans(config.dataset, config.train_sequences, "train", profile)
-    val_scans = find_scans(config.dataset, config.val_sequences, "valid", profile)
+    val_split = "valid" if "valid" in profile.splits else "val"
+    val_scans = find_scans(config.dataset, config.val_sequences, val_split, profile)
     if not train_scans:
         raise DatasetLayoutError(f"no labelled training scan under {config.dataset}")
     frequencies = class_frequencies(train_scans, profile)

@@ -1,5 +1,6 @@
 """The bundled demo weights: trained on simulated scenes only (see `data/DEMO_WEIGHTS.md`), so
-every run on them says so. Torch-free: reports and descriptions ask about them cheaply."""
+every run on them says so. SemanticKITTI's are the default; nuScenes' are the default of the
+nuscenes profile. Torch-free: reports and descriptions ask about them cheaply."""
 
 from __future__ import annotations
 
@@ -13,8 +14,13 @@ from rangeret.models.weights.hub import resolve_weights
 
 log = logging.getLogger(__name__)
 
-#: The file of the bundled demo weights.
+#: The file of the bundled demo weights (SemanticKITTI's).
 DEMO_CHECKPOINT = DATA_DIR / "demo-weights.pt"
+#: The bundled demo weights of each profile that has them.
+DEMO_CHECKPOINTS = {
+    "semantickitti": DEMO_CHECKPOINT,
+    "nuscenes": DATA_DIR / "demo-weights-nuscenes.pt",
+}
 DEMO_WARNING = (
     "using the bundled demo weights, trained on simulated street scenes only: their labels on "
     "real scans are not meaningful; pass --checkpoint with real weights such as "
@@ -26,43 +32,61 @@ class DemoWeightsMissing(ModelError, FileNotFoundError):
     """No --checkpoint was given and the bundled demo weights are not installed."""
 
 
-def resolve_checkpoint(path: str | Path | None) -> Path:
+def demo_checkpoint(profile: str | None = None) -> Path:
+    """The bundled demo weights of a profile (None: SemanticKITTI's); a profile without any is
+    `DemoWeightsMissing` naming the profiles that have them."""
+    path = DEMO_CHECKPOINTS.get(profile or "semantickitti")
+    if path is None:
+        raise DemoWeightsMissing(
+            f"no --checkpoint given, and only the {' and '.join(DEMO_CHECKPOINTS)} profiles have "
+            f"bundled demo weights: pass --checkpoint with a network for the {profile} profile"
+        )
+    if not path.exists():
+        raise DemoWeightsMissing(
+            f"no --checkpoint given and the bundled demo weights {path} are missing"
+        )
+    return path
+
+
+def resolve_checkpoint(path: str | Path | None, profile: str | None = None) -> Path:
     """The checkpoint to load: `path`, a published model's file when `path` is its registered
     name (`rangeret-kitti-657`, fetched from the cache or the hub), or the bundled demo weights
-    (announced loudly) when None."""
+    of `profile` (announced loudly) when None."""
     if path is not None:
         return resolve_weights(path).path
-    if not DEMO_CHECKPOINT.exists():
-        raise DemoWeightsMissing(
-            f"no --checkpoint given and the bundled demo weights {DEMO_CHECKPOINT} are missing"
-        )
+    found = demo_checkpoint(profile)
     log.warning(DEMO_WARNING)
-    return DEMO_CHECKPOINT
+    return found
 
 
 def is_demo_checkpoint(sha256: str | None) -> bool:
-    """Whether a checkpoint hash is that of the bundled demo weights."""
-    return bool(sha256) and sha256 == _demo_sha256()
+    """Whether a checkpoint hash is that of bundled demo weights (any profile's)."""
+    return bool(sha256) and any(sha256 == _demo_sha256(p) for p in DEMO_CHECKPOINTS.values())
 
 
-#: The bundled demo weights' SHA-256 once known: noted by the loader that read them, else read
+def is_demo_path(path: str | Path) -> bool:
+    """Whether a checkpoint file is one of the bundled demo weights."""
+    resolved = Path(path).resolve()
+    return any(p.exists() and resolved == p.resolve() for p in DEMO_CHECKPOINTS.values())
+
+
+#: Each bundled demo file's SHA-256 once known: noted by the loader that read it, else read
 #: once (every description of a run asks for it).
-_DEMO_SHA256: dict[str, str | None] = {}
+_DEMO_SHA256: dict[Path, str | None] = {}
 
 
 def note_loaded(path: Path, sha256: str) -> None:
-    """Remember the hash of a checkpoint a loader has just read when it is the demo weights, so
+    """Remember the hash of a checkpoint a loader has just read when it is demo weights, so
     that asking about them later reads the file no second time."""
-    if DEMO_CHECKPOINT.exists() and Path(path).resolve() == DEMO_CHECKPOINT.resolve():
-        _DEMO_SHA256["sha256"] = sha256
+    for demo in DEMO_CHECKPOINTS.values():
+        if demo.exists() and Path(path).resolve() == demo.resolve():
+            _DEMO_SHA256[demo] = sha256
 
 
-def _demo_sha256() -> str | None:
-    """The bundled demo weights' SHA-256 (None when they are not installed)."""
-    if "sha256" not in _DEMO_SHA256:
-        _DEMO_SHA256["sha256"] = (
-            hashlib.sha256(DEMO_CHECKPOINT.read_bytes()).hexdigest()
-            if DEMO_CHECKPOINT.exists()
-            else None
+def _demo_sha256(demo: Path) -> str | None:
+    """A bundled demo file's SHA-256 (None when it is not installed)."""
+    if demo not in _DEMO_SHA256:
+        _DEMO_SHA256[demo] = (
+            hashlib.sha256(demo.read_bytes()).hexdigest() if demo.exists() else None
         )
-    return _DEMO_SHA256["sha256"]
+    return _DEMO_SHA256[demo]
