@@ -120,11 +120,8 @@ def _build(root: Path) -> None:
     python = root / "bin" / "python"
     _step(f"create {root} with {base_python()}", [str(base_python()), "-m", "venv", str(root)], 300)
     pip = [str(python), "-m", "pip", "--disable-pip-version-check", "--no-input"]
-    _step(
-        f"pip install {REQUIREMENT} (takes a few minutes)",
-        [*pip, "install", REQUIREMENT],
-        INSTALL_TIMEOUT_S,
-    )
+    log.info("devkit venv: installing %s takes a minute or more", REQUIREMENT)
+    _step(f"pip install {REQUIREMENT}", [*pip, "install", REQUIREMENT], INSTALL_TIMEOUT_S)
     _step("check import", [str(python), "-c", CHECK_IMPORT], 300)
     freeze = _step("pip freeze", [*pip, "freeze"], 300)
     tmp = root / (STAMP + ".tmp")

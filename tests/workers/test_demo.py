@@ -91,7 +91,8 @@ def test_demo_on_another_profile_needs_its_network(tmp_path, capsys):
 
     assert main(["demo", "-q", "--out", str(tmp_path / "d"), "--profile", "pandaset"]) == 1
     err = capsys.readouterr().err
-    assert "demo weights are SemanticKITTI's" in err and "--checkpoint" in err
+    assert "only the semantickitti and nuscenes profiles have bundled demo weights" in err
+    assert "--checkpoint" in err
     assert not (tmp_path / "d").exists()
 
 

@@ -397,3 +397,35 @@ def test_pandaset_scans_go_through_the_ray_job(ray_local, tmp_path, capsys):
     assert result["profile"] == "pandaset" and "unlabeled" not in result["iou"]
     assert len(result["iou"]) == 14
     capsys.readouterr()
+
+
+def test_nuscenes_sweeps_go_through_the_ray_job(ray_local, tmp_path, capsys):
+    """A version's tables, rows from the ring, challenge classes: the job writes the bytes
+    rangeret predict writes, scores as the devkit, and its archive is the validated mini_val
+    results folder."""
+    from rangeret.models import save_checkpoint
+    from tests.support.nuscenes import network, small_profile, write_tree
+
+    data = write_tree(tmp_path / "nu", {"scene-0103": 2, "scene-0916": 1})
+    save_checkpoint(tmp_path / "w.pt", network(), profile=small_profile().to_dict())
+    args = ["-q", "--dataset", str(data), "--split", "mini_val"]
+    args += ["--checkpoint", str(tmp_path / "w.pt"), "--device", "cpu"]
+    assert rangeret_main(["predict", *args, "--out", str(tmp_path / "single")]) == 0
+    report, archive = tmp_path / "report.json", tmp_path / "sub.zip"
+    job = [*args, "--out", str(tmp_path / "ray"), "--report", str(report)]
+    assert job_main([*job, "--submission", str(archive)]) == 0
+
+    def lidarseg(root):
+        return {str(p.relative_to(root)): p.read_bytes() for p in root.rglob("*_lidarseg.bin")}
+
+    single, distributed = lidarseg(tmp_path / "single"), lidarseg(tmp_path / "ray")
+    assert len(single) == 3 and single == distributed
+    assert all(name.startswith("lidarseg/mini_val/") for name in single)
+    result = json.loads(report.read_text())
+    assert result["profile"] == "nuscenes" and result["scoring"] == "nuscenes"
+    assert "freq_weighted_iou" in result and "ignore" not in result["iou"]
+    with zipfile.ZipFile(archive) as zf:
+        names = zf.namelist()
+    assert "mini_val/submission.json" in names
+    assert sorted(n for n in names if n.endswith(".bin")) == sorted(single)
+    capsys.readouterr()
