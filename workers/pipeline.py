@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING
 
 from rangeret.dataset.layout import ScanEntry
 from rangeret.dataset.profiles import DatasetProfile
-from rangeret.evaluation.metrics import RawLabelEvaluator
+from rangeret.evaluation.counting import RawLabelEvaluator
 from rangeret.inference.description import describe_network
 from rangeret.inference.loading import batches
 from rangeret.inference.results import RunSummary

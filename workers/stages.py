@@ -23,8 +23,8 @@ from rangeret.dataset.distance import distance_bands
 from rangeret.dataset.layout import ScanEntry
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.projection import ProjectionConfig
+from rangeret.evaluation.counting import RawLabelEvaluator
 from rangeret.evaluation.evaluate import count_scan
-from rangeret.evaluation.metrics import RawLabelEvaluator
 from rangeret.inference.loading import LoadedScan, load_batch, predict_loaded
 from rangeret.inference.spec import InferenceSpec
 from rangeret.inference.timing import StageTimes

@@ -21,7 +21,8 @@ from rangeret.dataset.distance import scan_bands
 from rangeret.dataset.layout import ScanEntry, discover
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.evaluation.calibration import Calibration
-from rangeret.evaluation.metrics import EvaluationReport, RawLabelEvaluator
+from rangeret.evaluation.counting import RawLabelEvaluator
+from rangeret.evaluation.metrics import EvaluationReport
 from rangeret.exceptions import DatasetError
 from rangeret.io.scans import PointRecord, ScanFormatError, read_confidence, read_scan
 

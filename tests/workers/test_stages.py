@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from rangeret.dataset.distance import scan_bands
-from rangeret.dataset.labels import semantickitti
 from rangeret.dataset.layout import KITTI_LAYOUT, discover, prediction_path, velodyne_dir
+from rangeret.dataset.profiles import load_profile
 from rangeret.dataset.projection import ProjectionConfig
 from rangeret.io.scans import KITTI_RECORD, read_labels, read_scan
 from tests.support.trees import make_tree
@@ -43,14 +43,14 @@ def test_a_batch_survives_encoding_between_stages(entries):
 
 
 def test_writer_names_failures_and_counts_labelled_scans(entries, tmp_path):
-    config = semantickitti()
     record = BatchRecord(0, entries)
     truth = [read_labels(e.label_path) for e in entries]
     record.results = [(truth[0], None), (None, "unreadable"), (truth[2], None)]
     first = scan_bands(read_scan(entries[0].scan_path))
     record.bands = [first, None, np.full(500, 5, np.uint8)]
     out = tmp_path / "pred"
-    done = BatchRecord.decode(write_results(record, str(out), config).encode())
+    profile = load_profile("semantickitti")
+    done = BatchRecord.decode(write_results(record, str(out), profile).encode())
     assert done.failures == [None, "unreadable", None]
     assert done.points == 800 and done.results == []
     assert done.counts.num_scans == 2 and done.counts.report().accuracy == 1.0

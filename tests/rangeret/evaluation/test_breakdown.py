@@ -136,7 +136,7 @@ def test_the_pipelines_counts_equal_evaluate(tmp_path):
     record.results = [
         (np.fromfile(prediction_path(preds, e.sequence, e.name), np.uint32), None) for e in entries
     ]
-    written = write_results(record, str(tmp_path / "again"), profile.labels)
+    written = write_results(record, str(tmp_path / "again"), profile)
     assert written.failures == [None] * 3
     streamed = written.counts.report(["03", "08"]).to_dict()
     resumed = count_labels(entries, preds, profile).report(["03", "08"]).to_dict()

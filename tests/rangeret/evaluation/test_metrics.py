@@ -9,10 +9,10 @@ import pytest
 
 from rangeret.dataset.distance import scan_bands
 from rangeret.dataset.labels import semantickitti
+from rangeret.evaluation.counting import RawLabelEvaluator
 from rangeret.evaluation.metrics import (
     ConfusionMatrix,
     EvaluationReport,
-    RawLabelEvaluator,
     confusion_counts,
 )
 from rangeret.evaluation.plots import write_plots

@@ -9,7 +9,7 @@ from rangeret.dataset.distance import scan_bands
 from rangeret.dataset.labels import semantickitti
 from rangeret.dataset.layout import KITTI_LAYOUT, discover
 from rangeret.dataset.profiles import load_profile
-from rangeret.evaluation.metrics import RawLabelEvaluator
+from rangeret.evaluation.counting import RawLabelEvaluator
 from rangeret.inference.predictor import Predictor
 from rangeret.io.scans import read_labels, read_scan
 from rangeret.models.weights.demo import DEMO_CHECKPOINT, is_demo_checkpoint
