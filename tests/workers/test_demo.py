@@ -125,3 +125,35 @@ def test_demo_on_pandaset_with_a_pandaset_network(tmp_path, capsys):
     assert len(list((out / "predictions").rglob("*.label"))) == 2
     assert (out / "plots" / "range-image.png").read_bytes()[:4] == b"\x89PNG"
     capsys.readouterr()
+
+
+def test_demo_on_nuscenes_with_its_demo_weights(tmp_path, capsys):
+    """Simulated v1.0-mini, predicted on Ray with the bundled nuScenes demo weights, scored as
+    the devkit scores, and a whole mini_val archive written and validated."""
+    pytest.importorskip("ray")
+    from rangeret.dataset.profiles import load_profile
+    from rangeret.submission.nuscenes import validate_nuscenes_submission
+    from workers.demo import run_demo
+
+    profile = load_profile("nuscenes")
+    out = run_demo(tmp_path / "demo", valid_scans=2, progress=False, profile=profile)
+    printed = capsys.readouterr().out
+    report = json.loads((out / "report.json").read_text())
+    assert report["profile"] == "nuscenes" and report["scoring"] == "nuscenes"
+    assert report["sequences"] == ["scene-0103", "scene-0916"] and report["num_scans"] == 2
+    assert any("simulated street scenes only" in note for note in report["notes"])
+    assert report["miou"] is not None and "freq_weighted_iou" in report
+    assert (out / "dataset" / "v1.0-mini" / "lidarseg.json").is_file()
+    assert len(list((out / "predictions" / "lidarseg" / "mini_val").iterdir())) == 2
+    check = validate_nuscenes_submission(
+        out / "submission.zip", out / "dataset", "mini_val", profile=profile
+    )
+    assert check.ok and check.scans == 2
+    with zipfile.ZipFile(out / "submission.zip") as zf:
+        meta = json.loads(zf.read("mini_val/submission.json"))
+    assert (
+        meta["meta"]["use_lidar"] is True
+        and meta["method"]["checkpoint_sha256"] == (report["checkpoint_sha256"])
+    )
+    assert "submission archive (mini_val, validated)" in printed
+    assert (out / "plots" / "range-image.png").read_bytes()[:4] == b"\x89PNG"

@@ -236,3 +236,36 @@ def test_a_partial_test_split_is_refused(tmp_path: Path, checkpoint: Path) -> No
     assert main([*sub, "--allow-partial"]) == 0
     with zipfile.ZipFile(tmp_path / "t.zip") as zf:
         assert len([n for n in zf.namelist() if n.endswith("_lidarseg.bin")]) == 2
+
+
+def test_view_shows_a_sweep_with_its_labels(
+    tree: Path, predictions: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    entry = entries(tree, ["scene-0916"], with_labels=True)[0]
+    out = tmp_path / "v.png"
+    args = ["view", str(entry.scan_path), "--profile", "nuscenes", "--out", str(out)]
+    assert main([*args, "--labels", str(predictions / entry.prediction)]) == 0
+    assert out.read_bytes()[:4] == b"\x89PNG"
+    assert "coloured by the prediction" in capsys.readouterr().out
+    truth = np.fromfile(entry.label_path, np.uint8)
+    short = tmp_path / "short.bin"
+    truth[:-1].tofile(short)
+    assert main([*args, "--ground-truth", str(short)]) == 1
+    assert "(a label file holds one uint8 per point)" in capsys.readouterr().err
+
+
+def test_a_root_of_two_versions_needs_version(
+    tmp_path: Path, checkpoint: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import shutil
+
+    root = write_tree(tmp_path / "two", {"scene-0103": 1, "scene-0916": 1})
+    shutil.copytree(root / "v1.0-mini", root / "v1.0-test")
+    args = ["predict", "-q", "--dataset", str(root), "--split", "mini_val"]
+    args += ["--out", str(tmp_path / "p"), "--checkpoint", str(checkpoint)]
+    assert main(args) == 1
+    assert "holds the versions v1.0-mini, v1.0-test: choose one with --version" in (
+        capsys.readouterr().err
+    )
+    assert main([*args, "--version", "v1.0-mini"]) == 0
+    assert len(list((tmp_path / "p" / "lidarseg" / "mini_val").iterdir())) == 2
