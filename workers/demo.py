@@ -183,7 +183,7 @@ def run_demo(
     if benchmark and split is None:
         print(f"  submission archive (partial, for tests):  {archive}")
     elif benchmark:
-        print(f"  submission archive ({split}, validated):".ljust(43) + f"{archive}")
+        print(f"  submission archive ({split}):".ljust(44) + f"{archive}")
     if ray_logs is not None:
         print(f"  Ray's own logs:                           {ray_logs}")
     if demo_weights:
