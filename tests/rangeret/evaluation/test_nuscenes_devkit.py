@@ -47,6 +47,12 @@ def devkit(*args: str) -> dict:
     return run_devkit(*args)
 
 
+def devkit_validate(tree: Path, folder: Path) -> dict:
+    """The devkit's `validate_submission` of a results folder for mini_val."""
+    args = ["--dataroot", str(tree), "--version", VERSION, "--results", str(folder)]
+    return devkit("validate", *args, "--eval-set", "mini_val")
+
+
 def unpack(archive: Path, folder: Path) -> Path:
     with zipfile.ZipFile(archive) as zf:
         zf.extractall(folder)
@@ -95,17 +101,7 @@ def test_the_devkit_accepts_our_archive(tree: Path, predictions: Path, tmp_path:
     archive = tmp_path / "s.zip"
     assert submit(tree, predictions, archive) == 0
     folder = unpack(archive, tmp_path / "unpacked")
-    verdict = devkit(
-        "validate",
-        "--dataroot",
-        str(tree),
-        "--version",
-        VERSION,
-        "--results",
-        str(folder),
-        "--eval-set",
-        "mini_val",
-    )
+    verdict = devkit_validate(tree, folder)
     assert verdict == {"ok": True}
 
 
@@ -116,15 +112,5 @@ def test_the_devkit_refuses_what_we_refuse(tree: Path, predictions: Path, tmp_pa
         args = ["validate-submission", str(archive), "--profile", "nuscenes"]
         assert main([*args, "--dataset", str(tree), "--split", "mini_val"]) == 1, case
         folder = unpack(archive, tmp_path / f"unpacked-{case}")
-        verdict = devkit(
-            "validate",
-            "--dataroot",
-            str(tree),
-            "--version",
-            VERSION,
-            "--results",
-            str(folder),
-            "--eval-set",
-            "mini_val",
-        )
+        verdict = devkit_validate(tree, folder)
         assert verdict["ok"] is False, (case, verdict)
