@@ -236,11 +236,11 @@ def test_the_projects_checkpoints_run_only_with_their_profile(tmp_path, capsys):
     assert "trained for the pandaset profile" in err and "semantickitti" in err
 
 
-def test_the_demo_weights_are_semantickittis(tmp_path, capsys):
+def test_a_profile_without_demo_weights_asks_for_a_checkpoint(tmp_path, capsys):
     data = _tree(tmp_path / "data", load_profile("pandaset"))
     code = _predict_sequence_1(tmp_path, data, "--profile", "pandaset")
     err = capsys.readouterr().err
-    assert code == 1 and "trained for the semantickitti profile" in err
+    assert code == 1 and "pass --checkpoint with a network for the pandaset profile" in err
 
 
 def test_a_laser_id_off_the_image_names_the_file(tmp_path, capsys):
@@ -307,11 +307,11 @@ def test_pandaset_evaluation_ignores_class_14_not_car(tmp_path, capsys):
     assert report["iou"]["car"] == 1.0
 
 
-def test_submission_archives_are_semantickitti_only(tmp_path, capsys):
+def test_submission_archives_are_the_benchmarks_only(tmp_path, capsys):
     args = ["submission", "--predictions", str(tmp_path), "--dataset", str(tmp_path)]
     code = main([*args, "--out", str(tmp_path / "s.zip"), "--profile", "pandaset"])
     err = capsys.readouterr().err
-    assert code == 1 and "SemanticKITTI benchmark's format" in err
+    assert code == 1 and "the pandaset profile has no such archive" in err
     assert not (tmp_path / "s.zip").exists()
 
 
