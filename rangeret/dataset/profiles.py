@@ -91,6 +91,14 @@ class DatasetProfile:
     benchmark: Benchmark = Benchmark()
     #: The reflectance a perfect reflector returns: 1 for remission, 255 for 8-bit intensity.
     reflectance_max: float = 1.0
+    #: Elevation of each beam in degrees, top beam first, for sensors whose beams are not evenly
+    #: spaced; None: beam i is aimed at the centre of row i.
+    beam_angles: tuple[float, ...] | None = None
+    #: The farthest return of the sensor in metres; None: not declared.
+    max_range: float | None = None
+    #: The sensor's height above the ground in metres, as the simulator mounts it; None: its
+    #: default.
+    mount_height: float | None = None
 
     @property
     def num_classes(self) -> int:
@@ -138,7 +146,9 @@ class DatasetProfile:
         fov_down: float | None = None,
         labels: LabelConfig | None = None,
     ) -> DatasetProfile:
-        """The profile with explicit command-line values in place of its own (None keeps them)."""
+        """The profile with explicit command-line values in place of its own (None keeps them);
+        `beam_angles` describe the profile's own rows, so another height or field of view drops
+        them."""
         changes = {
             k: v
             for k, v in (
@@ -152,7 +162,15 @@ class DatasetProfile:
         projection = replace(self.projection, **changes) if changes else self.projection
         if labels is not None and not labels.splits:
             labels = replace(labels, splits=self.labels.splits)
-        return replace(self, projection=projection, labels=labels or self.labels)
+        beam_angles = self.beam_angles
+        if beam_angles is not None and any(
+            getattr(projection, k) != getattr(self.projection, k)
+            for k in ("height", "fov_up", "fov_down")
+        ):
+            beam_angles = None
+        return replace(
+            self, projection=projection, labels=labels or self.labels, beam_angles=beam_angles
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """The profile's fields as plain data: what `profile show` prints and a file holds."""
@@ -170,6 +188,9 @@ class DatasetProfile:
                 "means": list(p.means),
                 "stds": list(p.stds),
                 **({"reflectance_max": self.reflectance_max} if self.reflectance_max != 1 else {}),
+                **({"beam_angles": list(self.beam_angles)} if self.beam_angles else {}),
+                **({"max_range": self.max_range} if self.max_range is not None else {}),
+                **({"mount_height": self.mount_height} if self.mount_height is not None else {}),
             },
             "points": {"fields": list(self.points.fields)},
             "layout": self.layout.to_dict(),
@@ -202,7 +223,7 @@ class DatasetProfile:
         """A profile from `to_dict()`'s form; a wrong, missing or extra field is a ProfileError
         naming it (as `source: field.path: problem`)."""
         f = Fields(data, source, error=ProfileError, kind="profile field")
-        sensor = f.section("sensor", _SENSOR_KEYS, ("reflectance_max",))
+        sensor = f.section("sensor", _SENSOR_KEYS, _SENSOR_OPTIONAL)
         points = f.section("points", ("fields",))
         layout_data = f.get("layout", dict)
         if "tables" in layout_data:
@@ -241,11 +262,8 @@ class DatasetProfile:
         if row in BEAM_ROWS and row not in record.fields[4:]:
             points.fail("fields", f"must end with {row} when sensor.row is {row}")
 
-        reflectance_max = 1.0
-        if "reflectance_max" in sensor.data:
-            reflectance_max = sensor.number("reflectance_max")
-            if not reflectance_max > 0:
-                sensor.fail("reflectance_max", f"must be positive, got {reflectance_max:g}")
+        reflectance_max = _positive(sensor, "reflectance_max")
+        beam_angles = _beam_angles(sensor, projection)
 
         if "tables" in layout_data:
             tables = layout.choice("tables", SCHEMAS)
@@ -288,7 +306,10 @@ class DatasetProfile:
             knn=KnnVote(votes_from),
             layout=sequence_layout,
             benchmark=benchmark,
-            reflectance_max=reflectance_max,
+            reflectance_max=1.0 if reflectance_max is None else reflectance_max,
+            beam_angles=beam_angles,
+            max_range=_positive(sensor, "max_range"),
+            mount_height=_positive(sensor, "mount_height"),
         )
 
     def to_yaml(self) -> str:
@@ -319,6 +340,41 @@ def _benchmark(f: Fields, num_classes: int) -> Benchmark:
 
 
 _SENSOR_KEYS = ("height", "width", "fov_up", "fov_down", "row", "means", "stds")
+_SENSOR_OPTIONAL = ("reflectance_max", "beam_angles", "max_range", "mount_height")
+
+
+def _positive(sensor: Fields, key: str) -> float | None:
+    """An optional positive number of the `sensor` section; None where it is left out."""
+    if key not in sensor.data:
+        return None
+    value = sensor.number(key)
+    if not value > 0:
+        sensor.fail(key, f"must be positive, got {value:g}")
+    return value
+
+
+def _beam_angles(sensor: Fields, projection: ProjectionConfig) -> tuple[float, ...] | None:
+    """The optional `sensor.beam_angles`: one elevation per row in degrees, top beam first,
+    strictly decreasing and within the field of view; None where it is left out."""
+    if "beam_angles" not in sensor.data:
+        return None
+    angles = sensor.numbers("beam_angles", projection.height)
+    steps = [i for i in range(1, len(angles)) if not angles[i] < angles[i - 1]]
+    if steps:
+        i = steps[0]
+        sensor.fail(
+            "beam_angles",
+            f"must decrease strictly from the top beam down, but beam {i} ({angles[i]:g}) is not "
+            f"below beam {i - 1} ({angles[i - 1]:g})",
+        )
+    top, bottom = abs(projection.fov_up), -abs(projection.fov_down)
+    if angles[0] > top or angles[-1] < bottom:
+        sensor.fail(
+            "beam_angles",
+            f"must lie within the field of view ({bottom:g} to {top:g} degrees), got "
+            f"{angles[-1]:g} to {angles[0]:g}",
+        )
+    return angles
 
 
 def builtin_profiles() -> list[str]:

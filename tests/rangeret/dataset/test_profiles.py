@@ -338,3 +338,81 @@ def test_a_hostile_label_configuration_is_one_short_line(tmp_path, capsys):
     assert main([*argv, "--label-config", str(path)]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "expands to more than" in err, err[:600]
+
+
+# Optional sensor fields -----------------------------------------------------------------------
+
+#: Uneven beams of an 8-row profile with a +10 to -30 degree field of view.
+BEAM_ANGLES = [10.0, 4.0, 1.0, 0.0, -1.0, -5.0, -12.0, -30.0]
+SENSOR_8 = {"sensor.height": 8, "sensor.fov_up": 10.0, "sensor.fov_down": -30.0}
+
+
+def test_beam_angles_max_range_and_mount_height_round_trip(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = profile_file(
+        tmp_path / "uneven.yaml",
+        "semantickitti",
+        {
+            **SENSOR_8,
+            "sensor.beam_angles": BEAM_ANGLES,
+            "sensor.max_range": 70.5,
+            "sensor.mount_height": 1.9,
+        },
+    )
+    profile = load_profile(path)
+    assert profile.beam_angles == tuple(BEAM_ANGLES)
+    assert (profile.max_range, profile.mount_height) == (70.5, 1.9)
+    assert main(["profile", "show", str(path)]) == 0
+    shown = capsys.readouterr().out
+    assert yaml.safe_load(shown)["sensor"]["beam_angles"] == BEAM_ANGLES
+    again = tmp_path / "again.yaml"
+    again.write_text(shown)
+    assert load_profile(again) == profile
+    assert main(["profile", "show", str(again)]) == 0
+    assert capsys.readouterr().out == shown
+    plain = load_profile("semantickitti").to_dict()["sensor"]
+    assert not {"beam_angles", "max_range", "mount_height"} & set(plain)
+
+
+def test_another_height_drops_the_beam_angles(tmp_path: Path) -> None:
+    path = profile_file(
+        tmp_path / "uneven.yaml", "semantickitti", {**SENSOR_8, "sensor.beam_angles": BEAM_ANGLES}
+    )
+    profile = load_profile(path)
+    assert profile.with_overrides(width=64).beam_angles == tuple(BEAM_ANGLES)
+    assert profile.with_overrides(height=16).beam_angles is None
+    assert DatasetProfile.from_dict(profile.with_overrides(height=16).to_dict()).beam_angles is None
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "problem"),
+    [
+        ("beam_angles", BEAM_ANGLES[:7], "must be a list of 8 numbers"),
+        ("beam_angles", [10.0, 4.0, 1.0, 1.0, -1.0, -5.0, -12.0, -30.0], "beam 3 (1) is not below"),
+        (
+            "beam_angles",
+            [11.0, 4.0, 1.0, 0.0, -1.0, -5.0, -12.0, -30.0],
+            "within the field of view",
+        ),
+        (
+            "beam_angles",
+            [10.0, 4.0, 1.0, 0.0, -1.0, -5.0, -12.0, -31.0],
+            "within the field of view",
+        ),
+        ("max_range", 0, "must be positive, got 0"),
+        ("max_range", "far", "must be a number, got 'far'"),
+        ("mount_height", -1.5, "must be positive, got -1.5"),
+    ],
+)
+def test_a_wrong_optional_sensor_field_is_named(
+    field: str, value: Any, problem: str, tmp_path: Path
+) -> None:
+    path = profile_file(
+        tmp_path / "bad.yaml", "semantickitti", {**SENSOR_8, f"sensor.{field}": value}
+    )
+    with pytest.raises(ProfileError) as caught:
+        load_profile(path)
+    message = str(caught.value)
+    assert message.startswith(f"{path}: sensor.{field}: ") and problem in message
+    assert "\n" not in message
