@@ -106,6 +106,19 @@ def selected_sequences(
     return present
 
 
+def add_offset_option(parser: argparse.ArgumentParser, help: str) -> None:
+    """--sensor-offset DX DY DZ (metres, default 0 0 0): where a sensor sits from another, as
+    `simulate` and `adapt` take it."""
+    parser.add_argument(
+        "--sensor-offset",
+        type=float,
+        nargs=3,
+        default=(0.0, 0.0, 0.0),
+        metavar=("DX", "DY", "DZ"),
+        help=help,
+    )
+
+
 def add_profile_option(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
     """--profile NAME|FILE: the dataset profile (sensor, point record, labels, layout, splits)."""
     add_spec_options(parser, ("profile",))

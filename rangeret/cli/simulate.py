@@ -8,7 +8,7 @@ from pathlib import Path
 
 from rangeret.commands import CommandError
 from rangeret.dataset.profiles import DatasetProfile, load_profile
-from rangeret.options import add_profile_option, requested_profile
+from rangeret.options import add_offset_option, add_profile_option, requested_profile
 from rangeret.plugins import Subcommand
 
 
@@ -29,6 +29,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--azimuth-steps", type=int, help="columns cast per turn (default 2048, or the profile's)"
     )
     p.add_argument("--seed", type=int, default=0)
+    add_offset_option(
+        p,
+        "render from a sensor moved this far (m: forward, left, up) from its mounting (1.73 m "
+        "above the ground, or the profile's sensor.mount_height); the points stay in the "
+        "sensor's frame",
+    )
     add_profile_option(p)
 
 
@@ -50,14 +56,20 @@ def run(args: argparse.Namespace) -> int:
     labelled = [s for s in counts if s not in set(args.unlabelled)]
     if profile is None:
         profile = load_profile(None)
-        sensor = SensorConfig(beams=args.beams or 64, azimuth_steps=args.azimuth_steps or 2048)
+        sensor = SensorConfig(
+            beams=args.beams or 64,
+            azimuth_steps=args.azimuth_steps or 2048,
+            offset=tuple(args.sensor_offset),
+        )
     else:
         if args.beams is not None and args.beams != profile.projection.height:
             raise CommandError(
                 f"--beams {args.beams} contradicts the {profile.name} profile's "
                 f"{profile.projection.height} rows; leave --beams out with --profile"
             )
-        sensor = SensorConfig.for_profile(profile, azimuth_steps=args.azimuth_steps)
+        sensor = SensorConfig.for_profile(
+            profile, azimuth_steps=args.azimuth_steps, offset=tuple(args.sensor_offset)
+        )
     n = simulate_dataset(
         args.out,
         counts,
@@ -94,7 +106,11 @@ def _run_tables(
         args.out,
         scenes,
         labelled=labelled,
-        sensor=SensorConfig.for_profile(profile, azimuth_steps=args.azimuth_steps or AZIMUTH_STEPS),
+        sensor=SensorConfig.for_profile(
+            profile,
+            azimuth_steps=args.azimuth_steps or AZIMUTH_STEPS,
+            offset=tuple(args.sensor_offset),
+        ),
         seed=args.seed,
         progress=not args.quiet,
         profile=profile,

@@ -10,8 +10,9 @@
   profile's, reproducible byte for byte from its seed.
 """
 
+from rangeret.dataset.beams import beam_values
 from rangeret.sim.dataset import simulate_dataset
-from rangeret.sim.raycast import SensorConfig, beam_values, simulate_scan
+from rangeret.sim.raycast import SensorConfig, simulate_scan
 from rangeret.sim.scene import Boxes, Cylinders, Ellipsoids, Scene, ground_labels
 from rangeret.sim.street import make_scene
 

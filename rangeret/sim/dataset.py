@@ -12,6 +12,7 @@ from collections.abc import Iterable, Iterator, Mapping
 
 import numpy as np
 
+from rangeret.dataset.beams import beam_values
 from rangeret.dataset.labels import SEMANTIC_MASK
 from rangeret.dataset.layout import SequenceLayout, labels_dir, velodyne_dir
 from rangeret.dataset.profiles import DatasetProfile
@@ -19,7 +20,7 @@ from rangeret.dataset.projection import BEAM_ROWS
 from rangeret.io.atomic import atomic_write_bytes
 from rangeret.io.scans import write_labels, write_scan
 from rangeret.sim.classes import raw_label_map
-from rangeret.sim.raycast import SensorConfig, SimulationError, beam_values, simulate_scan
+from rangeret.sim.raycast import SensorConfig, SimulationError, simulate_scan
 from rangeret.sim.street import make_scene
 
 #: Seconds between two scans (the HDL-64E spins at 10 Hz).
@@ -96,7 +97,8 @@ def simulate_dataset(
     and writes `sequences/XX/velodyne/NNNNNN.bin`, `labels/NNNNNN.label` when it is labelled
     (`labelled`: True for all, False for none, or the names of the labelled ones), and
     `poses.txt`, `times.txt` and `calib.txt` (the LiDAR is the reference frame: `Tr` is the
-    identity and the poses are the sensor's). The same seed writes the same bytes.
+    identity and the poses are the sensor's, its `offset` from the default mounting included).
+    The same seed writes the same bytes.
 
     The sequence folders, ids, point records and raw label ids are the profile's (a laser id,
     where its record has one, is the beam index), and the sensor defaults to
@@ -132,6 +134,7 @@ def simulate_dataset(
             seq_dir = velodyne_dir(root, name, layout=layout).parent
             seq_dir.mkdir(parents=True, exist_ok=True)
             poses, times = [], []
+            dx, dy, dz = sensor.offset
             scans = sequence_scans(name, n, sensor, seed, profile=profile)
             for k, (points, raw, x) in enumerate(scans):
                 write_scan(
@@ -139,7 +142,7 @@ def simulate_dataset(
                 )
                 if name in with_labels:
                     write_labels(labels_dir(root, name, layout=layout) / f"{k:06d}.label", raw)
-                poses.append(_matrix_line([1, 0, 0, x, 0, 1, 0, 0, 0, 0, 1, 0]))
+                poses.append(_matrix_line([1, 0, 0, x + dx, 0, 1, 0, dy, 0, 0, 1, dz]))
                 times.append(f"{k * SCAN_PERIOD:.6e}")
                 written += 1
                 if bar is not None:

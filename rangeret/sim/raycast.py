@@ -47,8 +47,10 @@ class SimulationError(InputError, ValueError):
 @dataclass
 class SensorConfig:
     """A spinning multi-beam LiDAR: beams evenly spread from `fov_up` to `fov_down` (degrees), the
-    top beam (laser id 0) first, `azimuth_steps` columns over 360 degrees, mounted `height` m above the ground, returns up to
-    `max_range` m with gaussian range noise (m) and a share `dropout` of returns lost."""
+    top beam (laser id 0) first, or aimed at `elevations`; `azimuth_steps` columns over 360
+    degrees, mounted `height` m above the ground and moved by `offset` (forward, left, up, in m)
+    from there; returns up to `max_range` m with gaussian range noise (m) and a share `dropout` of
+    returns lost."""
 
     beams: int = 64
     azimuth_steps: int = 2048
@@ -60,8 +62,27 @@ class SensorConfig:
     dropout: float = 0.02
     #: The reflectance written for a perfect reflector: 1 for remission, 255 for 8-bit intensity.
     reflectance_max: float = 1.0
+    #: Elevation of each beam in degrees, top beam first (uneven beams); None: evenly spread.
+    elevations: tuple[float, ...] | None = None
+    #: Where the sensor sits from its mounting (forward, left, up, in m); points stay in its frame.
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
+        if self.elevations is not None:
+            self.elevations = tuple(float(e) for e in self.elevations)
+            if any(not b < a for a, b in zip(self.elevations, self.elevations[1:], strict=False)):
+                raise SimulationError("beam elevations must decrease strictly from the top beam")
+            self.beams = len(self.elevations)
+            self.fov_up, self.fov_down = self.elevations[0], self.elevations[-1]
+        offset = [float(v) for v in self.offset]
+        if len(offset) != 3 or not np.isfinite(offset).all():
+            raise SimulationError(f"offset must be three finite numbers (m), got {offset}")
+        self.offset = (offset[0], offset[1], offset[2])
+        if not self.height + self.offset[2] > 0:
+            raise SimulationError(
+                f"the sensor must stay above the ground: a height of {self.height:g} m raised "
+                f"by {self.offset[2]:g} m is not"
+            )
         if self.beams < 1 or self.azimuth_steps < 1:
             raise SimulationError(
                 f"beams and azimuth_steps must be positive, got {self.beams} x {self.azimuth_steps}"
@@ -77,38 +98,55 @@ class SensorConfig:
         if not self.reflectance_max > 0:
             raise SimulationError(f"reflectance_max must be positive, got {self.reflectance_max}")
 
+    @property
+    def mount(self) -> np.ndarray:
+        """The sensor's position relative to the point below its default mounting (m)."""
+        dx, dy, dz = self.offset
+        return np.array([dx, dy, self.height + dz])
+
     @classmethod
-    def for_profile(cls, profile: DatasetProfile, azimuth_steps: int | None = None) -> SensorConfig:
+    def for_profile(
+        cls,
+        profile: DatasetProfile,
+        azimuth_steps: int | None = None,
+        offset: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ) -> SensorConfig:
         """The sensor of a profile's range image: one beam per row, aimed at the row's centre so a
-        pitch projection puts beam i on row i, and 2 x width azimuth steps unless given."""
+        pitch projection puts beam i on row i (or at `sensor.beam_angles`), 2 x width azimuth
+        steps unless given, and the profile's `mount_height` and `max_range` where it has them."""
         p = profile.projection
         top, bottom = abs(p.fov_up), -abs(p.fov_down)
         half_row = (top - bottom) / p.height / 2
+        defaults = cls()
         return cls(
             beams=p.height,
             azimuth_steps=2 * p.width if azimuth_steps is None else azimuth_steps,
             fov_up=top - half_row,
             fov_down=bottom + half_row,
+            height=profile.mount_height or defaults.height,
+            max_range=profile.max_range or defaults.max_range,
             reflectance_max=profile.reflectance_max,
+            elevations=profile.beam_angles,
+            offset=offset,
         )
 
 
-def beam_values(lasers: np.ndarray, profile: DatasetProfile) -> np.ndarray:
-    """The fifth record value of simulated points, float32, from their beam indices (0 = the top
-    beam): the index itself for a `laser_id` record, the ring counted from the lowest beam of the
-    profile's image for a `ring` record, as Velodyne numbers them."""
-    lasers = np.asarray(lasers)
-    if profile.points.fields[4:] == ("ring",):
-        lasers = profile.projection.height - 1 - lasers
-    return lasers.astype(np.float32)
+def _elevations(sensor: SensorConfig) -> np.ndarray:
+    """(beams,) elevation of each beam in degrees, top beam first."""
+    if sensor.elevations is not None:
+        return np.asarray(sensor.elevations)
+    if sensor.beams > 1:
+        return np.linspace(sensor.fov_up, sensor.fov_down, sensor.beams)
+    return np.array([sensor.fov_up])
 
 
 @lru_cache(maxsize=8)
-def _ray_grid(beams: int, steps: int, fov_up: float, fov_down: float) -> np.ndarray:
+def _ray_grid(elevations: tuple[float, ...], steps: int) -> np.ndarray:
     """Unit ray directions (beams * steps, 3), beam-major, read-only. Column j looks at azimuth
     pi - (j + 0.5) 2 pi / steps, so the projection's u = floor(0.5 (-azimuth / pi + 1) W) gives
     back column j when W = steps."""
-    elev = np.radians(np.linspace(fov_up, fov_down, beams)) if beams > 1 else np.radians([fov_up])
+    beams = len(elevations)
+    elev = np.radians(np.asarray(elevations))
     azim = np.pi - (np.arange(steps) + 0.5) * (2 * np.pi / steps)
     ce = np.cos(elev)[:, None]
     dirs = np.empty((beams, steps, 3))
@@ -137,9 +175,15 @@ def _candidate_pairs(
     zlo, zhi = lo[:, 2], hi[:, 2]
     e_hi = np.degrees(np.arctan2(zhi, np.where(zhi >= 0, dmin, dmax)))
     e_lo = np.degrees(np.arctan2(zlo, np.where(zlo >= 0, dmax, dmin)))
-    step = (sensor.fov_up - sensor.fov_down) / (beams - 1) if beams > 1 else 1.0
-    r0 = np.clip(np.floor((sensor.fov_up - e_hi) / step), 0, beams).astype(np.int64)
-    r1 = np.clip(np.ceil((sensor.fov_up - e_lo) / step), -1, beams - 1).astype(np.int64)
+    if sensor.elevations is not None:
+        # The beams from the first at or below e_hi to the last at or above e_lo.
+        descending = -np.asarray(sensor.elevations)
+        r0 = np.searchsorted(descending, -e_hi, side="left").astype(np.int64)
+        r1 = np.searchsorted(descending, -e_lo, side="right").astype(np.int64) - 1
+    else:
+        step = (sensor.fov_up - sensor.fov_down) / (beams - 1) if beams > 1 else 1.0
+        r0 = np.clip(np.floor((sensor.fov_up - e_hi) / step), 0, beams).astype(np.int64)
+        r1 = np.clip(np.ceil((sensor.fov_up - e_lo) / step), -1, beams - 1).astype(np.int64)
     nrow = np.maximum(r1 - r0 + 1, 0)
 
     cx, cy = (lo[:, 0] + hi[:, 0]) / 2, (lo[:, 1] + hi[:, 1]) / 2
@@ -267,20 +311,21 @@ def simulate_scan(
     *,
     lasers: bool = False,
 ) -> tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One scan of `scene` by `sensor` at (pose_x, scene.ego_y), facing +x.
+    """One scan of `scene` by `sensor` mounted at (pose_x, scene.ego_y) and moved by its
+    `offset`, facing +x.
 
     Returns float32 (N, 4) points (x, y, z, remission) in the sensor frame (the ground at
-    z = -height) and uint32 (N,) labels (raw id | instance << 16); with `lasers`, also each
-    point's int64 beam index (laser id, 0 = the top beam). Rays that hit nothing within
-    `max_range`, and a random share `dropout` of the others, give no point.
+    z = -(height + offset z)) and uint32 (N,) labels (raw id | instance << 16); with `lasers`,
+    also each point's int64 beam index (laser id, 0 = the top beam). Rays that hit nothing
+    within `max_range`, and a random share `dropout` of the others, give no point.
     """
-    dirs = _ray_grid(sensor.beams, sensor.azimuth_steps, sensor.fov_up, sensor.fov_down)
-    origin = np.array([pose_x, scene.ego_y, sensor.height])
+    dirs = _ray_grid(tuple(_elevations(sensor).tolist()), sensor.azimuth_steps)
+    origin = np.array([pose_x, scene.ego_y, 0.0]) + sensor.mount
     time = pose_x / scene.ego_speed
 
     # The ground plane z = 0 catches every downward ray; primitives may come nearer.
     with np.errstate(divide="ignore"):
-        best = np.where(dirs[:, 2] < 0, -sensor.height / dirs[:, 2], np.inf)
+        best = np.where(dirs[:, 2] < 0, -origin[2] / dirs[:, 2], np.inf)
     owner = np.where(np.isfinite(best), -1, -2)
 
     box_centre = _box_centres(scene, time)
