@@ -1,5 +1,5 @@
-"""The `rangeret` command: predict, evaluate, compare reports, submission archives, training and
-simulation.
+"""The `rangeret` command: predict, evaluate, compare reports, submission archives, training,
+simulation and adapting a dataset to another sensor.
 
 This module builds the parser and dispatches; each library subcommand lives in its own module of
 `rangeret.cli` (its options and body), and `serve`, `demo` and `train --ray` come from the layers
@@ -16,6 +16,7 @@ import sys
 from collections.abc import Sequence
 
 from rangeret.cli import (
+    adapt,
     compare,
     evaluate,
     export,
@@ -63,6 +64,7 @@ BUILTIN_COMMANDS = (
     view.COMMAND,
     TRAIN_COMMAND,
     simulate.COMMAND,
+    adapt.COMMAND,
     profile.COMMAND,
     weights.COMMAND,
     export.COMMAND,
