@@ -8,6 +8,8 @@ Ray Data do, and reads nothing (a fixed cluster) where that is not possible.
 
 from __future__ import annotations
 
+import logging
+import os
 import time
 
 from workers.sizing import (
@@ -18,6 +20,8 @@ from workers.sizing import (
     plan_layout,
     waits_for_gpu,
 )
+
+log = logging.getLogger("workers.cluster")
 
 
 def read_resources() -> ClusterResources:
@@ -57,3 +61,23 @@ def cluster_layout(options: PipelineOptions, wait: float = FREE_GPU_WAIT_S) -> L
         time.sleep(0.5)
         resources = read_resources()
     return plan_layout(options, resources)
+
+
+def connect(address: str | None) -> None:
+    """Join the cluster at `address` (or RAY_ADDRESS); start a local Ray when there is none."""
+    import ray
+
+    if ray.is_initialized():
+        return
+    address = address or os.environ.get("RAY_ADDRESS")
+    if address:
+        ray.init(address=address, log_to_driver=True)
+    else:
+        ray.init(include_dashboard=False)
+    res = ray.cluster_resources()
+    log.info(
+        "Ray cluster: %d nodes, %g CPUs, %g GPUs",
+        len(ray.nodes()),
+        res.get("CPU", 0),
+        res.get("GPU", 0),
+    )

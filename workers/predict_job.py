@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import sys
 from collections.abc import Sequence
 from dataclasses import replace
@@ -40,6 +39,7 @@ from rangeret.options import (
 )
 from rangeret.submission.benchmarks import no_archive_reason, write_benchmark_archive
 from rangeret.submission.leaderboard import description_text
+from workers.cluster import connect
 from workers.pipeline import describe_spec, run_pipeline
 from workers.progress import ProgressWriter
 from workers.sizing import PipelineOptions
@@ -131,26 +131,6 @@ def spec_of(args: argparse.Namespace) -> InferenceSpec:
     if not isinstance(values, dict):
         raise CommandError(f"--inference-spec must be a JSON object, got {type(values).__name__}")
     return InferenceSpec.from_mapping(values, where=" in --inference-spec")
-
-
-def connect(address: str | None) -> None:
-    """Join the cluster at `address` (or RAY_ADDRESS); start a local Ray when there is none."""
-    import ray
-
-    if ray.is_initialized():
-        return
-    address = address or os.environ.get("RAY_ADDRESS")
-    if address:
-        ray.init(address=address, log_to_driver=True)
-    else:
-        ray.init(include_dashboard=False)
-    res = ray.cluster_resources()
-    log.info(
-        "Ray cluster: %d nodes, %g CPUs, %g GPUs",
-        len(ray.nodes()),
-        res.get("CPU", 0),
-        res.get("GPU", 0),
-    )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -40,8 +40,8 @@ from rangeret.training.config import TrainConfigError, profile_reference
 from rangeret.training.config_file import config_yaml
 from rangeret.training.data import find_scans, training_profile
 from rangeret.training.state import STATE, check_run_folder, read_state
+from workers.cluster import connect
 from workers.pipeline import ClusterCapacityError
-from workers.predict_job import connect
 from workers.train_options import add_ray_options
 
 log = logging.getLogger("workers.train_job")

@@ -5,11 +5,15 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rangeret.commands import CommandError
 from rangeret.dataset.profiles import load_profile
 from rangeret.options import add_offset_option, add_selection, selected_sequences
 from rangeret.plugins import Subcommand
+
+if TYPE_CHECKING:
+    from rangeret.adapt import AdaptPlan, AdaptStats
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -58,17 +62,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
-def run(args: argparse.Namespace) -> int:
-    """Adapt every scan of the chosen sequences to the target profile."""
-    from rangeret.adapt import (
-        AdaptSettings,
-        AdaptStats,
-        adapt_one,
-        finish,
-        load_label_map,
-        plan_adaptation,
-        unmeasured_beams,
-    )
+def plan_from_args(args: argparse.Namespace) -> AdaptPlan:
+    """The run the parsed options ask for: profiles, offset and label map checked, scans listed
+    and `OUT/adapt.json` begun (`plan_adaptation`); every driver of `adapt` starts here."""
+    from rangeret.adapt import AdaptSettings, load_label_map, plan_adaptation
     from rangeret.adapt.resample import check_offset, check_profiles
 
     if args.version is not None:
@@ -82,7 +79,42 @@ def run(args: argparse.Namespace) -> int:
         None if args.label_map is None else load_label_map(args.label_map, target),
     )
     sequences = selected_sequences(args, source, args.dataset, doing="adapting")
-    plan = plan_adaptation(args.dataset, args.out, sequences, settings, overwrite=args.overwrite)
+    return plan_adaptation(args.dataset, args.out, sequences, settings, overwrite=args.overwrite)
+
+
+def report(plan: AdaptPlan, results: list[AdaptStats]) -> int:
+    """Finish the run's record (`finish`) and print what was adapted, dropped and left empty;
+    every driver of `adapt` ends here. Returns the exit code, 0."""
+    from rangeret.adapt import AdaptStats, finish, unmeasured_beams
+
+    info = finish(plan, results)
+    total = sum(results, AdaptStats())
+    skipped = f" ({plan.skipped} already there)" if plan.skipped else ""
+    print(f"scans adapted into {plan.out}: {total.scans}{skipped}")
+    if total.scans:
+        print(
+            f"points: {total.points_kept:,} of {total.points_in:,} kept; dropped "
+            f"{total.dropped_fov:,} outside the field of view, {total.dropped_range:,} out of "
+            f"range, {total.dropped_collisions:,} on a pixel another point won"
+        )
+    if total.empty_scans:
+        print(f"{total.empty_scans} scan(s) kept no point and were left out")
+    source, target = plan.settings.source, plan.settings.target
+    beams = unmeasured_beams(source, target)
+    if beams:
+        print(
+            f"{len(beams)} beam(s) of {target.name} lie outside the source's field of view and "
+            f"stay empty: {', '.join(map(str, beams))}"
+        )
+    print(f"record: {info}")
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    """Adapt every scan of the chosen sequences to the target profile, in this process."""
+    from rangeret.adapt import adapt_one
+
+    plan = plan_from_args(args)
     todo = plan.todo
     results: list[AdaptStats] = []
     bar = None
@@ -92,32 +124,13 @@ def run(args: argparse.Namespace) -> int:
         bar = tqdm(total=len(todo), unit="scan", desc="adapting")
     try:
         for job in todo:
-            results.append(adapt_one(job, settings))
+            results.append(adapt_one(job, plan.settings))
             if bar is not None:
                 bar.update(1)
     finally:
         if bar is not None:
             bar.close()
-    info = finish(plan, results)
-    total = sum(results, AdaptStats())
-    skipped = f" ({plan.skipped} already there)" if plan.skipped else ""
-    print(f"scans adapted into {args.out}: {total.scans}{skipped}")
-    if total.scans:
-        print(
-            f"points: {total.points_kept:,} of {total.points_in:,} kept; dropped "
-            f"{total.dropped_fov:,} outside the field of view, {total.dropped_range:,} out of "
-            f"range, {total.dropped_collisions:,} on a pixel another point won"
-        )
-    if total.empty_scans:
-        print(f"{total.empty_scans} scan(s) kept no point and were left out")
-    beams = unmeasured_beams(source, target)
-    if beams:
-        print(
-            f"{len(beams)} beam(s) of {target.name} lie outside the source's field of view and "
-            f"stay empty: {', '.join(map(str, beams))}"
-        )
-    print(f"record: {info}")
-    return 0
+    return report(plan, results)
 
 
 COMMAND = Subcommand(
