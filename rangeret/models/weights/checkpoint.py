@@ -14,7 +14,9 @@ Two kinds of file load:
 
 Every file is read with `torch.load(weights_only=True)` and loaded strictly: missing, unexpected
 or mis-shaped keys raise `CheckpointError` naming them. The returned module is in eval mode and
-carries a `CheckpointInfo` as `model.checkpoint_info`.
+carries a `CheckpointInfo` as `model.checkpoint_info`. `checkpoint_from_bytes` reads a file the
+same way without loading it into a network, for callers that match its tensors against another
+one (`rangeret train --init-from`).
 """
 
 from __future__ import annotations
@@ -120,6 +122,48 @@ def network_from_bytes(
     project's own files everything comes from the file; arguments that contradict it raise
     CheckpointError.
     """
+    content = checkpoint_from_bytes(
+        data,
+        path,
+        model,
+        height,
+        width,
+        default_resolution=default_resolution,
+        sha256=sha256,
+        **overrides,
+    )
+    network = RangeRet(content.config)
+    _check_keys(Path(path), network, content.state_dict, content.info.published)
+    network.load_state_dict(content.state_dict, strict=True)
+    network.eval()
+    network.checkpoint_info = content.info
+    return network
+
+
+@dataclasses.dataclass(frozen=True)
+class CheckpointContent:
+    """What a checkpoint file holds, not yet loaded into a network: the configuration of its
+    network, its tensors by name, and its `CheckpointInfo`."""
+
+    config: ModelConfig
+    state_dict: Mapping[str, torch.Tensor]
+    info: CheckpointInfo
+
+
+def checkpoint_from_bytes(
+    data: bytes,
+    path: str | os.PathLike[str],
+    model: str | None = None,
+    height: int | None = None,
+    width: int | None = None,
+    *,
+    default_resolution: tuple[int, int] = (64, 1024),
+    sha256: str | None = None,
+    **overrides: Any,
+) -> CheckpointContent:
+    """The configuration, tensors and records of a checkpoint file's bytes, read as
+    `network_from_bytes` reads them but not loaded into a network, so that a caller can match
+    the tensors against another network (fine-tuning with a new head)."""
     path = Path(path)
     digest = sha256 or hashlib.sha256(data).hexdigest()
     try:
@@ -141,11 +185,7 @@ def network_from_bytes(
         records = {"label_config": None, "projection": None, "metadata": None, "profile": None}
         published = True
 
-    network = RangeRet(config)
-    _check_keys(path, network, state, published)
-    network.load_state_dict(state, strict=True)
-    network.eval()
-    network.checkpoint_info = CheckpointInfo(
+    info = CheckpointInfo(
         path=str(path),
         sha256=digest,
         name=config.name,
@@ -153,7 +193,7 @@ def network_from_bytes(
         published=published,
         **records,
     )
-    return network
+    return CheckpointContent(config, state, info)
 
 
 def describe_state_dict(state: Mapping[str, torch.Tensor]) -> dict[str, Any]:

@@ -25,3 +25,11 @@ class CheckpointInfo:
     projection: dict[str, Any] | None
     metadata: dict[str, Any] | None
     profile: dict[str, Any] | None = None
+
+    @property
+    def parent(self) -> dict[str, Any] | None:
+        """The checkpoint these weights were fine-tuned from (`rangeret train --init-from`): the
+        name or path given, its file and SHA-256, as the training metadata records it; None for
+        weights trained from scratch and for published files."""
+        parent = (self.metadata or {}).get("parent")
+        return dict(parent) if isinstance(parent, dict) else None
