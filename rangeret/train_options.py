@@ -5,7 +5,8 @@ metadata into argparse options (type, choices, default and help written once, on
 `add_training_options` adds those of `TrainConfig` with `--config`, `--print-config` and
 `--no-amp`; and `config_from_args` turns the parsed options, over the `--config` file's settings,
 into a `TrainConfig`. Options left off the command line are None here, so a file's value stands
-unless the command line gives another.
+unless the command line gives another. With `--init-from` the checkpoint's network settles
+`--model` and `--override`, which may then only repeat it.
 """
 
 from __future__ import annotations
@@ -145,7 +146,8 @@ def precision_from_args(args: argparse.Namespace, configured: str | None) -> str
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
     """The `TrainConfig` of parsed training options over the settings of their `--config` file
     (ValueError on invalid values); paths are made absolute, so that workers in other folders
-    and resumed runs read the same ones."""
+    and resumed runs read the same ones, and an `--init-from` checkpoint's network fills in the
+    model and its overrides (those given must repeat it)."""
     source = getattr(args, "config", None)
     values = read_config_file(source) if source is not None else {}
     for name, value in given_settings(args).items():
@@ -161,10 +163,22 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
     for f in fields:
         if values.get(f.name) is not None and "resolve" in f.metadata:
             values[f.name] = f.metadata["resolve"](values[f.name])
-    missing = [f for f in fields if f.metadata.get("required") and f.name not in values]
+    missing = [
+        f
+        for f in fields
+        if f.metadata.get("required")
+        and f.name not in values
+        and values.get(f.metadata.get("settled_by", "")) is None
+    ]
     if missing:
         raise TrainConfigError(
             f"the following settings are required: {', '.join(option_flag(f) for f in missing)}"
             + (f" (on the command line or in {source})" if source else " (or give --config FILE)")
         )
+    if values.get("init_from") is not None:
+        from rangeret.training.init_from import read_parent, settle_network
+
+        overrides = dict(values.get("model_overrides", ()))
+        parent = read_parent(values["init_from"], overrides)
+        values.update(settle_network(parent, values.get("model"), overrides))
     return TrainConfig(**values)

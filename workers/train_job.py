@@ -39,6 +39,7 @@ from rangeret.training import TrainConfig, Trainer
 from rangeret.training.config import TrainConfigError, profile_reference
 from rangeret.training.config_file import config_yaml
 from rangeret.training.data import find_scans, training_profile
+from rangeret.training.init_from import check_parent
 from rangeret.training.state import STATE, check_run_folder, read_state
 from workers.cluster import connect
 from workers.pipeline import ClusterCapacityError
@@ -79,9 +80,9 @@ def use_gpus(device: str, workers: int) -> bool:
 def run_ray(config: TrainConfig, workers: int = 2, max_failures: int = 0) -> Path:
     """Train `config` on `workers` Ray Train workers; returns the output folder.
 
-    The inputs are checked here first (a run already in DIR without resume, the profile, a saved
-    run with other settings, missing scans or labels), so that bad input fails with its own
-    message instead of inside the workers.
+    The inputs are checked here first (a run already in DIR without resume, the profile, an
+    `--init-from` checkpoint that does not fit, a saved run with other settings, missing scans or
+    labels), so that bad input fails with its own message instead of inside the workers.
     """
     from ray.train import FailureConfig, RunConfig, ScalingConfig
     from ray.train.torch import TorchConfig, TorchTrainer
@@ -97,6 +98,7 @@ def run_ray(config: TrainConfig, workers: int = 2, max_failures: int = 0) -> Pat
     )
     state = check_run_folder(out, config.resume)
     profile = training_profile(config)
+    config = check_parent(config, profile)
     if config.resume:
         read_state(state, config, profile)
     if not find_scans(config.dataset, config.train_sequences, "train", profile):

@@ -32,6 +32,7 @@ from rangeret.dataset.projection import ProjectionConfig
 from rangeret.exceptions import ConfigError
 from rangeret.inference.runtime.precision import PRECISIONS
 from rangeret.models.configs import OVERRIDES, list_models
+from rangeret.models.weights.hub import published_name
 from rangeret.training.losses import LOSSES, WEIGHTINGS
 from rangeret.training.range_mixes import MIXES
 from rangeret.training.schedule import OPTIMIZERS, SCHEDULES
@@ -68,6 +69,13 @@ def absolute_path(path: str | Path) -> str:
     return str(Path(path).resolve())
 
 
+def parent_reference(value: str | Path) -> str:
+    """How a config holds `--init-from`: a published model's name as given, a file as its
+    absolute path (workers in other folders and resumed runs read the same one)."""
+    text = str(value)
+    return text if published_name(text) is not None else absolute_path(text)
+
+
 def parse_override(text: str) -> tuple[str, Any]:
     """'name=value' as (name, value): ints, booleans and 'AxB' pairs are converted."""
     name, sep, value = text.partition("=")
@@ -91,7 +99,8 @@ def setting(default: Any = dataclasses.MISSING, *, help: str, group: str, **cli:
     """A `TrainConfig` field with its schema: `help` and `group` of its command-line option, and
     optionally `flag`, `metavar`, `nargs`, `choices` (a sequence or a function giving one),
     `negate` (a bool option that turns the field off), `required` (to be given on the command
-    line or in the file, even with a default), `resolve` (a function applied to every given
+    line or in the file, even with a default), `settled_by` (the name of a setting that, when
+    given, settles a required one left out), `resolve` (a function applied to every given
     value, e.g. `absolute_path`), `parse` (applied to each item given on the command line, which
     then add to the file's mapping), `keys` (the names of a mapping setting), `default_text` (how
     the help shows the default) and `flag=None` (no option)."""
@@ -104,6 +113,9 @@ class TrainConfig:
 
     `profile` names the dataset profile (layout, point record, projection, labels, kNN rule);
     `height`, `width`, `fov_up`, `fov_down` and `label_config` of None take the profile's values.
+    `init_from` names a checkpoint to start from (`rangeret.training.init_from`): `model` and
+    `model_overrides` must then be its network's, and `freeze_backbone_steps` keeps what it
+    loaded unchanged for that many steps.
     `train_sequences` / `val_sequences` of None mean the profile's "train" / "valid" splits; an
     empty `val_sequences` means no validation (best.pt then follows the training loss).
     `max_steps` caps the run, and the schedule then spans min(epochs x steps per epoch, max_steps)
@@ -197,10 +209,11 @@ class TrainConfig:
     )
     model: str = setting(
         "rangeret-thesis",
-        help="network to train",
+        help="network to train; with --init-from the checkpoint's, which it may only repeat",
         group="network",
         choices=list_models,
         required=True,
+        settled_by="init_from",
     )
     model_overrides: tuple[tuple[str, Any], ...] = setting(
         (),
@@ -211,6 +224,22 @@ class TrainConfig:
         metavar="NAME=VALUE",
         parse=parse_override,
         keys=OVERRIDES,
+    )
+    init_from: str | None = setting(
+        None,
+        help="start from the weights of a checkpoint file or a published model (a name of "
+        "`rangeret weights list`) at step 0 with a new optimiser: its network, every tensor that "
+        "fits, a new head where the profile's classes differ",
+        group="network",
+        metavar="CHECKPOINT",
+        resolve=parent_reference,
+    )
+    freeze_backbone_steps: int = setting(
+        0,
+        help="with --init-from, train only the new head for the first N steps: the loaded "
+        "tensors and their BatchNorm statistics stay as loaded",
+        group="network",
+        metavar="N",
     )
     epochs: int = setting(64, help="training epochs", group="optimisation", metavar="N")
     max_steps: int | None = setting(
@@ -356,6 +385,15 @@ class TrainConfig:
             (
                 self.checkpoint_every >= 0,
                 f"checkpoint_every must not be negative, got {self.checkpoint_every}",
+            ),
+            (
+                self.freeze_backbone_steps >= 0,
+                f"freeze_backbone_steps must not be negative, got {self.freeze_backbone_steps}",
+            ),
+            (
+                self.freeze_backbone_steps == 0 or self.init_from is not None,
+                f"--freeze-backbone-steps {self.freeze_backbone_steps} needs --init-from: only "
+                "weights loaded from a checkpoint can stay frozen while a new head trains",
             ),
         ]
         for ok, message in checks:

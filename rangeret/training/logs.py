@@ -48,6 +48,21 @@ class CsvLog:
             return list(csv.DictReader(f))
 
 
+def metrics_columns(losses: Sequence[str], validation: Sequence[str]) -> list[str]:
+    """The columns of metrics.csv: epoch, step, lr, time, the training loss and its `losses`
+    terms, the training mIoU and the `validation` metrics."""
+    return [
+        "epoch",
+        "step",
+        "lr",
+        "seconds",
+        "train_loss",
+        *(f"train_{n}" for n in losses),
+        "train_miou_image",
+        *validation,
+    ]
+
+
 def _cell(value: Any) -> Any:
     """Floats with enough digits to read back exactly; everything else as is."""
     return repr(float(value)) if isinstance(value, float) else value

@@ -6,7 +6,7 @@ random states of python, numpy and torch. It is plain data and tensors (loads wi
 weights_only=True). A resumed run must agree with the stored `TrainConfig` on every field but
 `RUNTIME_FIELDS` (`read_state` checks), and a folder that already holds a run is only continued
 with resume on (`check_run_folder`). `run_record` is what every checkpoint records of the run,
-and `better_epoch` decides which epoch best.pt holds.
+`label_set` the classes it was trained for, and `better_epoch` decides which epoch best.pt holds.
 """
 
 from __future__ import annotations
@@ -146,6 +146,16 @@ def better_epoch(
     if best is not None and better(value, best["value"]) == best["value"]:
         return None
     return {"metric": name, "value": value, "epoch": metrics["epoch"], "step": metrics["step"]}
+
+
+def label_set(profile: DatasetProfile) -> dict[str, Any]:
+    """The label set a checkpoint was trained for, as its metadata records it: the profile's name,
+    its class count and class names."""
+    return {
+        "profile": profile.name,
+        "num_classes": profile.num_classes,
+        "class_names": list(profile.labels.class_names),
+    }
 
 
 def run_record(

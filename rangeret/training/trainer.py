@@ -12,6 +12,9 @@
 - `last.state.pt`: what an exact resume needs beyond the weights (see `state.py`).
 - `steps.csv`, `metrics.csv` and `curves.png` (see `logs.py`).
 
+With `init_from` the run starts from a checkpoint's weights (`init_from.py`, `parent` in the
+metadata); the metadata's `label_set` names the classes trained for.
+
 Every epoch ends with validation (`validation.py`). The training step and the validation forward
 run at the config's `precision` (`rangeret.inference.runtime.precision`; auto is fp16 on CUDA,
 fp32 on the CPU), with a gradient scaler for fp16 only. The precision used is logged at the
@@ -52,7 +55,8 @@ from rangeret.training.data import (
     training_profile,
 )
 from rangeret.training.distributed import Ranks, wrap_for_ranks
-from rangeret.training.logs import CsvLog, plot_curves
+from rangeret.training.init_from import FineTuning, settle_run
+from rangeret.training.logs import CsvLog, metrics_columns, plot_curves
 from rangeret.training.losses import SegmentationLoss, class_weights
 from rangeret.training.schedule import build_optimizer, build_scheduler, load_optimizer_state
 from rangeret.training.state import (
@@ -66,6 +70,7 @@ from rangeret.training.state import (
     STEPS_CSV,
     better_epoch,
     check_run_folder,
+    label_set,
     read_state,
     rng_state,
     run_record,
@@ -110,10 +115,11 @@ class Trainer:
             self.device = torch.device("cuda", torch.cuda.current_device())
         self.precision = resolve_precision(config.precision, self.device)
         config = dataclasses.replace(config, precision=self.precision)
-        self.config = config
         self.ranks = Ranks.detect(self.device)
         self.on_epoch_end = on_epoch_end
         self.profile = training_profile(config, label_config)
+        config, parent = settle_run(config, self.profile)
+        self.config = config
         self.label_config = self.profile.labels
         self.projection = self.profile.projection
         self.num_classes = self.profile.num_classes
@@ -136,6 +142,7 @@ class Trainer:
             self.num_classes,
             **config.overrides,
         ).to(self.device)
+        self.tuning = FineTuning.start(parent, self.model, config, announce=self.ranks.main)
         weights = class_weights(self.frequencies, self.label_config.ignored, config.class_weighting)
         self.criterion = SegmentationLoss(
             config.losses, weights, config.focal_gamma, ignore_index=self.unlabeled
@@ -163,19 +170,8 @@ class Trainer:
         self.network = wrap_for_ranks(self.model, self.ranks, self.device)
         self.loss_names = ("loss", *self.criterion.losses)
         self.steps_log = CsvLog(self.out / STEPS_CSV, ["step", "epoch", *self.loss_names, "lr"])
-        self.metrics_log = CsvLog(
-            self.out / METRICS_CSV,
-            [
-                "epoch",
-                "step",
-                "lr",
-                "seconds",
-                "train_loss",
-                *(f"train_{n}" for n in self.criterion.losses),
-                "train_miou_image",
-                *VAL_METRICS,
-            ],
-        )
+        columns = metrics_columns(self.criterion.losses, VAL_METRICS)
+        self.metrics_log = CsvLog(self.out / METRICS_CSV, columns)
         self._pending_steps: list[dict[str, float]] = []
         self._pending_epochs: list[dict[str, Any]] = []
         self.result = TrainResult(self.out)
@@ -285,6 +281,7 @@ class Trainer:
         nothing else in the step waits for the device.
         """
         self.network.train()
+        self.tuning.hold(self.step)
         images = batch["image"].to(self.device, non_blocking=True)
         labels = batch["label"].to(self.device, non_blocking=True)
         with forward_precision(self.precision, self.device):
@@ -293,6 +290,7 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         with self._backward_precision():
             self.scaler.scale(loss).backward()
+        self.tuning.drop_gradients(self.step)
         if self.config.clip_grad > 0:
             self.scaler.unscale_(self.optimizer)
             torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.clip_grad)
@@ -419,6 +417,8 @@ class Trainer:
             "total_steps": self.total_steps,
             "metrics": dict(metrics) if metrics else None,
             "best": dict(self.best) if self.best else None,
+            "label_set": label_set(self.profile),
+            "parent": self.tuning.record(),
             **run_record(
                 self.config,
                 losses=self.criterion.losses,
@@ -446,6 +446,7 @@ class Trainer:
                 "step": self.step,
                 "best": self.best,
                 "epoch_totals": self._epoch_totals(complete),
+                "parent": self.tuning.record(),
                 "rng": rng_state(),
             }
             save_atomic(state, self.out / STATE)
@@ -480,6 +481,7 @@ class Trainer:
 
     def _restore(self, path: Path, state: Mapping[str, Any]) -> None:
         """Restore everything `_save` wrote, from the state `read_state` checked."""
+        self.tuning.check_resume(path, state)
         self.model.load_state_dict(state["model"])
         load_optimizer_state(self.optimizer, state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])

@@ -31,7 +31,13 @@ EARLIER_OPTIONS = {
     "--class-weights", "--focal-gamma", "--clip-grad", "--precision", "--no-amp", "--seed",
     "--out", "--resume", "--checkpoint-every", "--device", "--ray", "--workers",
 }  # fmt: skip
-NEW_OPTIONS = {"--config", "--print-config", "--optimizer"}
+NEW_OPTIONS = {
+    "--config",
+    "--print-config",
+    "--optimizer",
+    "--init-from",
+    "--freeze-backbone-steps",
+}
 
 
 def train_parser() -> argparse.ArgumentParser:
