@@ -95,6 +95,7 @@ def describe_spec(spec: InferenceSpec, info: CheckpointInfo, profile: DatasetPro
         device=spec.device,
         precision=spec.precision,
         backend=spec.backend,
+        parent=info.parent,
     )
 
 

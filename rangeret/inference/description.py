@@ -22,15 +22,18 @@ def describe_network(
     device: str,
     precision: str,
     backend: str = "torch",
+    parent: dict | None = None,
 ) -> dict:
     """The description of a network and its options that logs, reports and `run.json` carry;
     `device` and `precision` are those used, or those asked for where the network runs
-    elsewhere; `backend` is where its forward pass runs (torch or onnxruntime)."""
+    elsewhere; `backend` is where its forward pass runs (torch or onnxruntime); `parent` is the
+    checkpoint the weights were fine-tuned from (`CheckpointInfo.parent`), None if none."""
     return {
         "model": model,
         "checkpoint": checkpoint,
         "checkpoint_sha256": sha256,
         "demo_weights": is_demo_checkpoint(sha256),
+        "parent": parent,
         "profile": profile,
         "projection": projection.to_dict(),
         "knn": asdict(knn) if knn else None,

@@ -138,6 +138,7 @@ class Predictor:
             device=str(self.device),
             precision=self.precision,
             backend=self.backend,
+            parent=None if info is None else info.parent,
         )
 
     def with_knn(self, knn: KnnSettings | None) -> Predictor:

@@ -1,13 +1,13 @@
 """`run.json`: how a predictions tree was made, written beside it by every runner the same way.
 
 It records the network (model, checkpoint and its SHA-256, whether these are the demo weights,
-projection, kNN, test-time augmentation, device), the data (dataset, sequences), the batch size,
-the runner and the start time, so that any tree can be traced back to what produced it. Its
-top-level keys describe the latest run into the tree; `runs` lists every run that wrote into it,
-oldest first (a record written before runs were listed becomes the first entry). A run with
-other weights than those whose predictions the tree holds is refused unless it overwrites. An
-output that is not a tree (a labelled bag) gets one run's record at an explicit path
-(`write_run_record`).
+the checkpoint they were fine-tuned from, projection, kNN, test-time augmentation, device), the
+data (dataset, sequences), the batch size, the runner and the start time, so that any tree can
+be traced back to what produced it. Its top-level keys describe the latest run into the tree;
+`runs` lists every run that wrote into it, oldest first (a record written before runs were
+listed becomes the first entry). A run with other weights than those whose predictions the tree
+holds is refused unless it overwrites. An output that is not a tree (a labelled bag) gets one
+run's record at an explicit path (`write_run_record`).
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ RUN_KEYS = (
     "checkpoint",
     "checkpoint_sha256",
     "demo_weights",
+    "parent",
     "profile",
     "precision",
     "backend",
