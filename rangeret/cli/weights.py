@@ -1,11 +1,15 @@
-"""`rangeret weights`: list the published models, or download one."""
+"""`rangeret weights`: list the published models, download one, or show what a checkpoint holds."""
 
 from __future__ import annotations
 
 import argparse
+import errno
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 from rangeret.commands import CommandError
+from rangeret.exceptions import InputFileMissing
 from rangeret.plugins import Subcommand
 
 
@@ -24,13 +28,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     download.add_argument(
         "--to", type=Path, metavar="DIR", help="this folder instead of the hub cache"
     )
+    info = actions.add_parser(
+        "info",
+        help="what a checkpoint holds: SHA-256, network, profile and classes, parent, training",
+    )
+    info.add_argument(
+        "checkpoint", metavar="CHECKPOINT", help="a checkpoint file, or a published model's name"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
-    """List the published models, or download one into the hub cache or a folder."""
+    """List the published models, download one into the hub cache or a folder, or print what a
+    checkpoint holds."""
     from rangeret.models.weights.hub import cached_weights, fetch_weights
     from rangeret.models.weights.registry import load_registry, lookup
 
+    if args.action == "info":
+        for name, value in checkpoint_facts(args.checkpoint):
+            print(f"{name + ':':<10} {value}")
+        return 0
     if args.action == "download":
         model = lookup(args.name)
         if model is None:
@@ -61,4 +77,108 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-COMMAND = Subcommand("weights", "published models: list them, download one", add_arguments, run)
+def checkpoint_facts(value: str) -> list[tuple[str, str]]:
+    """The facts `rangeret weights info` prints of the checkpoint `value` names (a file or a
+    published model's name), as (name, text) pairs; a file that is missing or not a checkpoint
+    is a one-line error."""
+    import hashlib
+
+    from rangeret.models.weights.checkpoint import network_from_bytes, read_checkpoint_bytes
+    from rangeret.models.weights.hub import check_pin, resolve_weights
+    from rangeret.models.weights.run_profile import profile_for_checkpoint
+
+    resolved = resolve_weights(value)
+    if not resolved.path.exists():
+        raise InputFileMissing(
+            errno.ENOENT, "no such checkpoint file or published model", str(resolved.path)
+        )
+    if not resolved.path.is_file():
+        raise CommandError(f"{resolved.path} is not a checkpoint file but a folder")
+    data = read_checkpoint_bytes(resolved.path)
+    sha256 = hashlib.sha256(data).hexdigest()
+    if resolved.published is not None:
+        check_pin(resolved.published, resolved.path, sha256)
+    network = network_from_bytes(
+        data,
+        resolved.path,
+        model=resolved.model,
+        height=resolved.height,
+        width=resolved.width,
+        sha256=sha256,
+    )
+    info = network.checkpoint_info
+    config = info.config
+    facts = [
+        ("path", str(Path(info.path).resolve())),
+        ("sha256", info.sha256),
+        ("format", "published state_dict" if info.published else "rangeret checkpoint"),
+        ("network", info.name),
+        ("config", " ".join(f"{k}={_text(v)}" for k, v in config.items() if k != "name")),
+    ]
+    classes = int(config["num_classes"])
+    if info.published:
+        registry = resolved.published
+        facts.append(
+            (
+                "profile",
+                f"{registry.profile} (the registry's entry {registry.name})"
+                if registry is not None
+                else "not recorded (published weights record none)",
+            )
+        )
+        facts.append(("classes", f"{classes} (names not recorded)"))
+    else:
+        profile = profile_for_checkpoint(info, requested=None)
+        names = ", ".join(profile.labels.class_names)
+        facts.append(("profile", profile.name))
+        facts.append(("classes", f"{classes}: {names}"))
+    facts.append(("parent", _parent_text(info.parent)))
+    facts.append(("training", _training_text(info.metadata)))
+    return facts
+
+
+def _text(value: Any) -> str:
+    """A configuration value as the command line writes it (pairs as AxB, booleans lower-case)."""
+    if isinstance(value, (list, tuple)) and len(value) == 2:
+        return f"{value[0]}x{value[1]}"
+    return str(value).lower() if isinstance(value, bool) else str(value)
+
+
+def _parent_text(parent: Mapping[str, Any] | None) -> str:
+    """The parent line: what the run was started from, its SHA-256, what was loaded and made new."""
+    if not parent:
+        return "none (trained from scratch, or published)"
+    text = f"{parent.get('source')} (sha256 {parent.get('sha256')}"
+    if parent.get("path") and parent.get("path") != parent.get("source"):
+        text += f", file {parent['path']}"
+    if parent.get("model"):
+        text += f"; {parent['model']} with {parent.get('num_classes')} classes"
+    if parent.get("profile"):
+        text += f" for the {parent['profile']} profile"
+    if "loaded" in parent:
+        new = ", ".join(parent.get("new") or []) or "none"
+        text += f"; {parent['loaded']} tensors loaded, new: {new}"
+    return text + ")"
+
+
+def _training_text(metadata: Mapping[str, Any] | None) -> str:
+    """The training line: epoch, step and the best epoch, as the checkpoint's metadata has them."""
+    meta = metadata or {}
+    if "step" not in meta:
+        return "not recorded"
+    done = "complete" if meta.get("epoch_complete") else "in progress"
+    text = f"epoch {meta.get('epoch')} ({done}), step {meta['step']}"
+    if meta.get("total_steps"):
+        text += f" of {meta['total_steps']}"
+    best = meta.get("best")
+    if best:
+        text += f"; best: epoch {best['epoch']}, {best['metric']} {best['value']:.4f}"
+    return text
+
+
+COMMAND = Subcommand(
+    "weights",
+    "published models: list them, download one; what a checkpoint holds",
+    add_arguments,
+    run,
+)
