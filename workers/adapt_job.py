@@ -21,7 +21,7 @@ import sys
 from collections.abc import Sequence
 
 from rangeret.adapt import AdaptSettings, AdaptStats, ScanJob, adapt_one
-from rangeret.cli.adapt import add_arguments, plan_from_args, report
+from rangeret.adapt.runs import add_adapt_arguments, plan_from_args, report
 from rangeret.commands import CommandError, run_command
 from rangeret.exceptions import RangeRetError
 from rangeret.options import add_output_options
@@ -38,7 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m workers.adapt_job", description=__doc__.split("\n\n")[0]
     )
-    add_arguments(p)
+    add_adapt_arguments(p)
     p.add_argument(
         "--task-cpus",
         type=float,

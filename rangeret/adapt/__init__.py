@@ -2,12 +2,11 @@
 
 - `resample`: `adapt_scan`, one scan as the target sensor would keep it (pure numpy), and the
   checks of the profiles and the sensor offset;
-- `label_map`: the optional map from the source's raw ids to the target's;
+- `rangeret.dataset.label_map`: the optional map from the source's raw ids to the target's;
 - `tree`: `plan_adaptation`, `adapt_one` and `finish`, the steps every driver of a whole dataset
   shares (the `rangeret adapt` command, a Ray job).
 """
 
-from rangeret.adapt.label_map import LabelMap, LabelMapError, UnknownLabelError, load_label_map
 from rangeret.adapt.resample import AdaptError, AdaptStats, adapt_scan, unmeasured_beams
 from rangeret.adapt.tree import (
     ADAPT_INFO,
@@ -19,6 +18,7 @@ from rangeret.adapt.tree import (
     plan_adaptation,
     read_adapt_info,
 )
+from rangeret.dataset.label_map import LabelMap, LabelMapError, UnknownLabelError, load_label_map
 
 __all__ = [
     "ADAPT_INFO",

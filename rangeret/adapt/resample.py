@@ -14,9 +14,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from rangeret.adapt.label_map import LabelMap, target_labels
 from rangeret.dataset.beams import beam_band, beam_elevations, beam_values, nearest_beams
 from rangeret.dataset.distance import point_ranges
+from rangeret.dataset.label_map import LabelMap, target_labels
 from rangeret.dataset.layout import SequenceLayout
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.projection import project

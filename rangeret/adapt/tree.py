@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
 
-from rangeret.adapt.label_map import LabelMap
 from rangeret.adapt.resample import (
     AdaptError,
     AdaptStats,
@@ -33,6 +32,7 @@ from rangeret.adapt.resample import (
     unmeasured_beams,
 )
 from rangeret.dataset.beams import beam_elevations
+from rangeret.dataset.label_map import LabelMap
 from rangeret.dataset.layout import (
     DatasetLayoutError,
     ScanEntry,

@@ -65,12 +65,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="with --files: also write each file again in its own format with label and "
         "confidence fields added, as OUT/<stem>.labelled.<ext>",
     )
+    p.add_argument(
+        "--label-map",
+        type=Path,
+        metavar="MAP.yaml",
+        help="with --dataset: run the checkpoint on another sensor's dataset, --profile naming "
+        "the data's profile: scans projected with that sensor, the network's own classes "
+        "predicted and written as the data profile's raw ids through MAP (a YAML mapping "
+        "`network raw id: data raw id`, as `rangeret adapt --label-map` takes)",
+    )
     add_field_option(p)
     add_network_options(p)
 
 
 def run(args: argparse.Namespace) -> int:
     """Predict the scans of the source chosen (a dataset's split or sequences, files, or a bag)."""
+    if args.label_map is not None and args.dataset is None:
+        raise CommandError("--label-map is for --dataset")
     if args.bag is None:
         for option, value in (("--topic", args.topic), ("--bag-format", args.bag_format)):
             if value:
@@ -93,6 +104,8 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError("--dataset needs --split or --sequences")
     if args.version is not None and args.dataset is None:
         raise CommandError("--version is for --dataset")
+    if args.label_map is not None and args.profile is None:
+        raise CommandError("--label-map needs --profile naming the profile of the dataset's sensor")
     return run_dataset(args)
 
 

@@ -20,9 +20,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from rangeret.dataset.label_map import LabelMap
 from rangeret.dataset.labels import LabelConfig
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.projection import Projection, ProjectionConfig, project_with
+from rangeret.exceptions import InputError
 from rangeret.inference.description import describe_network
 from rangeret.inference.loader import LoadedWeights, load_weights
 from rangeret.inference.point_labels import point_classes_batch, point_confidences
@@ -59,6 +61,8 @@ class Predictor:
             self.onnx = OnnxForward(self.network, self.profile, self.device, self.checkpoint_sha256)
         else:
             self.network = weights.network.to(self.device).eval()
+        #: Raw ids of the network's profile -> the data's, for a run on another sensor's data.
+        self.output_map: LabelMap | None = None
         self._lock = threading.Lock()  # one network pass at a time, copies (`with_knn`) included
 
     @classmethod
@@ -127,25 +131,51 @@ class Predictor:
     def describe(self) -> dict:
         """Plain-data description of the run's settings, for logs, reports and `run.json`."""
         info = self.weights.info
-        return describe_network(
-            model=self.weights.model,
-            checkpoint=None if info is None else info.path,
-            sha256=self.checkpoint_sha256,
-            profile=self.profile.name,
-            projection=self.projection_config,
-            knn=self.knn,
-            tta=self.tta,
-            device=str(self.device),
-            precision=self.precision,
-            backend=self.backend,
-            parent=None if info is None else info.parent,
+        return (
+            describe_network(
+                model=self.weights.model,
+                checkpoint=None if info is None else info.path,
+                sha256=self.checkpoint_sha256,
+                profile=self.profile.name,
+                projection=self.projection_config,
+                knn=self.knn,
+                tta=self.tta,
+                device=str(self.device),
+                precision=self.precision,
+                backend=self.backend,
+                parent=None if info is None else info.parent,
+            )
+            | self._data_description()
         )
+
+    def _data_description(self) -> dict:
+        """For a run on another sensor's data: the network's profile and the label map."""
+        if self.output_map is None:
+            return {}
+        return {
+            "network_profile": self.weights.profile.name,
+            "label_map": self.output_map.to_dict(),
+        }
 
     def with_knn(self, knn: KnnSettings | None) -> Predictor:
         """The same predictor with another kNN refinement (None: pixel classes), sharing the
         network, its onnxruntime session, its lock and every other setting."""
         other = copy.copy(self)
         other.knn = knn
+        return other
+
+    def for_data(self, data: DatasetProfile, label_map: LabelMap) -> Predictor:
+        """The same network on a dataset of another sensor (`data`'s profile): scans read and
+        projected as `data` says, the network's classes refined by its own rules and written as
+        `data`'s raw ids through `label_map`, which must list every raw id the network writes
+        (`rangeret.dataset.other_sensor`)."""
+        from rangeret.dataset.other_sensor import output_map, profile_for_data
+
+        if self.onnx is not None:
+            raise InputError("a run on another sensor's data takes --backend torch")
+        other = copy.copy(self)
+        other.profile = profile_for_data(self.weights.profile, data)
+        other.output_map = output_map(self.weights.profile, label_map)
         return other
 
     # Stages -------------------------------------------------------------------------------
@@ -194,8 +224,10 @@ class Predictor:
 
     def to_raw(self, classes: np.ndarray) -> np.ndarray:
         """Stage 4: what prediction files hold for training classes (uint32): the profile's raw
-        ids, or the classes themselves where its benchmark takes those (nuScenes)."""
-        return self.profile.output_labels(classes)
+        ids, or the classes themselves where its benchmark takes those (nuScenes); on another
+        sensor's data, the data's raw ids through the label map."""
+        raw = self.profile.output_labels(classes)
+        return raw if self.output_map is None else self.output_map.apply(raw)
 
     # Whole scans ---------------------------------------------------------------------------
 

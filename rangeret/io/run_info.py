@@ -36,6 +36,8 @@ RUN_KEYS = (
     "demo_weights",
     "parent",
     "profile",
+    "network_profile",
+    "label_map",
     "precision",
     "backend",
     "device",
