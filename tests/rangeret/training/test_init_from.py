@@ -345,3 +345,34 @@ def test_print_config_and_config_files_carry_the_settled_network(trees, parent, 
     again = config_from_args(train_parser().parse_args(["--config", str(file)]))
     assert again == TrainConfig.from_dict(settings)
     assert TrainConfig.from_dict(again.to_dict()) == again
+
+
+@pytest.mark.slow
+def test_ray_train_fine_tunes_on_two_workers_with_the_backbone_frozen(trees, parent, tmp_path):
+    """Data-parallel fine-tuning: every rank starts from the parent, the loaded tensors stay as
+    loaded under DDP for the frozen steps, and the checkpoint records its parent."""
+    ray = pytest.importorskip("ray")
+    from workers.train_job import run_ray
+
+    config = run_config(
+        trees,
+        "pandaset",
+        tmp_path / "ray-run",
+        init_from=str(parent),
+        freeze_backbone_steps=2,
+        epochs=2,
+    )
+    ray.init(address="local", num_cpus=2, num_gpus=0, include_dashboard=False)
+    try:
+        out = run_ray(config, workers=2)
+    finally:
+        ray.shutdown()
+    model = load_checkpoint(out / "last.pt")
+    meta = model.checkpoint_info.metadata
+    assert meta["world_size"] == 2 and meta["step"] == 2
+    assert meta["parent"]["sha256"] == hashlib.sha256(parent.read_bytes()).hexdigest()
+    assert model.config.num_classes == 15
+    after, theirs = model.state_dict(), load_checkpoint(parent).state_dict()
+    loaded = set(theirs) - set(NEW_HEAD)
+    assert loaded and all(torch.equal(after[k], theirs[k]) for k in loaded)
+    assert after["head.mlp2.weight"].shape == (15, 64)
