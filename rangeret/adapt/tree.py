@@ -16,7 +16,6 @@ replaced; settings other than those `adapt.json` records need `overwrite`.
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -42,7 +41,7 @@ from rangeret.dataset.layout import (
     velodyne_dir,
 )
 from rangeret.dataset.profiles import DatasetProfile
-from rangeret.io.run_info import RunInfoError, started_now, write_run_record
+from rangeret.io.run_info import read_record, started_now, write_run_record
 from rangeret.io.scans import ScanFormatError, read_scan, scan_num_points, write_scan
 
 #: The record of an adapted tree, in its root.
@@ -187,16 +186,7 @@ def finish(plan: AdaptPlan, results: Iterable[AdaptStats]) -> Path:
 def read_adapt_info(out: Path | str) -> dict[str, Any]:
     """`OUT/adapt.json` as a dict, or {} where there is none; a file that is not a JSON object
     is a `RunInfoError` naming it."""
-    path = Path(out) / ADAPT_INFO
-    try:
-        record = json.loads(path.read_text())
-    except FileNotFoundError:
-        return {}
-    except (OSError, ValueError) as exc:
-        raise RunInfoError(f"{path} is not a readable adapt record ({exc})") from exc
-    if not isinstance(record, dict):
-        raise RunInfoError(f"{path} is not an adapt record (a JSON object)")
-    return record
+    return read_record(Path(out) / ADAPT_INFO, "adapt record")
 
 
 def _profile_record(profile: DatasetProfile) -> dict[str, Any]:

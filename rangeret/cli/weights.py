@@ -81,10 +81,9 @@ def checkpoint_facts(value: str) -> list[tuple[str, str]]:
     """The facts `rangeret weights info` prints of the checkpoint `value` names (a file or a
     published model's name), as (name, text) pairs; a file that is missing or not a checkpoint
     is a one-line error."""
-    import hashlib
 
-    from rangeret.models.weights.checkpoint import network_from_bytes, read_checkpoint_bytes
-    from rangeret.models.weights.hub import check_pin, resolve_weights
+    from rangeret.models.weights.checkpoint import network_from_bytes
+    from rangeret.models.weights.hub import resolve_weights
     from rangeret.models.weights.run_profile import profile_for_checkpoint
 
     resolved = resolve_weights(value)
@@ -94,10 +93,7 @@ def checkpoint_facts(value: str) -> list[tuple[str, str]]:
         )
     if not resolved.path.is_file():
         raise CommandError(f"{resolved.path} is not a checkpoint file but a folder")
-    data = read_checkpoint_bytes(resolved.path)
-    sha256 = hashlib.sha256(data).hexdigest()
-    if resolved.published is not None:
-        check_pin(resolved.published, resolved.path, sha256)
+    data, sha256 = resolved.read()
     network = network_from_bytes(
         data,
         resolved.path,

@@ -9,7 +9,6 @@ checked). A process loads its checkpoint from disk exactly once this way.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,10 +17,10 @@ import torch
 
 from rangeret.dataset.profiles import DatasetProfile, load_profile
 from rangeret.inference.spec import InferenceSpec
-from rangeret.models.weights.checkpoint import network_from_bytes, read_checkpoint_bytes
+from rangeret.models.weights.checkpoint import network_from_bytes
 from rangeret.models.weights.checkpoint_info import CheckpointInfo
 from rangeret.models.weights.demo import note_loaded, resolve_checkpoint
-from rangeret.models.weights.hub import check_pin, resolve_weights
+from rangeret.models.weights.hub import resolve_weights
 from rangeret.models.weights.run_profile import (
     check_classes,
     default_resolution,
@@ -78,10 +77,7 @@ def load_weights(spec: InferenceSpec, *, profile: DatasetProfile | None = None) 
         else spec.checkpoint
     )
     resolved = resolve_weights(path, requested, spec.model, spec.height, spec.width)
-    data = read_checkpoint_bytes(resolved.path)
-    sha256 = hashlib.sha256(data).hexdigest()
-    if resolved.published is not None:
-        check_pin(resolved.published, resolved.path, sha256)
+    data, sha256 = resolved.read()
     note_loaded(resolved.path, sha256)
     network = network_from_bytes(
         data,

@@ -180,13 +180,18 @@ def started_now() -> str:
 def read_run_info(out: Path | str) -> dict[str, Any]:
     """`OUT/run.json` as a dict, or {} when the tree has none; a file that is not a JSON object
     is a ValueError naming it."""
-    path = Path(out) / RUN_INFO
+    return read_record(Path(out) / RUN_INFO, "run record")
+
+
+def read_record(path: Path, kind: str) -> dict[str, Any]:
+    """A JSON record file (a run's, an adaptation's) as a dict, or {} where there is none; a file
+    that is not a JSON object is a `RunInfoError` naming it and its `kind`."""
     try:
         record = json.loads(path.read_text())
     except FileNotFoundError:
         return {}
     except (OSError, ValueError) as exc:
-        raise RunInfoError(f"{path} is not a readable run record ({exc})") from exc
+        raise RunInfoError(f"{path} is not a readable {kind} ({exc})") from exc
     if not isinstance(record, dict):
-        raise RunInfoError(f"{path} is not a run record (a JSON object)")
+        raise RunInfoError(f"{path} is not a {kind} (a JSON object)")
     return record

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import errno
-import hashlib
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -39,9 +38,8 @@ from rangeret.models.weights.checkpoint import (
     CheckpointContent,
     CheckpointError,
     checkpoint_from_bytes,
-    read_checkpoint_bytes,
 )
-from rangeret.models.weights.hub import check_pin, resolve_weights
+from rangeret.models.weights.hub import resolve_weights
 from rangeret.training.config import TrainConfig, TrainConfigError
 from rangeret.training.state import TrainingStateError
 
@@ -97,10 +95,7 @@ def read_parent(source: str, overrides: Mapping[str, Any] | None = None) -> Pare
             "(`rangeret weights list` names those)",
             str(resolved.path),
         )
-    data = read_checkpoint_bytes(resolved.path)
-    sha256 = hashlib.sha256(data).hexdigest()
-    if resolved.published is not None:
-        check_pin(resolved.published, resolved.path, sha256)
+    data, sha256 = resolved.read()
     content = checkpoint_from_bytes(
         data,
         resolved.path,

@@ -173,6 +173,17 @@ class ResolvedWeights:
     width: int | None
     published: PublishedModel | None = None
 
+    def read(self) -> tuple[bytes, str]:
+        """The file's bytes, read once, and their SHA-256, checked against a published model's
+        pin (`check_pin`) on those very bytes."""
+        from rangeret.models.weights.checkpoint import read_checkpoint_bytes
+
+        data = read_checkpoint_bytes(self.path)
+        sha256 = hashlib.sha256(data).hexdigest()
+        if self.published is not None:
+            check_pin(self.published, self.path, sha256)
+        return data, sha256
+
 
 def resolve_weights(
     value: str | Path,
