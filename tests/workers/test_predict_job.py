@@ -23,14 +23,6 @@ NET = ["--checkpoint", "{w}", "--height", "32", "--width", "256", "--device", "c
 
 
 @pytest.fixture(scope="module")
-def ray_local():
-    ray = pytest.importorskip("ray")
-    ray.init(address="local", num_cpus=2, num_gpus=0, include_dashboard=False, log_to_driver=False)
-    yield ray
-    ray.shutdown()
-
-
-@pytest.fixture(scope="module")
 def setup(tmp_path_factory):
     folder = tmp_path_factory.mktemp("workers")
     return build_tree(folder / "data", labelled=3, unlabelled=2), small_weights(folder)
