@@ -22,7 +22,6 @@ from fastapi.openapi.utils import get_openapi
 from pydantic import BaseModel
 from pydantic.json_schema import JsonSchemaMode, models_json_schema
 
-from rangeret.dataset.profiles import DatasetProfile
 from service.dependencies import require_token
 from service.error_handlers import install_error_handlers
 from service.errors import error_responses
@@ -38,6 +37,7 @@ from service.routes.profile import router as profile_router
 from service.routes.scans import router as scans_router
 from service.schemas import ARCHIVE_UPLOAD, DatasetJobRequest, ErrorResponse, ScanLabels
 from service.security_headers import NoSniff
+from service.served_models import ModelCatalog
 from service.settings import Settings
 
 #: The groups of operations in the API description (and the modules of a generated client).
@@ -83,17 +83,29 @@ def _openapi(app: FastAPI) -> dict[str, Any]:
     return schema
 
 
+def _served_text(models: ModelCatalog) -> str:
+    """What the API description says of the served models and their profiles."""
+    parts = [
+        f"`{m.name}` (the `{m.profile.name}` profile: {m.profile.points.point_bytes} bytes per point, "
+        f"{m.profile.points.describe()})"
+        for m in models
+    ]
+    return (
+        f"This gateway serves {'the model ' if len(parts) == 1 else 'the models '}"
+        f"{', '.join(parts)}; `{models.default}` is the default. A scan is answered with its "
+        "model's raw ids."
+    )
+
+
 def create_app(
     settings: Settings,
     labeller: ScanLabeller,
     executor: JobExecutor,
     *,
-    profile: DatasetProfile,
-    checkpoint_sha256: str | None = None,
-    model: str | None = None,
+    models: ModelCatalog,
 ) -> FastAPI:
-    """The gateway app over a ready labeller whose network runs with `profile`: its point
-    record, labels, layout and splits are the gateway's.
+    """The gateway app over a ready labeller of the catalog's models, each of which runs with
+    its own profile (point record, labels, layout and splits).
 
     Refuses (ValueError) a non-loopback host without a token and a job database newer than this code.
     """
@@ -101,14 +113,7 @@ def create_app(
     if problem:
         raise ValueError(problem)
     check_job_database(settings.database_path)
-    gateway = Gateway(
-        settings,
-        labeller,
-        executor,
-        profile,
-        checkpoint_sha256,
-        model=model,
-    )
+    gateway = Gateway(settings, labeller, executor, models)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -125,9 +130,7 @@ def create_app(
             "LiDAR semantic segmentation with RangeRet over HTTP: label single scans, or run jobs over "
             "whole sequences (uploaded archives or datasets under the data roots) and download the "
             'predictions and the per-class IoU. Errors are `{"detail": "<one sentence>"}`. '
-            f"This gateway serves the `{gateway.profile.name}` dataset profile: scans are "
-            f"{gateway.profile.points.point_bytes} bytes per point "
-            f"({gateway.profile.points.describe()}), labels its raw ids."
+            + _served_text(models)
         ),
         lifespan=lifespan,
         # No trailing-slash redirects: Starlette builds their Location from the request's Host.

@@ -19,6 +19,7 @@ from service.errors import ApiError
 from service.jobs import JobExecutor, JobManager, JobStore
 from service.metrics import GatewayMetrics
 from service.page_assets import PageFiles, PageNotBuilt
+from service.served_models import ModelCatalog
 from service.settings import Settings
 
 if TYPE_CHECKING:
@@ -44,9 +45,9 @@ class ScanLabeller(Protocol):
         ...
 
     async def label(
-        self, points: np.ndarray, knn: bool = True, confidence: bool = False
+        self, points: np.ndarray, knn: bool = True, confidence: bool = False, *, model: str
     ) -> ScanPrediction:
-        """One scan labelled: its points, in the served profile's point record."""
+        """One scan labelled by the model `model`: its points, in that model's point record."""
         ...
 
     def depth(self) -> int:
@@ -62,22 +63,36 @@ class ScanLabeller(Protocol):
 class Gateway:
     """Everything the endpoints use, built by `create_app` and started by its lifespan.
 
-    One gateway serves one network, so one `profile`: its point record, labels, layout and splits.
+    A gateway serves the models of its catalog, each with its own profile (point record, labels,
+    layout and splits); a request names one or gets the default.
     """
 
     settings: Settings
     labeller: ScanLabeller
     executor: JobExecutor
-    profile: DatasetProfile
-    checkpoint_sha256: str | None
-    #: The served network's name (None: taken from the workers' descriptions).
-    model: str | None = None
+    models: ModelCatalog
     metrics: GatewayMetrics = field(init=False)
     admission: ScanAdmission = field(init=False)
     started: bool = False
     jobs: JobManager | None = None
     #: The web page's files (`service.page_assets`), read on first use.
     page: PageFiles = field(default_factory=PageFiles)
+
+    @property
+    def profile(self) -> DatasetProfile:
+        """The default model's profile (what jobs run with)."""
+        return self.models.default_entry.profile
+
+    @property
+    def checkpoint_sha256(self) -> str | None:
+        """The default model's checkpoint SHA-256."""
+        return self.models.default_entry.checkpoint_sha256
+
+    def loaded_models(self) -> list[str] | None:
+        """The models whose networks are loaded in this process now; None where the labeller
+        keeps no pool (the Serve application holds them)."""
+        loaded = getattr(self.labeller, "loaded", None)
+        return None if loaded is None else loaded()
 
     def __post_init__(self) -> None:
         self.metrics = GatewayMetrics(self.profile.name)

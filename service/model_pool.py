@@ -48,7 +48,9 @@ class ModelPool(Generic[T]):
             raise ValueError(f"max_loaded must be at least 1, got {max_loaded}")
         self.names = list(names)
         self.max_loaded = max_loaded or len(self.names)
-        self._load, self._unload = load, unload
+        self._load = load
+        #: Called with each evicted object (settable, for an owner made after the pool).
+        self.unload = unload
         self._loaded: OrderedDict[str, T] = OrderedDict()  # least recently used first
         self._holds: dict[str, int] = {}
         self._loading: dict[str, threading.Event] = {}
@@ -70,14 +72,35 @@ class ModelPool(Generic[T]):
     def use(self, name: str) -> Iterator[T]:
         """The loaded model `name`, held until the block ends (loaded first where it is not,
         evicting the least recently used model nobody holds); `PoolFull` when every slot is held."""
-        item = self._acquire(name)
+        item = self.acquire(name)
         try:
             yield item
         finally:
-            with self._lock:
-                self._holds[name] -= 1
+            self.release(name)
 
-    def _acquire(self, name: str) -> T:
+    def release(self, name: str) -> None:
+        """Let go of one hold of `name` (taken by `acquire`)."""
+        with self._lock:
+            self._holds[name] -= 1
+
+    def preload(self, name: str, item: T) -> bool:
+        """Keep `item`, loaded by other means, as the model `name` while a slot is free (a model
+        already loaded is kept as it is); whether it was kept."""
+        with self._lock:
+            if name in self._loaded:
+                return True
+            if len(self._loaded) + len(self._loading) >= self.max_loaded:
+                return False
+            self._loaded[name] = item
+            self.loads[name] += 1
+            return True
+
+    def items(self) -> list[tuple[str, T]]:
+        """The loaded models and their objects, least recently used first."""
+        with self._lock:
+            return list(self._loaded.items())
+
+    def acquire(self, name: str) -> T:
         """Hold `name`, loading it (outside the lock) when it is not loaded yet."""
         if name not in self.loads:
             raise KeyError(name)
@@ -117,5 +140,5 @@ class ModelPool(Generic[T]):
             if victim is None:
                 raise PoolFull(name, [*self._loaded, *self._loading])
             item = self._loaded.pop(victim)
-            if self._unload is not None:
-                self._unload(item)
+            if self.unload is not None:
+                self.unload(item)

@@ -63,6 +63,7 @@ class ScanLabels(BaseModel):
         json_schema_extra={
             "examples": [
                 {
+                    "model": "default",
                     "num_points": 4,
                     "labels": [40, 40, 10, 70],
                     "class_counts": {"car": 1, "road": 2, "vegetation": 1},
@@ -71,13 +72,14 @@ class ScanLabels(BaseModel):
         }
     )
 
+    model: str = Field(description="the model that labelled the scan")
     num_points: int = Field(ge=0, description="points in the scan, and labels in `labels`")
     labels: list[int] = Field(
-        description="raw id (of the served profile's label configuration) of every point, in the "
-        "scan's point order"
+        description="raw id (of the model's profile's label configuration) of every point, in "
+        "the scan's point order"
     )
     class_counts: dict[str, int] = Field(
-        description="points per class name of the served profile, for the classes present"
+        description="points per class name of the model's profile, for the classes present"
     )
     confidence: list[float] | None = Field(
         default=None,
@@ -259,8 +261,11 @@ class HealthSummary(BaseModel):
     )
 
     status: Literal["ok", "unavailable"]
-    model: str | None = Field(description="the network the gateway serves")
-    profile: str = Field(description="the dataset profile the gateway serves")
+    model: str | None = Field(description="the default model's network")
+    profile: str = Field(description="the default model's dataset profile")
+    models: dict[str, str] = Field(
+        default_factory=dict, description="every model the gateway serves, with its profile"
+    )
     version: str = Field(description="the gateway's software version")
 
 
@@ -370,6 +375,7 @@ class ServedModel(BaseModel):
         json_schema_extra={
             "examples": [
                 {
+                    "id": "default",
                     "name": "rangeret-cir",
                     "checkpoint_sha256": "9b1d...",
                     "profile": "semantickitti",
@@ -377,6 +383,7 @@ class ServedModel(BaseModel):
                     "note": None,
                 },
                 {
+                    "id": "kitti",
                     "name": "rangeret-thesis",
                     "checkpoint_sha256": "4c07...",
                     "profile": "semantickitti",
@@ -389,11 +396,12 @@ class ServedModel(BaseModel):
         }
     )
 
+    id: str = Field(description="the model's name in this gateway (`?model=`, a job's `model`)")
     name: str | None = Field(description="the served network (rangeret-cir, rangeret-thesis)")
     checkpoint_sha256: str | None = Field(
         description="SHA-256 of the checkpoint file the gateway loaded"
     )
-    profile: str = Field(description="the dataset profile the gateway serves")
+    profile: str = Field(description="the dataset profile the model runs with")
     demo_weights: bool = Field(
         description="whether the checkpoint is the bundled demo weights, trained on simulated "
         "scenes only: their labels of real scans are not meaningful"
@@ -403,3 +411,19 @@ class ServedModel(BaseModel):
         description="with the demo weights: what they are and how to serve a published model "
         "instead (one or two sentences, for a page to show beside the model's name)",
     )
+
+
+class ListedModel(ServedModel):
+    """One model of `GET /v1/models`: what `GET /v1/model` says of it, and whether its network
+    is loaded in the gateway's process now."""
+
+    loaded: bool = Field(
+        description="whether the network is loaded now (on a Serve application: always true)"
+    )
+
+
+class ModelList(BaseModel):
+    """The models a gateway serves, in its models file's order, and the default one."""
+
+    default: str = Field(description="the model a request that names none gets")
+    models: list[ListedModel]

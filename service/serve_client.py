@@ -60,9 +60,10 @@ class ServeLabeller:
             self._client = None
 
     async def label(
-        self, points: np.ndarray, knn: bool = True, confidence: bool = False
+        self, points: np.ndarray, knn: bool = True, confidence: bool = False, *, model: str
     ) -> ScanPrediction:
-        """One scan labelled by the application, sent as its point records' bytes."""
+        """One scan labelled by the application, sent as its point records' bytes (the
+        application serves the gateway's one model, `model`)."""
         if self._client is None:
             raise BackendError("the gateway is starting; try again in a moment")
         self._in_flight += 1

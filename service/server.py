@@ -6,8 +6,9 @@ On a cluster, single scans go to the Serve application at `--serve-url` (RANGERE
 (RANGERET_JOBS_ADDRESS); without them, each runs in this process (`LocalLabeller`,
 `predict_tree`) on one network: the checkpoint is read once, and single scans and job batches
 take turns on the network, one pass at a time. Options given on the command line win over
-RANGERET_* variables. The gateway serves one dataset profile: the checkpoint's, or the one given
-with `--profile`.
+RANGERET_* variables. With `--models` (RANGERET_MODELS) it serves several networks by name, each
+with its own profile, at most `--max-loaded` of them loaded at once; a plain `--checkpoint` is
+the one model `default`.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from pydantic import ValidationError
@@ -30,7 +32,10 @@ from service.settings import Settings
 
 if TYPE_CHECKING:  # torch is imported when the gateway starts, not to build its parser
     from rangeret.inference.loader import LoadedWeights
-    from rangeret.inference.predictor import Predictor
+    from rangeret.inference.models_file import ModelSet
+    from service.model_pool import ModelPool
+    from service.pooled_labeller import ModelRuntime
+    from service.served_models import ModelCatalog
 
 log = logging.getLogger("rangeret.serve")
 
@@ -44,7 +49,11 @@ _OVERRIDES = (
     "serve_timeout_s",
     "jobs_address",
     "root_path",
+    "models",
+    "max_loaded",
 )
+#: Network options a models file names per model, so not beside `--models`.
+_PER_MODEL = ("checkpoint", "model")
 
 
 def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
@@ -84,6 +93,21 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         help="path prefix a reverse proxy serves the gateway under, such as /rangeret (default none)",
     )
     g.add_argument(
+        "--models",
+        type=Path,
+        metavar="MODELS.yaml",
+        help="serve several networks by name: a models file (`default:` and `models:` mapping "
+        "each name to its network options); the other network options given here are defaults "
+        "an entry overrides (RANGERET_MODELS; not with --checkpoint or --model)",
+    )
+    g.add_argument(
+        "--max-loaded",
+        type=int,
+        metavar="N",
+        help="most networks loaded at once in this process, the least recently used one that "
+        "no job holds unloaded first (RANGERET_MAX_LOADED; default: every model)",
+    )
+    g.add_argument(
         "--log-level",
         default="info",
         choices=["critical", "error", "warning", "info", "debug"],
@@ -104,40 +128,132 @@ def settings_from_args(args: argparse.Namespace) -> Settings:
         raise CommandError(validation_sentence(exc.errors(), "setting")) from exc
 
 
+def model_set(args: argparse.Namespace, settings: Settings) -> ModelSet:
+    """The models to serve: the models file's (`--models`, RANGERET_MODELS) over the command
+    line's other network options, or the one model `default` of those options."""
+    from rangeret.inference.models_file import ModelSet, ModelsFileError, load_models_file
+
+    spec = InferenceSpec.from_args(args)
+    if settings.models is None:
+        return ModelSet.single(spec)
+    given = [name for name in _PER_MODEL if getattr(args, name, None) is not None]
+    if given:
+        raise CommandError(
+            f"--models names each model's checkpoint and network; give --{given[0]} in the "
+            f"models file {settings.models}, not beside it"
+        )
+    try:
+        return load_models_file(settings.models, spec)
+    except ModelsFileError as exc:
+        raise CommandError(str(exc)) from exc
+
+
+def check_models(models: ModelSet) -> dict[str, LoadedWeights]:
+    """Every model's weights, loaded once each to check them (checkpoint, pin, profile, class
+    count), by name; a `CommandError` naming the model for one a gateway cannot serve."""
+    from rangeret.exceptions import RangeRetError
+    from rangeret.inference.loader import load_weights
+
+    loaded = {}
+    for name, spec in models:
+        try:
+            weights = load_weights(spec)
+        except RangeRetError as exc:
+            if len(models) == 1:
+                raise
+            raise CommandError(f"model {name}: {exc}") from exc
+        if weights.profile.layout.kind == "tables":
+            raise CommandError(
+                f"rangeret serve takes profiles of folder layouts; the {weights.profile.name} "
+                f"profile{'' if len(models) == 1 else f' of model {name}'} reads a version's "
+                "tables, which the gateway does not serve: use rangeret predict or python -m "
+                "workers.predict_job for it"
+            )
+        if spec.backend == "onnxruntime":
+            weights.export_onnx()  # once here, so that workers started next load it from the cache
+        loaded[name] = weights
+    return loaded
+
+
+def catalog_of(models: ModelSet, loaded: dict[str, LoadedWeights]) -> ModelCatalog:
+    """What the gateway knows of each model from checking it."""
+    from service.served_models import ModelCatalog, ModelEntry
+
+    entries = {
+        name: ModelEntry(name, spec, loaded[name].profile, loaded[name].sha256, loaded[name].model)
+        for name, spec in models
+    }
+    return ModelCatalog(entries, models.default)
+
+
+def build_pool(
+    settings: Settings, models: ModelSet, loaded: dict[str, LoadedWeights]
+) -> ModelPool[ModelRuntime]:
+    """The pool of networks loaded in this process: the checked weights kept up to
+    `max_loaded` (the default model first), the rest loaded again on first use."""
+    from rangeret.inference.loader import load_weights
+    from rangeret.inference.scan_worker import use_cpus
+    from service.model_pool import ModelPool
+
+    use_cpus(float(os.cpu_count() or 1))  # the networks have the gateway's machine to themselves
+    pool: ModelPool[ModelRuntime] = ModelPool(
+        models.names,
+        lambda name: _runtime(settings, models.spec(name), load_weights(models.spec(name))),
+        max_loaded=settings.max_loaded,
+    )
+    for name in [models.default, *(n for n in models.names if n != models.default)]:
+        pool.preload(name, _runtime(settings, models.spec(name), loaded[name]))
+    return pool
+
+
+def _runtime(settings: Settings, spec: InferenceSpec, weights: LoadedWeights) -> ModelRuntime:
+    """One loaded model: its predictor behind a local batcher of the gateway's batch size."""
+    from rangeret.inference.predictor import Predictor
+    from rangeret.inference.scan_worker import ScanWorker
+    from service.local_labeller import LocalLabeller
+    from service.pooled_labeller import ModelRuntime
+
+    predictor = Predictor(weights, spec)
+    worker = ScanWorker(predictor)
+    labeller = LocalLabeller(worker, settings.batch_size, settings.batch_wait_ms / 1000)
+    return ModelRuntime(labeller, predictor)
+
+
 def build_labeller(
-    settings: Settings, weights: LoadedWeights, predictor: Predictor | None
+    settings: Settings, catalog: ModelCatalog, pool: ModelPool[ModelRuntime] | None
 ) -> ScanLabeller:
     """What labels single scans: the Serve application at `serve_url` (once it answers with the
-    same checkpoint and profile), or else `predictor` in this process behind the local batcher."""
+    same checkpoint and profile), or else the pool's networks in this process, each behind its
+    own batcher."""
     if settings.serve_url:
         from service.serve_client import ServeLabeller
 
-        labeller = ServeLabeller(settings.serve_url, weights.profile, settings.serve_timeout_s)
-        labeller.check_serves(weights.sha256 or "", settings.serve_timeout_s)
+        entry = catalog.default_entry
+        labeller = ServeLabeller(settings.serve_url, entry.profile, settings.serve_timeout_s)
+        labeller.check_serves(entry.checkpoint_sha256 or "", settings.serve_timeout_s)
         return labeller
-    from rangeret.inference.scan_worker import ScanWorker, use_cpus
-    from service.local_labeller import LocalLabeller
+    from service.pooled_labeller import PooledLabeller
 
-    assert predictor is not None  # `run_serve` builds one whenever a part runs in this process
-    use_cpus(float(os.cpu_count() or 1))  # the network has the gateway's machine to itself
-    return LocalLabeller(ScanWorker(predictor), settings.batch_size, settings.batch_wait_ms / 1000)
+    assert pool is not None  # `run_serve` builds one whenever a part runs in this process
+    return PooledLabeller(pool)
 
 
 def build_executor(
-    settings: Settings, spec: InferenceSpec, weights: LoadedWeights, predictor: Predictor | None
+    settings: Settings, catalog: ModelCatalog, pool: ModelPool[ModelRuntime] | None
 ) -> JobExecutor:
     """What runs the gateway's jobs: Ray jobs through the Jobs API at `jobs_address` (the same
-    entrypoint as `ray job submit`, given the gateway's spec), or else `predict_tree` in this
-    process with `predictor`, the network single scans share."""
+    entrypoint as `ray job submit`, given the model's spec), or else `predict_tree` in this
+    process with the job's model from the pool, the networks single scans share."""
     from service.jobs import LocalExecutor
 
     roots = [*settings.data_roots, settings.jobs_folder.resolve()]  # checked again at read time
     if settings.jobs_address:
         from service.jobs.ray_jobs import RayJobExecutor
 
-        return RayJobExecutor(settings.jobs_address, spec, weights.profile, read_roots=roots)
-    assert predictor is not None  # `run_serve` builds one whenever a part runs in this process
-    return LocalExecutor(predictor, spec.batch_size, read_roots=roots)
+        entry = catalog.default_entry
+        return RayJobExecutor(settings.jobs_address, entry.spec, entry.profile, read_roots=roots)
+    assert pool is not None  # `run_serve` builds one whenever a part runs in this process
+    return LocalExecutor(pool, catalog.default, settings.batch_size, read_roots=roots)
 
 
 def check_state(settings: Settings) -> None:
@@ -162,8 +278,6 @@ def run_serve(args: argparse.Namespace) -> int:
     """Run the gateway until it is stopped (Ctrl-C or SIGTERM); returns the exit code."""
     import uvicorn
 
-    from rangeret.inference.loader import load_weights
-    from rangeret.inference.predictor import Predictor
     from service.app import create_app
     from service.protocols import GatewayProtocol
 
@@ -175,39 +289,39 @@ def run_serve(args: argparse.Namespace) -> int:
         require_extra("rangeret serve --jobs-address", "ray")  # Ray jobs go through Ray's client
     check_state(settings)  # before minutes of loading weights
     args.batch_size = settings.batch_size
-    spec = InferenceSpec.from_args(args)
-    weights = load_weights(spec)
-    if weights.profile.layout.kind == "tables":
+    models = model_set(args, settings)
+    if len(models) > 1 and (settings.serve_url or settings.jobs_address):
         raise CommandError(
-            f"rangeret serve takes profiles of folder layouts; the {weights.profile.name} profile "
-            "reads a version's tables, which the gateway does not serve: use rangeret predict or "
-            "python -m workers.predict_job for it"
+            "several models are served in this process only: leave out --serve-url and "
+            "--jobs-address (RANGERET_SERVE_URL, RANGERET_JOBS_ADDRESS), or serve one model"
         )
-    if spec.backend == "onnxruntime":
-        weights.export_onnx()  # once here, so that workers started next load it from the cache
+    loaded = check_models(models)
+    catalog = catalog_of(models, loaded)
     in_process = not (settings.serve_url and settings.jobs_address)
-    predictor = Predictor(weights, spec) if in_process else None
-    labeller = build_labeller(settings, weights, predictor)
-    executor = build_executor(settings, spec, weights, predictor)
+    pool = build_pool(settings, models, loaded) if in_process else None
+    labeller = build_labeller(settings, catalog, pool)
+    executor = build_executor(settings, catalog, pool)
+    for entry in catalog:
+        log.info(
+            "model %s: %s (sha256 %s, profile %s)",
+            entry.name,
+            entry.network,
+            (entry.checkpoint_sha256 or "")[:12],
+            entry.profile.name,
+        )
     log.info(
-        "%s (sha256 %s, profile %s): single scans %s, jobs %s; batches of up to %d scans",
-        weights.model,
-        (weights.sha256 or "")[:12],
-        weights.profile.name,
+        "default model %s; single scans %s, jobs %s; batches of up to %d scans%s",
+        catalog.default,
         f"on the Serve application at {settings.serve_url}"
         if settings.serve_url
         else "in this process",
         f"as Ray jobs at {settings.jobs_address}" if settings.jobs_address else "in this process",
         settings.batch_size,
+        f"; at most {pool.max_loaded} of {len(catalog)} networks loaded at once"
+        if pool is not None and len(catalog) > 1
+        else "",
     )
-    app = create_app(
-        settings,
-        labeller,
-        executor,
-        profile=weights.profile,
-        checkpoint_sha256=weights.sha256,
-        model=weights.model,
-    )
+    app = create_app(settings, labeller, executor, models=catalog)
     uvicorn.run(
         app,
         host=settings.host,

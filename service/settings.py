@@ -29,6 +29,8 @@ RANGERET_SERVE_URL         the Serve application that labels single scans (proxy
 RANGERET_SERVE_TIMEOUT_S   longest a single scan may wait for the Serve application (default 300)
 RANGERET_JOBS_ADDRESS      the Ray dashboard whose Jobs API runs the gateway's jobs
                            (e.g. http://rangeret-head-svc:8265); unset: jobs run in-process
+RANGERET_MODELS            a models file (YAML): several networks by name, and the default one
+RANGERET_MAX_LOADED        most networks loaded at once in this process (default: every model)
 RANGERET_ROOT_PATH         path prefix a reverse proxy serves the gateway under (e.g. /rangeret)
 RANGERET_ALLOWED_HOSTS     Host names the gateway answers to, separated by ','; default: any with a
                            token, the loopback names and the bound address without one
@@ -86,6 +88,8 @@ class Settings(BaseSettings):
     serve_url: str | None = None
     serve_timeout_s: float = Field(default=300.0, gt=0)
     jobs_address: str | None = None
+    models: Path | None = None
+    max_loaded: int | None = Field(default=None, ge=1)
     root_path: str = ""
     allowed_hosts: Annotated[list[str] | None, NoDecode] = None
 
@@ -112,7 +116,9 @@ class Settings(BaseSettings):
                 return value
         return value
 
-    @field_validator("api_token", "serve_url", "jobs_address", mode="before")
+    @field_validator(
+        "api_token", "serve_url", "jobs_address", "models", "max_loaded", mode="before"
+    )
     @classmethod
     def _empty_is_unset(cls, value: object) -> object:
         """An empty variable counts as unset, so `RANGERET_API_TOKEN=` never means an empty token."""

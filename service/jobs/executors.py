@@ -13,13 +13,16 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 from rangeret.dataset.layout import ScanEntry
-from rangeret.inference.predictor import Predictor
 from rangeret.inference.runner import predict_tree
 from service.jobs.store import JobRecord, JobStore
+from service.model_pool import ModelPool, PoolFull
 from service.schemas import JobState
+
+if TYPE_CHECKING:
+    from service.pooled_labeller import ModelRuntime
 
 #: `progress(seen, failed, pending)`: of the scans a `predict` call had to predict, `seen` are
 #: through and `failed` of them failed.
@@ -89,24 +92,26 @@ class JobExecutor(Protocol):
 
 
 class LocalExecutor:
-    """`predict_tree` in this process with `predictor` (the network the gateway's single scans
-    share, one pass at a time), which reads the dataset in the layout and point record of its
-    profile, and, with `read_roots`, only scans that lie under those folders when they are read."""
+    """`predict_tree` in this process with the job's model, taken from the gateway's pool of
+    loaded models and held for the whole job (the network its single scans share, one pass at
+    a time); it reads the dataset in the layout and point record of the model's profile, and,
+    with `read_roots`, only scans that lie under those folders when they are read."""
 
     backend = "local"
 
     def __init__(
-        self, predictor: Predictor, batch_size: int = 1, read_roots: list[Path] | None = None
+        self,
+        pool: ModelPool[ModelRuntime],
+        default: str,
+        batch_size: int = 1,
+        read_roots: list[Path] | None = None,
     ) -> None:
-        self.predictor = predictor
+        self.pool = pool
+        self.default = default
         self.batch_size = batch_size
         self.read_roots = read_roots
-        self.precision: str | None = predictor.precision
-
-    @property
-    def inference_backend(self) -> str:
-        """The backend the predictor runs the network with."""
-        return self.predictor.backend
+        self.precision: str | None = None
+        self.inference_backend = "torch"
 
     def predict(
         self,
@@ -116,19 +121,32 @@ class LocalExecutor:
         out: Path,
         progress: Progress,
         cancel: threading.Event,
+        model: str | None = None,
     ) -> dict[str, str]:
-        """Predict the dataset's sequences into `out`, skipping scans already done; a cancel
-        or a gateway stop both stop it after the batch in flight."""
-        summary = predict_tree(
-            self.predictor,
-            dataset,
-            sequences,
-            out,
-            batch_size=self.batch_size,
-            progress=False,
-            on_progress=progress,
-            cancel=cancel,
-            read_roots=None if self.read_roots is None else [str(r) for r in self.read_roots],
-            runner="service job",
-        )
+        """Predict the dataset's sequences into `out` with `model` (None: the default), skipping
+        scans already done; a cancel or a gateway stop both stop it after the batch in flight.
+        `JobError` when the model cannot be loaded because running jobs hold every slot."""
+        name = model or self.default
+        try:
+            runtime = self.pool.acquire(name)
+        except PoolFull as exc:
+            raise JobError(str(exc)) from exc
+        try:
+            predictor = runtime.predictor
+            assert predictor is not None  # a job's runtime always has its network
+            self.precision, self.inference_backend = predictor.precision, predictor.backend
+            summary = predict_tree(
+                predictor,
+                dataset,
+                sequences,
+                out,
+                batch_size=self.batch_size,
+                progress=False,
+                on_progress=progress,
+                cancel=cancel,
+                read_roots=None if self.read_roots is None else [str(r) for r in self.read_roots],
+                runner="service job",
+            )
+        finally:
+            self.pool.release(name)
         return summary.failed

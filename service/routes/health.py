@@ -51,11 +51,13 @@ async def healthz(
     state = await gw.labeller.health()
     ok = bool(state.get("ok"))
     workers = state.get("workers", [])
-    model = gw.model or next((w["model"] for w in workers if w.get("model")), None)
+    default = gw.models.default_entry
+    model = default.network or next((w["model"] for w in workers if w.get("model")), None)
     summary = HealthSummary(
         status="ok" if ok else "unavailable",
         model=model,
-        profile=gw.profile.name,
+        profile=default.profile.name,
+        models={entry.name: entry.profile.name for entry in gw.models},
         version=software_version(),
     )
     status_code = 200 if ok else 503

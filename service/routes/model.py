@@ -1,5 +1,5 @@
-"""GET /v1/model: which network the gateway serves, from which checkpoint, and whether those are
-the bundled demo weights.
+"""GET /v1/model and /v1/models: which networks the gateway serves, from which checkpoints, and
+whether those are the bundled demo weights.
 
 The gateway knows its checkpoint from loading it at start (also when the network itself runs on
 the Serve application, which is checked to serve the same file), so the answer comes from it and
@@ -8,12 +8,16 @@ needs no worker. The web page shows the note beside the model's name.
 
 from __future__ import annotations
 
+from typing import Annotated
+
 from fastapi import APIRouter
 
 from rangeret.models.weights.demo import is_demo_checkpoint
 from service.dependencies import GatewayDep
 from service.errors import error_responses
-from service.schemas import ServedModel
+from service.gateway import Gateway
+from service.schemas import ListedModel, ModelList, ServedModel
+from service.served_models import MODEL_QUERY, ModelEntry
 
 router = APIRouter(prefix="/v1", tags=["service"])
 
@@ -25,28 +29,62 @@ DEMO_NOTE = (
 )
 
 
-@router.get(
-    "/model",
-    summary="The served network and its checkpoint",
-    description=(
-        "The served network's name, its checkpoint's SHA-256 and whether these are the bundled "
-        "demo weights (trained on simulated scenes only), with a note saying how to serve a "
-        "published model instead."
-    ),
-    operation_id="get_model",
-    response_model=ServedModel,
-    responses=error_responses(400),
-)
-async def model(gw: GatewayDep) -> ServedModel:
-    name = gw.model
-    if name is None:
-        workers = (await gw.labeller.health()).get("workers", [])
-        name = next((w["model"] for w in workers if w.get("model")), None)
-    demo = is_demo_checkpoint(gw.checkpoint_sha256)
+def served_model(gw: Gateway, entry: ModelEntry, network: str | None) -> ServedModel:
+    """What the gateway says of one model: its network, checkpoint, profile and demo note."""
+    demo = is_demo_checkpoint(entry.checkpoint_sha256)
     return ServedModel(
-        name=name,
-        checkpoint_sha256=gw.checkpoint_sha256,
-        profile=gw.profile.name,
+        id=entry.name,
+        name=network,
+        checkpoint_sha256=entry.checkpoint_sha256,
+        profile=entry.profile.name,
         demo_weights=demo,
         note=DEMO_NOTE if demo else None,
     )
+
+
+async def network_name(gw: Gateway, entry: ModelEntry) -> str | None:
+    """The model's network name: known from loading it at start, else from the workers."""
+    if entry.network is not None:
+        return entry.network
+    workers = (await gw.labeller.health()).get("workers", [])
+    return next((w["model"] for w in workers if w.get("model")), None)
+
+
+@router.get(
+    "/model",
+    summary="A served network and its checkpoint",
+    description=(
+        "The network of the model `model` (the default without it): its name, its checkpoint's "
+        "SHA-256, its profile and whether these are the bundled demo weights (trained on "
+        "simulated scenes only), with a note saying how to serve a published model instead."
+    ),
+    operation_id="get_model",
+    response_model=ServedModel,
+    responses=error_responses(400, 404),
+)
+async def model(gw: GatewayDep, model: Annotated[str | None, MODEL_QUERY] = None) -> ServedModel:
+    entry = gw.models.get(model)
+    return served_model(gw, entry, await network_name(gw, entry))
+
+
+@router.get(
+    "/models",
+    summary="Every served model",
+    description=(
+        "The models this gateway serves, in its models file's order, each as `GET /v1/model` "
+        "describes it and whether its network is loaded now, and the default one."
+    ),
+    operation_id="list_models",
+    response_model=ModelList,
+    responses=error_responses(400),
+)
+async def models(gw: GatewayDep) -> ModelList:
+    loaded = gw.loaded_models()
+    listed = [
+        ListedModel(
+            **served_model(gw, entry, await network_name(gw, entry)).model_dump(),
+            loaded=loaded is None or entry.name in loaded,
+        )
+        for entry in gw.models
+    ]
+    return ModelList(default=gw.models.default, models=listed)

@@ -6,12 +6,15 @@ ground-truth file with the benchmark's rules; any client can use it the same way
 
 from __future__ import annotations
 
+from typing import Annotated
+
 from fastapi import APIRouter
 
 from rangeret.dataset.profiles import DatasetProfile
 from service.dependencies import GatewayDep
 from service.errors import error_responses
 from service.schemas import ProfileClass, ServedProfile
+from service.served_models import MODEL_QUERY
 
 router = APIRouter(prefix="/v1", tags=["service"])
 
@@ -42,16 +45,18 @@ def served_profile(profile: DatasetProfile) -> ServedProfile:
 
 @router.get(
     "/profile",
-    summary="The served profile's classes, palette and label map",
+    summary="A model's profile: classes, palette and label map",
     description=(
-        "The served dataset profile's point record, its training classes (name, raw id, colour "
+        "The dataset profile of the model `model` (the default without it): its point record, its training classes (name, raw id, colour "
         "as #rrggbb, ignored or not) and the map from raw ids to classes, as the evaluation "
         "uses them: enough to colour a scan's labels and to score a prediction against ground "
         "truth the way the benchmark does."
     ),
     operation_id="get_profile",
     response_model=ServedProfile,
-    responses=error_responses(400),
+    responses=error_responses(400, 404),
 )
-async def profile(gw: GatewayDep) -> ServedProfile:
-    return served_profile(gw.profile)
+async def profile(
+    gw: GatewayDep, model: Annotated[str | None, MODEL_QUERY] = None
+) -> ServedProfile:
+    return served_profile(gw.models.get(model).profile)

@@ -34,6 +34,7 @@ from service.scan_bodies import (
     decode_file_body,
 )
 from service.schemas import BINARY_CONTENT, LabelFormat, ScanLabels
+from service.served_models import MODEL_HEADER, MODEL_QUERY, ModelEntry
 from service.uploads import declared_length, drain, media_type, read_body
 
 router = APIRouter(prefix="/v1", tags=["scans"])
@@ -104,6 +105,7 @@ def _class_counts(labels: np.ndarray, config: LabelConfig) -> dict[str, int]:
         **error_responses(
             400,
             403,
+            404,
             408,
             413,
             415,
@@ -111,6 +113,7 @@ def _class_counts(labels: np.ndarray, config: LabelConfig) -> dict[str, int]:
             504,
             described={
                 400: "Malformed scan or query, or a Host the gateway does not answer to",
+                404: "No model of that name",
                 503: "The single-scan queue is full (with Retry-After), the labelling backend "
                 "is unavailable, or the gateway is starting",
             },
@@ -140,8 +143,14 @@ async def label_scan(
             "`Accept` header chooses (raw bytes unless it prefers application/json)",
         ),
     ] = None,
+    model: Annotated[str | None, MODEL_QUERY] = None,
 ) -> Response:
     limits = gw.settings
+    try:
+        entry = gw.models.get(model)
+    except ApiError:
+        await drain(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
+        raise
     as_json = json_answer(form, request.headers.get("accept"))
     if confidence and not as_json:
         await drain(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
@@ -173,19 +182,21 @@ async def label_scan(
         gw.metrics.refused.inc()
         raise ApiError(503, str(exc), {"Retry-After": str(RETRY_AFTER_S)}) from exc
     with place:
-        return await _label(request, gw, knn, confidence, as_json)
+        return await _label(request, gw, entry, knn, confidence, as_json)
 
 
 async def _label(
-    request: Request, gw: Gateway, knn: bool, confidence: bool, as_json: bool
+    request: Request, gw: Gateway, entry: ModelEntry, knn: bool, confidence: bool, as_json: bool
 ) -> Response:
-    """Read, check and label an admitted scan, and answer in the form the client asked for."""
+    """Read, check and label an admitted scan with the model `entry`, and answer in the form
+    the client asked for."""
     limits = gw.settings
     body = await read_body(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
     fmt = body_format(media_type(request), body[:16])
     if fmt != "bin":
-        return await _label_file(gw, body, fmt, knn, confidence, as_json)
-    record = gw.profile.points
+        return await _label_file(gw, entry, body, fmt, knn, confidence, as_json)
+    profile = entry.profile
+    record = profile.points
     if len(body) // record.point_bytes > limits.max_points:
         raise ApiError(
             413,
@@ -197,40 +208,49 @@ async def _label(
             400,
             f"The scan is malformed: size {len(body)} bytes is not a multiple of "
             f"{record.point_bytes} ({record.point_bytes} bytes per point: "
-            f"{', '.join(record.fields)}, the point record of the {gw.profile.name} profile).",
+            f"{', '.join(record.fields)}, the point record of the {profile.name} profile).",
         )
     try:
         points = await asyncio.to_thread(parse_scan, body, "the scan", record=record)
     except ScanFormatError as exc:
         raise ApiError(400, f"The scan is malformed: {exc.problem}.") from exc
-    labelled = await _labelled(gw, points, knn, confidence)
-    return _answer(gw, labelled.labels, labelled.confidence, as_json)
+    labelled = await _labelled(gw, entry, points, knn, confidence)
+    return _answer(entry, labelled.labels, labelled.confidence, as_json)
 
 
 async def _label_file(
-    gw: Gateway, body: bytes, fmt: str, knn: bool, confidence: bool, as_json: bool
+    gw: Gateway,
+    entry: ModelEntry,
+    body: bytes,
+    fmt: str,
+    knn: bool,
+    confidence: bool,
+    as_json: bool,
 ) -> Response:
     """Label a PCD, PLY, LAS or LAZ body: its declared count checked before it is decoded, its
     valid points labelled, the answer one label per point of the body."""
-    check_declared(body, fmt, gw.profile.points, gw.settings.max_points)
-    decoded: FileBody = await asyncio.to_thread(decode_file_body, body, fmt, gw.profile)
+    profile = entry.profile
+    check_declared(body, fmt, profile.points, gw.settings.max_points)
+    decoded: FileBody = await asyncio.to_thread(decode_file_body, body, fmt, profile)
     if len(decoded.points):
         points = decoded.points
-        labelled = await _labelled(gw, points, knn, confidence)
+        labelled = await _labelled(gw, entry, points, knn, confidence)
         labels, scores = labelled.labels, labelled.confidence
     else:
         labels = np.zeros(0, dtype=np.uint32)
         scores = np.zeros(0, dtype=np.float32) if confidence else None
-    every = spread_labels(decoded.valid, labels, scores, config=gw.profile.labels)
-    return _answer(gw, every.labels, every.confidence if confidence else None, as_json)
+    every = spread_labels(decoded.valid, labels, scores, config=profile.labels)
+    return _answer(entry, every.labels, every.confidence if confidence else None, as_json)
 
 
-async def _labelled(gw: Gateway, points: np.ndarray, knn: bool, confidence: bool) -> ScanPrediction:
+async def _labelled(
+    gw: Gateway, entry: ModelEntry, points: np.ndarray, knn: bool, confidence: bool
+) -> ScanPrediction:
     """The labeller's answer for checked points, its failures as the HTTP errors they mean."""
     if not gw.started:
         raise ApiError(503, "The gateway is starting; try again in a moment.")
     try:
-        labelled = await gw.labeller.label(points, knn, confidence)
+        labelled = await gw.labeller.label(points, knn, confidence, model=entry.name)
     except ScanRejected as exc:
         raise ApiError(400, f"The scan cannot be projected: {exc}.") from exc
     except BackendTimeout as exc:
@@ -243,19 +263,22 @@ async def _labelled(gw: Gateway, points: np.ndarray, knn: bool, confidence: bool
 
 
 def _answer(
-    gw: Gateway, labels: np.ndarray, confidence: np.ndarray | None, as_json: bool
+    entry: ModelEntry, labels: np.ndarray, confidence: np.ndarray | None, as_json: bool
 ) -> Response:
-    """Raw label bytes, or the JSON answer when the client asked for it."""
+    """Raw label bytes, or the JSON answer when the client asked for it; either names the model
+    in its `X-RangeRet-Model` header."""
     raw = labels.astype("<u4", copy=False)
+    headers = {MODEL_HEADER: entry.name}
     if as_json:
         body = ScanLabels(
+            model=entry.name,
             num_points=len(raw),
             labels=raw.tolist(),
-            class_counts=_class_counts(raw, gw.profile.labels),
+            class_counts=_class_counts(raw, entry.profile.labels),
             confidence=None if confidence is None else np.round(confidence, 4).tolist(),
         )
-        return JSONResponse(body.model_dump(exclude_none=True))
-    return Response(raw.tobytes(), media_type=OCTET)
+        return JSONResponse(body.model_dump(exclude_none=True), headers=headers)
+    return Response(raw.tobytes(), media_type=OCTET, headers=headers)
 
 
 def _sentence(exc: Exception) -> str:

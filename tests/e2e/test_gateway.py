@@ -177,7 +177,8 @@ def test_json_form(setup, gateway):
         )
     assert r.status_code == 200 and r.headers["content-type"] == "application/json"
     body = r.json()
-    assert set(body) == {"num_points", "labels", "class_counts"}
+    assert set(body) == {"model", "num_points", "labels", "class_counts"}
+    assert body["model"] == "default" and r.headers["x-rangeret-model"] == "default"
     assert body["num_points"] == expected.size and body["labels"] == expected.tolist()
     config = semantickitti()
     counts = np.bincount(config.to_class(expected), minlength=config.num_classes)
@@ -675,7 +676,7 @@ def test_fuzz_no_server_error(gateway):
         )
 
     operations = [result.ok() for result in schema.get_all_operations()]
-    assert len(operations) == 13  # POST /v1/jobs/uploads, /v1/profile and the PNGs among them
+    assert len(operations) == 14  # POST /v1/jobs/uploads, /v1/profile, /v1/models and the PNGs
     for operation in operations:
         for mode in (GenerationMode.POSITIVE, GenerationMode.NEGATIVE):
             run = settings(

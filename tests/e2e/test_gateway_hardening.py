@@ -231,8 +231,9 @@ def test_healthz_says_little_without_the_token(setup, gateway):
     )
     for r in (anonymous, wrong):
         assert r.status_code == 200
-        assert r.json().keys() == {"status", "model", "profile", "version"}
+        assert r.json().keys() == {"status", "model", "profile", "models", "version"}
         assert r.json()["status"] == "ok" and r.json()["profile"] == "semantickitti"
+        assert r.json()["models"] == {"default": "semantickitti"}
         assert str(setup["weights"]) not in r.text and "pid" not in r.text
     with gateway.client() as client:
         full = client.get("/healthz").json()

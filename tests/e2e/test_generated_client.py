@@ -148,7 +148,7 @@ def test_the_description_is_valid_and_every_generated_module_imports(client_pack
         for operation in methods.values()
     }
     generated = {name.rsplit(".", 1)[-1] for name in modules if ".api." in name}
-    assert operations <= generated and len(operations) == 13
+    assert operations <= generated and len(operations) == 14
 
 
 def test_the_generated_client_labels_the_real_scan_as_rangeret_predict(

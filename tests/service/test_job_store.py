@@ -25,6 +25,7 @@ from service.app import create_app
 from service.jobs import SCHEMA_VERSION, JobDatabaseVersionError, JobStore
 from service.schemas import JobState
 from service.settings import Settings
+from tests.support.apps import one_model
 from tests.support.trees import make_tree
 
 TOKEN = "store-test-token"
@@ -160,13 +161,18 @@ def test_create_app_refuses_a_newer_database_before_serving(tmp_path):
     JobStore(settings.database_path).close()
     _set_user_version(settings.database_path, SCHEMA_VERSION + 5)
     with pytest.raises(JobDatabaseVersionError, match=str(SCHEMA_VERSION + 5)):
-        create_app(settings, FakeLabeller(), FakeExecutor(), profile=load_profile("semantickitti"))
+        create_app(
+            settings,
+            FakeLabeller(),
+            FakeExecutor(),
+            models=one_model(load_profile("semantickitti")),
+        )
     assert not (tmp_path / "absent").exists()
     create_app(
         Settings(state_dir=tmp_path / "absent"),
         FakeLabeller(),
         FakeExecutor(),
-        profile=load_profile("semantickitti"),
+        models=one_model(load_profile("semantickitti")),
     )
     assert not (tmp_path / "absent").exists()  # checking creates nothing
 
@@ -185,7 +191,7 @@ class FakeLabeller:
     async def stop(self):
         return None
 
-    async def label(self, points, raw, knn=True, confidence=False):
+    async def label(self, points, knn=True, confidence=False, *, model):
         return ScanPrediction(np.full(len(points), 40, dtype=np.uint32))
 
     def depth(self):
@@ -252,7 +258,7 @@ def test_routes_never_touch_the_store_on_the_event_loop(tmp_path, monkeypatch):
     make_tree(roots / "data", {"08": [30, 40], "11": [20]}, labelled=True)
     settings = Settings(state_dir=tmp_path / "state", data_roots=[roots], api_token=TOKEN)
     app = create_app(
-        settings, FakeLabeller(), FakeExecutor(), profile=load_profile("semantickitti")
+        settings, FakeLabeller(), FakeExecutor(), models=one_model(load_profile("semantickitti"))
     )
     archive = io.BytesIO()
     with zipfile.ZipFile(archive, "w") as zf:

@@ -165,9 +165,11 @@ def test_scans_outside_the_read_roots_fail_the_job_before_it_predicts(store, tmp
 def test_the_local_executor_records_each_job_run_in_run_json(store, tmp_path):
     """The gateway's in-process jobs write run.json like every runner."""
     from rangeret.inference.predictor import Predictor
+    from rangeret.inference.scan_worker import ScanWorker
     from rangeret.inference.spec import InferenceSpec
     from rangeret.io.run_info import read_run_info
     from service.jobs.executors import LocalExecutor
+    from tests.support.apps import pooled
     from tests.support.workers import build_tree, small_weights
 
     data = build_tree(tmp_path / "data", labelled=1, unlabelled=1)
@@ -175,7 +177,8 @@ def test_the_local_executor_records_each_job_run_in_run_json(store, tmp_path):
     spec = InferenceSpec(
         checkpoint=str(small_weights(tmp_path)), height=32, width=256, device="cpu"
     )
-    executor = LocalExecutor(Predictor.from_spec(spec))
+    predictor = Predictor.from_spec(spec)
+    executor = LocalExecutor(pooled(ScanWorker(predictor)).pool, "default")
     work = JobWork(store, executor, KITTI)
     assert work.run(job, folder, JobControl(job.id, store)) is True
     assert store.get(job.id).state is JobState.succeeded

@@ -11,8 +11,8 @@ from fastapi.testclient import TestClient
 from rangeret.dataset.profiles import load_profile
 from rangeret.models.weights.demo import DEMO_CHECKPOINT
 from service.app import create_app
-from service.local_labeller import LocalLabeller
 from service.settings import Settings
+from tests.support.apps import one_model, pooled
 
 TOKEN = "model-test-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -45,11 +45,9 @@ def _client(tmp_path, sha256: str | None, model: str | None) -> TestClient:
     settings = Settings(state_dir=tmp_path / "state", api_token=TOKEN)
     app = create_app(
         settings,
-        LocalLabeller(FakeWorker()),
+        pooled(FakeWorker()),
         FakeExecutor(),
-        profile=load_profile("semantickitti"),
-        checkpoint_sha256=sha256,
-        model=model,
+        models=one_model(load_profile("semantickitti"), sha256, model),
     )
     return TestClient(app)
 
@@ -72,6 +70,7 @@ def test_other_weights_are_not_the_demo_and_carry_no_note(tmp_path):
         described = client.get("/openapi.json").json()
     assert answer.status_code == 200
     assert answer.json() == {
+        "id": "default",
         "name": "rangeret-cir",
         "checkpoint_sha256": "ab" * 32,
         "profile": "semantickitti",

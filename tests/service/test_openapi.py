@@ -19,11 +19,11 @@ from rangeret.inference.scan_worker import ScanWorker
 from rangeret.inference.spec import InferenceSpec
 from rangeret.io.scans import read_scan
 from service.app import create_app
-from service.local_labeller import LocalLabeller
 from service.routes.scans import json_answer
 from service.scan_bodies import CONTENT_TYPES
 from service.schemas import LabelFormat
 from service.settings import Settings
+from tests.support.apps import one_model, pooled
 from tests.support.jobs import FakeExecutor
 from tests.support.paths import data_path
 from tests.support.workers import small_weights
@@ -34,7 +34,7 @@ ERROR = {"$ref": "#/components/schemas/ErrorResponse"}
 
 #: Every operation of the API: (method, path) -> (operation id, the error answers it can give).
 OPERATIONS = {
-    ("POST", "/v1/scans"): ("label_scan", {400, 401, 403, 408, 413, 415, 503, 504}),
+    ("POST", "/v1/scans"): ("label_scan", {400, 401, 403, 404, 408, 413, 415, 503, 504}),
     ("POST", "/v1/jobs"): ("create_job", {400, 401, 403, 404, 408, 413, 415, 429, 503, 507}),
     ("POST", "/v1/jobs/uploads"): ("upload_job", {400, 401, 403, 408, 413, 415, 429, 503, 507}),
     ("GET", "/v1/jobs"): ("list_jobs", {400, 401, 503}),
@@ -43,8 +43,9 @@ OPERATIONS = {
     ("GET", "/v1/jobs/{job_id}/predictions"): ("get_job_predictions", {400, 401, 404, 409, 503}),
     ("GET", "/v1/jobs/{job_id}/report"): ("get_job_report", {400, 401, 404, 409, 503}),
     ("GET", "/v1/jobs/{job_id}/plots/{name}"): ("get_job_plot", {400, 401, 404, 409, 503}),
-    ("GET", "/v1/profile"): ("get_profile", {400, 401}),
-    ("GET", "/v1/model"): ("get_model", {400, 401}),
+    ("GET", "/v1/profile"): ("get_profile", {400, 401, 404}),
+    ("GET", "/v1/model"): ("get_model", {400, 401, 404}),
+    ("GET", "/v1/models"): ("list_models", {400, 401}),
     ("GET", "/healthz"): ("health", {503}),
     ("GET", "/metrics"): ("get_metrics", {400}),
 }
@@ -61,7 +62,7 @@ def pool(tmp_path_factory) -> ScanWorker:
 def _app(state: Path, pool: ScanWorker, token: str | None = TOKEN):
     settings = Settings(state_dir=state, api_token=token)
     return create_app(
-        settings, LocalLabeller(pool), FakeExecutor(), profile=load_profile("semantickitti")
+        settings, pooled(pool), FakeExecutor(), models=one_model(load_profile("semantickitti"))
     )
 
 

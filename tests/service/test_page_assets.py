@@ -16,7 +16,6 @@ from fastapi.testclient import TestClient
 
 from rangeret.dataset.profiles import load_profile
 from service.app import create_app
-from service.local_labeller import LocalLabeller
 from service.page_assets import (
     BUILD_COMMAND,
     VENDOR_FILES,
@@ -27,6 +26,7 @@ from service.page_assets import (
 )
 from service.server import settings_from_args
 from service.settings import Settings
+from tests.support.apps import one_model, pooled
 
 TOKEN = "page-test-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -70,7 +70,10 @@ def _unbuilt_copy(tmp_path: Path) -> Path:
 def _app(tmp_path: Path, token: str | None = TOKEN, web: Path | None = None):
     settings = Settings(state_dir=tmp_path / "state", api_token=token)
     app = create_app(
-        settings, LocalLabeller(FakeWorker()), FakeExecutor(), profile=load_profile("semantickitti")
+        settings,
+        pooled(FakeWorker()),
+        FakeExecutor(),
+        models=one_model(load_profile("semantickitti")),
     )
     if web is not None:
         app.state.gateway.page = PageFiles(web)
@@ -180,7 +183,7 @@ def test_the_profile_endpoint_follows_the_token_rule_and_describes_the_profile(t
     pandaset = load_profile("pandaset")
     settings = Settings(state_dir=tmp_path / "panda", api_token=None)
     with TestClient(
-        create_app(settings, LocalLabeller(FakeWorker()), FakeExecutor(), profile=pandaset),
+        create_app(settings, pooled(FakeWorker()), FakeExecutor(), models=one_model(pandaset)),
         base_url="http://localhost",  # a gateway without a token answers to loopback names only
     ) as client:
         body = client.get("/v1/profile").json()

@@ -77,17 +77,17 @@ def gateway_env(
 
 
 def start_gateway(
-    weights: Path, env: dict[str, str], log: Path, *args: str, net: Sequence[str] = NET
+    weights: Path | None, env: dict[str, str], log: Path, *args: str, net: Sequence[str] = NET
 ) -> Gateway:
-    """`rangeret serve` of `weights` with the network options `net` (default: the small
-    weights' 32 x 256 on the CPU) and `args`, once it answers /healthz."""
+    """`rangeret serve` of `weights` (None: the models file among `args` names them) with the
+    network options `net` (default: the small weights' 32 x 256 on the CPU) and `args`, once it
+    answers /healthz."""
     port = free_port()
     cmd = [
         sys.executable,
         "-m",
         "service",
-        "--checkpoint",
-        str(weights),
+        *(["--checkpoint", str(weights)] if weights is not None else []),
         *net,
         "--port",
         str(port),

@@ -1,0 +1,33 @@
+"""Gateway apps built in the test process: a catalog of one model, and a scan worker (real or
+fake) behind the gateway's pooled labeller, as `rangeret serve` builds them."""
+
+from __future__ import annotations
+
+from rangeret.dataset.profiles import DatasetProfile
+from rangeret.inference.spec import InferenceSpec
+from service.local_labeller import LocalLabeller
+from service.model_pool import ModelPool
+from service.pooled_labeller import ModelRuntime, PooledLabeller
+from service.served_models import ModelCatalog, ModelEntry
+
+
+def one_model(
+    profile: DatasetProfile,
+    checkpoint_sha256: str | None = None,
+    network: str | None = None,
+    name: str = "default",
+) -> ModelCatalog:
+    """The catalog of one model `name` running with `profile`."""
+    entry = ModelEntry(name, InferenceSpec(), profile, checkpoint_sha256, network)
+    return ModelCatalog.one(entry)
+
+
+def pooled(worker: object, name: str = "default") -> PooledLabeller:
+    """A pooled labeller whose one loaded model is `worker` (a `ScanWorker` or a fake one)."""
+    pool: ModelPool[ModelRuntime] = ModelPool([name], _unloadable)
+    pool.preload(name, ModelRuntime(LocalLabeller(worker), getattr(worker, "predictor", None)))
+    return PooledLabeller(pool)
+
+
+def _unloadable(name: str) -> ModelRuntime:
+    raise AssertionError(f"the model {name} was evicted in a test whose pool never evicts")
