@@ -99,6 +99,7 @@ class DatasetJobRequest(BaseModel):
                 {"dataset": "/data/semantickitti", "split": "valid"},
                 {"dataset": "/data/semantickitti", "sequences": ["08"]},
                 {"dataset": "/data/pandaset", "sequences": ["1", "2"], "profile": "pandaset"},
+                {"dataset": "/data/pandaset", "sequences": ["1"], "model": "panda"},
             ]
         },
     )
@@ -126,7 +127,13 @@ class DatasetJobRequest(BaseModel):
         min_length=1,
         max_length=200,
         description="the dataset profile the request is meant for; when given, it must be the "
-        "one the gateway serves",
+        "model's",
+    )
+    model: str | None = Field(
+        default=None,
+        min_length=1,
+        max_length=63,
+        description="the served model to run (`GET /v1/models`); without it, the default model",
     )
 
     @model_validator(mode="after")
@@ -214,6 +221,7 @@ class JobStatus(BaseModel):
     id: str
     state: JobState
     kind: Literal["archive", "dataset"]
+    model: str = Field(description="the served model the job runs with")
     sequences: list[str]
     total: int = Field(ge=0, description="scans in the job")
     done: int = Field(ge=0, description="scans whose prediction is written")

@@ -83,8 +83,10 @@ class JobExecutor(Protocol):
         out: Path,
         progress: Progress,
         cancel: JobControl,
+        model: str | None = None,
     ) -> dict[str, str]:
-        """Write the predictions of the scans not done yet; return failures by scan key.
+        """Write the predictions of the scans not done yet with the served model `model` (None:
+        the default); return failures by scan key.
 
         Returns early once `cancel` is set; `JobError` when the job cannot go on.
         """

@@ -3,9 +3,9 @@ checked, and queued.
 
 An archive job is refused before its upload is read when the queue is full (429) or its declared
 length does not fit in the disk the job folders may use (507); the upload is received into a new
-job folder, checked and extracted there in the served profile's layout (`service.archives`), and
-the folder is removed again whatever stops it on the way. A dataset job names a folder under the
-data roots (403 outside them, 404 when absent) in the served profile, and its scans must stay
+job folder, checked and extracted there in its model's profile's layout (`service.archives`),
+and the folder is removed again whatever stops it on the way. A dataset job names a folder under
+the data roots (403 outside them, 404 when absent) in its model's profile, and its scans must stay
 under the roots once links are resolved. Either is queued with the output its scans are expected
 to write (`service.jobs.capacity`). Every refusal is an `ApiError` with its status and sentence;
 the blocking steps run in worker threads, never on the event loop.
@@ -19,7 +19,6 @@ from collections.abc import Awaitable, Callable, Sequence
 from pathlib import Path
 
 from rangeret.dataset.layout import DatasetLayoutError, ScanEntry, list_scans, resolve_sequences
-from rangeret.dataset.profiles import DatasetProfile
 from service.archives import ArchiveError, ArchiveLimits, extract_archive
 from service.errors import ApiError
 from service.jobs.capacity import JobRefused, disk_full, expected_output_bytes
@@ -27,6 +26,7 @@ from service.jobs.manager import JobManager
 from service.jobs.store import JobRecord
 from service.paths import escaping_scans, outside_roots_sentence
 from service.schemas import DatasetJobRequest
+from service.served_models import ModelCatalog, ModelEntry
 from service.settings import Settings
 
 #: The file in a new job's folder an upload is received into (removed once it is extracted).
@@ -66,13 +66,13 @@ def refused(exc: JobRefused) -> ApiError:
 
 
 class JobIntake:
-    """Prepares, checks and queues new jobs for `jobs`, under the gateway's `settings` and in its
-    served `profile`."""
+    """Prepares, checks and queues new jobs for `jobs`, under the gateway's `settings`, each in
+    the profile of its model among `models`."""
 
-    def __init__(self, jobs: JobManager, settings: Settings, profile: DatasetProfile) -> None:
+    def __init__(self, jobs: JobManager, settings: Settings, models: ModelCatalog) -> None:
         self.jobs = jobs
         self.settings = settings
-        self.profile = profile
+        self.models = models
 
     # Checks before a body is read ---------------------------------------------------------
 
@@ -105,10 +105,10 @@ class JobIntake:
             settings.max_extracted_bytes,
         )
 
-    def extract_upload(self, upload: Path, folder: Path) -> JobInput:
-        """Check and extract the archive at `upload` into the job `folder` in the served profile
+    def extract_upload(self, upload: Path, folder: Path, model: ModelEntry) -> JobInput:
+        """Check and extract the archive at `upload` into the job `folder` in the model's profile
         (400 or 413 when it is not one the gateway takes), removing the upload; its input."""
-        profile = self.profile
+        profile = model.profile
         try:
             found = extract_archive(
                 upload,
@@ -124,17 +124,19 @@ class JobIntake:
         entries = list_scans(found.root, found.sequences, layout=profile.layout)
         return found.root, found.sequences, entries
 
-    async def archive_job(self, receive: Callable[[Path], Awaitable[object]]) -> JobRecord:
-        """A new job from an upload: `receive(path)` writes the upload into the new job's folder,
-        which is then extracted and queued; the folder is removed when any step fails, and a
-        full disk is 507 naming the jobs folder."""
+    async def archive_job(
+        self, receive: Callable[[Path], Awaitable[object]], model: ModelEntry
+    ) -> JobRecord:
+        """A new job of `model` from an upload: `receive(path)` writes the upload into the new
+        job's folder, which is then extracted and queued; the folder is removed when any step
+        fails, and a full disk is 507 naming the jobs folder."""
         jobs = self.jobs
         job_id, folder = await asyncio.to_thread(jobs.new_job)
         try:
             upload = folder / UPLOAD_FILE
             await receive(upload)
-            found = await asyncio.to_thread(self.extract_upload, upload, folder)
-            return await self.submit(job_id, "archive", found)
+            found = await asyncio.to_thread(self.extract_upload, upload, folder, model)
+            return await self.submit(job_id, "archive", found, model)
         except OSError as exc:
             await asyncio.to_thread(jobs.remove_files, job_id)
             if exc.errno in (errno.ENOSPC, errno.EDQUOT):
@@ -150,16 +152,16 @@ class JobIntake:
 
     # Dataset jobs ---------------------------------------------------------------------------
 
-    def dataset_input(self, request: DatasetJobRequest) -> JobInput:
-        """The input a dataset job request names, in the served profile and under the data
+    def dataset_input(self, request: DatasetJobRequest, model: ModelEntry) -> JobInput:
+        """The input a dataset job request names, in its model's profile and under the data
         roots: 400 for another profile or a dataset that cannot be used, 403 outside the roots
         (links resolved), 404 when absent."""
-        profile = self.profile
+        profile = model.profile
         if request.profile is not None and request.profile != profile.name:
             raise ApiError(
                 400,
-                f"The request is for the {request.profile[:64]!r} profile but this gateway serves "
-                f"the {profile.name!r} profile: one gateway serves one network.",
+                f"The request is for the {request.profile[:64]!r} profile but the model "
+                f"{model.name} runs with the {profile.name!r} profile.",
             )
         roots = self.settings.data_roots
         root = resolve_dataset(request.dataset, roots)
@@ -176,24 +178,28 @@ class JobIntake:
         return root, sequences, entries
 
     async def dataset_job(self, request: DatasetJobRequest) -> JobRecord:
-        """A new job over the dataset `request` names, checked and queued."""
-        found = await asyncio.to_thread(self.dataset_input, request)
+        """A new job over the dataset `request` names with its model, checked and queued (404
+        for a model the gateway does not serve)."""
+        model = self.models.get(request.model)
+        found = await asyncio.to_thread(self.dataset_input, request, model)
         job_id, _ = await asyncio.to_thread(self.jobs.new_job)
         try:
-            return await self.submit(job_id, "dataset", found)
+            return await self.submit(job_id, "dataset", found, model)
         except BaseException:
             await asyncio.to_thread(self.jobs.remove_files, job_id)
             raise
 
     # Both -----------------------------------------------------------------------------------
 
-    async def submit(self, job_id: str, kind: str, found: JobInput) -> JobRecord:
-        """Queue a job whose folder is ready, with the output its scans are expected to write;
-        429 or 507 when the gateway cannot take it now."""
+    async def submit(self, job_id: str, kind: str, found: JobInput, model: ModelEntry) -> JobRecord:
+        """Queue a job of `model` whose folder is ready, with the output its scans are expected
+        to write; 429 or 507 when the gateway cannot take it now."""
         root, sequences, entries = found
         jobs = self.jobs
-        expected = await asyncio.to_thread(expected_output_bytes, entries, self.profile.points)
+        expected = await asyncio.to_thread(expected_output_bytes, entries, model.profile.points)
         try:
-            return await asyncio.to_thread(jobs.submit, job_id, kind, root, sequences, expected)
+            return await asyncio.to_thread(
+                jobs.submit, job_id, kind, root, sequences, expected, model.name
+            )
         except JobRefused as exc:
             raise refused(exc) from exc

@@ -22,13 +22,13 @@ import uuid
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from rangeret.dataset.profiles import DatasetProfile
 from service.jobs.capacity import disk_full, disk_short, folder_bytes, queue_full
 from service.jobs.executors import JobControl, JobError, JobExecutor
 from service.jobs.reasons import failure_sentence
 from service.jobs.store import JobDatabaseFull, JobRecord, JobStore
 from service.jobs.work import PROFILE_FILE, JobWork
 from service.schemas import JobState
+from service.served_models import ModelCatalog
 
 log = logging.getLogger(__name__)
 
@@ -62,8 +62,7 @@ class JobManager:
         jobs_dir: Path,
         retention_s: float,
         *,
-        profile: DatasetProfile,
-        checkpoint_sha256: str | None = None,
+        models: ModelCatalog,
         on_scans: Callable[[int], None] | None = None,
         max_running: int = 1,
         max_queued: int | None = None,
@@ -75,15 +74,14 @@ class JobManager:
         self.store = store
         self.jobs_dir = jobs_dir
         self.retention_s = retention_s
-        self.profile = profile
+        self.models = models
         self.max_running = max_running
         self.max_queued = max_queued
         self.max_bytes = max_bytes
         self.work = JobWork(
             store,
             executor,
-            profile=self.profile,
-            checkpoint_sha256=checkpoint_sha256,
+            models,
             read_roots=None
             if read_roots is None
             else [Path(r).resolve() for r in read_roots] + [jobs_dir.resolve()],
@@ -162,10 +160,13 @@ class JobManager:
         dataset: Path,
         sequences: Sequence[str],
         expected_bytes: int = 0,
+        model: str | None = None,
     ) -> JobRecord:
-        """Queue a job whose folder is ready, noting the profile it is accepted for, and wake a
-        runner; `JobRefused` when the queue is full (429) or its `expected_bytes` of output do not
-        fit in the disk the jobs may use (507)."""
+        """Queue a job of the served model `model` (None: the default) whose folder is ready,
+        noting the profile it is accepted for, and wake a runner; `JobRefused` when the queue is
+        full (429) or its `expected_bytes` of output do not fit in the disk the jobs may use
+        (507)."""
+        entry = self.models.entries[model or self.models.default]
         with self._admit_lock:
             self.check_queue()
             if self.max_bytes is not None:
@@ -175,8 +176,8 @@ class JobManager:
             free = shutil.disk_usage(self.jobs_dir).free
             if expected_bytes > free:
                 raise disk_short(expected_bytes, free, self.jobs_dir)
-            (self.job_dir(job_id) / PROFILE_FILE).write_text(self.profile.name + "\n")
-            record = self.store.create(job_id, kind, dataset, sequences)
+            (self.job_dir(job_id) / PROFILE_FILE).write_text(entry.profile.name + "\n")
+            record = self.store.create(job_id, kind, dataset, sequences, entry.name)
             self._expected[job_id] = expected_bytes
         self._wake.set()
         return record

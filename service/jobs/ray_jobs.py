@@ -262,9 +262,11 @@ class RayJobExecutor:
         out: Path,
         progress: Progress,
         cancel: JobControl,
+        model: str | None = None,
     ) -> dict[str, str]:
         """Submit the job (or re-attach to its stored submission) and follow it until its final
-        record, submitting it again when it dies; failures by scan key, as in-process.
+        record, submitting it again when it dies; failures by scan key, as in-process. The Ray
+        job runs the gateway's one model, whatever `model` names.
 
         Returns early when `cancel` is set: a cancelled job's Ray job is stopped first, one
         paused by a gateway stop is left running. `JobError` when it cannot go on.

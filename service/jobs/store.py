@@ -6,7 +6,9 @@ created at `SCHEMA_VERSION`, an older file is migrated to it when opened (a file
 version was kept has the tables of version 1), and a file of a newer version is refused.
 
 Versions: 1, the jobs table; 2, its `submission` column (the number of the job's latest
-submission to a Ray cluster, stored before the job is submitted).
+submission to a Ray cluster, stored before the job is submitted); 3, its `model` column (the
+served model the job runs with; NULL in older rows, which ran with the gateway's one model and
+are the default model's).
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from service.schemas import JobState
 #: Failed scans kept in a job's record (the count is always exact).
 MAX_ERRORS = 1000
 #: The schema this code reads and writes, stored in the database's `PRAGMA user_version`.
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 #: The statements that take a file from the version before each one to that version.
 _MIGRATIONS: dict[int, tuple[str, ...]] = {
@@ -40,6 +42,7 @@ _MIGRATIONS: dict[int, tuple[str, ...]] = {
         "CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state, created)",
     ),
     2: ("ALTER TABLE jobs ADD COLUMN submission INTEGER NOT NULL DEFAULT 0",),
+    3: ("ALTER TABLE jobs ADD COLUMN model TEXT",),
 }
 
 
@@ -143,6 +146,8 @@ class JobRecord:
     attempts: int = 0
     #: The number of the job's latest submission to a Ray cluster (0: never submitted).
     submission: int = 0
+    #: The served model the job runs with (None: the default, as for jobs from before models).
+    model: str | None = None
 
 
 #: queued -> running: the first start's time is kept when a job resumes.
@@ -154,7 +159,7 @@ _START = (
 _COLUMNS = (
     "id", "kind", "state", "dataset", "sequences", "created", "total", "done", "failed", "errors",
     "reason", "metrics", "predictions", "report", "started", "finished", "attempts",
-    "submission",
+    "submission", "model",
 )  # fmt: skip
 
 
@@ -225,14 +230,32 @@ class JobStore:
             ).fetchall()
         return [_record(row) for row in rows]
 
-    def create(self, job_id: str, kind: str, dataset: Path, sequences: Sequence[str]) -> JobRecord:
-        """Store a new queued job."""
+    def create(
+        self,
+        job_id: str,
+        kind: str,
+        dataset: Path,
+        sequences: Sequence[str],
+        model: str | None = None,
+    ) -> JobRecord:
+        """Store a new queued job of the served model `model`."""
         now = time.time()
         self._execute(
-            "INSERT INTO jobs (id, kind, state, dataset, sequences, created) VALUES (?, ?, ?, ?, ?, ?)",
-            (job_id, kind, JobState.queued.value, str(dataset), json.dumps(list(sequences)), now),
+            "INSERT INTO jobs (id, kind, state, dataset, sequences, created, model) "
+            "VALUES (?, ?, ?, ?, ?, ?, ?)",
+            (
+                job_id,
+                kind,
+                JobState.queued.value,
+                str(dataset),
+                json.dumps(list(sequences)),
+                now,
+                model,
+            ),
         )
-        return JobRecord(job_id, kind, JobState.queued, str(dataset), list(sequences), now)
+        return JobRecord(
+            job_id, kind, JobState.queued, str(dataset), list(sequences), now, model=model
+        )
 
     def get(self, job_id: str) -> JobRecord | None:
         """The job with this id, or None."""

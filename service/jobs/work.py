@@ -4,8 +4,9 @@
 records, scans that stay under the read roots), predicts every scan not yet written into
 `<job>/predictions` with the executor, checks every prediction is there, writes the predictions
 zip and, for the sequences with ground truth, the evaluation report and its plots, then stores
-the job's final record. Everything is read with the gateway's dataset profile (layout, point
-record, labels). When the runner stops the job first (a cancel, or the gateway stopping), it
+the job's final record. Everything is read with the dataset profile of the job's model (layout,
+point record, labels); a job whose model the gateway no longer serves fails, naming it. When the
+runner stops the job first (a cancel, or the gateway stopping), it
 returns without a final record and the scheduler decides what becomes of the job.
 """
 
@@ -28,6 +29,7 @@ from service.jobs.results import (
 from service.jobs.store import JobRecord, JobStore
 from service.paths import escaping_scans, outside_roots_sentence
 from service.schemas import JobState
+from service.served_models import ModelCatalog, ModelEntry
 
 #: The file in a job's folder that names the profile the job was accepted for.
 PROFILE_FILE = "profile.txt"
@@ -54,15 +56,13 @@ class JobWork:
         self,
         store: JobStore,
         executor: JobExecutor,
-        profile: DatasetProfile,
-        checkpoint_sha256: str | None = None,
+        models: ModelCatalog,
         read_roots: Sequence[Path] | None = None,
         on_scans: Callable[[int], None] | None = None,
     ) -> None:
         self.store = store
         self.executor = executor
-        self.profile = profile
-        self.checkpoint_sha256 = checkpoint_sha256
+        self.models = models
         self.read_roots = None if read_roots is None else list(read_roots)
         self.on_scans = on_scans
 
@@ -72,18 +72,27 @@ class JobWork:
         stored). `JobError` and other exceptions are the caller's to record."""
         dataset = Path(job.dataset)
         out = folder / PREDICTIONS_DIR
-        refusal = self._profile_refusal(folder)
+        model = self.models.entries.get(job.model or self.models.default)
+        if model is None:
+            reason = (
+                f"the job's model {job.model} is no longer served (this gateway serves "
+                f"{', '.join(self.models.names)})"
+            )
+            self.store.finish(job.id, JobState.failed, reason=reason)
+            return True
+        profile = model.profile
+        refusal = self._profile_refusal(folder, profile)
         if refusal is not None:
             self.store.finish(job.id, JobState.failed, reason=refusal)
             return True
-        entries = list_scans(dataset, job.sequences, layout=self.profile.layout)
+        entries = list_scans(dataset, job.sequences, layout=profile.layout)
         escaping = escaping_scans(entries, self.read_roots) if self.read_roots else []
         if escaping:
             self.store.finish(
                 job.id, JobState.failed, reason=outside_roots_sentence(escaping, "The job")
             )
             return True
-        failures = self._predict(job, entries, out, control)
+        failures = self._predict(job, model, entries, out, control)
         if control.is_set():
             return False
         if failures:
@@ -97,31 +106,37 @@ class JobWork:
                 ],
             )
             return True
-        missing = self._missing(job, entries, folder, out)
+        missing = self._missing(job, profile, entries, folder, out)
         if missing is not None:
             self.store.finish(job.id, JobState.failed, reason=missing)
             return True
         self.store.progress(job.id, len(entries), len(entries), 0)
-        self._finish(job, entries, folder, out)
+        self._finish(job, model, entries, folder, out)
         return True
 
-    def _profile_refusal(self, folder: Path) -> str | None:
-        """Why a job accepted for another profile than the served one is not read; None when
+    @staticmethod
+    def _profile_refusal(folder: Path, profile: DatasetProfile) -> str | None:
+        """Why a job accepted for another profile than its model's now is not read; None when
         it was accepted for this one (or before profiles were recorded)."""
         accepted = accepted_profile(folder)
-        if accepted is None or accepted == self.profile.name:
+        if accepted is None or accepted == profile.name:
             return None
         return (
-            f"the job was accepted for the {accepted} profile, and the gateway now "
-            f"serves the {self.profile.name} profile"
+            f"the job was accepted for the {accepted} profile, and its model now runs with "
+            f"the {profile.name} profile"
         )
 
     def _predict(
-        self, job: JobRecord, entries: list[ScanEntry], out: Path, control: JobControl
+        self,
+        job: JobRecord,
+        model: ModelEntry,
+        entries: list[ScanEntry],
+        out: Path,
+        control: JobControl,
     ) -> dict[str, str]:
-        """Predict the scans not yet written, keeping the job's progress (and the scan count)
-        up to date; the failures by scan key."""
-        record = self.profile.points
+        """Predict the scans not yet written with the job's model, keeping the job's progress
+        (and the scan count) up to date; the failures by scan key."""
+        record = model.profile.points
         skipped = sum(is_complete(e, out, record=record) for e in entries)
         self.store.progress(job.id, len(entries), skipped, 0)
         counted = [0]
@@ -134,15 +149,20 @@ class JobWork:
                 counted[0] = written
 
         return self.executor.predict(
-            entries, Path(job.dataset), job.sequences, out, progress, control
+            entries, Path(job.dataset), job.sequences, out, progress, control, model=model.name
         )
 
     def _missing(
-        self, job: JobRecord, entries: list[ScanEntry], folder: Path, out: Path
+        self,
+        job: JobRecord,
+        profile: DatasetProfile,
+        entries: list[ScanEntry],
+        folder: Path,
+        out: Path,
     ) -> str | None:
         """Why the job fails when predictions are missing from its folder once they were all
         written (it was changed meanwhile), with the progress set back; None when all are there."""
-        missing = [e for e in entries if not is_complete(e, out, record=self.profile.points)]
+        missing = [e for e in entries if not is_complete(e, out, record=profile.points)]
         if not missing:
             return None
         self.store.progress(job.id, len(entries), len(entries) - len(missing), 0)
@@ -153,25 +173,26 @@ class JobWork:
             "removed while the job ran"
         )
 
-    def _finish(self, job: JobRecord, entries: list[ScanEntry], folder: Path, out: Path) -> None:
+    def _finish(
+        self, job: JobRecord, model: ModelEntry, entries: list[ScanEntry], folder: Path, out: Path
+    ) -> None:
         """Write the predictions zip and, for labelled sequences, the report and its plots;
         store the job as succeeded with them."""
         dataset = Path(job.dataset)
+        profile = model.profile
         zip_path = folder / PREDICTIONS_ZIP
-        description = predictions_description(self.checkpoint_sha256, self.profile)
-        write_predictions_zip(
-            out, entries, job.sequences, zip_path, description, profile=self.profile
-        )
+        description = predictions_description(model.checkpoint_sha256, profile)
+        write_predictions_zip(out, entries, job.sequences, zip_path, description, profile=profile)
         metrics = report_path = None
-        labelled = labelled_sequences(dataset, job.sequences, layout=self.profile.layout)
+        labelled = labelled_sequences(dataset, job.sequences, layout=profile.layout)
         if labelled:
             report_path, metrics = write_report(
                 dataset,
                 out,
                 labelled,
                 folder,
-                profile=self.profile,
-                checkpoint_sha256=self.checkpoint_sha256,
+                profile=profile,
+                checkpoint_sha256=model.checkpoint_sha256,
                 precision=self.executor.precision,
                 backend=self.executor.inference_backend,
             )

@@ -14,6 +14,7 @@ import asyncio
 import json
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Annotated
 
 from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse, JSONResponse
@@ -34,6 +35,7 @@ from service.schemas import (
     JobStatus,
     file_content,
 )
+from service.served_models import MODEL_QUERY, ModelEntry
 from service.uploads import declared_length, drain, media_type, read_body, receive_archive
 
 router = APIRouter(prefix="/v1", tags=["jobs"])
@@ -56,7 +58,7 @@ _START_DESCRIBED = {
     400: "Malformed request or archive, or a Host the gateway does not answer to",
     403: "A dataset path outside the configured data roots, or a request from another "
     "origin's page",
-    404: "No dataset folder at that path under the data roots",
+    404: "No dataset folder at that path under the data roots, or no model of that name",
 }
 
 
@@ -64,13 +66,15 @@ def _iso(ts: float | None) -> datetime | None:
     return datetime.fromtimestamp(ts, tz=timezone.utc) if ts is not None else None
 
 
-def job_status(record: JobRecord) -> JobStatus:
-    """The API form of a stored job (it lists the job's plots: call it in a worker thread)."""
+def job_status(record: JobRecord, default_model: str) -> JobStatus:
+    """The API form of a stored job, a job from before models being the default model's (it
+    lists the job's plots: call it in a worker thread)."""
     base = f"/v1/jobs/{record.id}"
     return JobStatus(
         id=record.id,
         state=record.state,
         kind=record.kind,
+        model=record.model or default_model,
         sequences=record.sequences,
         total=record.total,
         done=record.done,
@@ -92,9 +96,10 @@ def job_status(record: JobRecord) -> JobStatus:
     "/jobs",
     summary="Start a job over a dataset on the server",
     description=(
-        "Name a dataset in the served profile's layout under the configured data roots, and the "
-        "split or sequences to run. The job predicts every scan; with labels it also evaluates "
-        "them. (An archive upload is `POST /v1/jobs/uploads`.)"
+        "Name a dataset under the configured data roots in the layout of the model's profile "
+        "(`model` in the body, the default model without it), and the split or sequences to "
+        "run. The job predicts every scan with that model; with labels it also evaluates them. "
+        "(An archive upload is `POST /v1/jobs/uploads`.)"
     ),
     operation_id="create_job",
     status_code=202,
@@ -104,12 +109,18 @@ def job_status(record: JobRecord) -> JobStatus:
     ),
     openapi_extra={"requestBody": _DATASET_BODY},
 )
-async def create_job(request: Request, gw: GatewayDep, jobs: JobsDep) -> JSONResponse:
-    intake = JobIntake(jobs, gw.settings, gw.profile)
+async def create_job(
+    request: Request,
+    gw: GatewayDep,
+    jobs: JobsDep,
+    model: Annotated[str | None, MODEL_QUERY] = None,
+) -> JSONResponse:
+    intake = JobIntake(jobs, gw.settings, gw.models)
     await _check_queue(request, gw, intake)
     kind = media_type(request)
     if kind == MULTIPART:
-        record = await _archive_job(request, gw, intake)
+        entry = await _query_model(request, gw, model)
+        record = await _archive_job(request, gw, intake, entry)
     elif kind == "application/json":
         record = await intake.dataset_job(await _dataset_request(request, gw))
     else:
@@ -128,23 +139,42 @@ async def create_job(request: Request, gw: GatewayDep, jobs: JobsDep) -> JSONRes
     description=(
         "Upload an archive (multipart field `archive`: .zip, .tar or .tar.gz) laid out as "
         "sequences/XX/velodyne/*.bin with optional sequences/XX/labels/*.label (for every "
-        "profile; the scans hold the served profile's point records). The job predicts every "
-        "scan; with labels it also evaluates them."
+        "profile; the scans hold the point records of the profile of the model `model`, the "
+        "default model without it). The job predicts every scan with that model; with labels "
+        "it also evaluates them."
     ),
     operation_id="upload_job",
     status_code=202,
     response_model=JobCreated,
-    responses=error_responses(400, 403, 408, 413, 415, 429, 503, 507, described=_START_DESCRIBED),
+    responses=error_responses(
+        400, 403, 404, 408, 413, 415, 429, 503, 507, described=_START_DESCRIBED
+    ),
     openapi_extra={"requestBody": _UPLOAD_BODY},
 )
-async def upload_job(request: Request, gw: GatewayDep, jobs: JobsDep) -> JSONResponse:
-    intake = JobIntake(jobs, gw.settings, gw.profile)
+async def upload_job(
+    request: Request,
+    gw: GatewayDep,
+    jobs: JobsDep,
+    model: Annotated[str | None, MODEL_QUERY] = None,
+) -> JSONResponse:
+    intake = JobIntake(jobs, gw.settings, gw.models)
     await _check_queue(request, gw, intake)
+    entry = await _query_model(request, gw, model)
     if media_type(request) != MULTIPART:
         raise await _wrong_media(
             request, gw, "Upload the archive as multipart/form-data, in a file field 'archive'."
         )
-    return _created(await _archive_job(request, gw, intake))
+    return _created(await _archive_job(request, gw, intake, entry))
+
+
+async def _query_model(request: Request, gw: Gateway, name: str | None) -> ModelEntry:
+    """The model an upload's `?model=` names (the default without it); 404, once the body is
+    dropped, for one the gateway does not serve."""
+    try:
+        return gw.models.get(name)
+    except ApiError:
+        await drain(request, gw.settings.max_body_bytes, timeout=gw.settings.upload_timeout_s)
+        raise
 
 
 async def _check_queue(request: Request, gw: Gateway, intake: JobIntake) -> None:
@@ -177,9 +207,10 @@ def _created(record: JobRecord) -> JSONResponse:
     response_model=JobList,
     responses=error_responses(400, 503),
 )
-async def list_jobs(jobs: JobsDep) -> JobList:
+async def list_jobs(gw: GatewayDep, jobs: JobsDep) -> JobList:
     records = await asyncio.to_thread(jobs.store.list)
-    return JobList(jobs=await asyncio.to_thread(lambda: [job_status(r) for r in records]))
+    default = gw.models.default
+    return JobList(jobs=await asyncio.to_thread(lambda: [job_status(r, default) for r in records]))
 
 
 @router.get(
@@ -189,8 +220,9 @@ async def list_jobs(jobs: JobsDep) -> JobList:
     response_model=JobStatus,
     responses=_READ_ERRORS,
 )
-async def get_job(job_id: str, jobs: JobsDep) -> JobStatus:
-    return await asyncio.to_thread(job_status, await _record_or_404(jobs, job_id))
+async def get_job(job_id: str, gw: GatewayDep, jobs: JobsDep) -> JobStatus:
+    record = await _record_or_404(jobs, job_id)
+    return await asyncio.to_thread(job_status, record, gw.models.default)
 
 
 @router.get(
@@ -271,11 +303,11 @@ async def get_plot(job_id: str, name: str, jobs: JobsDep) -> FileResponse:
         described={507: "A full disk under the job database"},
     ),
 )
-async def cancel_job(job_id: str, jobs: JobsDep) -> JobStatus:
+async def cancel_job(job_id: str, gw: GatewayDep, jobs: JobsDep) -> JobStatus:
     record = await asyncio.to_thread(jobs.cancel, job_id)
     if record is None:
         raise ApiError(404, f"There is no job {job_id[:64]!r}.")
-    return await asyncio.to_thread(job_status, record)
+    return await asyncio.to_thread(job_status, record, gw.models.default)
 
 
 async def _record_or_404(jobs: JobManager, job_id: str) -> JobRecord:
@@ -296,8 +328,11 @@ async def _succeeded_or_409(jobs: JobManager, job_id: str) -> JobRecord:
     return record
 
 
-async def _archive_job(request: Request, gw: Gateway, intake: JobIntake) -> JobRecord:
-    """Refuse an upload that cannot fit before it is read, else receive it into a new job."""
+async def _archive_job(
+    request: Request, gw: Gateway, intake: JobIntake, model: ModelEntry
+) -> JobRecord:
+    """Refuse an upload that cannot fit before it is read, else receive it into a new job of
+    `model`."""
     settings = gw.settings
     try:
         await asyncio.to_thread(intake.check_upload, declared_length(request))
@@ -308,7 +343,7 @@ async def _archive_job(request: Request, gw: Gateway, intake: JobIntake) -> JobR
     async def receive(path: Path) -> None:
         await receive_archive(request, path, settings.max_archive_bytes, settings.upload_timeout_s)
 
-    return await intake.archive_job(receive)
+    return await intake.archive_job(receive, model)
 
 
 async def _dataset_request(request: Request, gw: Gateway) -> DatasetJobRequest:

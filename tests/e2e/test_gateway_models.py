@@ -3,15 +3,18 @@
 Two SemanticKITTI checkpoints of different weights and a PandaSet one: `?model=` gives each its
 own `rangeret predict` labels byte for byte (in its profile's record and raw ids), no name gives
 the default, an unknown name is a 404 naming the models, `/v1/models`, `/v1/model`,
-`/v1/profile` and `/healthz` describe each model; with `--max-loaded 1` requests alternating
+`/v1/profile` and `/healthz` describe each model, a dataset or archive job with each model
+gives that model's labels; with `--max-loaded 1` requests alternating
 between two models stay right while one network is loaded at a time; and a models file beside
 `--checkpoint`, or a wrong one, stops `rangeret serve` with one line.
 """
 
 from __future__ import annotations
 
+import io
 import subprocess
 import sys
+import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -31,6 +34,7 @@ from tests.support.gateway import (
     free_port,
     gateway_env,
     start_gateway,
+    wait_job,
 )
 from tests.support.paths import REPO
 from tests.support.workers import build_tree
@@ -234,3 +238,77 @@ def test_a_models_file_beside_a_checkpoint_or_a_wrong_one_is_one_line(setup, tmp
     missing = tmp_path / "missing.yaml"
     missing.write_text(f"default: a\nmodels: {{a: {{checkpoint: {tmp_path / 'absent.pt'}}}}}\n")
     assert "absent.pt" in _serve_fails(setup, "--models", str(missing))
+
+
+def _served_labels(client, job_id: str) -> dict[str, bytes]:
+    archive = client.get(f"/v1/jobs/{job_id}/predictions").content
+    with zipfile.ZipFile(io.BytesIO(archive)) as zf:
+        return {n: zf.read(n) for n in zf.namelist() if n.endswith(".label")}
+
+
+def _reference(ref: Path) -> dict[str, bytes]:
+    return {p.relative_to(ref).as_posix(): p.read_bytes() for p in ref.rglob("*.label")}
+
+
+def test_a_job_with_each_model_gives_that_models_labels(setup, gateway):
+    panda_scan = setup["roots"] / "panda" / "001" / "velodyne" / "000000.bin"
+    upload = io.BytesIO()
+    with zipfile.ZipFile(upload, "w") as zf:
+        zf.writestr("sequences/001/velodyne/000000.bin", panda_scan.read_bytes())
+    with gateway.client() as client:
+        jobs = {
+            model: client.post(
+                "/v1/jobs", json={"dataset": "kitti", "sequences": ["08", "11"], "model": model}
+            ).json()["id"]
+            for model in ("one", "two")
+        }
+        default = client.post("/v1/jobs", json={"dataset": "kitti", "sequences": ["08", "11"]})
+        panda = client.post(
+            "/v1/jobs", json={"dataset": "panda", "sequences": ["1"], "model": "panda"}
+        )
+        uploaded = client.post(
+            "/v1/jobs/uploads",
+            params={"model": "panda"},
+            files={"archive": ("panda.zip", upload.getvalue(), OCTET["Content-Type"])},
+        )
+        mismatch = client.post(
+            "/v1/jobs",
+            json={"dataset": "panda", "sequences": ["1"], "model": "one", "profile": "pandaset"},
+        )
+        unknown = client.post(
+            "/v1/jobs", json={"dataset": "kitti", "sequences": ["08"], "model": "poss"}
+        )
+        unknown_upload = client.post(
+            "/v1/jobs/uploads",
+            params={"model": "poss"},
+            files={"archive": ("panda.zip", upload.getvalue(), OCTET["Content-Type"])},
+        )
+        statuses = {
+            name: wait_job(client, job_id)
+            for name, job_id in {
+                **jobs,
+                "default": default.json()["id"],
+                "panda": panda.json()["id"],
+                "uploaded": uploaded.json()["id"],
+            }.items()
+        }
+        served = {name: _served_labels(client, s["id"]) for name, s in statuses.items()}
+    assert {name: s["state"] for name, s in statuses.items()} == dict.fromkeys(
+        statuses, "succeeded"
+    )
+    assert {name: s["model"] for name, s in statuses.items()} == {
+        "one": "one",
+        "two": "two",
+        "default": "two",
+        "panda": "panda",
+        "uploaded": "panda",
+    }
+    for model in ("one", "two"):
+        assert served[model] == _reference(setup["refs"][model]) and len(served[model]) == 2
+    assert served["default"] == served["two"] != served["one"]
+    assert served["panda"] == _reference(setup["refs"]["panda"])
+    assert served["uploaded"] == served["panda"]
+    detail = assert_error(mismatch, 400)
+    assert "'pandaset' profile" in detail and "model one" in detail and "'semantickitti'" in detail
+    assert "'poss'" in assert_error(unknown, 404)
+    assert "'poss'" in assert_error(unknown_upload, 404)

@@ -44,6 +44,7 @@ from service.jobs.ray_jobs import (
     verdict,
 )
 from service.schemas import JobState
+from tests.support.apps import one_model
 from tests.support.gateway import Gateway, gateway_env, start_gateway, wait_job
 from tests.support.paths import REPO
 from tests.support.trees import make_tree
@@ -463,7 +464,7 @@ def test_a_job_on_a_cluster_survives_more_gateway_restarts_than_one_run_here(tmp
         store.start("there-long")
     store.next_submission("there-long")
     manager = JobManager(
-        store, object(), tmp_path / "jobs", 3600, profile=load_profile("semantickitti")
+        store, object(), tmp_path / "jobs", 3600, models=one_model(load_profile("semantickitti"))
     )
     manager.recover()
     assert store.get("here").state is JobState.failed

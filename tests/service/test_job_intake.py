@@ -18,10 +18,12 @@ from service.jobs import JobManager, JobStore
 from service.jobs.intake import JobIntake, resolve_dataset
 from service.schemas import DatasetJobRequest, JobState
 from service.settings import Settings
+from tests.support.apps import one_model
 from tests.support.jobs import FakeExecutor
 from tests.support.trees import make_tree
 
 KITTI = load_profile(None)
+MODEL = one_model(KITTI).default_entry
 SCAN = np.arange(40, dtype=np.float32).reshape(10, 4).tobytes()
 
 
@@ -40,10 +42,10 @@ def _intake(tmp_path: Path, roots: Path, **limits) -> JobIntake:
         FakeExecutor(),
         tmp_path / "jobs",
         3600,
-        profile=KITTI,
+        models=one_model(KITTI),
         **limits,
     )
-    return JobIntake(manager, settings, KITTI)
+    return JobIntake(manager, settings, one_model(KITTI))
 
 
 def _job_folders(intake: JobIntake) -> list[str]:
@@ -83,7 +85,7 @@ def test_a_dataset_is_found_under_the_roots_and_refused_elsewhere(tmp_path, root
 def test_a_dataset_request_gives_the_scans_of_its_sequences(tmp_path, roots):
     intake = _intake(tmp_path, roots)
     root, sequences, entries = intake.dataset_input(
-        DatasetJobRequest(dataset="data", sequences=["08"])
+        DatasetJobRequest(dataset="data", sequences=["08"]), MODEL
     )
     assert root == roots / "data" and sequences == ["08"]
     assert [e.key for e in entries] == ["08/000000", "08/000001"]
@@ -92,11 +94,15 @@ def test_a_dataset_request_gives_the_scans_of_its_sequences(tmp_path, roots):
 def test_a_dataset_request_for_another_profile_or_unusable_sequences_is_400(tmp_path, roots):
     intake = _intake(tmp_path, roots)
     other = _refusal(
-        intake.dataset_input, DatasetJobRequest(dataset="data", split="valid", profile="pandaset")
+        intake.dataset_input,
+        DatasetJobRequest(dataset="data", split="valid", profile="pandaset"),
+        MODEL,
     )
     assert other.status_code == 400 and "'pandaset'" in other.detail
     assert "'semantickitti'" in other.detail
-    absent = _refusal(intake.dataset_input, DatasetJobRequest(dataset="data", sequences=["09"]))
+    absent = _refusal(
+        intake.dataset_input, DatasetJobRequest(dataset="data", sequences=["09"]), MODEL
+    )
     assert absent.status_code == 400 and absent.detail.startswith("The dataset cannot be used: ")
     assert _job_folders(intake) == []
 
@@ -108,7 +114,9 @@ def test_a_dataset_whose_scans_link_out_of_the_roots_is_403(tmp_path, roots):
     scan.unlink()
     scan.symlink_to(outside)
     refused = _refusal(
-        _intake(tmp_path, roots).dataset_input, DatasetJobRequest(dataset="data", sequences=["08"])
+        _intake(tmp_path, roots).dataset_input,
+        DatasetJobRequest(dataset="data", sequences=["08"]),
+        MODEL,
     )
     assert refused.status_code == 403 and "(the first: 08/000001)" in refused.detail
     assert str(tmp_path) not in refused.detail
@@ -154,11 +162,11 @@ def test_an_upload_is_extracted_into_the_job_folder_and_removed(tmp_path, roots)
     folder.mkdir()
     upload = folder / "upload.part"
     _zip_into(upload, {"sequences/08/velodyne/000000.bin": SCAN})
-    root, sequences, entries = intake.extract_upload(upload, folder)
+    root, sequences, entries = intake.extract_upload(upload, folder, MODEL)
     assert root == folder / "data" and sequences == ["08"] and len(entries) == 1
     assert not upload.exists()
     _zip_into(upload, {"sequences/08/velodyne/000000.bin": SCAN[:-4]})
-    refused = _refusal(intake.extract_upload, upload, folder)
+    refused = _refusal(intake.extract_upload, upload, folder, MODEL)
     assert refused.status_code == 400 and not upload.exists()
 
 
@@ -168,7 +176,7 @@ def test_an_archive_job_is_received_extracted_and_queued(tmp_path, roots):
     async def receive(path: Path) -> None:
         _zip_into(path, {"sequences/11/velodyne/000000.bin": SCAN})
 
-    record = asyncio.run(intake.archive_job(receive))
+    record = asyncio.run(intake.archive_job(receive, MODEL))
     folder = intake.jobs.job_dir(record.id)
     assert (record.kind, record.state, record.sequences) == ("archive", JobState.queued, ["11"])
     assert Path(record.dataset) == folder / "data"
@@ -190,16 +198,16 @@ def test_an_upload_cut_short_or_on_a_full_disk_leaves_no_folder(tmp_path, roots)
         raise OSError(errno.EIO, "Input/output error", str(path))
 
     with pytest.raises(ApiError) as slow:
-        asyncio.run(intake.archive_job(too_slow))
+        asyncio.run(intake.archive_job(too_slow, MODEL))
     assert slow.value.status_code == 408
     with pytest.raises(ApiError) as full:
-        asyncio.run(intake.archive_job(disk_full))
+        asyncio.run(intake.archive_job(disk_full, MODEL))
     assert full.value.status_code == 507
     assert full.value.detail == (
         f"Insufficient storage: the disk of the jobs folder {intake.jobs.jobs_dir} is full; "
         "free space there, or upload a smaller archive."
     )
     with pytest.raises(OSError) as other:
-        asyncio.run(intake.archive_job(broken))
+        asyncio.run(intake.archive_job(broken, MODEL))
     assert other.value.errno == errno.EIO
     assert _job_folders(intake) == [] and intake.jobs.store.list() == []

@@ -20,6 +20,7 @@ from rangeret.io.scans import write_labels
 from rangeret.sim import simulate_dataset
 from service.jobs import JobManager, JobRefused, JobStore
 from service.schemas import JobState
+from tests.support.apps import one_model
 from tests.support.jobs import FakeExecutor, wait_state
 from tests.support.trees import make_tree
 
@@ -32,7 +33,7 @@ def _manager(tmp_path: Path, executor=None, retention: float = 3600, profile=Non
         executor or FakeExecutor(),
         tmp_path / "jobs",
         retention,
-        profile=profile or load_profile("semantickitti"),
+        models=one_model(profile or load_profile("semantickitti")),
     )
 
 
@@ -178,7 +179,7 @@ class PerJobExecutor(FakeExecutor):
         self.release.clear()
         self.holding = threading.Semaphore(0)
 
-    def predict(self, entries, dataset, sequences, out, progress, cancel):
+    def predict(self, entries, dataset, sequences, out, progress, cancel, model=None):
         if self.held & set(sequences):
             self.holding.release()
             while not self.release.wait(0.05) and not cancel.is_set():
@@ -205,7 +206,7 @@ def test_jobs_run_side_by_side_and_the_queue_and_disk_are_bounded(tmp_path):
         max_queued=1,
         max_bytes=10_000,
         read_roots=[tmp_path],
-        profile=load_profile("semantickitti"),
+        models=one_model(load_profile("semantickitti")),
     )
 
     def submit(sequence: str, expected: int) -> str:
@@ -252,7 +253,7 @@ def test_a_job_whose_files_were_linked_out_of_the_roots_since_it_was_queued_fail
     scan.symlink_to(outside)
     manager = JobManager(
         JobStore(tmp_path / "jobs.sqlite"), FakeExecutor(), tmp_path / "jobs", 3600,
-        read_roots=[roots], profile=load_profile("semantickitti"),
+        read_roots=[roots], models=one_model(load_profile("semantickitti")),
     )  # fmt: skip
     manager.start()
     try:

@@ -63,12 +63,14 @@ _VERSION_1_TABLE = """CREATE TABLE jobs (
 
 
 def _old_database(path: Path, version: int, job_id: str) -> None:
-    """A file of schema version 1 (stamped `version`: 0 is a file from before the version was
-    kept) holding one running job with counts, started twice."""
+    """A file of schema version 1 or 2 (stamped `version`: 0 is a file from before the version
+    was kept) holding one running job with counts, started twice."""
     db = sqlite3.connect(path)
     try:
         db.execute(_VERSION_1_TABLE)
         db.execute("CREATE INDEX jobs_state ON jobs (state, created)")
+        if version == 2:
+            db.execute("ALTER TABLE jobs ADD COLUMN submission INTEGER NOT NULL DEFAULT 0")
         db.execute(
             "INSERT INTO jobs (id, kind, state, dataset, sequences, created, total, done, "
             "attempts, started) VALUES (?, 'archive', 'running', '/data', '[\"11\"]', 1.0, 5, 3, "
@@ -92,20 +94,21 @@ def _columns(path: Path) -> list[str]:
 def test_a_new_database_is_stamped_with_the_schema_version(tmp_path):
     path = tmp_path / "state" / "jobs.sqlite"
     store = JobStore(path)
-    store.create("a" * 32, "dataset", tmp_path, ["08"])
+    store.create("a" * 32, "dataset", tmp_path, ["08"], model="panda")
     store.close()
-    assert _user_version(path) == SCHEMA_VERSION == 2
-    assert _columns(path)[-2:] == ["attempts", "submission"]
+    assert _user_version(path) == SCHEMA_VERSION == 3
+    assert _columns(path)[-3:] == ["attempts", "submission", "model"]
     again = JobStore(path)
     try:
         record = again.get("a" * 32)
         assert record.state is JobState.queued and record.submission == 0
+        assert record.model == "panda"
     finally:
         again.close()
     assert _user_version(path) == SCHEMA_VERSION
 
 
-@pytest.mark.parametrize("version", [0, 1], ids=["before-versions", "version-1"])
+@pytest.mark.parametrize("version", [0, 1, 2], ids=["before-versions", "version-1", "version-2"])
 def test_an_older_database_is_migrated_and_keeps_its_jobs(tmp_path, version):
     path = tmp_path / "jobs.sqlite"
     _old_database(path, version, "b" * 32)
@@ -115,11 +118,12 @@ def test_an_older_database_is_migrated_and_keeps_its_jobs(tmp_path, version):
         assert record.state is JobState.running and record.sequences == ["11"]
         assert (record.total, record.done, record.attempts, record.started) == (5, 3, 2, 2.0)
         assert record.submission == 0
+        assert record.model is None  # from before models: the default model's
         assert reopened.next_submission("b" * 32) == 1
     finally:
         reopened.close()
     assert _user_version(path) == SCHEMA_VERSION
-    assert "submission" in _columns(path)
+    assert _columns(path)[-2:] == ["submission", "model"]
     again = JobStore(path)  # a migrated file opens as it is
     try:
         assert again.get("b" * 32).submission == 1
@@ -208,7 +212,7 @@ class FakeExecutor:
     precision = "fp32"
     inference_backend = "torch"
 
-    def predict(self, entries, dataset, sequences, out, progress, cancel):
+    def predict(self, entries, dataset, sequences, out, progress, cancel, model=None):
         for i, entry in enumerate(entries):
             n = os.path.getsize(entry.scan_path) // 16
             write_labels(

@@ -37,7 +37,7 @@ class FakeExecutor:
     backend = "fake"
     precision = "fp32"
 
-    def predict(self, entries, dataset, sequences, out, progress, cancel):
+    def predict(self, entries, dataset, sequences, out, progress, cancel, model=None):
         raise AssertionError("no job runs in these tests")
 
 

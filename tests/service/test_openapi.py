@@ -36,7 +36,10 @@ ERROR = {"$ref": "#/components/schemas/ErrorResponse"}
 OPERATIONS = {
     ("POST", "/v1/scans"): ("label_scan", {400, 401, 403, 404, 408, 413, 415, 503, 504}),
     ("POST", "/v1/jobs"): ("create_job", {400, 401, 403, 404, 408, 413, 415, 429, 503, 507}),
-    ("POST", "/v1/jobs/uploads"): ("upload_job", {400, 401, 403, 408, 413, 415, 429, 503, 507}),
+    ("POST", "/v1/jobs/uploads"): (
+        "upload_job",
+        {400, 401, 403, 404, 408, 413, 415, 429, 503, 507},
+    ),
     ("GET", "/v1/jobs"): ("list_jobs", {400, 401, 503}),
     ("GET", "/v1/jobs/{job_id}"): ("get_job", {400, 401, 404, 503}),
     ("DELETE", "/v1/jobs/{job_id}"): ("cancel_job", {400, 401, 403, 404, 503, 507}),
