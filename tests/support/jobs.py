@@ -28,7 +28,7 @@ class FakeExecutor:
         self.release.set()
         self.started = threading.Event()
 
-    def predict(self, entries, dataset, sequences, out, progress, cancel):
+    def predict(self, entries, dataset, sequences, out, progress, cancel, model=None):
         self.started.set()
         self.release.wait(30)
         for i, entry in enumerate(entries):
