@@ -95,7 +95,9 @@ class Gateway:
         return None if loaded is None else loaded()
 
     def __post_init__(self) -> None:
-        self.metrics = GatewayMetrics(self.profile.name)
+        self.metrics = GatewayMetrics(
+            self.profile.name, {m.name: m.profile.name for m in self.models}
+        )
         self.admission = ScanAdmission(
             self.settings.max_queued_scans, self.settings.max_queued_bytes
         )

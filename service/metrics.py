@@ -27,14 +27,28 @@ class GatewayMetrics:
 
     content_type = CONTENT_TYPE_LATEST
 
-    def __init__(self, profile: str) -> None:
+    def __init__(self, profile: str, models: dict[str, str] | None = None) -> None:
         self.registry = CollectorRegistry()
         self.info = Info(
             "rangeret_gateway",
-            "What the gateway serves: the dataset profile of its network",
+            "What the gateway serves: the dataset profile of its default model",
             registry=self.registry,
         )
         self.info.info({"profile": profile})
+        self.models = Gauge(
+            "rangeret_model",
+            "The models the gateway serves, with each one's profile (always 1)",
+            ["model", "profile"],
+            registry=self.registry,
+        )
+        for name, model_profile in (models or {}).items():
+            self.models.labels(model=name, profile=model_profile).set(1)
+        self.loaded = Gauge(
+            "rangeret_model_loaded",
+            "Whether each model's network is loaded in the gateway's process now (1) or not (0)",
+            ["model"],
+            registry=self.registry,
+        )
         self.requests = Counter(
             "rangeret_http_requests",
             "HTTP requests answered, by method, route and status code",
@@ -50,13 +64,14 @@ class GatewayMetrics:
         )
         self.scans = Counter(
             "rangeret_scans_labelled",
-            "Scans labelled, by source (single-scan requests or jobs)",
-            ["source"],
+            "Scans labelled, by source (single-scan requests or jobs) and model",
+            ["source", "model"],
             registry=self.registry,
         )
         self.points = Counter(
             "rangeret_points_labelled",
-            "Points labelled by single-scan requests",
+            "Points labelled by single-scan requests, by model",
+            ["model"],
             registry=self.registry,
         )
         self.refused = Counter(
@@ -93,13 +108,21 @@ class GatewayMetrics:
         self.batch_size.observe(size)
         self.batch_latency.observe(seconds)
 
-    def job_scans(self, count: int) -> None:
-        """Record scans written by jobs."""
-        self.scans.labels(source="job").inc(count)
+    def job_scans(self, count: int, model: str) -> None:
+        """Record scans written by a job of `model`."""
+        self.scans.labels(source="job", model=model).inc(count)
 
-    def render(self, queue_depth: int, job_counts: dict[str, int]) -> bytes:
-        """The Prometheus text exposition, with the gauges read now."""
+    def render(
+        self,
+        queue_depth: int,
+        job_counts: dict[str, int],
+        loaded: dict[str, bool] | None = None,
+    ) -> bytes:
+        """The Prometheus text exposition, with the gauges read now (`loaded`: whether each
+        model's network is loaded, where the gateway keeps a pool)."""
         self.queue_depth.set(queue_depth)
+        for name, is_loaded in (loaded or {}).items():
+            self.loaded.labels(model=name).set(int(is_loaded))
         for state, count in job_counts.items():
             self.jobs.labels(state=state).set(count)
         return generate_latest(self.registry)

@@ -63,7 +63,7 @@ class JobManager:
         retention_s: float,
         *,
         models: ModelCatalog,
-        on_scans: Callable[[int], None] | None = None,
+        on_scans: Callable[[int, str], None] | None = None,
         max_running: int = 1,
         max_queued: int | None = None,
         max_bytes: int | None = None,

@@ -49,7 +49,7 @@ class JobWork:
     """Does the work of one claimed job at a time (one instance serves every runner thread).
 
     `read_roots`, when given, are the folders (resolved) the job's scans must lie under when
-    they are read; `on_scans` is told of every batch of newly written predictions.
+    they are read; `on_scans(count, model)` is told of every batch of newly written predictions.
     """
 
     def __init__(
@@ -58,7 +58,7 @@ class JobWork:
         executor: JobExecutor,
         models: ModelCatalog,
         read_roots: Sequence[Path] | None = None,
-        on_scans: Callable[[int], None] | None = None,
+        on_scans: Callable[[int, str], None] | None = None,
     ) -> None:
         self.store = store
         self.executor = executor
@@ -145,7 +145,7 @@ class JobWork:
             written = seen - failed
             self.store.progress(job.id, len(entries), skipped + written, failed)
             if self.on_scans is not None and written > counted[0]:
-                self.on_scans(written - counted[0])
+                self.on_scans(written - counted[0], model.name)
                 counted[0] = written
 
         return self.executor.predict(

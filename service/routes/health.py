@@ -95,4 +95,6 @@ async def healthz(
 async def metrics(gw: GatewayDep) -> Response:
     depth = gw.labeller.depth()
     counts = await asyncio.to_thread(gw.jobs.store.counts) if gw.jobs else {}
-    return Response(gw.metrics.render(depth, counts), media_type=gw.metrics.content_type)
+    in_process = gw.loaded_models()
+    loaded = None if in_process is None else {m: m in in_process for m in gw.models.names}
+    return Response(gw.metrics.render(depth, counts, loaded), media_type=gw.metrics.content_type)

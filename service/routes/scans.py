@@ -257,8 +257,8 @@ async def _labelled(
         raise ApiError(504, _sentence(exc)) from exc
     except BackendError as exc:
         raise ApiError(503, _sentence(exc), {"Retry-After": str(RETRY_AFTER_S)}) from exc
-    gw.metrics.scans.labels(source="request").inc()
-    gw.metrics.points.inc(len(points))
+    gw.metrics.scans.labels(source="request", model=entry.name).inc()
+    gw.metrics.points.labels(model=entry.name).inc(len(points))
     return labelled
 
 

@@ -241,7 +241,9 @@ def test_concurrent_requests_are_batched_and_each_equals_rangeret_predict(setup,
     assert _metric(text, "rangeret_batch_scans_count") - before < len(
         scans
     )  # some batches held several
-    assert 'rangeret_scans_labelled_total{source="request"}' in text
+    assert 'rangeret_scans_labelled_total{model="default",source="request"}' in text
+    assert 'rangeret_model{model="default",profile="semantickitti"} 1.0' in text
+    assert 'rangeret_model_loaded{model="default"} 1.0' in text
     assert (
         "rangeret_queue_depth" in text and "rangeret_http_request_duration_seconds_bucket" in text
     )

@@ -207,6 +207,12 @@ def test_one_loaded_network_serves_two_models_in_turn(setup):
                     assert answer.status_code == 200, answer.text
                     assert answer.content == _expected(setup, model, seq, name), (model, seq)
                 assert _loaded(client) == [model]
+                metrics = client.get("/metrics").text
+                assert f'rangeret_model_loaded{{model="{model}"}} 1.0' in metrics
+                other = "two" if model == "one" else "one"
+                assert f'rangeret_model_loaded{{model="{other}"}} 0.0' in metrics
+            labelled = 'rangeret_scans_labelled_total{model="one",source="request"} 6.0'
+            assert labelled in metrics
     finally:
         gw.stop()
 

@@ -65,7 +65,12 @@ def test_a_labelled_job_succeeds_with_its_zip_report_plots_and_metrics(store, tm
     make_tree(data, {"08": [30, 40], "11": [20]})
     job, folder = _claimed(store, tmp_path, data, ["08", "11"])
     counted: list[int] = []
-    work = JobWork(store, FakeExecutor(), one_model(KITTI, "ab" * 32), on_scans=counted.append)
+    work = JobWork(
+        store,
+        FakeExecutor(),
+        one_model(KITTI, "ab" * 32),
+        on_scans=lambda n, model: counted.append(n),
+    )
     assert work.run(job, folder, JobControl(job.id, store)) is True
     record = store.get(job.id)
     assert record.state is JobState.succeeded and (record.total, record.done) == (3, 3)
