@@ -497,7 +497,7 @@ def test_the_page_works_under_a_path_prefix(setup, page):
         assert any(url.endswith("three.module.js") for url in static)
         assert any(url.endswith("OrbitControls.js") for url in static)
         assert all(url.startswith(base) for url in requests), requests
-        assert base + "v1/scans" in requests and base + "v1/jobs" in requests
+        assert base + "v1/scans?model=default" in requests and base + "v1/jobs" in requests
         # uvicorn knows the prefix, so the API description names it as the server.
         servers = httpx.get(base + "openapi.json").json()["servers"]
         assert servers == [{"url": PREFIX}]
@@ -571,4 +571,62 @@ def test_another_origins_page_cannot_start_a_job_on_a_gateway_without_a_token(
     finally:
         context.close()
         server.shutdown()
+        gw.stop()
+
+
+# Several models --------------------------------------------------------------------------------------
+
+
+def test_the_page_labels_a_scan_with_the_model_chosen_in_its_selector(
+    setup, page, tmp_path, capsys
+):
+    """A gateway of two models: the selector offers both, and a scan dropped after choosing the
+    second is labelled by it (its answer, not the default's)."""
+    import torch
+
+    from rangeret.models import build_model
+
+    tab, _ = page
+    torch.manual_seed(7)
+    other = tmp_path / "other.pt"
+    torch.save(build_model("rangeret-cir", 32, 256, num_classes=20, layers=1).state_dict(), other)
+    models = tmp_path / "models.yaml"
+    first = small_weights(tmp_path)
+    models.write_text(f"default: first\nmodels:\n  first: {{checkpoint: {first}}}\n")
+    models.write_text(models.read_text() + f"  second: {{checkpoint: {other}}}\n")
+    env = gateway_env(tmp_path / "state", [tmp_path])
+    gw = start_gateway(None, env, tmp_path / "gateway.log", "--models", str(models))
+    try:
+        body = setup["small"].read_bytes()
+        with gw.client() as client:
+            answers = {
+                name: client.post(
+                    "/v1/scans",
+                    params={"model": name, "format": "json"},
+                    content=body,
+                    headers={"Content-Type": "application/octet-stream"},
+                ).json()
+                for name in ("first", "second")
+            }
+        assert answers["first"]["class_counts"] != answers["second"]["class_counts"]
+        tab.goto(gw.url + "/")
+        sign_in(tab)
+        tab.wait_for_selector("#tabs:not([hidden])")
+        assert tab.locator("#model-choice").is_visible()
+        options = tab.locator("#model-select option")
+        assert [options.nth(i).get_attribute("value") for i in range(options.count())] == [
+            "first",
+            "second",
+        ]
+        assert state(tab, ".modelId") == "first"
+        tab.select_option("#model-select", "second")
+        tab.wait_for_function("() => window.rangeretPage.state.modelId === 'second'")
+        assert state(tab, ".model.id") == "second"
+        tab.set_input_files("#scan-files", [str(setup["small"])])
+        tab.wait_for_function("() => window.rangeretPage.state.scan.rendered", timeout=180_000)
+        shown = state(tab, ".scan")
+        assert shown["points"] == answers["second"]["num_points"]
+        assert shown["classCounts"] == answers["second"]["class_counts"]
+        shoot(tab, "second-model.png", capsys)
+    finally:
         gw.stop()

@@ -1,6 +1,8 @@
 /**
  * The gateway's web page: sign-in where the gateway has a token, then three tabs (label a scan,
- * jobs, health). `window.rangeretPage.state` holds what the page shows, for tests and scripts.
+ * jobs, health). A gateway of several models offers them in a selector beside the model's name:
+ * the chosen one labels the scans, runs the jobs started here and gives the palette.
+ * `window.rangeretPage.state` holds what the page shows, for tests and scripts.
  */
 
 import { Api } from './api.js';
@@ -13,6 +15,8 @@ const state = {
   tokenRequired: null,
   profile: null,
   model: null,
+  models: null,
+  modelId: null,
   health: null,
   jobs: [],
   report: null,
@@ -49,6 +53,7 @@ function signOut(message = '') {
   byId('sign-out').hidden = true;
   byId('served').textContent = '';
   showModel(null);
+  byId('model-choice').hidden = true;
   byId('sign-in').hidden = false;
   byId('sign-in-error').textContent = message;
   pageStatus.hidden = true;
@@ -62,18 +67,44 @@ function showModel(model) {
   note.hidden = !(model && model.demo_weights);
 }
 
-async function signedIn() {
-  const [profile, model] = await Promise.all([api.json('v1/profile'), api.json('v1/model')]);
+/** Use the model `id`: its profile for the scans and jobs, its note beside its name. */
+async function chooseModel(id) {
+  const query = `?model=${encodeURIComponent(id)}`;
+  const [profile, model] = await Promise.all([
+    api.json(`v1/profile${query}`),
+    api.json(`v1/model${query}`),
+  ]);
+  state.modelId = id;
   state.profile = profile;
   showModel(model);
+  scans.setProfile(profile, id);
+  jobs.setModel(id, profile);
+  byId('model-select').value = id;
+}
+
+/** Offer the gateway's models in the selector (shown where there are several). */
+function offerModels(listing) {
+  state.models = listing;
+  const select = byId('model-select');
+  select.replaceChildren(
+    ...listing.models.map((m) => new Option(`${m.id} (${m.profile})`, m.id)),
+  );
+  byId('model-choice').hidden = listing.models.length < 2;
+}
+
+async function signedIn() {
+  const listing = await api.json('v1/models');
+  offerModels(listing);
+  await chooseModel(state.modelId && listing.models.some((m) => m.id === state.modelId)
+    ? state.modelId
+    : listing.default);
   state.signedIn = true;
-  scans.setProfile(profile);
   byId('sign-in').hidden = true;
   byId('tabs').hidden = false;
   byId('sign-out').hidden = !state.tokenRequired;
   pageStatus.hidden = true;
   showTab(state.tab);
-  jobs.start(profile);
+  jobs.start();
   health.start();
 }
 
@@ -111,6 +142,14 @@ byId('sign-in-form').addEventListener('submit', async (event) => {
 });
 
 byId('sign-out').addEventListener('click', () => signOut());
+byId('model-select').addEventListener('change', async (event) => {
+  try {
+    await chooseModel(event.target.value);
+  } catch (error) {
+    pageStatus.textContent = error.message;
+    pageStatus.hidden = false;
+  }
+});
 byId('tabs').addEventListener('click', (event) => {
   if (event.target.dataset.tab) showTab(event.target.dataset.tab);
 });

@@ -56,10 +56,28 @@ export class JobsPanel {
     if (!ACTIVE.has(job.state)) this.followed = null;
   }
 
-  start(profile) {
+  /** Start the jobs of the model `modelId` (its `profile` reads their reports). */
+  setModel(modelId, profile) {
+    this.modelId = modelId;
     this.profile = profile;
+  }
+
+  start() {
     this.running = true;
     this.poll();
+  }
+
+  /** The profile of the job's model: the chosen model's, or asked for once per other model. */
+  async profileOf(modelId) {
+    if (!modelId || modelId === this.modelId) return this.profile;
+    this.profiles = this.profiles || new Map();
+    if (!this.profiles.has(modelId)) {
+      this.profiles.set(
+        modelId,
+        await this.api.json(`v1/profile?model=${encodeURIComponent(modelId)}`),
+      );
+    }
+    return this.profiles.get(modelId);
   }
 
   stop() {
@@ -150,7 +168,8 @@ export class JobsPanel {
   async showReport(job) {
     try {
       const report = await this.api.json(`v1/jobs/${job.id}/report`);
-      this.report.replaceChildren(...reportView(report, job, this.profile));
+      const profile = await this.profileOf(job.model);
+      this.report.replaceChildren(...reportView(report, job, profile));
       this.report.hidden = false;
       this.state.report = {
         job: job.id,
@@ -208,7 +227,7 @@ export class JobsPanel {
     const body = new FormData();
     body.append('archive', file, file.name);
     this.say(`Uploading ${file.name}…`);
-    await this.create(body, {}, 'v1/jobs/uploads');
+    await this.create(body, {}, `v1/jobs/uploads?model=${encodeURIComponent(this.modelId)}`);
     form.reset();
   }
 
@@ -221,6 +240,7 @@ export class JobsPanel {
       return;
     }
     const request = split ? { dataset, split } : { dataset, sequences };
+    request.model = this.modelId;
     await this.create(JSON.stringify(request), { 'Content-Type': 'application/json' });
   }
 

@@ -67,9 +67,10 @@ export class ScanPanel {
     });
   }
 
-  /** Start with the served profile (classes, palette, learning map). */
-  setProfile(profile) {
+  /** Label with the model `modelId`, whose profile gives the classes, palette and learning map. */
+  setProfile(profile, modelId = null) {
     this.profile = profile;
+    this.modelId = modelId;
     this.lookup = classLookup(profile);
     this.palette = profile.classes.map((cls) => rgb(cls.color));
   }
@@ -115,7 +116,8 @@ export class ScanPanel {
     this.say(`Labelling ${scanFile.name} (${count(points)} points)…`);
     let answer;
     try {
-      answer = await this.api.json('v1/scans', {
+      const query = this.modelId ? `?model=${encodeURIComponent(this.modelId)}` : '';
+      answer = await this.api.json(`v1/scans${query}`, {
         method: 'POST',
         headers: { 'Content-Type': 'application/octet-stream' },
         body: bytes,
