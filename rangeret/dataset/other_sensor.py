@@ -49,7 +49,7 @@ def profile_for_data(network: DatasetProfile, data: DatasetProfile) -> DatasetPr
         data,
         description=f"a network of the {network.name} profile on the {data.name} sensor",
         projection=projection,
-        labels=network.labels,
+        labels=replace(network.labels, splits=data.labels.splits),
         knn=network.knn,
         benchmark=network.benchmark,
     )

@@ -25,13 +25,22 @@ SOURCE = load_profile("semantickitti")
 MERGED = {18: 10, 20: 10}
 
 
-def _target(path: Path, *, name: str = "test-32", intensity: bool = False) -> Path:
+def _target(
+    path: Path,
+    *,
+    name: str = "test-32",
+    intensity: bool = False,
+    splits: dict[str, list[str]] | None = None,
+) -> Path:
     """A 32-beam sensor (+10 to -30 degrees, 32 x 256) with SemanticKITTI's labels in
-    ROOT/scans/NNN; with `intensity`, 8-bit reflectance and each point's ring."""
+    ROOT/scans/NNN; with `intensity`, 8-bit reflectance and each point's ring; `splits` replaces
+    SemanticKITTI's."""
     data = SOURCE.to_dict()
     data["name"] = name
     data["sensor"].update(height=32, width=256, fov_up=10.0, fov_down=-30.0)
     data["layout"] = {"sequence_folders": ["scans"], "id_digits": 3}
+    if splits is not None:
+        data["splits"] = splits
     if intensity:
         data["points"] = {"fields": ["x", "y", "z", "intensity", "ring"]}
         data["sensor"].update(row="ring", reflectance_max=255.0)
@@ -125,6 +134,18 @@ def test_the_network_labels_the_other_sensors_scans_through_the_map(setup, tmp_p
     assert main(["compare", *map(str, reports)]) == 0
     table = capsys.readouterr().out
     assert "car" in table and "mIoU" in table
+
+
+def test_a_split_is_the_data_profiles(setup, tmp_path):
+    """`--split` names a split of the data's profile, not of the network's."""
+    target = _target(
+        tmp_path / "t.yaml", splits={"train": ["000"], "valid": ["001"], "test": ["002"]}
+    )
+    identity = str(_map(tmp_path / "same.yaml", {}))
+    args = ["predict", "-q", "--dataset", str(setup["data"]), "--split", "valid"]
+    args += ["--out", str(tmp_path / "p"), "--checkpoint", str(setup["weights"])]
+    assert main([*args, "--profile", str(target), "--label-map", identity]) == 0
+    assert len(list((tmp_path / "p" / "sequences" / "001" / "predictions").glob("*.label"))) == 2
 
 
 def test_the_reflectance_means_what_the_network_learnt(setup, tmp_path):
