@@ -162,13 +162,6 @@ def check_models(models: ModelSet) -> dict[str, LoadedWeights]:
             if len(models) == 1:
                 raise
             raise CommandError(f"model {name}: {exc}") from exc
-        if weights.profile.layout.kind == "tables":
-            raise CommandError(
-                f"rangeret serve takes profiles of folder layouts; the {weights.profile.name} "
-                f"profile{'' if len(models) == 1 else f' of model {name}'} reads a version's "
-                "tables, which the gateway does not serve: use rangeret predict or python -m "
-                "workers.predict_job for it"
-            )
         if spec.backend == "onnxruntime":
             weights.export_onnx()  # once here, so that workers started next load it from the cache
         loaded[name] = weights
