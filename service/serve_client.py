@@ -1,11 +1,13 @@
 """Single scans labelled by the Serve application (`workers.serve_app`) through Serve's HTTP proxy.
 
 `ServeLabeller` posts each admitted scan's point records to `<serve url>/scans` (the proxy's scheme, host
-and port, then the application's route prefix) and reads the labels back in the exchange of
-`workers.scan_wire`; Serve batches concurrent requests on its replicas. An answer that does not
+and port, then the application's route prefix) with the scan's model in Serve's
+`serve_multiplexed_model_id` header, and reads the labels back in the exchange of
+`workers.scan_wire`; Serve routes each request to a replica that has its model loaded and batches
+concurrent requests of one model there. An answer that does not
 come within `timeout` seconds is `BackendTimeout` (504); an unreachable, overloaded (503) or
 failing application is `BackendError` (503 with Retry-After). At start-up `check_serves` compares
-the application's checkpoint and profile with the gateway's.
+every model's checkpoint and profile with the application's model of the same name.
 """
 
 from __future__ import annotations
@@ -18,9 +20,9 @@ import httpx
 import numpy as np
 
 from rangeret.commands import CommandError
-from rangeret.dataset.profiles import DatasetProfile
 from rangeret.inference.results import ScanPrediction
 from service.labeller_errors import BackendError, BackendTimeout, ScanRejected
+from service.served_models import ModelCatalog
 from workers.scan_wire import INFO_PATH, OCTET, SCANS_PATH, decode_labels, options_query
 
 log = logging.getLogger(__name__)
@@ -29,6 +31,8 @@ log = logging.getLogger(__name__)
 MAX_CONNECTIONS = 256
 #: How long one health or start-up probe of the application may take.
 PROBE_TIMEOUT_S = 10.0
+#: The header that names a request's model to Serve's multiplexing.
+MODEL_ID_HEADER = "serve_multiplexed_model_id"
 
 
 class ServeLabeller:
@@ -36,9 +40,9 @@ class ServeLabeller:
 
     backend = "serve"
 
-    def __init__(self, url: str, profile: DatasetProfile, timeout: float) -> None:
+    def __init__(self, url: str, models: ModelCatalog, timeout: float) -> None:
         self.url = url.rstrip("/")
-        self.profile = profile
+        self.models = models
         self.timeout = timeout
         self._client: httpx.AsyncClient | None = None
         self._in_flight = 0
@@ -62,8 +66,8 @@ class ServeLabeller:
     async def label(
         self, points: np.ndarray, knn: bool = True, confidence: bool = False, *, model: str
     ) -> ScanPrediction:
-        """One scan labelled by the application, sent as its point records' bytes (the
-        application serves the gateway's one model, `model`)."""
+        """One scan labelled by the application's model `model`, sent as its point records'
+        bytes."""
         if self._client is None:
             raise BackendError("the gateway is starting; try again in a moment")
         self._in_flight += 1
@@ -73,7 +77,7 @@ class ServeLabeller:
                     self.url + SCANS_PATH,
                     params=options_query(knn, confidence),
                     content=np.ascontiguousarray(points, dtype="<f4").tobytes(),
-                    headers={"Content-Type": OCTET},
+                    headers={"Content-Type": OCTET, MODEL_ID_HEADER: model},
                 ),
                 self.timeout,
             )
@@ -108,6 +112,8 @@ class ServeLabeller:
             raise BackendError(
                 f"the Serve application at {self.url} is overloaded or has no replica ready"
             )
+        if response.status_code == 404 and detail.startswith("There is no model"):
+            raise BackendError(f"the Serve application at {self.url}: {detail.rstrip('.')}")
         if response.status_code == 404:
             raise BackendError(
                 f"no Serve application answers at {self.url} (404): is it deployed with this "
@@ -138,10 +144,10 @@ class ServeLabeller:
             if client is not self._client:
                 await client.aclose()
 
-    def check_serves(self, sha256: str, wait_s: float) -> dict:
+    def check_serves(self, wait_s: float) -> dict:
         """The application's description, once it answers (waiting up to `wait_s` seconds);
-        a `CommandError` naming both when it serves another checkpoint or profile than
-        `sha256` and the gateway's profile, or when it never answers."""
+        a `CommandError` naming the model when the application lacks one of the gateway's
+        models or serves it with another checkpoint or profile, or when it never answers."""
         deadline = time.monotonic() + wait_s
         problem = ""
         while True:
@@ -161,17 +167,28 @@ class ServeLabeller:
                 )
             log.info("waiting for the Serve application at %s (%s)", self.url, problem)
             time.sleep(2.0)
-        theirs = served.get("checkpoint_sha256")
-        if theirs != sha256:
-            raise CommandError(
-                f"the Serve application at {self.url} serves checkpoint sha256 {theirs} and this "
-                f"gateway's checkpoint is sha256 {sha256}: give both the same weights"
-            )
-        if served.get("profile") != self.profile.name:
-            raise CommandError(
-                f"the Serve application at {self.url} serves the {served.get('profile')} profile "
-                f"and this gateway the {self.profile.name} profile: give both the same one"
-            )
+        theirs = {m.get("id"): m for m in served.get("models") or [] if isinstance(m, dict)}
+        for entry in self.models:
+            model = theirs.get(entry.name)
+            named = "" if len(self.models) == 1 else f" for model {entry.name}"
+            if model is None:
+                raise CommandError(
+                    f"the Serve application at {self.url} serves no model {entry.name} (it serves "
+                    f"{', '.join(map(str, theirs)) or 'none'}): deploy it with the gateway's "
+                    "models file"
+                )
+            if model.get("checkpoint_sha256") != entry.checkpoint_sha256:
+                raise CommandError(
+                    f"the Serve application at {self.url} serves checkpoint sha256 "
+                    f"{model.get('checkpoint_sha256')}{named} and this gateway's checkpoint is "
+                    f"sha256 {entry.checkpoint_sha256}: give both the same weights"
+                )
+            if model.get("profile") != entry.profile.name:
+                raise CommandError(
+                    f"the Serve application at {self.url} serves the {model.get('profile')} "
+                    f"profile{named} and this gateway the {entry.profile.name} profile: give both "
+                    "the same one"
+                )
         return served
 
 

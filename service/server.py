@@ -216,14 +216,13 @@ def build_labeller(
     settings: Settings, catalog: ModelCatalog, pool: ModelPool[ModelRuntime] | None
 ) -> ScanLabeller:
     """What labels single scans: the Serve application at `serve_url` (once it answers with the
-    same checkpoint and profile), or else the pool's networks in this process, each behind its
+    same checkpoint and profile for every model), or else the pool's networks in this process, each behind its
     own batcher."""
     if settings.serve_url:
         from service.serve_client import ServeLabeller
 
-        entry = catalog.default_entry
-        labeller = ServeLabeller(settings.serve_url, entry.profile, settings.serve_timeout_s)
-        labeller.check_serves(entry.checkpoint_sha256 or "", settings.serve_timeout_s)
+        labeller = ServeLabeller(settings.serve_url, catalog, settings.serve_timeout_s)
+        labeller.check_serves(settings.serve_timeout_s)
         return labeller
     from service.pooled_labeller import PooledLabeller
 
@@ -243,8 +242,7 @@ def build_executor(
     if settings.jobs_address:
         from service.jobs.ray_jobs import RayJobExecutor
 
-        entry = catalog.default_entry
-        return RayJobExecutor(settings.jobs_address, entry.spec, entry.profile, read_roots=roots)
+        return RayJobExecutor(settings.jobs_address, catalog, read_roots=roots)
     assert pool is not None  # `run_serve` builds one whenever a part runs in this process
     return LocalExecutor(pool, catalog.default, settings.batch_size, read_roots=roots)
 
@@ -283,11 +281,6 @@ def run_serve(args: argparse.Namespace) -> int:
     check_state(settings)  # before minutes of loading weights
     args.batch_size = settings.batch_size
     models = model_set(args, settings)
-    if len(models) > 1 and (settings.serve_url or settings.jobs_address):
-        raise CommandError(
-            "several models are served in this process only: leave out --serve-url and "
-            "--jobs-address (RANGERET_SERVE_URL, RANGERET_JOBS_ADDRESS), or serve one model"
-        )
     loaded = check_models(models)
     catalog = catalog_of(models, loaded)
     in_process = not (settings.serve_url and settings.jobs_address)

@@ -2,51 +2,60 @@
 
     serve deploy config.yaml      # import_path: workers.serve_app:build_app, args: {checkpoint: ...}
 
-The application is one deployment, `ScanModel`, whose replicas each hold the network (one GPU per
-replica where the cluster has or can add GPUs), gather concurrent requests into batches of up to
-`batch_size` scans with `@serve.batch`, and answer in the exchange of `workers.scan_wire` through
-a FastAPI app (`@serve.ingress`). Its arguments are the fields of
-`rangeret.inference.spec.InferenceSpec` by name, as `rangeret serve` takes them as options
-(`checkpoint`, `profile`, `model`, `height`, `width`, `fov_up`, `fov_down`, `batch_size`, `knn`,
-`device`, `precision`, `backend`, `tta_flip`, `tta_shifts`; `knn: false` is `--no-knn`), and
-`batch_wait_ms`, the longest a request waits for others to fill its batch. `batch_size` and
-`batch_wait_ms` reach the replicas as the deployment's `user_config`, so a Serve config that
-changes them there reconfigures running replicas without reloading the network. Autoscaling,
-backpressure (`max_ongoing_requests`, `max_queued_requests`) and health checks have defaults here
-that a Serve config's `deployments` entry overrides.
+The application is one deployment, `ScanModel`, whose replicas (one GPU each where the cluster
+has or can add GPUs) serve one or several models by name (`workers.serve_arguments` reads the
+arguments). A request names its model with Serve's `serve_multiplexed_model_id` header (none: the
+default model); a replica keeps at most `max_num_models_per_replica` networks loaded, loading on
+first use and unloading the least recently used one (`@serve.multiplexed`), and Serve routes a
+request to a replica that has its model loaded. Each replica gathers concurrent requests into
+batches of up to `batch_size` scans of one model (`@serve.batch`) and answers in the exchange of
+`workers.scan_wire` through a FastAPI app (`@serve.ingress`). `batch_size` and `batch_wait_ms`
+reach the replicas as the deployment's `user_config`, so a Serve config that changes them there
+reconfigures running replicas without reloading any network. Every model's checkpoint is read
+once when the application is built, for the SHA-256, profile and network `/info` lists (a gateway
+compares them with its own models when it starts); a replica refuses a checkpoint whose bytes have
+changed since. Autoscaling, backpressure (`max_ongoing_requests`, `max_queued_requests`) and
+health checks have defaults here that a Serve config's `deployments` entry overrides.
 """
 
 import asyncio
 import logging
+import os
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
+import torch
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse, Response
 from ray import serve
 
+from rangeret.exceptions import RangeRetError
+from rangeret.inference.loader import identify_weights
+from rangeret.inference.models_file import ModelSet
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import ScanOutcome
 from rangeret.inference.scan_worker import ScanRequest, ScanWorker, use_cpus
-from rangeret.inference.spec import InferenceSpec, InferenceSpecError
+from rangeret.inference.spec import InferenceSpec
 from rangeret.io.scans import ScanFormatError, parse_scan
 from workers.cluster import read_resources
 from workers.scan_wire import INFO_PATH, OCTET, SCANS_PATH, encode_labels, query_flag
+from workers.serve_arguments import (
+    DEFAULT_BATCH_WAIT_MS,
+    WHERE,
+    AppArguments,
+    read_arguments,
+)
 from workers.sizing import ClusterResources, replica_gpus
 
 log = logging.getLogger(__name__)
 
 DEPLOYMENT = "ScanModel"
-#: The longest a request waits for others to fill its batch unless `batch_wait_ms` says otherwise.
-DEFAULT_BATCH_WAIT_MS = 10.0
 #: Requests waiting for a replica beyond which Serve answers 503 (backpressure).
 DEFAULT_MAX_QUEUED = 128
 #: How often Serve calls a replica's health check, and how long it may take.
 HEALTH_CHECK_PERIOD_S = 10.0
 HEALTH_CHECK_TIMEOUT_S = 30.0
-#: The application's own arguments besides the spec's fields.
-APP_ARGUMENTS = ("batch_wait_ms",)
 
 api = FastAPI(title="rangeret Serve application", openapi_url=None, docs_url=None)
 
@@ -56,19 +65,81 @@ async def _no_such_operation(request: Request, exc: Exception) -> JSONResponse:
     return JSONResponse({"detail": f"No such operation: {request.method} {request.url.path}."}, 404)
 
 
+class ReplicaModel:
+    """One model loaded on a replica: its name and scan worker. Serve calls `__del__` when it
+    unloads the model, and `on_unload` tells the replica."""
+
+    def __init__(self, name: str, worker: ScanWorker, on_unload: Callable[[Any], None]) -> None:
+        self.name = name
+        self.worker = worker
+        self.on_unload = on_unload
+
+    def __del__(self) -> None:
+        self.on_unload(self)
+
+
 @serve.ingress(api)
 class ScanModel:
-    """One replica: the network, a batcher in front of it, and the HTTP exchange."""
+    """One replica: its models (loaded on first use, at most `max_per_replica` at once), a
+    batcher in front of them, and the HTTP exchange."""
 
-    def __init__(self, spec: Mapping[str, Any]) -> None:
+    def __init__(
+        self,
+        models: Mapping[str, Any],
+        built: Mapping[str, Mapping[str, str]],
+        max_per_replica: int,
+    ) -> None:
         import ray
 
-        parsed = InferenceSpec.from_mapping(spec)
+        self.models = ModelSet.from_mapping(models, source="the application's models")
+        self.built = built
+        self.max_per_replica = max_per_replica
         use_cpus(ray.get_runtime_context().get_assigned_resources().get("CPU", 1.0))
-        self.worker = ScanWorker(Predictor.from_spec(parsed))
-        self.record = self.worker.profile.points
-        self.described = {**self.worker.info(), "batch_size": parsed.batch_size}
+        self.batch_size = 1
+        self._loaded: dict[str, int] = {}
         self._failure: str | None = None
+        self._load_model = serve.multiplexed(max_num_models_per_replica=max_per_replica)(
+            self._loader()
+        )
+        # The default model is loaded now, so a replica is ready when it can serve it; Serve's
+        # multiplexer takes it over on its first request.
+        self._preloaded: ReplicaModel | None = self._load(self.models.default)
+
+    def _loader(self) -> Callable[[str], Any]:
+        """Serve's multiplexed loader: the model `name`, its network loaded in a worker thread
+        (the one loaded at start, for the default model's first request)."""
+
+        async def load_model(name: str) -> ReplicaModel:
+            preloaded, self._preloaded = self._preloaded, None
+            if preloaded is not None and preloaded.name == name:
+                return preloaded
+            del preloaded
+            return await asyncio.to_thread(self._load, name)
+
+        return load_model
+
+    def _load(self, name: str) -> ReplicaModel:
+        """The model `name`'s network, whose checkpoint must be the one the application was
+        built with."""
+        started = time.perf_counter()
+        worker = ScanWorker(Predictor.from_spec(self.models.spec(name)))
+        expected = self.built[name]["checkpoint_sha256"]
+        if worker.predictor.checkpoint_sha256 != expected:
+            raise RuntimeError(
+                f"model {name}: its checkpoint is sha256 {worker.predictor.checkpoint_sha256} now "
+                f"and was sha256 {expected} when the application was built; deploy it again"
+            )
+        model = ReplicaModel(name, worker, self._unloaded)
+        self._loaded[name] = id(model)
+        log.info("model %s loaded in %.2f s", name, time.perf_counter() - started)
+        return model
+
+    def _unloaded(self, model: ReplicaModel) -> None:
+        """Forget a model Serve unloaded (unless it has been loaded again since)."""
+        if self._loaded.get(model.name) == id(model):
+            del self._loaded[model.name]
+            if torch.cuda.is_available():
+                torch.cuda.empty_cache()
 
     def reconfigure(self, config: Mapping[str, Any]) -> None:
         """Serve's `user_config`: the batch size and wait, changed in place on running replicas."""
@@ -77,40 +148,72 @@ class ScanModel:
         self.label_one.set_batch_wait_timeout_s(
             float(config.get("batch_wait_ms", DEFAULT_BATCH_WAIT_MS)) / 1000
         )
-        self.described["batch_size"] = size
+        self.batch_size = size
 
     @serve.batch(max_batch_size=1, batch_wait_timeout_s=DEFAULT_BATCH_WAIT_MS / 1000)
-    async def label_one(self, requests: list[ScanRequest]) -> list[ScanOutcome]:
-        """A batch of requests labelled, one network pass per set of equal options."""
-        return await asyncio.to_thread(self._label, requests)
+    async def label_one(
+        self, models: list[ReplicaModel], requests: list[ScanRequest]
+    ) -> list[ScanOutcome]:
+        """A batch of requests labelled, one network pass per model and set of equal options
+        (Serve gathers the requests of one model into a batch)."""
+        return await asyncio.to_thread(self._label, models, requests)
 
-    def _label(self, requests: list[ScanRequest]) -> list[ScanOutcome]:
+    def _label(self, models: list[ReplicaModel], requests: list[ScanRequest]) -> list[ScanOutcome]:
+        results: list[ScanOutcome] = [""] * len(requests)
         try:
-            labelled = self.worker.label(requests)
+            for model in {id(m): m for m in models}.values():
+                indices = [i for i, m in enumerate(models) if m is model]
+                labelled = model.worker.label([requests[i] for i in indices])
+                for i, result in zip(indices, labelled, strict=True):
+                    results[i] = result
         except Exception as exc:
             self._failure = f"{type(exc).__name__}: {exc}"
             raise
         self._failure = None
-        return labelled
+        return results
 
     @api.get(INFO_PATH)
     def info(self) -> dict:
-        """The network this replica serves."""
-        return self.described
+        """What this replica serves: every model (as built) and whether it is loaded here."""
+        return {
+            "pid": os.getpid(),
+            "threads": torch.get_num_threads(),
+            "batch_size": self.batch_size,
+            "default": self.models.default,
+            "max_num_models_per_replica": self.max_per_replica,
+            "models": [
+                {"id": name, **self.built[name], "loaded": name in self._loaded}
+                for name in self.models.names
+            ],
+        }
 
     @api.post(SCANS_PATH)
     async def scans(self, request: Request) -> Response:
-        """The body's scan labelled, in the exchange of `workers.scan_wire`."""
+        """The body's scan labelled by the request's model, in the exchange of
+        `workers.scan_wire`."""
+        name = serve.get_multiplexed_model_id() or self.models.default
+        if name not in self.built:
+            known = ", ".join(self.models.names)
+            return JSONResponse(
+                {"detail": f"There is no model {name[:64]!r}; this application serves {known}."},
+                404,
+            )
         try:
             knn = query_flag(request.query_params.get("knn"), True, "knn")
             confidence = query_flag(request.query_params.get("confidence"), False, "confidence")
-            points = parse_scan(await request.body(), "the scan", record=self.record)
-        except ScanFormatError as exc:
-            return JSONResponse({"detail": f"The scan is malformed: {exc.problem}."}, 400)
+            body = await request.body()
         except ValueError as exc:
             return JSONResponse({"detail": f"{str(exc).capitalize()}."}, 400)
         start = time.perf_counter()
-        result = await self.label_one(ScanRequest(points, knn, confidence))
+        try:
+            model = await self._load_model(name)
+        except (RangeRetError, RuntimeError, OSError) as exc:
+            return JSONResponse({"detail": f"Model {name} cannot be loaded: {exc}."}, 500)
+        try:
+            points = parse_scan(body, "the scan", record=model.worker.profile.points)
+        except ScanFormatError as exc:
+            return JSONResponse({"detail": f"The scan is malformed: {exc.problem}."}, 400)
+        result = await self.label_one(model, ScanRequest(points, knn, confidence))
         if isinstance(result, str):
             return JSONResponse({"detail": f"The scan cannot be projected: {result}."}, 422)
         body, headers = encode_labels(result)
@@ -123,11 +226,10 @@ class ScanModel:
             raise RuntimeError(f"the last network pass failed: {self._failure}")
 
 
-def deployment_options(spec: InferenceSpec, batch_wait_ms: float, gpus: float) -> dict[str, Any]:
+def deployment_options(batch_size: int, batch_wait_ms: float, gpus: float) -> dict[str, Any]:
     """The deployment's defaults: backpressure sized to the batch (one batch running, one
     gathering), autoscaling on the requests in flight per replica, health checks, and the batch
     size and wait as the replicas' `user_config`."""
-    batch_size = spec.batch_size
     return {
         "name": DEPLOYMENT,
         "max_ongoing_requests": max(2, 2 * batch_size),
@@ -144,22 +246,40 @@ def deployment_options(spec: InferenceSpec, batch_wait_ms: float, gpus: float) -
     }
 
 
+def built_models(models: ModelSet) -> dict[str, dict[str, str]]:
+    """Each model's checkpoint SHA-256, profile and network, its checkpoint read once now; a
+    model whose weights cannot be served is one `ValueError` naming it."""
+    built = {}
+    for name, spec in models:
+        try:
+            identity = identify_weights(spec)
+        except RangeRetError as exc:
+            raise ValueError(f"model {name}{WHERE}: {exc}") from exc
+        built[name] = {
+            "checkpoint_sha256": identity.sha256,
+            "profile": identity.profile.name,
+            "network": identity.model,
+        }
+    return built
+
+
+def replica_gpu_count(specs: list[InferenceSpec]) -> float:
+    """GPUs each replica asks for: one where any model runs on a GPU (`cuda`, or `auto` on a
+    cluster that has or can add GPUs)."""
+    auto = any(spec.device == "auto" for spec in specs)
+    resources = read_resources() if auto else ClusterResources()
+    return max(replica_gpus(spec.device, resources) for spec in specs)
+
+
 def build_app(args: Mapping[str, object]) -> serve.Application:
-    """The application for Serve config arguments: `InferenceSpec` fields by name and
-    `batch_wait_ms`; an unknown or bad argument is one sentence naming it, before any replica
-    starts."""
-    values = {k: v for k, v in args.items() if k not in APP_ARGUMENTS}
-    try:
-        spec = InferenceSpec.from_mapping(values, where=" of the rangeret Serve application")
-    except InferenceSpecError as exc:
-        raise ValueError(str(exc)) from exc
-    wait = args.get("batch_wait_ms", DEFAULT_BATCH_WAIT_MS)
-    if isinstance(wait, bool) or not isinstance(wait, int | float):
-        raise ValueError(
-            f"batch_wait_ms of the rangeret Serve application takes a number, got {wait!r}"
-        )
-    if wait < 0:
-        raise ValueError(f"batch_wait_ms must not be negative, got {wait:g}")
-    resources = read_resources() if spec.device == "auto" else ClusterResources()
-    options = deployment_options(spec, float(wait), replica_gpus(spec.device, resources))
-    return serve.deployment(**options)(ScanModel).bind(spec.to_mapping())
+    """The application for Serve config arguments (`workers.serve_arguments`); an unknown or bad
+    argument, or a checkpoint that cannot be served, is one sentence naming it, before any
+    replica starts."""
+    checked: AppArguments = read_arguments(args)
+    models = checked.models
+    built = built_models(models)
+    gpus = replica_gpu_count([spec for _, spec in models])
+    options = deployment_options(checked.batch_size, checked.batch_wait_ms, gpus)
+    return serve.deployment(**options)(ScanModel).bind(
+        models.to_mapping(), built, checked.max_per_replica
+    )

@@ -17,10 +17,10 @@ import torch
 
 from rangeret.dataset.profiles import DatasetProfile, load_profile
 from rangeret.inference.spec import InferenceSpec
-from rangeret.models.weights.checkpoint import network_from_bytes
+from rangeret.models.weights.checkpoint import checkpoint_from_bytes, network_from_bytes
 from rangeret.models.weights.checkpoint_info import CheckpointInfo
 from rangeret.models.weights.demo import note_loaded, resolve_checkpoint
-from rangeret.models.weights.hub import resolve_weights
+from rangeret.models.weights.hub import ResolvedWeights, resolve_weights
 from rangeret.models.weights.run_profile import (
     check_classes,
     default_resolution,
@@ -70,14 +70,7 @@ def load_weights(spec: InferenceSpec, *, profile: DatasetProfile | None = None) 
     """The network and profile of `spec`'s weights fields, the checkpoint read once (see the
     module). `profile` stands for the profile `spec.profile` names, for callers that hold one
     already (a label configuration of their own in it)."""
-    requested = profile if profile is not None else _requested_profile(spec.profile)
-    path = (
-        resolve_checkpoint(None, requested.name if requested is not None else None)
-        if spec.checkpoint is None
-        else spec.checkpoint
-    )
-    resolved = resolve_weights(path, requested, spec.model, spec.height, spec.width)
-    data, sha256 = resolved.read()
+    resolved, data, sha256 = _read(spec, profile)
     note_loaded(resolved.path, sha256)
     network = network_from_bytes(
         data,
@@ -94,6 +87,51 @@ def load_weights(spec: InferenceSpec, *, profile: DatasetProfile | None = None) 
     )
     log.debug("loaded %s (sha256 %s) for the %s profile", info.path, sha256[:12], settled.name)
     return LoadedWeights(network, settled, info)
+
+
+@dataclass(frozen=True)
+class WeightsIdentity:
+    """What a spec's weights are without building their network: the checkpoint's SHA-256, the
+    profile it runs with and the network's name, for a server that describes models it has not
+    loaded."""
+
+    sha256: str
+    profile: DatasetProfile
+    model: str
+
+
+def identify_weights(spec: InferenceSpec) -> WeightsIdentity:
+    """The identity of `spec`'s weights, the checkpoint read once and checked as `load_weights`
+    checks it (pin, profile, class count), its tensors not loaded into a network."""
+    resolved, data, sha256 = _read(spec, None)
+    content = checkpoint_from_bytes(
+        data,
+        resolved.path,
+        model=resolved.model,
+        height=resolved.height,
+        width=resolved.width,
+        default_resolution=default_resolution(resolved.profile),
+        sha256=sha256,
+    )
+    settled = profile_for_checkpoint(
+        content.info, requested=resolved.profile, fov_up=spec.fov_up, fov_down=spec.fov_down
+    )
+    return WeightsIdentity(sha256, settled, content.info.name)
+
+
+def _read(
+    spec: InferenceSpec, profile: DatasetProfile | None
+) -> tuple[ResolvedWeights, bytes, str]:
+    """Where `spec`'s weights are, their bytes (read once) and their SHA-256, pin checked."""
+    requested = profile if profile is not None else _requested_profile(spec.profile)
+    path = (
+        resolve_checkpoint(None, requested.name if requested is not None else None)
+        if spec.checkpoint is None
+        else spec.checkpoint
+    )
+    resolved = resolve_weights(path, requested, spec.model, spec.height, spec.width)
+    data, sha256 = resolved.read()
+    return resolved, data, sha256
 
 
 def _requested_profile(name: str | None) -> DatasetProfile | None:

@@ -1,8 +1,8 @@
 """Gateway jobs as Ray jobs: each one submitted through a cluster's Jobs API and followed there.
 
 `RayJobExecutor` submits the entrypoint `ray job submit` runs, `python -m workers.predict_job`,
-with the gateway's network options, writing into the job's predictions folder (on storage every
-node mounts; the nodes run the installed package). It follows the job through its progress record
+with the network options of the job's model, writing into the job's predictions folder (on
+storage every node mounts; the nodes run the installed package). It follows the job through its progress record
 in that folder (`workers.progress`) and its status in the Jobs API, and the gateway then writes
 the predictions zip and the report from those files, as for a job run in-process.
 
@@ -30,13 +30,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from rangeret.dataset.layout import ScanEntry, is_complete
-from rangeret.dataset.profiles import DatasetProfile
 from rangeret.inference.spec import InferenceSpec
 from service.jobs.executors import JobControl, JobError, Progress
 from workers.progress import JobProgress, progress_path, read_progress
 
 if TYPE_CHECKING:
     from ray.job_submission import JobSubmissionClient
+
+    from service.served_models import ModelCatalog
 
 log = logging.getLogger(__name__)
 
@@ -204,12 +205,13 @@ def _first_line(text: str) -> str:
 class RayJobExecutor:
     """Runs each gateway job as a Ray job through the Jobs API at `address` (see the module).
 
-    `spec` is the gateway's `InferenceSpec`, given to the entrypoint as its one JSON option
-    `--inference-spec`; a checkpoint or profile file named by a relative path is named by its
-    absolute path, as are the job's folders, since the Ray job runs elsewhere. `profile` is the served profile, whose point record tells which predictions are
-    already whole. `api`, `poll_s`, `unreachable_s` and `max_submissions` default to the module's
-    constants. With `read_roots`, the Ray job reads scans only from under those folders
-    (`--read-roots`: a scan that leads elsewhere when it is read is its failure).
+    `models` are the gateway's models: a job's Ray job gets its model's `InferenceSpec` as the
+    entrypoint's one JSON option `--inference-spec`, a checkpoint or profile file named by a
+    relative path named by its absolute path, as are the job's folders, since the Ray job runs
+    elsewhere; the model's profile's point record tells which predictions are already whole.
+    `api`, `poll_s`, `unreachable_s` and `max_submissions` default to the module's constants.
+    With `read_roots`, the Ray job reads scans only from under those folders (`--read-roots`: a
+    scan that leads elsewhere when it is read is its failure).
     """
 
     backend = "ray-jobs"
@@ -217,8 +219,7 @@ class RayJobExecutor:
     def __init__(
         self,
         address: str,
-        spec: InferenceSpec,
-        profile: DatasetProfile,
+        models: ModelCatalog,
         *,
         api: JobsApi | None = None,
         poll_s: float = POLL_S,
@@ -228,28 +229,24 @@ class RayJobExecutor:
     ) -> None:
         self.address = address
         self.read_roots = read_roots
-        files = {
-            name: str(Path(value).absolute())
-            for name in ("checkpoint", "profile")
-            if (value := getattr(spec, name)) is not None
-            and not Path(value).is_absolute()
-            and Path(value).exists()
-        }
-        self.spec = spec.replace(**files)
-        self.profile = profile
+        self.models = models
+        self.specs = {entry.name: _absolute_files(entry.spec) for entry in models}
         self.api = api or JobsApi(address)
         self.poll_s = poll_s
         self.unreachable_s = unreachable_s
         self.max_submissions = max_submissions
         self.precision: str | None = None
-        self.inference_backend = spec.backend
+        self.inference_backend = models.default_entry.spec.backend
 
-    def entrypoint(self, dataset: Path, sequences: list[str], out: Path) -> str:
+    def entrypoint(
+        self, dataset: Path, sequences: list[str], out: Path, model: str | None = None
+    ) -> str:
         """The shell command of a job's Ray job: `python -m workers.predict_job` on the dataset's
-        sequences into `out`, with the gateway's spec."""
+        sequences into `out`, with the spec of the model `model` (None: the default)."""
+        spec = self.specs[self.models.get(model).name]
         argv = ["python", "-m", "workers.predict_job", "--dataset", str(Path(dataset).absolute())]
         argv += ["--sequences", *sequences, "--out", str(Path(out).absolute())]
-        argv += ["--inference-spec", json.dumps(self.spec.to_mapping(), sort_keys=True)]
+        argv += ["--inference-spec", json.dumps(spec.to_mapping(), sort_keys=True)]
         if self.read_roots:
             argv += ["--read-roots", *(str(Path(r).absolute()) for r in self.read_roots)]
         return shlex.join(argv)
@@ -264,16 +261,33 @@ class RayJobExecutor:
         cancel: JobControl,
         model: str | None = None,
     ) -> dict[str, str]:
-        """Submit the job (or re-attach to its stored submission) and follow it until its final
-        record, submitting it again when it dies; failures by scan key, as in-process. The Ray
-        job runs the gateway's one model, whatever `model` names.
+        """Submit the job with its model `model` (None: the default), or re-attach to its stored
+        submission, and follow it until its final record, submitting it again when it dies;
+        failures by scan key, as in-process.
 
         Returns early when `cancel` is set: a cancelled job's Ray job is stopped first, one
         paused by a gateway stop is left running. `JobError` when it cannot go on.
         """
-        before = sum(is_complete(e, out, record=self.profile.points) for e in entries)
-        follow = _Follow(self, entries, dataset, sequences, out, progress, cancel, before)
+        entry = self.models.get(model)
+        self.inference_backend = entry.spec.backend
+        before = sum(is_complete(e, out, record=entry.profile.points) for e in entries)
+        follow = _Follow(
+            self, entry.name, entries, dataset, sequences, out, progress, cancel, before
+        )
         return follow.run()
+
+
+def _absolute_files(spec: InferenceSpec) -> InferenceSpec:
+    """`spec` with a checkpoint or profile file named by a relative path that exists here named by
+    its absolute path."""
+    files = {
+        name: str(Path(value).absolute())
+        for name in ("checkpoint", "profile")
+        if (value := getattr(spec, name)) is not None
+        and not Path(value).is_absolute()
+        and Path(value).exists()
+    }
+    return spec.replace(**files)
 
 
 class _Follow:
@@ -282,6 +296,7 @@ class _Follow:
     def __init__(
         self,
         executor: RayJobExecutor,
+        model: str,
         entries: list[ScanEntry],
         dataset: Path,
         sequences: list[str],
@@ -291,6 +306,7 @@ class _Follow:
         before: int,
     ) -> None:
         self.executor = executor
+        self.model = model
         self.api = executor.api
         self.entries = entries
         self.dataset = dataset
@@ -400,7 +416,7 @@ class _Follow:
             parents=True, exist_ok=True
         )  # where the Ray job's records go, even early ones
         progress_path(self.out).unlink(missing_ok=True)
-        entrypoint = self.executor.entrypoint(self.dataset, self.sequences, self.out)
+        entrypoint = self.executor.entrypoint(self.dataset, self.sequences, self.out, self.model)
         metadata = {"rangeret_job": self.control.job_id}
         since: float | None = None
         while True:

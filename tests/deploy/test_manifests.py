@@ -17,6 +17,8 @@ import pytest
 import yaml
 
 from rangeret.dataset.labels import semantickitti
+from rangeret.inference.models_file import ModelSet
+from rangeret.models.weights.hub import file_sha256
 from rangeret.submission.archives import validate_submission
 from tests.support.kuberay import (
     ManifestError,
@@ -72,6 +74,12 @@ def _gateway() -> dict:
     return find(_docs(KUBERAY / "gateway.yaml"), "Deployment")
 
 
+def _models_file() -> tuple[str, dict]:
+    """The ConfigMap that holds the models file: its name, and the file's mapping."""
+    (config_map,) = _docs(KUBERAY / "models.yaml")
+    return config_map["metadata"]["name"], yaml.safe_load(config_map["data"]["models.yaml"])
+
+
 def _secrets() -> dict[str, dict[str, str]]:
     return secret_values(_docs(KUBERAY / "secrets.example.yaml"))
 
@@ -118,6 +126,7 @@ def test_kuberay_manifests_parse_and_fit_together():
     kinds = {p.name: [d["kind"] for d in _docs(p)] for p in sorted(KUBERAY.glob("*.yaml"))}
     assert kinds == {
         "gateway.yaml": ["Deployment", "Service"],
+        "models.yaml": ["ConfigMap"],
         "networkpolicy.yaml": ["NetworkPolicy"],
         "rayjob.yaml": ["RayJob"],
         "rayservice.yaml": ["RayService"],
@@ -172,12 +181,13 @@ def test_the_validator_refuses_broken_copies_of_every_manifest():
         assert tried > 5, name
 
     # The Serve config inside the RayService's string: every mapping and scalar but the
-    # builder's args, which are free-form for Serve (test_the_serve_application checks them).
+    # builder's args and the runtime_env, which are free-form for Serve (test_the_serve_application
+    # checks them).
     service = _service()
     config = serve_config(service)
     tried = 0
     for path, node in _walk(config):
-        if "args" in path or isinstance(node, list):
+        if "args" in path or "runtime_env" in path or isinstance(node, list):
             continue
         broken = copy.deepcopy(config)
         if isinstance(node, dict):
@@ -400,22 +410,50 @@ def test_the_serve_application():
 
     args = dict(app["args"])
     assert args.pop("batch_wait_ms") >= 0
+    assert args.pop("models") == "/etc/rangeret/models.yaml"
+    _, models_file = _models_file()
+    assert 1 <= args.pop("max_num_models_per_replica") <= len(models_file["models"])
     spec = InferenceSpec.from_mapping(args)
-    assert spec.checkpoint.startswith("/models/") and spec.batch_size == args["batch_size"]
-    assert spec.to_mapping() == args
+    assert spec.batch_size == args["batch_size"] and spec.to_mapping() == args
+    models = ModelSet.from_mapping(models_file, spec)
+    assert models.default == "kitti" and len(models) == 2
+    assert all(model.checkpoint.startswith("/models/") for _, model in models)
+    assert set(app["runtime_env"]) == {"env_vars"}
+    assert list(app["runtime_env"]["env_vars"]) == ["RANGERET_MODELS_REVISION"]
 
 
-def test_the_serve_application_builds_from_the_rayservices_arguments():
+def test_the_serve_application_builds_from_the_rayservices_arguments(tmp_path):
     """The import path names the builder, and the RayService's arguments build the application
-    (network options checked, one GPU per replica on `device: cuda`)."""
+    from the ConfigMap's models file (its checkpoints read for their SHA-256 and profile, one GPU
+    per replica on `device: cuda`)."""
     import importlib
+
+    import torch
+
+    from rangeret.models import build_model
 
     app = serve_config(_service())["applications"][0]
     module, _, name = app["import_path"].partition(":")
     builder = getattr(importlib.import_module(module), name)
-    built = builder({**app["args"], "device": "cuda"})._bound_deployment
+    _, models_file = _models_file()
+    models = tmp_path / "models"
+    models.mkdir()
+    kitti = small_weights(tmp_path).rename(models / "rangeret-kitti-657.pt")
+    panda = build_model("rangeret-cir", 32, 256, num_classes=15, layers=1)
+    torch.save(panda.state_dict(), models / "rangeret-panda-600.pt")
+    text = yaml.safe_dump(models_file).replace("/models/", f"{models}/")
+    (tmp_path / "models.yaml").write_text(text)
+    args = {**app["args"], "models": str(tmp_path / "models.yaml"), "device": "cuda"}
+    built = builder({**args, "height": 32, "width": 256})._bound_deployment
     assert built.name == app["deployments"][0]["name"]
     assert built.ray_actor_options["num_gpus"] == 1
+    _, described, per_replica = built.init_args
+    assert described["kitti"]["checkpoint_sha256"] == file_sha256(kitti)
+    assert {m: d["profile"] for m, d in described.items()} == {
+        "kitti": "semantickitti",
+        "panda": "pandaset",
+    }
+    assert per_replica == app["args"]["max_num_models_per_replica"]
 
 
 def test_the_gateway_reaches_the_rayservice(monkeypatch):
@@ -443,7 +481,11 @@ def test_the_gateway_reaches_the_rayservice(monkeypatch):
     # The state folder is on the results claim, mounted at the same path on every Ray pod.
     state = Path(gateway.env["RANGERET_STATE_DIR"])
     pod = deployment["spec"]["template"]["spec"]
-    claims = {v["name"]: v["persistentVolumeClaim"]["claimName"] for v in pod["volumes"]}
+    claims = {
+        v["name"]: v["persistentVolumeClaim"]["claimName"]
+        for v in pod["volumes"]
+        if "persistentVolumeClaim" in v
+    }
     (mount,) = [
         m for m in pod["containers"][0]["volumeMounts"] if state.is_relative_to(m["mountPath"])
     ]
@@ -479,13 +521,18 @@ def test_gateway_manifest_names_the_serve_command_and_settings():
     container = _gateway()["spec"]["template"]["spec"]["containers"][0]
     assert container["args"][0] == "gateway" and "command" not in container
     args = build_parser("serve").parse_args(["serve", *container["args"][1:]])
-    assert str(args.checkpoint).startswith("/models/")
+    assert args.checkpoint is None and args.model is None  # the models file names them
     served = dict(serve_config(_service())["applications"][0]["args"])
-    served.pop("batch_wait_ms")
+    env = {e["name"]: e.get("value") for e in container["env"]}
+    assert env["RANGERET_MODELS"] == served.pop("models")
+    for name in ("batch_wait_ms", "max_num_models_per_replica"):
+        served.pop(name)
     values = InferenceSpec.from_args(args).to_mapping()
     assert {k: values.get(k) for k in served} == served
+    _, models_file = _models_file()
     job = job_parser().parse_args(shlex.split(_job()["spec"]["entrypoint"])[3:])
-    assert job.checkpoint == args.checkpoint
+    default = models_file["models"][models_file["default"]]
+    assert str(job.checkpoint) == default["checkpoint"]
     fields = {f"RANGERET_{name.upper()}" for name in Settings.model_fields}
     for env in container["env"]:
         if env["name"].startswith("RANGERET_"):
@@ -551,6 +598,23 @@ def test_every_ray_container_mounts_data_models_and_results():
                     assert claims[mounts[path]["name"]]["claimName"] == claim, where
                     assert bool(mounts[path].get("readOnly")) is read_only, where
                 assert "command" not in container and "args" not in container
+
+
+def test_the_gateway_and_every_serving_ray_pod_mount_the_one_models_file():
+    """The ConfigMap's file is mounted read-only where the gateway's RANGERET_MODELS and the
+    Serve application's `models` argument name it, in the gateway's pod and every RayService pod
+    (the application is built on any of them)."""
+    name, _ = _models_file()
+    path = Path(serve_config(_service())["applications"][0]["args"]["models"])
+    pods = [("gateway", _gateway()["spec"]["template"]["spec"])]
+    pods += [(group, pod) for group, pod in _ray_pod_templates(_service())]
+    for group, pod in pods:
+        volumes = {v["name"]: v for v in pod["volumes"]}
+        (mount,) = [
+            m for m in pod["containers"][0]["volumeMounts"] if m["mountPath"] == str(path.parent)
+        ]
+        assert volumes[mount["name"]]["configMap"] == {"name": name}, group
+        assert mount.get("readOnly") is True, group
 
 
 # --- the image ----------------------------------------------------------------------------

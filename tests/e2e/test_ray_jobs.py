@@ -44,6 +44,7 @@ from service.jobs.ray_jobs import (
     verdict,
 )
 from service.schemas import JobState
+from service.served_models import ModelCatalog, ModelEntry
 from tests.support.apps import one_model
 from tests.support.gateway import Gateway, gateway_env, start_gateway, wait_job
 from tests.support.paths import REPO
@@ -216,6 +217,11 @@ class Setup:
     calls: list
 
 
+def _models(spec: InferenceSpec) -> ModelCatalog:
+    """The gateway's one model `default`, running `spec` with SemanticKITTI's profile."""
+    return ModelCatalog.one(ModelEntry("default", spec, load_profile(None)))
+
+
 def _setup(tmp_path: Path, api: ScriptedApi, **options) -> Setup:
     data = tmp_path / "data"
     make_tree(data, {"08": [30, 40], "11": [50]}, labelled=False)
@@ -224,7 +230,7 @@ def _setup(tmp_path: Path, api: ScriptedApi, **options) -> Setup:
     store.claim_next()
     spec = InferenceSpec(checkpoint="weights.pt", height=32, width=256, device="cpu", batch_size=2)
     options = {"poll_s": 0.01, "unreachable_s": 0.3, **options}
-    executor = RayJobExecutor(ADDRESS, spec, load_profile(None), api=api, **options)
+    executor = RayJobExecutor(ADDRESS, _models(spec), api=api, **options)
     entries = list_scans(data, ["08", "11"], layout=KITTI_LAYOUT)
     return Setup(store, JobControl(JOB, store), executor, entries, data, tmp_path / "out", calls=[])
 
@@ -435,15 +441,37 @@ def test_a_jobs_api_that_is_not_there_fails_the_job_naming_the_address(tmp_path)
 def test_a_relative_checkpoint_that_exists_here_is_given_as_an_absolute_path(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "w.pt").write_bytes(b"")
-    executor = RayJobExecutor(
-        ADDRESS, InferenceSpec(checkpoint="w.pt"), load_profile(None), api=ScriptedApi()
-    )
+    executor = RayJobExecutor(ADDRESS, _models(InferenceSpec(checkpoint="w.pt")), api=ScriptedApi())
     command = executor.entrypoint(Path("data"), ["08"], Path("jobs/x/predictions"))
     argv = shlex.split(command)
     spec = json.loads(argv[argv.index("--inference-spec") + 1])
     assert spec == {"checkpoint": str(tmp_path / "w.pt")}
     assert f"--dataset {tmp_path / 'data'}" in command
     assert f"--out {tmp_path / 'jobs/x/predictions'}" in command
+
+
+def test_a_jobs_ray_job_gets_its_models_spec(tmp_path):
+    """With several models, the entrypoint carries the spec of the job's model (the default's
+    without one), and the model's profile reads what is already written."""
+    kitti = ModelEntry("kitti", InferenceSpec(checkpoint="/m/kitti.pt"), load_profile(None))
+    panda = ModelEntry(
+        "panda",
+        InferenceSpec(checkpoint="/m/panda.pt", profile="pandaset"),
+        load_profile("pandaset"),
+    )
+    models = ModelCatalog({"kitti": kitti, "panda": panda}, "kitti")
+    executor = RayJobExecutor(ADDRESS, models, api=ScriptedApi())
+
+    def spec_of(command: str) -> dict:
+        argv = shlex.split(command)
+        return json.loads(argv[argv.index("--inference-spec") + 1])
+
+    out = tmp_path / "out"
+    assert spec_of(executor.entrypoint(tmp_path, ["1"], out, "panda")) == {
+        "checkpoint": "/m/panda.pt",
+        "profile": "pandaset",
+    }
+    assert spec_of(executor.entrypoint(tmp_path, ["08"], out)) == {"checkpoint": "/m/kitti.pt"}
 
 
 def test_a_job_on_a_cluster_survives_more_gateway_restarts_than_one_run_here(tmp_path):

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import http.server
 import json
+import re
 import subprocess
 import sys
 import threading
@@ -20,10 +21,13 @@ import pytest
 import yaml
 
 from rangeret.cli.main import main as rangeret_main
+from rangeret.dataset.profiles import load_profile
 from rangeret.inference.results import ScanPrediction
+from rangeret.inference.spec import InferenceSpec
 from rangeret.io.scans import read_labels, read_scan
 from rangeret.models.weights.hub import file_sha256 as checkpoint_sha256
 from service.serve_client import ServeLabeller
+from service.served_models import ModelCatalog, ModelEntry
 from tests.support.gateway import AUTH, OCTET, assert_error, gateway_env, start_gateway
 from tests.support.open_audit import Audit
 from tests.support.workers import build_tree, free_ports, ray_node, small_weights
@@ -36,6 +40,8 @@ from workers.scan_wire import (
 )
 
 NET_ARGS = {"height": 32, "width": 256, "device": "cpu"}
+#: The same network options as the gateway's command line takes them.
+GATEWAY_NET = ["--height", "32", "--width", "256", "--device", "cpu"]
 #: The applications the failed-deployment test adds beside the good one.
 BAD_APPS = ("broken", "unknown")
 
@@ -63,7 +69,7 @@ def test_the_exchange_round_trips_labels_and_confidences():
         query_flag("maybe", True, "knn")
 
 
-def test_the_builder_names_a_bad_argument_before_any_replica_starts():
+def test_the_builder_names_a_bad_argument_before_any_replica_starts(tmp_path):
     from workers.serve_app import DEPLOYMENT, build_app
 
     where = "of the rangeret Serve application"
@@ -77,13 +83,75 @@ def test_the_builder_names_a_bad_argument_before_any_replica_starts():
         build_app({"batch_size": "eight"})
     with pytest.raises(ValueError, match=r"^batch_wait_ms must not be negative"):
         build_app({"batch_wait_ms": -1})
-    app = build_app({"batch_size": 4, "device": "cpu", "knn": False})
+    missing = tmp_path / "gone.pt"
+    with pytest.raises(ValueError, match=rf"^model default {where}: .*{missing}"):
+        build_app({"checkpoint": str(missing), "device": "cpu"})
+    weights = small_weights(tmp_path)
+    app = build_app({"checkpoint": str(weights), "batch_size": 4, "device": "cpu", "knn": False})
     deployment = app._bound_deployment
     assert deployment.name == DEPLOYMENT
     assert deployment.max_ongoing_requests == 8  # one batch running, one gathering
     assert deployment.ray_actor_options["num_gpus"] == 0
-    cuda = build_app({"device": "cuda"})._bound_deployment
+    models, built, per_replica = app._bound_deployment.init_args  # what each replica gets
+    assert models == {
+        "default": "default",
+        "models": {"default": {"checkpoint": str(weights), "device": "cpu", "knn": False}},
+    }
+    assert built == {
+        "default": {
+            "checkpoint_sha256": checkpoint_sha256(weights),
+            "profile": "semantickitti",
+            "network": "rangeret-cir",
+        }
+    }
+    assert per_replica == 1
+    cuda = build_app({"checkpoint": str(weights), "device": "cuda"})._bound_deployment
     assert cuda.ray_actor_options["num_gpus"] == 1
+
+
+def test_the_builder_reads_several_models_as_a_models_file_does(tmp_path):
+    """`models` as a mapping with `default`, or as a models file's path; the other options are
+    the entries' defaults; every mistake is one sentence before any replica starts."""
+    from workers.serve_app import build_app
+    from workers.serve_arguments import read_arguments
+
+    weights = small_weights(tmp_path)
+    other = tmp_path / "other.pt"
+    other.write_bytes(weights.read_bytes() + b"")
+    entries = {"one": {"checkpoint": str(weights)}, "two": {"checkpoint": str(other), "knn": False}}
+    checked = read_arguments(
+        {"models": entries, "default": "two", **NET_ARGS, "batch_size": 3, "batch_wait_ms": 4}
+    )
+    assert checked.models.default == "two" and checked.models.names == ["one", "two"]
+    assert checked.models.spec("two").knn is False and checked.models.spec("one").height == 32
+    assert (checked.batch_size, checked.batch_wait_ms, checked.max_per_replica) == (3, 4.0, 2)
+    path = tmp_path / "models.yaml"
+    path.write_text(yaml.safe_dump({"default": "one", "models": entries}))
+    from_file = read_arguments({"models": str(path), **NET_ARGS, "max_num_models_per_replica": 1})
+    assert from_file.models.default == "one" and from_file.max_per_replica == 1
+    assert from_file.models.spec("two") == checked.models.spec("two").replace(batch_size=1)
+
+    where = "of the rangeret Serve application"
+    bad = [
+        ({"models": entries}, "default: is missing; name one of one, two"),
+        ({"models": entries, "default": "three"}, "default: 'three' is not one of the models"),
+        ({"default": "one"}, f"default {where} goes with models, which is not given"),
+        ({"models": str(path), "default": "one"}, f"default {where} is the models file's own"),
+        ({"models": {"One": {}}}, "'One' is not a model name"),
+        ({"models": {"a": {"batch_size": 2}}}, "models.a.batch_size: is the server's setting"),
+        (
+            {"models": entries, "default": "one", "max_num_models_per_replica": 0},
+            f"max_num_models_per_replica {where} takes a whole number from 1, got 0",
+        ),
+        ({"models": str(tmp_path / "none.yaml")}, "cannot read the models file"),
+    ]
+    for args, sentence in bad:
+        with pytest.raises(ValueError, match=re.escape(sentence)):
+            read_arguments(args)
+    app = build_app({"models": entries, "default": "two", **NET_ARGS})
+    _, built, per_replica = app._bound_deployment.init_args
+    assert built["one"]["checkpoint_sha256"] == built["two"]["checkpoint_sha256"]
+    assert per_replica == 2
 
 
 # A real Serve application behind a real gateway -----------------------------------------------
@@ -94,6 +162,10 @@ def deployed(tmp_path_factory) -> Iterator[dict]:
     """A head node with the Serve application deployed from a config file, as an operator does."""
     tmp = tmp_path_factory.mktemp("serve")
     weights = small_weights(tmp)
+    multi = {
+        "one": _copy(weights, tmp / "multi-one.pt"),
+        "two": _other(weights, tmp / "multi-two.pt"),
+    }
     (port,) = free_ports(1)
     config = {
         "http_options": {"host": "127.0.0.1", "port": port},
@@ -104,7 +176,20 @@ def deployed(tmp_path_factory) -> Iterator[dict]:
                 "import_path": "workers.serve_app:build_app",
                 "args": {"checkpoint": str(weights), **NET_ARGS, "batch_size": 2},
                 "deployments": [{"name": "ScanModel", "num_replicas": 1}],
-            }
+            },
+            {
+                "name": "multi",
+                "route_prefix": "/multi",
+                "import_path": "workers.serve_app:build_app",
+                "args": {
+                    "models": {name: {"checkpoint": str(path)} for name, path in multi.items()},
+                    "default": "two",
+                    "max_num_models_per_replica": 1,
+                    **NET_ARGS,
+                    "batch_size": 2,
+                },
+                "deployments": [{"name": "ScanModel", "num_replicas": 1}],
+            },
         ],
     }
     path = tmp / "serve.yaml"
@@ -117,7 +202,10 @@ def deployed(tmp_path_factory) -> Iterator[dict]:
         deadline = time.monotonic() + 240
         while time.monotonic() < deadline:
             try:
-                if httpx.get(url + "/info", timeout=5).status_code == 200:
+                if all(
+                    httpx.get(f"http://127.0.0.1:{port}{prefix}/info", timeout=5).status_code == 200
+                    for prefix in ("/rangeret", "/multi")
+                ):
                     break
             except httpx.TransportError:
                 pass
@@ -129,12 +217,30 @@ def deployed(tmp_path_factory) -> Iterator[dict]:
             pytest.fail(f"the Serve application did not start:\n{status.stdout.decode()}")
         yield {
             "url": url,
+            "multi_url": f"http://127.0.0.1:{port}/multi",
+            "multi": multi,
             "weights": weights,
             "tmp": tmp,
             "head": head,
             "config": config,
             "audit": audit,
         }
+
+
+def _copy(weights: Path, path: Path) -> Path:
+    path.write_bytes(weights.read_bytes())
+    return path
+
+
+def _other(weights: Path, path: Path) -> Path:
+    """The weights with their first tensor changed: another checkpoint of the same network."""
+    import torch
+
+    state = torch.load(weights, weights_only=True)
+    first = next(iter(state))
+    state[first] = state[first] + 1
+    torch.save(state, path)
+    return path
 
 
 @pytest.fixture(scope="module")
@@ -191,20 +297,14 @@ def test_scans_through_serve_get_rangeret_predicts_labels(deployed, gateway, tmp
 
         health = client.get("/healthz").json()
         assert health.get("backend") == "serve" and health["status"] == "ok", health
-        assert health["workers"][0]["checkpoint_sha256"] == health["checkpoint_sha256"], health
+        served = health["workers"][0]["models"]
+        assert [m["id"] for m in served] == ["default"], health
+        assert served[0]["checkpoint_sha256"] == health["checkpoint_sha256"], health
 
 
 @pytest.mark.slow
 def test_a_gateway_with_other_weights_than_serves_refuses_to_start(deployed, tmp_path):
-    other = tmp_path / "other.pt"
-    raw = Path(deployed["weights"]).read_bytes()
-    other.write_bytes(raw)
-    import torch
-
-    state = torch.load(other, weights_only=True)
-    first = next(iter(state))
-    state[first] = state[first] + 1
-    torch.save(state, other)
+    other = _other(deployed["weights"], tmp_path / "other.pt")
     env = gateway_env(tmp_path / "state", [tmp_path], RANGERET_SERVE_URL=deployed["url"])
     run = subprocess.run(
         [
@@ -268,15 +368,112 @@ class _Handler(http.server.BaseHTTPRequestHandler):
 
 @pytest.mark.slow
 def test_a_replica_reads_its_checkpoint_once(deployed):
-    """The builder reads no weights; the one replica reads the checkpoint once, for its network
-    with and without kNN."""
+    """The builder reads the checkpoint once, for the SHA-256 `/info` lists; the one replica
+    reads it once, for its network with and without kNN."""
     info = httpx.get(deployed["url"] + "/info", timeout=10).json()
     audit = deployed["audit"]
-    assert audit.reads() == {info["pid"]: 1}, audit.lines()
+    reads = audit.reads()
+    assert reads.pop(info["pid"]) == 1 and list(reads.values()) == [1], audit.lines()
+    assert info["models"] == [
+        {
+            "id": "default",
+            "checkpoint_sha256": checkpoint_sha256(deployed["weights"]),
+            "profile": "semantickitti",
+            "network": "rangeret-cir",
+            "loaded": True,
+        }
+    ]
     assert info["batch_size"] == 2
     missing = httpx.post(deployed["url"] + "/nowhere", timeout=10)
     assert missing.status_code == 404
     assert missing.json() == {"detail": "No such operation: POST /rangeret/nowhere."}
+
+
+@pytest.mark.slow
+def test_one_replica_with_room_for_one_network_serves_two_models_in_turn(deployed, tmp_path):
+    """The `multi` application (two checkpoints, `max_num_models_per_replica: 1`, one replica):
+    requests alternating between the models, sent to Serve with its model header and through a
+    gateway with the same models file, each get `rangeret predict`'s labels of their
+    checkpoint, with one network loaded at a time; a gateway whose models file names a model the
+    application lacks stops with one line."""
+    data = build_tree(tmp_path / "data", labelled=1, unlabelled=1)
+    scans = sorted(data.rglob("*.bin"))
+    expected = {}
+    for name, weights in deployed["multi"].items():
+        out = tmp_path / f"pred-{name}"
+        argv = ["predict", "-q", "--dataset", str(data), "--out", str(out), "--sequences", "08"]
+        net = ["--checkpoint", str(weights), "--height", "32", "--width", "256", "--device", "cpu"]
+        assert rangeret_main([*argv, "11", *net]) == 0
+        expected[name] = {
+            scan: (out / "sequences" / scan.parent.parent.name / "predictions" / scan.name)
+            .with_suffix(".label")
+            .read_bytes()
+            for scan in scans
+        }
+    assert expected["one"] != expected["two"]
+    url = deployed["multi_url"]
+    order = ["one", "two", "two", "one", "two", "one"]
+    for name, scan in zip(order, [*scans, *scans, *scans], strict=True):
+        answer = httpx.post(
+            url + "/scans",
+            content=scan.read_bytes(),
+            headers={**OCTET, "serve_multiplexed_model_id": name},
+            timeout=120,
+        )
+        assert answer.status_code == 200, answer.text
+        assert answer.content == expected[name][scan], (name, scan)
+        info = httpx.get(url + "/info", timeout=10).json()
+        assert [m["id"] for m in info["models"] if m["loaded"]] == [name], info
+    default = httpx.post(url + "/scans", content=scans[0].read_bytes(), headers=OCTET, timeout=120)
+    assert default.content == expected["two"][scans[0]]
+    unknown = httpx.post(
+        url + "/scans", content=b"", headers={**OCTET, "serve_multiplexed_model_id": "three"}
+    )
+    assert unknown.status_code == 404
+    assert unknown.json() == {
+        "detail": "There is no model 'three'; this application serves one, two."
+    }
+
+    models = tmp_path / "models.yaml"
+    entries = {name: {"checkpoint": str(path)} for name, path in deployed["multi"].items()}
+    models.write_text(yaml.safe_dump({"default": "one", "models": entries}))
+    env = gateway_env(tmp_path / "state", [tmp_path], RANGERET_SERVE_URL=url)
+    gw = start_gateway(None, env, tmp_path / "gateway.log", "--models", str(models))
+    try:
+        with gw.client() as client:
+            for name, scan in zip(order, [*scans, *scans, *scans], strict=True):
+                answer = client.post(
+                    "/v1/scans", params={"model": name}, content=scan.read_bytes(), headers=OCTET
+                )
+                assert answer.status_code == 200, answer.text
+                assert answer.headers["x-rangeret-model"] == name
+                assert answer.content == expected[name][scan], (name, scan)
+            listed = client.get("/v1/models").json()
+            assert listed["default"] == "one"
+            assert [m["id"] for m in listed["models"]] == ["one", "two"]
+    finally:
+        gw.stop()
+    assert "Traceback" not in gw.output()
+
+    entries["three"] = {"checkpoint": str(deployed["multi"]["one"])}
+    models.write_text(yaml.safe_dump({"default": "one", "models": entries}))
+    run = subprocess.run(
+        [sys.executable, "-m", "service", "--models", str(models), "--port", "0", *GATEWAY_NET],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert run.returncode == 1, run.stderr[-2000:]
+    assert (
+        run.stderr.strip()
+        .splitlines()[-1]
+        .endswith(
+            f"the Serve application at {url} serves no model three (it serves one, two): deploy it "
+            "with the gateway's models file"
+        )
+    ), run.stderr[-2000:]
 
 
 @pytest.mark.slow
@@ -302,7 +499,7 @@ def test_a_bad_argument_fails_the_deployment_with_its_sentence(deployed):
         "args": {**good["args"], "bogus": 1},
     }
     path = tmp / "broken.yaml"
-    applications = [good, bad, unknown]
+    applications = [good, *deployed["config"]["applications"][1:], bad, unknown]
     path.write_text(yaml.safe_dump({**deployed["config"], "applications": applications}))
     serve = str(head.bindir / "serve")
     subprocess.run([serve, "deploy", str(path), "-a", head.dashboard], env=head.env, check=True)
@@ -327,15 +524,14 @@ def test_a_bad_argument_fails_the_deployment_with_its_sentence(deployed):
             break
         time.sleep(1)
     assert after["batch_size"] == 3 and after["pid"] == before["pid"], after
-    assert deployed["audit"].reads() == {before["pid"]: 1}
+    assert deployed["audit"].reads()[before["pid"]] == 1
 
 
 @pytest.mark.slow
 def test_a_late_busy_broken_or_gone_serve_application_is_a_json_503_or_504(tmp_path):
     weights = small_weights(tmp_path)
-    server = Misbehaving(
-        {"checkpoint_sha256": checkpoint_sha256(weights), "profile": "semantickitti"}
-    )
+    served = {"checkpoint_sha256": checkpoint_sha256(weights), "profile": "semantickitti"}
+    server = Misbehaving({"default": "default", "models": [{"id": "default", **served}]})
     threading.Thread(target=server.serve_forever, daemon=True).start()
     url = f"http://127.0.0.1:{server.server_address[1]}/rangeret"
     env = gateway_env(
@@ -370,8 +566,9 @@ def test_a_late_busy_broken_or_gone_serve_application_is_a_json_503_or_504(tmp_p
 
 def test_a_serve_url_that_never_answers_stops_the_gateway_with_one_sentence(tmp_path):
     (port,) = free_ports(1)
-    labeller = ServeLabeller(f"http://127.0.0.1:{port}/rangeret", None, 1.0)  # type: ignore[arg-type]
+    models = ModelCatalog.one(ModelEntry("default", InferenceSpec(), load_profile(None)))
+    labeller = ServeLabeller(f"http://127.0.0.1:{port}/rangeret", models, 1.0)
     from rangeret.commands import CommandError
 
     with pytest.raises(CommandError, match=r"did not answer within 0.5 s \(ConnectError"):
-        labeller.check_serves("0" * 64, wait_s=0.5)
+        labeller.check_serves(wait_s=0.5)

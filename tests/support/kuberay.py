@@ -11,9 +11,9 @@ kept unchanged in `tests/data/kuberay` (see the README there): types, `required`
 `minimum`, int32 ranges, `x-kubernetes-int-or-string`, `x-kubernetes-preserve-unknown-fields` and
 the uniqueness of `x-kubernetes-list-type` map and set lists. A RayService's `serveConfigV2`, a
 string of YAML, must also parse into a valid Serve config (`ray.serve.schema.ServeDeploySchema`,
-with every key known to it). The core kinds (Deployment, Service, Secret, PersistentVolumeClaim,
-NetworkPolicy) are checked by hand for their top-level fields and against the core schemas the CRDs
-embed for the rest (a pod template, a Service spec, a claim's spec, network policy rules, a label
+with every key known to it). The core kinds (Deployment, Service, Secret, ConfigMap,
+PersistentVolumeClaim, NetworkPolicy) are checked by hand for their top-level fields and against
+the core schemas the CRDs embed for the rest (a pod template, a Service spec, a claim's spec, network policy rules, a label
 selector). The CRDs' CEL rules (`x-kubernetes-validations`: immutability, `managedBy`,
 `deletionStrategy`) are not evaluated. `load_manifests` refuses a YAML mapping with a key given
 twice, as strict decoding does.
@@ -111,6 +111,7 @@ CORE_KINDS = {
     "Deployment": "apps/v1",
     "Service": "v1",
     "Secret": "v1",
+    "ConfigMap": "v1",
     "PersistentVolumeClaim": "v1",
     "NetworkPolicy": "networking.k8s.io/v1",
 }
@@ -417,6 +418,7 @@ def validate(doc: object) -> list[str]:
         "Deployment": _deployment,
         "Service": _service,
         "Secret": _secret,
+        "ConfigMap": _config_map,
         "PersistentVolumeClaim": _claim,
         "NetworkPolicy": _network_policy,
     }[kind]
@@ -573,6 +575,24 @@ def _secret(doc: dict) -> list[str]:
             problems.append(f"data.{key}: not base64")
     if "type" in doc and not isinstance(doc["type"], str):
         problems.append("type: must be string")
+    if "immutable" in doc and not isinstance(doc["immutable"], bool):
+        problems.append("immutable: must be boolean")
+    return problems
+
+
+def _config_map(doc: dict) -> list[str]:
+    """A ConfigMap: string data, base64 binaryData."""
+    problems = _top_level(doc, ["data", "binaryData", "immutable"])
+    strings = {"type": "object", "additionalProperties": {"type": "string"}}
+    for key in ("data", "binaryData"):
+        if key in doc:
+            problems += schema_problems(doc[key], strings, key)
+    binary = doc.get("binaryData")
+    for key, value in binary.items() if isinstance(binary, dict) else ():
+        try:
+            base64.b64decode(str(value), validate=True)
+        except ValueError:
+            problems.append(f"binaryData.{key}: not base64")
     if "immutable" in doc and not isinstance(doc["immutable"], bool):
         problems.append("immutable: must be boolean")
     return problems
