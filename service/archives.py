@@ -7,11 +7,12 @@ on the bytes actually read; there is no compression-ratio rule, since a label fi
 compresses like a bomb of zeros. `max_bytes` bounds the archive file itself.
 
 Every member is checked before anything is written: no absolute path, no `..`, no link, device,
-pipe or sparse file, nothing but `sequences/XX/velodyne/NNNNNN.bin` and
-`sequences/XX/labels/NNNNNN.label` (and their folders), whatever the dataset profile. Then each
-file is read (never more than its declared size), checked as a scan of the profile's point record
-or a label file, and written under the destination in the profile's folder layout, with names
-built from the checked parts only.
+pipe or sparse file, and nothing but what the layout's `ArchiveRules` take: for every folder
+layout, `sequences/XX/velodyne/NNNNNN.bin` and `sequences/XX/labels/NNNNNN.label` (and their
+folders, `FolderRules`); for nuScenes' tables, `service.nuscenes_archives`. Then each file is
+read (never more than its declared size), checked by the rules (a scan of the profile's point
+record, a label file) and written under the destination where the rules put it, with names built
+from the checked parts only; the rules then check that the files make one dataset.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO
+from typing import IO, Protocol
 
 from rangeret.dataset.layout import SequenceLayout, sequence_dir
 from rangeret.io.scans import LABEL_BYTES, PointRecord, ScanFormatError, parse_scan
@@ -61,12 +62,94 @@ class ArchiveLimits:
 
 @dataclass
 class ExtractedDataset:
-    """The dataset an archive held: where it now lies and what it contains."""
+    """The dataset an archive held: where it now lies and what it contains (and, for a tables
+    layout, the version of its tables)."""
 
     root: Path
     sequences: list[str]
     scans: int
     labelled: list[str] = field(default_factory=list)
+    version: str | None = None
+
+
+class ArchiveRules(Protocol):
+    """What the archive of one dataset layout may hold, and how its files become a dataset.
+
+    One instance checks one archive: `accept` notes what each file holds for `finish`.
+    """
+
+    def check_name(self, name: str, is_dir: bool) -> None:
+        """`ArchiveError` when a member (its name safe and without a leading `./`) is not one
+        the layout holds."""
+        ...
+
+    def point_bytes(self, name: str) -> int | None:
+        """Bytes per point of a file member, for the points limit (None: not a point file)."""
+        ...
+
+    def accept(self, name: str, data: bytes, root: Path) -> Path:
+        """Check a file member's bytes (`ArchiveError` when they are wrong) and return where it
+        goes under the destination `root`."""
+        ...
+
+    def finish(self, root: Path) -> ExtractedDataset:
+        """The dataset extracted under `root`; `ArchiveError` when its files do not make one."""
+        ...
+
+
+class FolderRules:
+    """A folder layout's archive: `sequences/XX/velodyne/*.bin` scans of `record` and optional
+    `sequences/XX/labels/*.label`, written into `layout`'s folders."""
+
+    def __init__(self, record: PointRecord, layout: SequenceLayout) -> None:
+        self.record = record
+        self.layout = layout
+        self.scans: dict[str, dict[str, int]] = {}
+        self.labels: dict[str, dict[str, int]] = {}
+
+    def check_name(self, name: str, is_dir: bool) -> None:
+        """`ArchiveError` for a member outside `sequences/XX/velodyne|labels`."""
+        if is_dir:
+            if not _DIRECTORY.match(name):
+                raise ArchiveError(
+                    f"Archive member {name[:200]!r} is a folder outside the layout "
+                    "sequences/XX/velodyne|labels."
+                )
+            return
+        match = _FILE.match(name)
+        if not match or _SUFFIX[match.group(2)] != match.group(4):
+            raise ArchiveError(
+                f"Archive member {name[:200]!r} is not a sequences/XX/velodyne/*.bin scan or "
+                "sequences/XX/labels/*.label file."
+            )
+
+    def point_bytes(self, name: str) -> int:
+        """A scan's record size, or a label's four bytes."""
+        return self.record.point_bytes if name.endswith(".bin") else LABEL_BYTES
+
+    def accept(self, name: str, data: bytes, root: Path) -> Path:
+        """Count a scan's points or a label file's labels; its place in the layout under
+        `root`."""
+        seq, folder, stem, _ = _FILE.match(name).groups()
+        if folder == "velodyne":
+            try:
+                points = parse_scan(data, name, record=self.record)
+            except ScanFormatError as exc:
+                raise ArchiveError(f"Archive member {exc.source}: {exc.problem}.") from exc
+            self.scans.setdefault(seq, {})[stem] = len(points)
+        else:
+            if len(data) % LABEL_BYTES:
+                raise ArchiveError(
+                    f"Archive member {name!r} is {len(data)} bytes, not a whole number of "
+                    "uint32 labels."
+                )
+            self.labels.setdefault(seq, {})[stem] = len(data) // LABEL_BYTES
+        return sequence_dir(root, seq, layout=self.layout) / folder / f"{stem}.{_SUFFIX[folder]}"
+
+    def finish(self, root: Path) -> ExtractedDataset:
+        """The extracted dataset, once every label file is known to match a scan of its
+        length."""
+        return _summarise(root, self.scans, self.labels)
 
 
 @dataclass(frozen=True)
@@ -96,7 +179,7 @@ def _clean(name: str) -> str:
     return name
 
 
-def _check_name(raw: str, is_dir: bool) -> str:
+def _check_name(raw: str, is_dir: bool, rules: ArchiveRules) -> str:
     """The member's checked name, or ArchiveError saying why it is refused."""
     if len(raw) > MAX_NAME:
         raise ArchiveError(
@@ -109,18 +192,8 @@ def _check_name(raw: str, is_dir: bool) -> str:
             f"Archive member {raw[:200]!r} {problem} and would escape the job folder."
         )
     name = _clean(raw)
-    if is_dir:
-        if name in ("", ".") or _DIRECTORY.match(name):
-            return name
-        raise ArchiveError(
-            f"Archive member {name[:200]!r} is a folder outside the layout sequences/XX/velodyne|labels."
-        )
-    match = _FILE.match(name)
-    if not match or _SUFFIX[match.group(2)] != match.group(4):
-        raise ArchiveError(
-            f"Archive member {name[:200]!r} is not a sequences/XX/velodyne/*.bin scan or "
-            "sequences/XX/labels/*.label file."
-        )
+    if not (is_dir and name in ("", ".")):
+        rules.check_name(name, is_dir)
     return name
 
 
@@ -169,6 +242,14 @@ def extract_archive(
 ) -> ExtractedDataset:
     """Check every member of `archive` (scans as `record`s), then write its scans and labels
     under `dest` in `layout`, so the dataset there reads like any other of its profile."""
+    return extract_with(archive, dest, limits, FolderRules(record, layout))
+
+
+def extract_with(
+    archive: Path, dest: Path, limits: ArchiveLimits, rules: ArchiveRules
+) -> ExtractedDataset:
+    """Check every member of `archive` against the limits and `rules`, then write its files under
+    `dest` where the rules put them; the dataset they make."""
     size = archive.stat().st_size
     if size > limits.max_bytes:
         raise ArchiveTooLarge(
@@ -184,15 +265,13 @@ def extract_archive(
                         f"The zip archive lists {len(zf.filelist):,} entries where its central "
                         f"directory holds {entries:,}; the archive is damaged."
                     )
-                members = _listing(_zip_members(zf), limits, record)
-                return _extract(members, dest, limits, record, layout, lambda m: zf.open(m.handle))
+                members = _listing(_zip_members(zf), limits, rules)
+                return _extract(members, dest, limits, rules, lambda m: zf.open(m.handle))
         headers = TarHeaders(max_count=limits.max_members)
         mode = "r:gz" if kind == "tar.gz" else "r:"
         with CheckedTarFile.open(archive, mode, extended_headers=headers) as tf:
-            members = _listing(_tar_members(tf), limits, record)
-            return _extract(
-                members, dest, limits, record, layout, lambda m: tf.extractfile(m.handle)
-            )
+            members = _listing(_tar_members(tf), limits, rules)
+            return _extract(members, dest, limits, rules, lambda m: tf.extractfile(m.handle))
     except (
         zipfile.BadZipFile,
         tarfile.TarError,
@@ -206,7 +285,7 @@ def extract_archive(
         ) from exc
 
 
-def _listing(found: Iterator[_Member], limits: ArchiveLimits, record: PointRecord) -> list[_Member]:
+def _listing(found: Iterator[_Member], limits: ArchiveLimits, rules: ArchiveRules) -> list[_Member]:
     """Every member, checked for names, kinds, duplicates and the limits as it is listed (each
     entry counted, folders too, and the files' declared sizes added up), before any write."""
     members: list[_Member] = []
@@ -215,7 +294,7 @@ def _listing(found: Iterator[_Member], limits: ArchiveLimits, record: PointRecor
     for seen, member in enumerate(found, start=1):
         if seen > limits.max_members:
             raise ArchiveTooLarge(too_many_members(limits.max_members))
-        name = _check_name(member.name, member.is_dir)
+        name = _check_name(member.name, member.is_dir, rules)
         if member.is_dir:
             continue
         if name in names:
@@ -224,8 +303,8 @@ def _listing(found: Iterator[_Member], limits: ArchiveLimits, record: PointRecor
         total += member.size
         if total > limits.max_extracted_bytes:
             raise ArchiveTooLarge(_too_big(limits.max_extracted_bytes))
-        per_point = record.point_bytes if name.endswith(".bin") else LABEL_BYTES
-        if member.size > limits.max_points * per_point:
+        per_point = rules.point_bytes(name)
+        if per_point is not None and member.size > limits.max_points * per_point:
             raise ArchiveTooLarge(
                 f"Archive member {name!r} holds more than {limits.max_points:,} points."
             )
@@ -242,19 +321,15 @@ def _extract(
     members: list[_Member],
     dest: Path,
     limits: ArchiveLimits,
-    record: PointRecord,
-    layout: SequenceLayout,
+    rules: ArchiveRules,
     opener: Callable[[_Member], IO[bytes] | None],
 ) -> ExtractedDataset:
-    """Read, check and write each file member into `layout`, counting the bytes actually read
-    against the extracted limit; then check scans and labels match up."""
-    scans: dict[str, dict[str, int]] = {}
-    labels: dict[str, dict[str, int]] = {}
+    """Read, check and write each file member where `rules` put it, counting the bytes actually
+    read against the extracted limit; then let the rules check the files make one dataset."""
     dest.mkdir(parents=True, exist_ok=True)
     root = dest.resolve()
     extracted = 0
     for member in members:
-        seq, folder, stem, _ = _FILE.match(member.name).groups()
         stream = opener(member)
         if stream is None:
             raise ArchiveError(f"Archive member {member.name!r} cannot be read.")
@@ -267,25 +342,13 @@ def _extract(
             raise ArchiveError(
                 f"Archive member {member.name!r} does not hold the {member.size} bytes it declares."
             )
-        if folder == "velodyne":
-            try:
-                points = parse_scan(data, member.name, record=record)
-            except ScanFormatError as exc:
-                raise ArchiveError(f"Archive member {exc.source}: {exc.problem}.") from exc
-            scans.setdefault(seq, {})[stem] = len(points)
-        else:
-            if len(data) % LABEL_BYTES:
-                raise ArchiveError(
-                    f"Archive member {member.name!r} is {len(data)} bytes, not a whole number of uint32 labels."
-                )
-            labels.setdefault(seq, {})[stem] = len(data) // LABEL_BYTES
-        target = sequence_dir(root, seq, layout=layout) / folder / f"{stem}.{_SUFFIX[folder]}"
+        target = rules.accept(member.name, data, root)
         if not target.resolve().is_relative_to(root):
             raise ArchiveError(f"Archive member {member.name!r} would escape the job folder.")
         target.parent.mkdir(parents=True, exist_ok=True)
         with open(target, "xb") as out:
             out.write(data)
-    return _summarise(root, scans, labels)
+    return rules.finish(root)
 
 
 def _summarise(

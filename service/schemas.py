@@ -10,6 +10,8 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 SEQUENCE_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+#: A tables layout's version: the name of its folder of tables (v1.0-mini).
+VERSION_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
 #: The OpenAPI content of a binary body (a scan, its labels, an archive).
 BINARY_CONTENT: dict[str, Any] = {"schema": {"type": "string", "format": "binary"}}
 OCTET = "application/octet-stream"
@@ -75,8 +77,9 @@ class ScanLabels(BaseModel):
     model: str = Field(description="the model that labelled the scan")
     num_points: int = Field(ge=0, description="points in the scan, and labels in `labels`")
     labels: list[int] = Field(
-        description="raw id (of the model's profile's label configuration) of every point, in "
-        "the scan's point order"
+        description="every point's label as the model's profile's prediction files hold it, in "
+        "the scan's point order: the raw id of its label configuration (SemanticKITTI), or the "
+        "class index itself (nuScenes' challenge classes 1-16)"
     )
     class_counts: dict[str, int] = Field(
         description="points per class name of the model's profile, for the classes present"
@@ -100,6 +103,12 @@ class DatasetJobRequest(BaseModel):
                 {"dataset": "/data/semantickitti", "sequences": ["08"]},
                 {"dataset": "/data/pandaset", "sequences": ["1", "2"], "profile": "pandaset"},
                 {"dataset": "/data/pandaset", "sequences": ["1"], "model": "panda"},
+                {
+                    "dataset": "/data/nuscenes",
+                    "split": "val",
+                    "version": "v1.0-trainval",
+                    "model": "nu",
+                },
             ]
         },
     )
@@ -107,12 +116,22 @@ class DatasetJobRequest(BaseModel):
     dataset: str = Field(
         min_length=1,
         max_length=4096,
-        description="dataset root in the served profile's layout (SemanticKITTI: "
-        "ROOT/sequences/XX, PandaSet: ROOT/NNN, SemanticPOSS: ROOT/dataset/sequences/NN); a "
-        "relative path is taken under the data roots",
+        description="dataset root in the model's profile's layout (SemanticKITTI: "
+        "ROOT/sequences/XX, PandaSet: ROOT/NNN, SemanticPOSS: ROOT/dataset/sequences/NN, "
+        "nuScenes: ROOT/<version>/*.json with ROOT/samples/LIDAR_TOP); a relative path is taken "
+        "under the data roots",
     )
-    split: Literal["train", "valid", "test"] | None = Field(
-        default=None, description="an official split of the served profile"
+    split: str | None = Field(
+        default=None,
+        pattern=SEQUENCE_PATTERN,
+        description="a split of the model's profile, by its name (SemanticKITTI: train, valid, "
+        "test; nuScenes: train, val, test, mini_train, mini_val)",
+    )
+    version: str | None = Field(
+        default=None,
+        pattern=VERSION_PATTERN,
+        description="for a profile that reads a version's tables (nuScenes): the version folder "
+        "to read (v1.0-mini); without it, the one version the dataset holds",
     )
     sequences: list[str] | None = Field(
         default=None,
@@ -185,8 +204,10 @@ class JobMetrics(BaseModel):
 
     miou: float = Field(ge=0, le=1)
     accuracy: float = Field(ge=0, le=1)
-    iou: dict[str, float] = Field(
-        description="IoU (0..1) of each evaluated class of the served profile, by name"
+    iou: dict[str, float | None] = Field(
+        description="IoU (0..1) of each evaluated class of the model's profile, by name; null "
+        "where nuScenes' scoring leaves a class out (absent from both ground truth and "
+        "predictions)"
     )
 
 
@@ -223,6 +244,14 @@ class JobStatus(BaseModel):
     kind: Literal["archive", "dataset"]
     model: str = Field(description="the served model the job runs with")
     sequences: list[str]
+    version: str | None = Field(
+        default=None, description="the version a job of a tables profile (nuScenes) reads"
+    )
+    split: str | None = Field(
+        default=None,
+        description="the split a dataset job named; a tables profile's predictions are in its "
+        "folder (lidarseg/<split>/)",
+    )
     total: int = Field(ge=0, description="scans in the job")
     done: int = Field(ge=0, description="scans whose prediction is written")
     failed: int = Field(ge=0, description="scans that could not be predicted (named in `errors`)")

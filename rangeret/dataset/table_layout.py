@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 from rangeret.dataset.layout import DatasetLayoutError, Discovery, ScanEntry
@@ -159,3 +159,8 @@ class TableLayout:
             for index, name in sorted(tables.categories.items())
             if self.raw_names.get(index) != name
         ]
+
+
+def prediction_split(entry: ScanEntry) -> str:
+    """The split folder a tables layout's scan has its prediction in (`lidarseg/<split>/...`)."""
+    return PurePosixPath(entry.prediction).parent.name

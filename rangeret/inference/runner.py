@@ -19,7 +19,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from rangeret.dataset.layout import is_complete, list_scans
+from rangeret.dataset.layout import ScanEntry, is_complete, list_scans
 from rangeret.inference.loading import (
     LoadedScan,
     batches,
@@ -50,11 +50,13 @@ def predict_tree(
     runner: str = "rangeret predict",
     version: str | None = None,
     split: str | None = None,
+    entries: Sequence[ScanEntry] | None = None,
 ) -> RunSummary:
     """Write a prediction for every scan of `sequences` where the profile's layout puts it
     (`OUT/sequences/XX/predictions/NNNNNN.label`, or nuScenes' `OUT/lidarseg/<split>/`), and with
     `save_confidence` each point's confidence beside it (`OUT/sequences/XX/confidence/`); `version`
-    and `split` are a tables layout's.
+    and `split` are a tables layout's. `entries`, when given, are the scans to predict, listed
+    already (a gateway job's); `dataset` and `sequences` then only name the run in `run.json`.
 
     `on_progress(done, failed, total)` is called after every batch; setting `cancel` stops the
     run after the current batch (files already written stay complete). With `read_roots`, a scan
@@ -65,7 +67,10 @@ def predict_tree(
     check_batch_size(batch_size)
     out = Path(out)
     profile = predictor.profile
-    entries = list_scans(dataset, sequences, layout=profile.layout, version=version, split=split)
+    if entries is None:
+        entries = list_scans(
+            dataset, sequences, layout=profile.layout, version=version, split=split
+        )
     summary = RunSummary(total=len(entries))
     pending = [
         e

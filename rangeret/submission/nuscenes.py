@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 import threading
 import zipfile
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from rangeret.dataset.layout import DatasetLayoutError, ScanEntry, discover
 from rangeret.dataset.profiles import DatasetProfile
-from rangeret.dataset.table_layout import TableLayout
+from rangeret.dataset.table_layout import TableLayout, prediction_split
 from rangeret.io.atomic import atomic_path
 from rangeret.io.scans import ScanFormatError, scan_num_points
 from rangeret.io.zipfiles import DeflatedFile, ReproducibleZip, deflate_file, map_ahead
@@ -192,12 +192,82 @@ def write_nuscenes_submission(
     scans, _, problems, _ = _split_scans(dataset, split, profile, version, allow_partial)
     if not scans and not problems:
         problems.append(f"{dataset} holds no sample of the {split} split")
+    with atomic_path(out, suffix=".zip") as tmp:
+        _write_results(
+            tmp,
+            predictions,
+            {split: scans},
+            submission,
+            description,
+            profile=profile,
+            problems=problems,
+            workers=workers,
+            progress=progress,
+        )
+        check = validate_nuscenes_submission(
+            tmp, dataset, split, profile=profile, version=version, allow_partial=allow_partial
+        )
+        check.path = out
+        check.raise_for_problems()
+    return check
+
+
+def write_nuscenes_results(
+    predictions: Path | str,
+    scans: Sequence[ScanEntry],
+    out: Path | str,
+    *,
+    profile: DatasetProfile,
+    submission: str,
+    description: str,
+    workers: int | None = None,
+) -> None:
+    """Zip the results folder of the keyframes `scans` (of any scenes) at `out`: each split
+    folder their predictions lie in (`PRED/lidarseg/<split>/`) with its `submission.json`.
+
+    Raises `SubmissionError` listing every missing or wrong prediction, writing nothing; unlike
+    `write_nuscenes_submission`, a split's other keyframes are not asked for.
+    """
+    splits: dict[str, list[ScanEntry]] = {}
+    for entry in scans:
+        splits.setdefault(prediction_split(entry), []).append(entry)
+    problems = [] if scans else [f"there is no keyframe to put in {out}"]
+    with atomic_path(Path(out), suffix=".zip") as tmp:
+        _write_results(
+            tmp,
+            Path(predictions),
+            splits,
+            submission,
+            description,
+            profile=profile,
+            problems=problems,
+            workers=workers,
+        )
+
+
+def _write_results(
+    path: Path,
+    predictions: Path,
+    splits: Mapping[str, Sequence[ScanEntry]],
+    submission: str,
+    description: str,
+    *,
+    profile: DatasetProfile,
+    problems: list[str],
+    workers: int | None,
+    progress: bool = False,
+) -> None:
+    """Write the zip at `path`: the folders of each split, every keyframe's prediction, then
+    each split's submission.json and description.txt; `SubmissionError` with `problems` and
+    every missing or wrong prediction (the zip then holds no file)."""
     failed = threading.Event()
     if problems:
         failed.set()
     num_classes = profile.num_classes
+    named = [(split, entry) for split, entries in splits.items() for entry in entries]
 
-    def read(entry: ScanEntry) -> tuple[str | None, DeflatedFile | None]:
+    def read(item: tuple[str, ScanEntry]) -> tuple[str | None, DeflatedFile | None]:
+        split, entry = item
         try:
             num_points = _expected_points(entry, profile)
         except ScanFormatError as exc:
@@ -211,33 +281,28 @@ def write_nuscenes_submission(
             return problem, None
         return None, deflate_file(_entry_name(split, entry), data)
 
-    with atomic_path(out, suffix=".zip") as tmp:
-        with ReproducibleZip(tmp) as zf:
-            for name in required_directories(split):
-                zf.add_directory(name)
-            for problem, file in tqdm(
-                map_ahead(read, scans, workers),
-                total=len(scans),
-                desc="submission",
-                unit="scan",
-                disable=not progress,
-            ):
-                if problem:
-                    problems.append(problem)
-                    failed.set()
-                elif file is not None and not problems:
-                    zf.add_deflated(file)
-            if not problems:
+    with ReproducibleZip(path) as zf:
+        folders = (name for split in splits for name in required_directories(split))
+        for name in dict.fromkeys(folders):
+            zf.add_directory(name)
+        for problem, file in tqdm(
+            map_ahead(read, named, workers),
+            total=len(named),
+            desc="submission",
+            unit="scan",
+            disable=not progress,
+        ):
+            if problem:
+                problems.append(problem)
+                failed.set()
+            elif file is not None and not problems:
+                zf.add_deflated(file)
+        if not problems:
+            for split in splits:
                 zf.add_file(f"{split}/submission.json", submission)
-                zf.add_file(DESCRIPTION_NAME, description.rstrip("\n") + "\n")
-        if problems:
-            raise SubmissionError(problems)
-        check = validate_nuscenes_submission(
-            tmp, dataset, split, profile=profile, version=version, allow_partial=allow_partial
-        )
-        check.path = out
-        check.raise_for_problems()
-    return check
+            zf.add_file(DESCRIPTION_NAME, description.rstrip("\n") + "\n")
+    if problems:
+        raise SubmissionError(problems)
 
 
 def meta_problems(data: object, name: str) -> list[str]:

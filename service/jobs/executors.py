@@ -125,9 +125,10 @@ class LocalExecutor:
         cancel: threading.Event,
         model: str | None = None,
     ) -> dict[str, str]:
-        """Predict the dataset's sequences into `out` with `model` (None: the default), skipping
-        scans already done; a cancel or a gateway stop both stop it after the batch in flight.
-        `JobError` when the model cannot be loaded because running jobs hold every slot."""
+        """Predict the job's scans `entries` (of the dataset's sequences) into `out` with `model`
+        (None: the default), skipping scans already done; a cancel or a gateway stop both stop it
+        after the batch in flight. `JobError` when the model cannot be loaded because running
+        jobs hold every slot."""
         name = model or self.default
         try:
             runtime = self.pool.acquire(name)
@@ -148,6 +149,7 @@ class LocalExecutor:
                 cancel=cancel,
                 read_roots=None if self.read_roots is None else [str(r) for r in self.read_roots],
                 runner="service job",
+                entries=entries,
             )
         finally:
             self.pool.release(name)

@@ -5,7 +5,8 @@ An archive job is refused before its upload is read when the queue is full (429)
 length does not fit in the disk the job folders may use (507); the upload is received into a new
 job folder, checked and extracted there in its model's profile's layout (`service.archives`),
 and the folder is removed again whatever stops it on the way. A dataset job names a folder under
-the data roots (403 outside them, 404 when absent) in its model's profile, and its scans must stay
+the data roots (403 outside them, 404 when absent) in its model's profile, with a split of that
+profile and, for a tables layout, a version (`service.jobs.selection`), and its scans must stay
 under the roots once links are resolved. Either is queued with the output its scans are expected
 to write (`service.jobs.capacity`). Every refusal is an `ApiError` with its status and sentence;
 the blocking steps run in worker threads, never on the event loop.
@@ -17,13 +18,24 @@ import asyncio
 import errno
 from collections.abc import Awaitable, Callable, Sequence
 from pathlib import Path
+from typing import NamedTuple
 
-from rangeret.dataset.layout import DatasetLayoutError, ScanEntry, list_scans, resolve_sequences
-from service.archives import ArchiveError, ArchiveLimits, extract_archive
+from rangeret.dataset.layout import (
+    DatasetLayoutError,
+    ScanEntry,
+    list_scans,
+    missing_sequences,
+    resolve_sequences,
+)
+from rangeret.dataset.profiles import DatasetProfile
+from rangeret.dataset.table_layout import TableLayout
+from service.archives import ArchiveError, ArchiveLimits, ArchiveRules, FolderRules, extract_with
 from service.errors import ApiError
 from service.jobs.capacity import JobRefused, disk_full, expected_output_bytes
 from service.jobs.manager import JobManager
+from service.jobs.selection import check_selection, dataset_version, incomplete_split
 from service.jobs.store import JobRecord
+from service.nuscenes_archives import NuScenesRules
 from service.paths import escaping_scans, outside_roots_sentence
 from service.schemas import DatasetJobRequest
 from service.served_models import ModelCatalog, ModelEntry
@@ -34,8 +46,16 @@ UPLOAD_FILE = "upload.part"
 #: The folder in a job's folder an uploaded archive is extracted into.
 DATA_DIR = "data"
 
-#: A job's input: the dataset root, its sequences and their scans.
-JobInput = tuple[Path, list[str], list[ScanEntry]]
+
+class JobInput(NamedTuple):
+    """A job's input: the dataset root, its sequences and their scans, and a tables layout's
+    version and the split its predictions go to (None: each scene's own)."""
+
+    root: Path
+    sequences: list[str]
+    entries: list[ScanEntry]
+    version: str | None = None
+    split: str | None = None
 
 
 def resolve_dataset(text: str, roots: Sequence[Path]) -> Path:
@@ -63,6 +83,14 @@ def resolve_dataset(text: str, roots: Sequence[Path]) -> Path:
 def refused(exc: JobRefused) -> ApiError:
     """The answer to a job the manager cannot take now, with its status and sentence."""
     return ApiError(exc.status_code, str(exc))
+
+
+def archive_rules(profile: DatasetProfile) -> ArchiveRules:
+    """What an uploaded archive of the profile's layout may hold: nuScenes' tables and files, or
+    sequence folders."""
+    if isinstance(profile.layout, TableLayout):
+        return NuScenesRules(profile.points, profile.layout)
+    return FolderRules(profile.points, profile.layout)
 
 
 class JobIntake:
@@ -110,19 +138,17 @@ class JobIntake:
         (400 or 413 when it is not one the gateway takes), removing the upload; its input."""
         profile = model.profile
         try:
-            found = extract_archive(
-                upload,
-                folder / DATA_DIR,
-                self.archive_limits(),
-                record=profile.points,
-                layout=profile.layout,
+            found = extract_with(
+                upload, folder / DATA_DIR, self.archive_limits(), archive_rules(profile)
             )
         except ArchiveError as exc:
             raise ApiError(exc.status_code, str(exc)) from exc
         finally:
             upload.unlink(missing_ok=True)
-        entries = list_scans(found.root, found.sequences, layout=profile.layout)
-        return found.root, found.sequences, entries
+        entries = list_scans(
+            found.root, found.sequences, layout=profile.layout, version=found.version
+        )
+        return JobInput(found.root, found.sequences, entries, found.version)
 
     async def archive_job(
         self, receive: Callable[[Path], Awaitable[object]], model: ModelEntry
@@ -154,8 +180,9 @@ class JobIntake:
 
     def dataset_input(self, request: DatasetJobRequest, model: ModelEntry) -> JobInput:
         """The input a dataset job request names, in its model's profile and under the data
-        roots: 400 for another profile or a dataset that cannot be used, 403 outside the roots
-        (links resolved), 404 when absent."""
+        roots: 400 for another profile, a split or version the profile or dataset does not have
+        or a dataset that cannot be used, 403 outside the roots (links resolved), 404 when
+        absent."""
         profile = model.profile
         if request.profile is not None and request.profile != profile.name:
             raise ApiError(
@@ -163,19 +190,27 @@ class JobIntake:
                 f"The request is for the {request.profile[:64]!r} profile but the model "
                 f"{model.name} runs with the {profile.name!r} profile.",
             )
+        check_selection(request, model)
         roots = self.settings.data_roots
         root = resolve_dataset(request.dataset, roots)
+        version = dataset_version(root, request.version, model)
         try:
             sequences = resolve_sequences(
                 request.split, request.sequences, labels=profile.labels, layout=profile.layout
             )
-            entries = list_scans(root, sequences, layout=profile.layout)
+            if request.split is not None:
+                missing = missing_sequences(root, sequences, layout=profile.layout, version=version)
+                if missing:
+                    raise ApiError(400, incomplete_split(request.split, sequences, missing))
+            entries = list_scans(
+                root, sequences, layout=profile.layout, version=version, split=request.split
+            )
         except (DatasetLayoutError, ValueError) as exc:
             raise ApiError(400, f"The dataset cannot be used: {str(exc)[:400]}") from exc
         escaping = escaping_scans(entries, roots)
         if escaping:
             raise ApiError(403, outside_roots_sentence(escaping))
-        return root, sequences, entries
+        return JobInput(root, sequences, entries, version, request.split)
 
     async def dataset_job(self, request: DatasetJobRequest) -> JobRecord:
         """A new job over the dataset `request` names with its model, checked and queued (404
@@ -194,12 +229,21 @@ class JobIntake:
     async def submit(self, job_id: str, kind: str, found: JobInput, model: ModelEntry) -> JobRecord:
         """Queue a job of `model` whose folder is ready, with the output its scans are expected
         to write; 429 or 507 when the gateway cannot take it now."""
-        root, sequences, entries = found
         jobs = self.jobs
-        expected = await asyncio.to_thread(expected_output_bytes, entries, model.profile.points)
+        expected = await asyncio.to_thread(
+            expected_output_bytes, found.entries, model.profile.points
+        )
         try:
             return await asyncio.to_thread(
-                jobs.submit, job_id, kind, root, sequences, expected, model.name
+                jobs.submit,
+                job_id,
+                kind,
+                found.root,
+                found.sequences,
+                expected,
+                model.name,
+                found.version,
+                found.split,
             )
         except JobRefused as exc:
             raise refused(exc) from exc

@@ -161,11 +161,13 @@ class JobManager:
         sequences: Sequence[str],
         expected_bytes: int = 0,
         model: str | None = None,
+        version: str | None = None,
+        split: str | None = None,
     ) -> JobRecord:
         """Queue a job of the served model `model` (None: the default) whose folder is ready,
-        noting the profile it is accepted for, and wake a runner; `JobRefused` when the queue is
-        full (429) or its `expected_bytes` of output do not fit in the disk the jobs may use
-        (507)."""
+        noting the profile it is accepted for (and a tables layout's `version` and `split`), and
+        wake a runner; `JobRefused` when the queue is full (429) or its `expected_bytes` of
+        output do not fit in the disk the jobs may use (507)."""
         entry = self.models.entries[model or self.models.default]
         with self._admit_lock:
             self.check_queue()
@@ -177,7 +179,9 @@ class JobManager:
             if expected_bytes > free:
                 raise disk_short(expected_bytes, free, self.jobs_dir)
             (self.job_dir(job_id) / PROFILE_FILE).write_text(entry.profile.name + "\n")
-            record = self.store.create(job_id, kind, dataset, sequences, entry.name)
+            record = self.store.create(
+                job_id, kind, dataset, sequences, entry.name, version=version, split=split
+            )
             self._expected[job_id] = expected_bytes
         self._wake.set()
         return record

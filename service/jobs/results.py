@@ -1,7 +1,8 @@
 """A job's result files in its folder: the predictions zip, the evaluation report and its plots.
 
-A job writes `predictions.zip` (every profile's scans as `sequences/XX/predictions/*.label`, with
-a `description.txt`) and, for the sequences with ground truth, `report.json` and the report's
+A job writes `predictions.zip` (a folder layout's scans as `sequences/XX/predictions/*.label`, a
+tables layout's as nuScenes' results folder, `lidarseg/<split>/` with `<split>/submission.json`,
+each with a `description.txt`) and, for the sequences with ground truth, `report.json` and the report's
 PNGs under `plots/`, as `rangeret evaluate --plots` draws them. The routes serve those files.
 """
 
@@ -11,11 +12,7 @@ import re
 from collections.abc import Sequence
 from pathlib import Path
 
-from rangeret.dataset.layout import (
-    ScanEntry,
-    SequenceLayout,
-    discover,
-)
+from rangeret.dataset.layout import DatasetLayout, ScanEntry, discover
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.evaluation.evaluate import evaluate_predictions
 from rangeret.evaluation.plots import write_plots
@@ -23,6 +20,7 @@ from rangeret.io.atomic import atomic_path
 from rangeret.io.zipfiles import ReproducibleZip
 from rangeret.submission.archives import TEST_SEQUENCES, required_directories
 from rangeret.submission.leaderboard import LeaderboardEntry, description_text
+from rangeret.submission.nuscenes import SubmissionMeta, submission_json, write_nuscenes_results
 from service.jobs.store import JobRecord
 from service.schemas import JobState
 
@@ -37,10 +35,18 @@ BENCHMARK_PROFILE = "semantickitti"
 
 
 def labelled_sequences(
-    dataset: Path, sequences: Sequence[str], *, layout: SequenceLayout
+    dataset: Path,
+    sequences: Sequence[str],
+    *,
+    layout: DatasetLayout,
+    version: str | None = None,
+    split: str | None = None,
 ) -> list[str]:
-    """The sequences every scan of which has a ground-truth label file."""
-    found = discover(dataset, sequences, missing_ok=True, layout=layout).by_sequence()
+    """The sequences every scan of which has a ground-truth label file (`version` and `split`
+    are a tables layout's)."""
+    found = discover(
+        dataset, sequences, missing_ok=True, layout=layout, version=version, split=split
+    ).by_sequence()
     return [s for s, scans in found.items() if scans and all(e.label_path for e in scans)]
 
 
@@ -63,15 +69,30 @@ def write_predictions_zip(
     *,
     profile: DatasetProfile,
     workers: int | None = None,
+    sha256: str | None = None,
 ) -> None:
     """The job's predictions as a reproducible zip with explicit directory entries, as
-    `sequences/<id as on disk>/predictions/NNNNNN.label` for every profile.
+    `sequences/<id as on disk>/predictions/NNNNNN.label` for every folder layout; a tables
+    layout's is nuScenes' results folder (`write_nuscenes_results`: each split folder of the
+    predictions with its `submission.json`, naming the checkpoint's `sha256`).
 
     When the profile is the benchmark's (SemanticKITTI) and all the sequences are its test sequences, the archive
     holds the directory entries of every test sequence, as the benchmark server wants, so it
     passes the submission validator. The labels are read and deflated in `workers` threads
     (default: every CPU this process may use); the archive's bytes do not depend on it.
     """
+    if profile.layout.kind == "tables":
+        submission = submission_json(SubmissionMeta(), LeaderboardEntry(), sha256)
+        write_nuscenes_results(
+            pred_root,
+            entries,
+            path,
+            profile=profile,
+            submission=submission,
+            description=description,
+            workers=workers,
+        )
+        return
     names = list(dict.fromkeys(sequences))
     benchmark = profile.name == BENCHMARK_PROFILE
     if benchmark and all(s in TEST_SEQUENCES for s in names):
@@ -100,16 +121,21 @@ def write_report(
     checkpoint_sha256: str | None,
     precision: str | None,
     backend: str,
+    version: str | None = None,
+    split: str | None = None,
 ) -> tuple[Path, dict]:
     """Evaluate the `labelled` sequences' predictions into `folder`'s report and its plots, noting
-    the `precision` and inference `backend` the network ran with; the report's path and the
-    job's metrics (miou, accuracy, iou by class name)."""
+    the `precision` and inference `backend` the network ran with (`version` and `split` are a
+    tables layout's); the report's path and the job's metrics (miou, accuracy, iou by class
+    name)."""
     report = evaluate_predictions(
         dataset,
         pred_root,
         list(labelled),
         checkpoint_sha256=checkpoint_sha256,
         profile=profile,
+        version=version,
+        split=split,
     )
     report.precision = precision
     report.backend = backend

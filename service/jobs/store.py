@@ -8,7 +8,8 @@ version was kept has the tables of version 1), and a file of a newer version is 
 Versions: 1, the jobs table; 2, its `submission` column (the number of the job's latest
 submission to a Ray cluster, stored before the job is submitted); 3, its `model` column (the
 served model the job runs with; NULL in older rows, which ran with the gateway's one model and
-are the default model's).
+are the default model's); 4, its `version` and `split` columns (a tables layout's version and the
+split its predictions go to; NULL in older rows, which were all of folder layouts).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from service.schemas import JobState
 #: Failed scans kept in a job's record (the count is always exact).
 MAX_ERRORS = 1000
 #: The schema this code reads and writes, stored in the database's `PRAGMA user_version`.
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 
 #: The statements that take a file from the version before each one to that version.
 _MIGRATIONS: dict[int, tuple[str, ...]] = {
@@ -43,6 +44,7 @@ _MIGRATIONS: dict[int, tuple[str, ...]] = {
     ),
     2: ("ALTER TABLE jobs ADD COLUMN submission INTEGER NOT NULL DEFAULT 0",),
     3: ("ALTER TABLE jobs ADD COLUMN model TEXT",),
+    4: ("ALTER TABLE jobs ADD COLUMN version TEXT", "ALTER TABLE jobs ADD COLUMN split TEXT"),
 }
 
 
@@ -148,6 +150,10 @@ class JobRecord:
     submission: int = 0
     #: The served model the job runs with (None: the default, as for jobs from before models).
     model: str | None = None
+    #: A tables layout's version (None: the one its dataset holds, or a folder layout).
+    version: str | None = None
+    #: The split a tables layout's predictions go to (None: each scene's own, or a folder layout).
+    split: str | None = None
 
 
 #: queued -> running: the first start's time is kept when a job resumes.
@@ -159,7 +165,7 @@ _START = (
 _COLUMNS = (
     "id", "kind", "state", "dataset", "sequences", "created", "total", "done", "failed", "errors",
     "reason", "metrics", "predictions", "report", "started", "finished", "attempts",
-    "submission", "model",
+    "submission", "model", "version", "split",
 )  # fmt: skip
 
 
@@ -237,12 +243,15 @@ class JobStore:
         dataset: Path,
         sequences: Sequence[str],
         model: str | None = None,
+        version: str | None = None,
+        split: str | None = None,
     ) -> JobRecord:
-        """Store a new queued job of the served model `model`."""
+        """Store a new queued job of the served model `model` (with a tables layout's `version`
+        and `split`, where given)."""
         now = time.time()
         self._execute(
-            "INSERT INTO jobs (id, kind, state, dataset, sequences, created, model) "
-            "VALUES (?, ?, ?, ?, ?, ?, ?)",
+            "INSERT INTO jobs (id, kind, state, dataset, sequences, created, model, version, "
+            "split) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
             (
                 job_id,
                 kind,
@@ -251,10 +260,20 @@ class JobStore:
                 json.dumps(list(sequences)),
                 now,
                 model,
+                version,
+                split,
             ),
         )
         return JobRecord(
-            job_id, kind, JobState.queued, str(dataset), list(sequences), now, model=model
+            job_id,
+            kind,
+            JobState.queued,
+            str(dataset),
+            list(sequences),
+            now,
+            model=model,
+            version=version,
+            split=split,
         )
 
     def get(self, job_id: str) -> JobRecord | None:

@@ -5,7 +5,8 @@ records, scans that stay under the read roots), predicts every scan not yet writ
 `<job>/predictions` with the executor, checks every prediction is there, writes the predictions
 zip and, for the sequences with ground truth, the evaluation report and its plots, then stores
 the job's final record. Everything is read with the dataset profile of the job's model (layout,
-point record, labels); a job whose model the gateway no longer serves fails, naming it. When the
+point record, labels) and, for a tables layout, the job's version and split; a job whose model
+the gateway no longer serves fails, naming it. When the
 runner stops the job first (a cancel, or the gateway stopping), it
 returns without a final record and the scheduler decides what becomes of the job.
 """
@@ -85,7 +86,9 @@ class JobWork:
         if refusal is not None:
             self.store.finish(job.id, JobState.failed, reason=refusal)
             return True
-        entries = list_scans(dataset, job.sequences, layout=profile.layout)
+        entries = list_scans(
+            dataset, job.sequences, layout=profile.layout, version=job.version, split=job.split
+        )
         escaping = escaping_scans(entries, self.read_roots) if self.read_roots else []
         if escaping:
             self.store.finish(
@@ -181,10 +184,15 @@ class JobWork:
         dataset = Path(job.dataset)
         profile = model.profile
         zip_path = folder / PREDICTIONS_ZIP
-        description = predictions_description(model.checkpoint_sha256, profile)
-        write_predictions_zip(out, entries, job.sequences, zip_path, description, profile=profile)
+        sha = model.checkpoint_sha256
+        description = predictions_description(sha, profile)
+        write_predictions_zip(
+            out, entries, job.sequences, zip_path, description, profile=profile, sha256=sha
+        )
         metrics = report_path = None
-        labelled = labelled_sequences(dataset, job.sequences, layout=profile.layout)
+        labelled = labelled_sequences(
+            dataset, job.sequences, layout=profile.layout, version=job.version, split=job.split
+        )
         if labelled:
             report_path, metrics = write_report(
                 dataset,
@@ -195,6 +203,8 @@ class JobWork:
                 checkpoint_sha256=model.checkpoint_sha256,
                 precision=self.executor.precision,
                 backend=self.executor.inference_backend,
+                version=job.version,
+                split=job.split,
             )
         self.store.finish(
             job.id, JobState.succeeded, metrics=metrics, predictions=zip_path, report=report_path

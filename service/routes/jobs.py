@@ -76,6 +76,8 @@ def job_status(record: JobRecord, default_model: str) -> JobStatus:
         kind=record.kind,
         model=record.model or default_model,
         sequences=record.sequences,
+        version=record.version,
+        split=record.split,
         total=record.total,
         done=record.done,
         failed=record.failed,
@@ -97,9 +99,11 @@ def job_status(record: JobRecord, default_model: str) -> JobStatus:
     summary="Start a job over a dataset on the server",
     description=(
         "Name a dataset under the configured data roots in the layout of the model's profile "
-        "(`model` in the body, the default model without it), and the split or sequences to "
-        "run. The job predicts every scan with that model; with labels it also evaluates them. "
-        "(An archive upload is `POST /v1/jobs/uploads`.)"
+        "(`model` in the body, the default model without it), and the split (by the profile's "
+        "names) or sequences to run, with a tables profile's `version` (nuScenes) where the "
+        "dataset holds several. The job predicts every scan with that model, writing its "
+        "predictions where `rangeret predict` does; with labels it also evaluates them. (An "
+        "archive upload is `POST /v1/jobs/uploads`.)"
     ),
     operation_id="create_job",
     status_code=202,
@@ -139,9 +143,11 @@ async def create_job(
     description=(
         "Upload an archive (multipart field `archive`: .zip, .tar or .tar.gz) laid out as "
         "sequences/XX/velodyne/*.bin with optional sequences/XX/labels/*.label (for every "
-        "profile; the scans hold the point records of the profile of the model `model`, the "
-        "default model without it). The job predicts every scan with that model; with labels "
-        "it also evaluates them."
+        "folder profile), or for a nuScenes model as nuScenes ships it: one version's tables "
+        "(v1.0-mini/*.json), samples/LIDAR_TOP/*.pcd.bin and optional "
+        "lidarseg/<version>/*_lidarseg.bin. The scans hold the point records of the profile of "
+        "the model `model` (the default model without it). The job predicts every scan with "
+        "that model; with labels it also evaluates them."
     ),
     operation_id="upload_job",
     status_code=202,
@@ -228,7 +234,9 @@ async def get_job(job_id: str, gw: GatewayDep, jobs: JobsDep) -> JobStatus:
 @router.get(
     "/jobs/{job_id}/predictions",
     summary="A succeeded job's predictions (zip)",
-    description="A zip of sequences/XX/predictions/*.label with directory entries for the job's sequences.",
+    description="A zip of sequences/XX/predictions/*.label with directory entries for the job's "
+    "sequences; for a nuScenes model, the results folder lidarseg/<split>/*_lidarseg.bin with "
+    "<split>/submission.json.",
     operation_id="get_job_predictions",
     response_class=FileResponse,
     responses={

@@ -1,9 +1,10 @@
 """POST /v1/scans: label one scan, answered as raw `.label` bytes or, when asked for, as JSON.
 
 The body holds the served profile's point records (SemanticKITTI: x, y, z, remission, 16 bytes per
-point; PandaSet adds the laser id, 20 bytes), or a PCD, PLY, LAS or LAZ file
-(`service.scan_bodies`); the labels are raw ids of its label configuration, one per point in the
-body's order. The answer's form is chosen with `?format=json` (or `raw`), else by the
+point; PandaSet adds the laser id, 20 bytes; nuScenes' `.pcd.bin` the ring), or a PCD, PLY, LAS
+or LAZ file (`service.scan_bodies`); the labels are what the profile's prediction files hold
+(raw ids of its label configuration, or nuScenes' challenge classes), one per point in the
+body's order, and the raw answer is as wide as those files' labels (4 bytes, nuScenes' 1). The answer's form is chosen with `?format=json` (or `raw`), else by the
 `Accept` header.
 """
 
@@ -16,7 +17,7 @@ import numpy as np
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, Response
 
-from rangeret.dataset.labels import LabelConfig
+from rangeret.dataset.profiles import DatasetProfile
 from rangeret.inference.clouds import spread_labels
 from rangeret.inference.results import ScanPrediction
 from rangeret.io.scans import ScanFormatError, parse_scan
@@ -71,9 +72,11 @@ def json_answer(form: LabelFormat | None, accept: str | None) -> bool:
     return wants_json(accept)
 
 
-def _class_counts(labels: np.ndarray, config: LabelConfig) -> dict[str, int]:
-    counts = np.bincount(config.to_class(labels), minlength=config.num_classes)
-    return {config.class_names[c]: int(n) for c, n in enumerate(counts) if n}
+def _class_counts(labels: np.ndarray, profile: DatasetProfile) -> dict[str, int]:
+    """Points per class name of labels as the profile's prediction files hold them."""
+    names = profile.labels.class_names
+    counts = np.bincount(profile.prediction_classes(labels), minlength=len(names))
+    return {names[c]: int(n) for c, n in enumerate(counts) if n}
 
 
 @router.post(
@@ -86,17 +89,19 @@ def _class_counts(labels: np.ndarray, config: LabelConfig) -> dict[str, int]:
         "PLY (`application/x-ply` or `application/ply`), LAS (`application/vnd.las`) or LAZ "
         "(`application/vnd.laszip`); an `application/octet-stream` body that starts with a PCD, "
         "PLY or LAS signature is read as that file. A file's declared point count over the limit "
-        "is refused with 413 before it is decoded. The answer is the raw `.label` bytes (uint32 "
-        "raw ids of the profile's label configuration, one per point in the body's order; a "
-        "file's points with a NaN or infinite value get the unlabelled raw id), or with "
-        "`format=json` (or, without `format`, `Accept: application/json`) the labels with their "
-        "class counts. Concurrent requests are labelled together in batches."
+        "is refused with 413 before it is decoded. The answer is the bytes of the profile's "
+        "label file, one label per point in the body's order (a `.label` file's uint32 raw ids "
+        "of its label configuration; for nuScenes, a `_lidarseg.bin` file's uint8 challenge "
+        "classes; a file's points with a NaN or infinite value get the unlabelled raw id), or "
+        "with `format=json` (or, without `format`, `Accept: application/json`) the labels with "
+        "their class counts. Concurrent requests are labelled together in batches."
     ),
     operation_id="label_scan",
     response_class=Response,
     responses={
         200: {
-            "description": "One raw label per point (the JSON form with `format=json`)",
+            "description": "One label per point as the profile's label files hold it (the JSON "
+            "form with `format=json`)",
             "content": {
                 OCTET: BINARY_CONTENT,
                 "application/json": {"schema": {"$ref": "#/components/schemas/ScanLabels"}},
@@ -265,16 +270,17 @@ async def _labelled(
 def _answer(
     entry: ModelEntry, labels: np.ndarray, confidence: np.ndarray | None, as_json: bool
 ) -> Response:
-    """Raw label bytes, or the JSON answer when the client asked for it; either names the model
-    in its `X-RangeRet-Model` header."""
-    raw = labels.astype("<u4", copy=False)
+    """The label bytes as wide as the profile's label files hold them (a `.label` file's, a
+    nuScenes `_lidarseg.bin`'s), or the JSON answer when the client asked for it; either names
+    the model in its `X-RangeRet-Model` header."""
+    raw = labels.astype(entry.profile.layout.label_file.dtype, copy=False)
     headers = {MODEL_HEADER: entry.name}
     if as_json:
         body = ScanLabels(
             model=entry.name,
             num_points=len(raw),
             labels=raw.tolist(),
-            class_counts=_class_counts(raw, entry.profile.labels),
+            class_counts=_class_counts(raw, entry.profile),
             confidence=None if confidence is None else np.round(confidence, 4).tolist(),
         )
         return JSONResponse(body.model_dump(exclude_none=True), headers=headers)

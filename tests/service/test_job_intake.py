@@ -84,11 +84,10 @@ def test_a_dataset_is_found_under_the_roots_and_refused_elsewhere(tmp_path, root
 
 def test_a_dataset_request_gives_the_scans_of_its_sequences(tmp_path, roots):
     intake = _intake(tmp_path, roots)
-    root, sequences, entries = intake.dataset_input(
-        DatasetJobRequest(dataset="data", sequences=["08"]), MODEL
-    )
-    assert root == roots / "data" and sequences == ["08"]
-    assert [e.key for e in entries] == ["08/000000", "08/000001"]
+    found = intake.dataset_input(DatasetJobRequest(dataset="data", sequences=["08"]), MODEL)
+    assert found.root == roots / "data" and found.sequences == ["08"]
+    assert [e.key for e in found.entries] == ["08/000000", "08/000001"]
+    assert (found.version, found.split) == (None, None)
 
 
 def test_a_dataset_request_for_another_profile_or_unusable_sequences_is_400(tmp_path, roots):
@@ -162,8 +161,9 @@ def test_an_upload_is_extracted_into_the_job_folder_and_removed(tmp_path, roots)
     folder.mkdir()
     upload = folder / "upload.part"
     _zip_into(upload, {"sequences/08/velodyne/000000.bin": SCAN})
-    root, sequences, entries = intake.extract_upload(upload, folder, MODEL)
-    assert root == folder / "data" and sequences == ["08"] and len(entries) == 1
+    found = intake.extract_upload(upload, folder, MODEL)
+    assert found.root == folder / "data" and found.sequences == ["08"]
+    assert len(found.entries) == 1 and found.version is None
     assert not upload.exists()
     _zip_into(upload, {"sequences/08/velodyne/000000.bin": SCAN[:-4]})
     refused = _refusal(intake.extract_upload, upload, folder, MODEL)

@@ -63,14 +63,16 @@ _VERSION_1_TABLE = """CREATE TABLE jobs (
 
 
 def _old_database(path: Path, version: int, job_id: str) -> None:
-    """A file of schema version 1 or 2 (stamped `version`: 0 is a file from before the version
-    was kept) holding one running job with counts, started twice."""
+    """A file of schema version 1, 2 or 3 (stamped `version`: 0 is a file from before the
+    version was kept) holding one running job with counts, started twice."""
     db = sqlite3.connect(path)
     try:
         db.execute(_VERSION_1_TABLE)
         db.execute("CREATE INDEX jobs_state ON jobs (state, created)")
-        if version == 2:
+        if version >= 2:
             db.execute("ALTER TABLE jobs ADD COLUMN submission INTEGER NOT NULL DEFAULT 0")
+        if version >= 3:
+            db.execute("ALTER TABLE jobs ADD COLUMN model TEXT")
         db.execute(
             "INSERT INTO jobs (id, kind, state, dataset, sequences, created, total, done, "
             "attempts, started) VALUES (?, 'archive', 'running', '/data', '[\"11\"]', 1.0, 5, 3, "
@@ -95,20 +97,25 @@ def test_a_new_database_is_stamped_with_the_schema_version(tmp_path):
     path = tmp_path / "state" / "jobs.sqlite"
     store = JobStore(path)
     store.create("a" * 32, "dataset", tmp_path, ["08"], model="panda")
+    store.create("d" * 32, "dataset", tmp_path, ["scene-0103"], "nu", "v1.0-mini", "mini_val")
     store.close()
-    assert _user_version(path) == SCHEMA_VERSION == 3
-    assert _columns(path)[-3:] == ["attempts", "submission", "model"]
+    assert _user_version(path) == SCHEMA_VERSION == 4
+    assert _columns(path)[-5:] == ["attempts", "submission", "model", "version", "split"]
     again = JobStore(path)
     try:
         record = again.get("a" * 32)
         assert record.state is JobState.queued and record.submission == 0
-        assert record.model == "panda"
+        assert (record.model, record.version, record.split) == ("panda", None, None)
+        nuscenes = again.get("d" * 32)
+        assert (nuscenes.model, nuscenes.version, nuscenes.split) == ("nu", "v1.0-mini", "mini_val")
     finally:
         again.close()
     assert _user_version(path) == SCHEMA_VERSION
 
 
-@pytest.mark.parametrize("version", [0, 1, 2], ids=["before-versions", "version-1", "version-2"])
+@pytest.mark.parametrize(
+    "version", [0, 1, 2, 3], ids=["before-versions", "version-1", "version-2", "version-3"]
+)
 def test_an_older_database_is_migrated_and_keeps_its_jobs(tmp_path, version):
     path = tmp_path / "jobs.sqlite"
     _old_database(path, version, "b" * 32)
@@ -119,11 +126,12 @@ def test_an_older_database_is_migrated_and_keeps_its_jobs(tmp_path, version):
         assert (record.total, record.done, record.attempts, record.started) == (5, 3, 2, 2.0)
         assert record.submission == 0
         assert record.model is None  # from before models: the default model's
+        assert (record.version, record.split) == (None, None)  # from before tables layouts
         assert reopened.next_submission("b" * 32) == 1
     finally:
         reopened.close()
     assert _user_version(path) == SCHEMA_VERSION
-    assert _columns(path)[-2:] == ["submission", "model"]
+    assert _columns(path)[-4:] == ["submission", "model", "version", "split"]
     again = JobStore(path)  # a migrated file opens as it is
     try:
         assert again.get("b" * 32).submission == 1
