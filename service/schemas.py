@@ -371,6 +371,8 @@ class ServedProfile(BaseModel):
                     "profile": "semantickitti",
                     "point_fields": ["x", "y", "z", "remission"],
                     "point_bytes": 16,
+                    "label_bytes": 4,
+                    "predictions": "raw",
                     "classes": [
                         {
                             "index": 0,
@@ -397,6 +399,19 @@ class ServedProfile(BaseModel):
     profile: str = Field(description="the served dataset profile's name")
     point_fields: list[str] = Field(description="the float32 values of one point, in order")
     point_bytes: int = Field(gt=0, description="bytes per point of a scan")
+    label_bytes: int = Field(
+        default=4,
+        gt=0,
+        description="bytes per label (little-endian unsigned) of the profile's label and "
+        "prediction files, and of a scan's raw answer: 4 for a `.label` file, 1 for nuScenes' "
+        "`_lidarseg.bin`",
+    )
+    predictions: Literal["raw", "class"] = Field(
+        default="raw",
+        description="what a prediction's labels are: `raw` ids of the label configuration "
+        "(`raw_to_class` maps them), or the `class` indices themselves (nuScenes' challenge "
+        "classes; its ground truth files hold raw ids)",
+    )
     classes: list[ProfileClass] = Field(description="the training classes, by index")
     raw_to_class: dict[str, int] = Field(
         description="the class index of every raw id of the label configuration (its learning "

@@ -37,6 +37,8 @@ def served_profile(profile: DatasetProfile) -> ServedProfile:
         profile=profile.name,
         point_fields=list(profile.points.fields),
         point_bytes=profile.points.point_bytes,
+        label_bytes=profile.layout.label_file.bytes,
+        predictions=profile.benchmark.predictions,
         classes=classes,
         raw_to_class={str(raw): cls for raw, cls in sorted(labels.raw_to_class.items())},
         unlabeled_class=labels.unlabeled_class,
@@ -47,10 +49,11 @@ def served_profile(profile: DatasetProfile) -> ServedProfile:
     "/profile",
     summary="A model's profile: classes, palette and label map",
     description=(
-        "The dataset profile of the model `model` (the default without it): its point record, its training classes (name, raw id, colour "
-        "as #rrggbb, ignored or not) and the map from raw ids to classes, as the evaluation "
-        "uses them: enough to colour a scan's labels and to score a prediction against ground "
-        "truth the way the benchmark does."
+        "The dataset profile of the model `model` (the default without it): its point record, "
+        "how wide its labels are and what a prediction holds, its training classes (name, raw "
+        "id, colour as #rrggbb, ignored or not) and the map from raw ids to classes, as the "
+        "evaluation uses them: enough to colour a scan's labels and to score a prediction "
+        "against ground truth the way the benchmark does."
     ),
     operation_id="get_profile",
     response_model=ServedProfile,
