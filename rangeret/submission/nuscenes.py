@@ -10,6 +10,9 @@ The archive holds the devkit's results folder at its top:
                                                         and the method under "method"
     description.txt                                     the method's name, links and checkpoint
 
+`write_nuscenes_results` zips the same folder for any keyframes (a gateway job's), each in the
+split folder its prediction lies in, with the same writer.
+
 The validator makes every check of the devkit's `validate_submission` (the folders, the meta
 keys and their types, a file for every sample of the split, its point count: the ground truth's
 where the version has labels, else the sweep's, and values 1..C-1), each failure one line naming
