@@ -1,9 +1,10 @@
 """A job's result files in its folder: the predictions zip, the evaluation report and its plots.
 
 A job writes `predictions.zip` (a folder layout's scans as `sequences/XX/predictions/*.label`, a
-tables layout's as nuScenes' results folder, `lidarseg/<split>/` with `<split>/submission.json`,
-each with a `description.txt`) and, for the sequences with ground truth, `report.json` and the report's
-PNGs under `plots/`, as `rangeret evaluate --plots` draws them. The routes serve those files.
+tables layout's as nuScenes' results folder, `lidarseg/<split>/` with `<split>/submission.json`;
+each with a `description.txt`) and, for the sequences with ground truth, `report.json` and the
+report's PNGs under `plots/`, as `rangeret evaluate --plots` draws them. The routes serve those
+files.
 """
 
 from __future__ import annotations

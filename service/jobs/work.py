@@ -6,9 +6,9 @@ records, scans that stay under the read roots), predicts every scan not yet writ
 zip and, for the sequences with ground truth, the evaluation report and its plots, then stores
 the job's final record. Everything is read with the dataset profile of the job's model (layout,
 point record, labels) and, for a tables layout, the job's version and split; a job whose model
-the gateway no longer serves fails, naming it. When the
-runner stops the job first (a cancel, or the gateway stopping), it
-returns without a final record and the scheduler decides what becomes of the job.
+the gateway no longer serves fails, naming it. When the runner stops the job first (a cancel, or
+the gateway stopping), it returns without a final record and the scheduler decides what becomes
+of the job.
 """
 
 from __future__ import annotations
