@@ -11,10 +11,11 @@ args and environment through `deploy/entrypoint.sh`, as the image starts it.
 What the test changes, so that three nodes fit on one machine: port numbers (and the ports Ray
 picks itself, so that two nodes on one host never share one), CPU, GPU and memory quantities
 (two logical GPUs per worker node, so that the network runs on the CPU), the Serve deployment's
-replica counts and autoscaling delays, the volume mounts (`/data`, `/models`, `/results` are
-folders of the test), the service names (mapped to loopback), and the weights: a small network
-at 32 x 256 in place of the published one, with its resolution added to the arguments of both
-the Serve application and the gateway.
+replica counts and autoscaling delays, the volume mounts (`/data`, `/models`, `/results` and the
+models file's `/etc/rangeret` are folders of the test, the file's checkpoint paths mapped to
+them), the service names (mapped to loopback), and the weights: small networks at 32 x 256 in
+place of the published ones, with their resolution added to the arguments of both the Serve
+application and the gateway.
 """
 
 from __future__ import annotations
@@ -35,10 +36,15 @@ from pathlib import Path
 
 import httpx
 import pytest
+import torch
 import yaml
 
 from rangeret.cli.main import main as rangeret_main
 from rangeret.dataset.labels import semantickitti
+from rangeret.dataset.layout import prediction_path
+from rangeret.dataset.profiles import load_profile
+from rangeret.models import build_model
+from rangeret.sim import simulate_dataset
 from rangeret.submission.archives import validate_submission
 from tests.support.gateway import OCTET, Gateway, wait_healthy, wait_job
 from tests.support.kuberay import (
@@ -59,8 +65,10 @@ from tests.support.workers import build_tree, free_ports, small_weights, tree_by
 pytestmark = pytest.mark.slow
 
 BINDIR = Path(sys.executable).parent
-#: The resolution of the small network that stands in for the published one.
+#: The resolution of the small networks that stand in for the published ones.
 SMALL_NET = {"height": 32, "width": 256}
+#: PandaSet's class count, for the small network that stands in for its published one.
+PANDA_CLASSES = 15
 
 
 @dataclass
@@ -213,10 +221,21 @@ def _node_params(ports: list[int], head: bool) -> tuple[dict[str, object], int, 
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory) -> Iterator[Cluster]:
     tmp = tmp_path_factory.mktemp("deployment")
-    mounts = {name: tmp / name.strip("/") for name in ("/data", "/models", "/results")}
+    mounts = {
+        name: tmp / name.strip("/").replace("/", "-")
+        for name in ("/data", "/models", "/results", "/etc/rangeret")
+    }
     for folder in mounts.values():
         folder.mkdir()
     shutil.move(small_weights(tmp), mounts["/models"] / "rangeret-kitti-657.pt")
+    torch.manual_seed(3)
+    panda = build_model("rangeret-cir", 32, 256, num_classes=PANDA_CLASSES, layers=1)
+    torch.save(panda.state_dict(), mounts["/models"] / "rangeret-panda-600.pt")
+    (config_map,) = load_manifests(KUBERAY / "models.yaml")
+    models_file = yaml.safe_load(config_map["data"]["models.yaml"])
+    for entry in models_file["models"].values():
+        entry["checkpoint"] = _mapped(entry["checkpoint"], mounts)
+    (mounts["/etc/rangeret"] / "models.yaml").write_text(yaml.safe_dump(models_file))
 
     docs = load_manifests(KUBERAY / "rayservice.yaml")
     service = find(docs, "RayService")
@@ -360,6 +379,47 @@ def test_single_scans_through_serve_equal_rangeret_predict(cluster):
             assert answer.status_code == 200, answer.text
             key = f"sequences/{scan.parent.parent.name}/predictions/{scan.stem}.label"
             assert answer.content == expected[key]
+
+
+def test_each_model_of_the_one_models_file_labels_as_rangeret_predict(cluster, tmp_path):
+    """The ConfigMap's two models through the gateway and the Serve application: a PandaSet scan
+    with `?model=panda` and a SemanticKITTI scan with no model (the default, `kitti`), each
+    labelled as `rangeret predict` labels it with that model's checkpoint; both listed alike by
+    the gateway and the application."""
+    panda_root = cluster.mounts["/data"] / "panda"
+    profile = load_profile("pandaset").with_overrides(**SMALL_NET)
+    simulate_dataset(panda_root, {"1": 1}, seed=4, profile=profile)
+    weights = cluster.mounts["/models"] / "rangeret-panda-600.pt"
+    argv = ["predict", "-q", "--dataset", str(panda_root), "--out", str(tmp_path / "panda")]
+    net = ["--checkpoint", str(weights), "--profile", "pandaset", "--height", "32"]
+    assert (
+        rangeret_main([*argv, "--sequences", "1", *net, "--width", "256", "--device", "cpu"]) == 0
+    )
+    (scan,) = sorted(panda_root.rglob("*.bin"))
+    expected = prediction_path(tmp_path / "panda", "001", scan.stem)
+    kitti = sorted((cluster.mounts["/data"] / "scans").rglob("*.bin"))[0]
+    _predict(
+        cluster.mounts["/models"] / "rangeret-kitti-657.pt",
+        kitti.parents[3],
+        tmp_path / "k",
+        [kitti.parents[1].name],
+    )
+    with cluster.client() as client:
+        answer = client.post(
+            "/v1/scans", params={"model": "panda"}, content=scan.read_bytes(), headers=OCTET
+        )
+        assert answer.status_code == 200, answer.text
+        assert answer.headers["x-rangeret-model"] == "panda"
+        assert answer.content == expected.read_bytes()
+        default = client.post("/v1/scans", content=kitti.read_bytes(), headers=OCTET)
+        assert default.headers["x-rangeret-model"] == "kitti"
+        key = f"sequences/{kitti.parents[1].name}/predictions/{kitti.stem}.label"
+        assert default.content == tree_bytes(tmp_path / "k")[key]
+        listed = client.get("/v1/models").json()
+    info = httpx.get(cluster.serve_url + "/info", timeout=10).json()
+    assert listed["default"] == info["default"] == "kitti"
+    assert [m["id"] for m in listed["models"]] == [m["id"] for m in info["models"]]
+    assert [m["profile"] for m in info["models"]] == ["semantickitti", "pandaset"]
 
 
 def test_the_model_deployment_scales_out_under_load_and_back_in(cluster, capsys):
