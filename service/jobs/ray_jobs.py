@@ -239,13 +239,23 @@ class RayJobExecutor:
         self.inference_backend = models.default_entry.spec.backend
 
     def entrypoint(
-        self, dataset: Path, sequences: list[str], out: Path, model: str | None = None
+        self,
+        dataset: Path,
+        sequences: list[str],
+        out: Path,
+        model: str | None = None,
+        *,
+        version: str | None = None,
+        split: str | None = None,
     ) -> str:
         """The shell command of a job's Ray job: `python -m workers.predict_job` on the dataset's
-        sequences into `out`, with the spec of the model `model` (None: the default)."""
+        sequences (a tables layout's whole `split` of its `version`, where the job names one)
+        into `out`, with the spec of the model `model` (None: the default)."""
         spec = self.specs[self.models.get(model).name]
         argv = ["python", "-m", "workers.predict_job", "--dataset", str(Path(dataset).absolute())]
-        argv += ["--sequences", *sequences, "--out", str(Path(out).absolute())]
+        argv += ["--split", split] if split else ["--sequences", *sequences]
+        argv += ["--version", version] if version else []
+        argv += ["--out", str(Path(out).absolute())]
         argv += ["--inference-spec", json.dumps(spec.to_mapping(), sort_keys=True)]
         if self.read_roots:
             argv += ["--read-roots", *(str(Path(r).absolute()) for r in self.read_roots)]
@@ -416,7 +426,15 @@ class _Follow:
             parents=True, exist_ok=True
         )  # where the Ray job's records go, even early ones
         progress_path(self.out).unlink(missing_ok=True)
-        entrypoint = self.executor.entrypoint(self.dataset, self.sequences, self.out, self.model)
+        job = self.control.record()
+        entrypoint = self.executor.entrypoint(
+            self.dataset,
+            self.sequences,
+            self.out,
+            self.model,
+            version=None if job is None else job.version,
+            split=None if job is None else job.split,
+        )
         metadata = {"rangeret_job": self.control.job_id}
         since: float | None = None
         while True:

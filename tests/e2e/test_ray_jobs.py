@@ -472,6 +472,12 @@ def test_a_jobs_ray_job_gets_its_models_spec(tmp_path):
         "profile": "pandaset",
     }
     assert spec_of(executor.entrypoint(tmp_path, ["08"], out)) == {"checkpoint": "/m/kitti.pt"}
+    # A tables layout's job names its split and version rather than the split's scenes.
+    command = executor.entrypoint(
+        tmp_path, ["scene-0103"], out, "panda", version="v1.0-mini", split="mini_val"
+    )
+    assert "--split mini_val --version v1.0-mini --out" in command
+    assert "--sequences" not in command
 
 
 def test_a_job_on_a_cluster_survives_more_gateway_restarts_than_one_run_here(tmp_path):
