@@ -580,11 +580,13 @@ def test_another_origins_page_cannot_start_a_job_on_a_gateway_without_a_token(
 def test_the_page_labels_a_scan_with_the_model_chosen_in_its_selector(
     setup, page, tmp_path, capsys
 ):
-    """A gateway of two models: the selector offers both, and a scan dropped after choosing the
-    second is labelled by it (its answer, not the default's)."""
+    """A gateway of three models: the selector offers them, a scan dropped after choosing the
+    second is labelled by it (its answer, not the default's), and a nuScenes `.pcd.bin` dropped
+    after choosing the nuScenes model is drawn with its class indices as they are."""
     import torch
 
     from rangeret.models import build_model
+    from tests.support.nuscenes import network, write_tree
 
     tab, _ = page
     torch.manual_seed(7)
@@ -594,6 +596,10 @@ def test_the_page_labels_a_scan_with_the_model_chosen_in_its_selector(
     first = small_weights(tmp_path)
     models.write_text(f"default: first\nmodels:\n  first: {{checkpoint: {first}}}\n")
     models.write_text(models.read_text() + f"  second: {{checkpoint: {other}}}\n")
+    torch.save(network(0).state_dict(), tmp_path / "nu.pt")
+    nu = tmp_path / "nu.pt"
+    models.write_text(models.read_text() + f"  nu: {{checkpoint: {nu}, profile: nuscenes}}\n")
+    sweep = sorted(write_tree(tmp_path / "nu", {"scene-0061": 1}).rglob("*.pcd.bin"))[0]
     env = gateway_env(tmp_path / "state", [tmp_path])
     gw = start_gateway(None, env, tmp_path / "gateway.log", "--models", str(models))
     try:
@@ -608,6 +614,12 @@ def test_the_page_labels_a_scan_with_the_model_chosen_in_its_selector(
                 ).json()
                 for name in ("first", "second")
             }
+            answers["nu"] = client.post(
+                "/v1/scans",
+                params={"model": "nu", "format": "json"},
+                content=sweep.read_bytes(),
+                headers={"Content-Type": "application/octet-stream"},
+            ).json()
         assert answers["first"]["class_counts"] != answers["second"]["class_counts"]
         tab.goto(gw.url + "/")
         sign_in(tab)
@@ -617,6 +629,7 @@ def test_the_page_labels_a_scan_with_the_model_chosen_in_its_selector(
         assert [options.nth(i).get_attribute("value") for i in range(options.count())] == [
             "first",
             "second",
+            "nu",
         ]
         assert state(tab, ".modelId") == "first"
         tab.select_option("#model-select", "second")
@@ -628,5 +641,17 @@ def test_the_page_labels_a_scan_with_the_model_chosen_in_its_selector(
         assert shown["points"] == answers["second"]["num_points"]
         assert shown["classCounts"] == answers["second"]["class_counts"]
         shoot(tab, "second-model.png", capsys)
+        tab.select_option("#model-select", "nu")
+        tab.wait_for_function("() => window.rangeretPage.state.model.id === 'nu'")
+        tab.set_input_files("#scan-files", [str(sweep)])
+        tab.wait_for_function(
+            "() => window.rangeretPage.state.scan.name.endsWith('.pcd.bin') && "
+            "window.rangeretPage.state.scan.rendered",
+            timeout=180_000,
+        )
+        shown = state(tab, ".scan")
+        assert shown["points"] == answers["nu"]["num_points"]
+        assert len(answers["nu"]["class_counts"]) > 1
+        assert shown["classCounts"] == answers["nu"]["class_counts"]
     finally:
         gw.stop()

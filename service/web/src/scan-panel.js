@@ -80,13 +80,15 @@ export class ScanPanel {
     this.status.classList.toggle('error', isError);
   }
 
-  /** Label the `.bin` among `files` (with a `.label` as ground truth) and draw it. */
+  /** Label the `.bin` among `files` (with a `.label` or `_lidarseg.bin` as ground truth) and
+   * draw it. */
   async label(files, started) {
     const list = [...files];
-    const scanFile = list.find((f) => f.name.toLowerCase().endsWith('.bin'));
-    const truthFile = list.find((f) => f.name.toLowerCase().endsWith('.label'));
+    const isTruth = (f) => /(\.label|_lidarseg\.bin)$/i.test(f.name);
+    const scanFile = list.find((f) => f.name.toLowerCase().endsWith('.bin') && !isTruth(f));
+    const truthFile = list.find(isTruth);
     if (!scanFile) {
-      this.say('Choose a .bin scan; a .label file is only its ground truth.', true);
+      this.say('Choose a .bin scan; a .label or _lidarseg.bin file is only its ground truth.', true);
       return;
     }
     const { point_bytes: pointBytes } = this.profile;
@@ -102,16 +104,17 @@ export class ScanPanel {
     const points = bytes.byteLength / pointBytes;
     let truthRaw = null;
     if (truthFile) {
+      const labelBytes = this.profile.label_bytes;
       const truthBytes = await truthFile.arrayBuffer();
-      if (truthBytes.byteLength !== points * 4) {
+      if (truthBytes.byteLength !== points * labelBytes) {
         this.say(
-          `${truthFile.name} holds ${truthBytes.byteLength / 4} labels for the ` +
+          `${truthFile.name} holds ${truthBytes.byteLength / labelBytes} labels for the ` +
             `${points} points of ${scanFile.name}.`,
           true,
         );
         return;
       }
-      truthRaw = new Uint32Array(truthBytes);
+      truthRaw = labelBytes === 1 ? new Uint8Array(truthBytes) : new Uint32Array(truthBytes);
     }
     this.say(`Labelling ${scanFile.name} (${count(points)} points)…`);
     let answer;
@@ -127,7 +130,11 @@ export class ScanPanel {
       return;
     }
     if (!this.view) this.view = new ScanView(document.getElementById('viewer'));
-    const predicted = toClasses(answer.labels, this.lookup);
+    // A profile whose predictions are class indices (nuScenes) answers them as they are.
+    const predicted =
+      this.profile.predictions === 'class'
+        ? Uint8Array.from(answer.labels)
+        : toClasses(answer.labels, this.lookup);
     const truth = truthRaw ? toClasses(truthRaw, this.lookup) : null;
     this.scan = { name: scanFile.name, predicted, truth };
     this.hidden.clear();
