@@ -182,7 +182,8 @@ class JobState(str, Enum):
 
 
 class JobCreated(BaseModel):
-    """The answer to a new job: where to follow it."""
+    """The answer to a new job: where to follow it, and its state now (what a poll of
+    `status_url` reads until it is final)."""
 
     model_config = ConfigDict(
         json_schema_extra={
@@ -190,6 +191,7 @@ class JobCreated(BaseModel):
                 {
                     "id": "3f2c9a0e5b7d4c1e8f6a2b9d0c4e7f1a",
                     "status_url": "/v1/jobs/3f2c9a0e5b7d4c1e8f6a2b9d0c4e7f1a",
+                    "state": "queued",
                 }
             ]
         }
@@ -197,6 +199,7 @@ class JobCreated(BaseModel):
 
     id: str
     status_url: str
+    state: JobState = Field(description="the job's state: `queued` until a runner takes it")
 
 
 class JobMetrics(BaseModel):

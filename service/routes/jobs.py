@@ -200,9 +200,9 @@ async def _wrong_media(request: Request, gw: Gateway, detail: str) -> ApiError:
 
 def _created(record: JobRecord) -> JSONResponse:
     """The 202 answer to a new job: its id, and where to follow it (also as `Location`)."""
-    created = JobCreated(id=record.id, status_url=f"/v1/jobs/{record.id}")
+    created = JobCreated(id=record.id, status_url=f"/v1/jobs/{record.id}", state=record.state)
     return JSONResponse(
-        created.model_dump(), status_code=202, headers={"Location": created.status_url}
+        created.model_dump(mode="json"), status_code=202, headers={"Location": created.status_url}
     )
 
 

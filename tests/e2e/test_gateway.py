@@ -384,6 +384,7 @@ def test_archive_job_with_labels_equals_rangeret_evaluate(setup, gateway, tmp_pa
             r.json()["status_url"] == f"/v1/jobs/{job_id}"
             and r.headers["location"] == r.json()["status_url"]
         )
+        assert r.json()["state"] == "queued"  # what a poll loop reads until it is final
         status = wait_job(client, job_id)
         assert status["state"] == "succeeded", status
         assert (status["total"], status["done"], status["failed"]) == (5, 5, 0)
