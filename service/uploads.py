@@ -200,7 +200,8 @@ class _ArchivePart:
 async def receive_archive(request: Request, target: Path, limit: int, timeout: float) -> int:
     """Stream the multipart field `archive` into `target`; its size in bytes.
 
-    400 for a malformed form or one without an `archive` file, 413 over `limit` bytes, 408 when
+    400 for a malformed form, one without an `archive` file or with any other field, 413 over
+    `limit` bytes, 408 when
     the body has not all arrived within `timeout` seconds (RANGERET_UPLOAD_TIMEOUT_S).
     """
     deadline = _deadline(timeout)
@@ -251,6 +252,10 @@ async def receive_archive(request: Request, target: Path, limit: int, timeout: f
             raise too_slow(timeout, "archive upload", "RANGERET_UPLOAD_TIMEOUT_S") from None
     if not part.seen_archive:
         raise ApiError(400, "The form has no 'archive' file field (a .zip, .tar or .tar.gz).")
+    if part.other_field is not None:
+        raise ApiError(
+            400, f"The form field {part.other_field!r} is unexpected: send only 'archive'."
+        )
     return size
 
 

@@ -431,6 +431,27 @@ def test_gateway_refuses_a_small_zip_that_expands_past_the_extracted_limit(bound
     assert _job_folders(jobs_dir) == before
 
 
+def test_a_form_with_another_field_than_archive_is_refused_and_leaves_nothing(bounded):
+    """The form holds one field, `archive`: a small field beside it, before or after the
+    archive, an archive under another name, or a form without it, is a 400, and no job is made."""
+    gw, jobs_dir, scan = bounded
+    data = _zip_bytes({"sequences/11/velodyne/000000.bin": scan})
+    archive = ("data.zip", data, "application/zip")
+    with gw.client() as client:
+        before = _job_folders(jobs_dir)
+        for other, fields in (
+            ("note", [("archive", archive), ("note", (None, b"hello"))]),
+            ("model", [("model", (None, b"default")), ("archive", archive)]),
+            ("file", [("file", archive)]),
+        ):
+            detail = assert_error(client.post("/v1/jobs/uploads", files=fields), 400)
+            assert detail == f"The form field {other!r} is unexpected: send only 'archive'."
+        empty = client.post("/v1/jobs/uploads", files=[("note", (None, b""))])
+        assert assert_error(empty, 400).startswith("The form has no 'archive' file field")
+        assert {j["id"] for j in client.get("/v1/jobs").json()["jobs"]} <= before
+    assert _job_folders(jobs_dir) == before
+
+
 def test_gateway_still_accepts_a_normal_archive(bounded):
     gw, _, scan = bounded
     data = _zip_bytes(
