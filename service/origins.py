@@ -5,6 +5,7 @@ A gateway without a token would otherwise answer any page a browser runs: a requ
 is another name (DNS rebinding), or a form another origin posts (`fetch(..., {mode: "no-cors"})`).
 `OriginGuard` answers both in JSON before the app sees them:
 
+- a request has one `Host` line: two or more, even equal ones, are a 400 (RFC 9112);
 - the `Host` must be one of `allowed_hosts` (400): by default, on a gateway without a token, the
   loopback names and the bound address; set `RANGERET_ALLOWED_HOSTS` to choose them, on any
   gateway. A gateway with a token and no list takes any `Host`: in a cluster, clients send the
@@ -56,6 +57,12 @@ class OriginGuard:
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
+            return
+        hosts = sum(1 for k, _ in scope["headers"] if k.lower() == b"host")
+        if hosts > 1:
+            await _refuse(
+                send, 400, f"The request has {hosts} Host lines; HTTP/1.1 allows exactly one."
+            )
             return
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
         host = headers.get("host", "")

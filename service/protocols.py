@@ -21,6 +21,10 @@ its deadline) leaves the rest of the body to be read and dropped; the connection
 `LEFTOVER_BODY_S` seconds after that answer unless a further request has started on it, so a
 client that declared more bytes than it sends cannot hold the connection.
 
+A request whose target is in absolute form (`GET http://host/path`) is addressed to the target's
+authority, whatever its Host lines say (RFC 9112): the protocol puts that authority in their place,
+so the Host allow-list judges it.
+
 `GatewayProtocol` mirrors uvicorn's `auto` choice: httptools when it is importable, else h11.
 """
 
@@ -86,6 +90,16 @@ def invalid_request_answer(exc: BaseException | None) -> tuple[int, str]:
     if reason:
         return 400, sentence(f"The request is not valid HTTP ({reason})")
     return 400, "The request is not valid HTTP."
+
+
+def absolute_form_authority(target: bytes) -> bytes | None:
+    """The authority (host and port) of an absolute-form request target (`http://host/path`),
+    which RFC 9112 makes the request's host in place of its Host lines; None for another form."""
+    scheme, sep, rest = target.partition(b"://")
+    if not sep or scheme.lower() not in (b"http", b"https"):
+        return None
+    authority = rest.split(b"/", 1)[0].split(b"?", 1)[0]
+    return authority.rpartition(b"@")[2]
 
 
 def head_size(scope: Scope) -> int:
@@ -340,6 +354,16 @@ else:
             self._parsed_head += size
             if self._parsed_head > MAX_HEAD_BYTES:
                 raise HeadTooLarge
+
+        def on_headers_complete(self) -> None:
+            authority = absolute_form_authority(self.url)
+            if authority is not None:  # RFC 9112 3.2.2: the target's authority is the host
+                hosts = [i for i, (name, _) in enumerate(self.headers) if name == b"host"]
+                for i in hosts:
+                    self.headers[i] = (b"host", authority)
+                if not hosts:
+                    self.headers.append((b"host", authority))
+            super().on_headers_complete()
 
         def on_message_complete(self) -> None:
             # uvicorn ignores the end of a body whose answer is already sent; note it here.

@@ -8,6 +8,7 @@ from __future__ import annotations
 import io
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -212,8 +213,27 @@ def test_a_gateway_without_a_token_answers_only_its_own_names_and_origin(tmp_pat
             assert answer.status_code == 400 and "another origin" not in answer.text, headers
         with gw.client() as client:
             assert client.get("/v1/jobs").json()["jobs"] == []
+
+        # RFC 9112: one Host line, and an absolute-form target's authority is the host judged.
+        twice = _raw(gw, f"GET /v1/jobs HTTP/1.1\r\nHost: {own}\r\nHost: {own}\r\n")
+        assert twice.startswith(b"HTTP/1.1 400 ") and b"2 Host lines" in twice, twice
+        elsewhere = _raw(gw, f"GET http://attacker.example/v1/jobs HTTP/1.1\r\nHost: {own}\r\n")
+        assert elsewhere.startswith(b"HTTP/1.1 400 ") and b"attacker.example" in elsewhere
+        ours = _raw(gw, f"GET http://{own}/v1/jobs HTTP/1.1\r\nHost: attacker.example\r\n")
+        assert ours.startswith(b"HTTP/1.1 200 ") and b'"jobs":[]' in ours, ours
     finally:
         gw.stop()
+
+
+def _raw(gw, head: str) -> bytes:
+    """The whole answer to a request head sent as written, on a connection of its own."""
+    port = int(gw.url.rsplit(":", 1)[1])
+    with socket.create_connection(("127.0.0.1", port), timeout=30) as sock:
+        sock.sendall(head.encode() + b"Connection: close\r\n\r\n")
+        answer = b""
+        while chunk := sock.recv(65536):
+            answer += chunk
+    return answer
 
 
 def test_a_gateway_with_a_token_takes_any_host_unless_given_a_list(gateway, tmp_path):
