@@ -23,6 +23,7 @@ from __future__ import annotations
 import enum
 import json
 import logging
+import re
 import shlex
 import time
 from collections.abc import Callable
@@ -192,6 +193,16 @@ def _bounded_client(address: str, timeout: float) -> JobSubmissionClient:
             return super()._do_request(method, endpoint, **kwargs)
 
     return BoundedClient()
+
+
+#: An absolute path in a log line: a '/' that starts no word, then path characters.
+_ABSOLUTE_PATH = re.compile(r"(?<![\w.:/])/[\w.@+-]+(?:/[\w.@+-]*)*")
+
+
+def without_paths(text: str) -> str:
+    """`text` with every absolute path cut to its last part (`…/name`), so that a reason shown to
+    a client names no server folder (read roots, the Python path, job folders)."""
+    return _ABSOLUTE_PATH.sub(lambda m: "…/" + m.group(0).rstrip("/").rsplit("/", 1)[-1], text)
 
 
 def _first_line(text: str) -> str:
@@ -405,7 +416,7 @@ class _Follow:
             f"ended {status}" if status else f"is unknown to the Ray Jobs API at {self.api.address}"
         )
         if self.number >= self.executor.max_submissions:
-            tail = self.api.log_tail(self.sid) if status else ""
+            tail = without_paths(self.api.log_tail(self.sid)) if status else ""
             raise JobError(
                 f"the job's Ray job {self.sid} {how} without finishing, after "
                 f"{self.number} submissions (the limit)"

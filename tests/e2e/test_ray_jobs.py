@@ -203,7 +203,10 @@ class ScriptedApi:
         return running
 
     def log_tail(self, sid: str) -> str:
-        return "RuntimeError: the node went away"
+        return (
+            'File "/opt/venv/lib/python3.12/site-packages/workers/predict_job.py", line 9 | '
+            "--read-roots /srv/data /results/gateway/jobs | RuntimeError: the node went away"
+        )
 
 
 @dataclass
@@ -320,6 +323,9 @@ def test_a_job_that_dies_every_time_fails_naming_its_last_ray_job(tmp_path):
     message = str(caught.value)
     assert f"Ray job {JOB}-3 ended FAILED without finishing" in message
     assert "after 3 submissions" in message and "the node went away" in message
+    # The log's tail names no server folder, only the files' own names.
+    assert "/opt" not in message and "/srv" not in message and "/results" not in message
+    assert 'File "…/predict_job.py"' in message and "--read-roots …/data …/jobs" in message
     assert "\n" not in message and len(api.submitted) == 3
 
 
