@@ -59,6 +59,11 @@ def decode_labels(body: bytes, headers: dict[str, str] | object, points: int) ->
     with_confidence = get(CONFIDENCE_HEADER) == "1"
     counted = get(POINTS_HEADER)
     expected = points * 4 * (2 if with_confidence else 1)
+    if counted is None:
+        raise ValueError(
+            f"the Serve application answered {len(body)} bytes without the {POINTS_HEADER} "
+            f"header, for a scan of {points} points"
+        )
     if counted != str(points) or len(body) != expected:
         raise ValueError(
             f"the Serve application answered {len(body)} bytes for {counted} points, not the "

@@ -64,6 +64,8 @@ def test_the_exchange_round_trips_labels_and_confidences():
     with pytest.raises(ValueError, match=r"not the 40 bytes"):
         decode_labels(body, {**headers, CONFIDENCE_HEADER: "1"}, 5)
     assert headers[POINTS_HEADER] == "5"
+    with pytest.raises(ValueError, match=rf"answered 20 bytes without the {POINTS_HEADER} header"):
+        decode_labels(body, {CONFIDENCE_HEADER: "0"}, 5)
     assert query_flag("False", True, "knn") is False and query_flag(None, True, "knn") is True
     with pytest.raises(ValueError, match="the query parameter knn is true or false"):
         query_flag("maybe", True, "knn")
