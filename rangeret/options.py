@@ -17,6 +17,7 @@ from rangeret.dataset.labels import load_label_config
 from rangeret.dataset.layout import missing_sequences, resolve_sequences
 from rangeret.dataset.profiles import DatasetProfile, load_profile
 from rangeret.inference.spec import WEIGHTS, add_spec_options, group_fields
+from rangeret.io.decode_limits import DECODED_OPTION, DEFAULT_MAX_DECODED_BYTES, DecodeLimits
 from rangeret.submission.leaderboard import DEFAULT_NAME, DEFAULT_URL, LeaderboardEntry
 
 log = logging.getLogger("rangeret")
@@ -151,6 +152,36 @@ def add_field_option(parser: argparse.ArgumentParser | argparse._ArgumentGroup) 
         "the cloud's field FIELD; by default each is found by its name or a usual alias "
         "(intensity for remission, ring for laser_id); repeatable",
     )
+
+
+def add_decoded_limit_option(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """--max-decoded-bytes N: the most a point-cloud file may decode to (the gateway's default)."""
+    parser.add_argument(
+        DECODED_OPTION,
+        type=_positive_int,
+        metavar="N",
+        default=None,
+        help="the most bytes a point-cloud file may decode to: its declared points times the "
+        "wider of its point and the profile's record, checked from its header before it is "
+        f"read whole (default {DEFAULT_MAX_DECODED_BYTES:,}, as the gateway's "
+        "RANGERET_MAX_DECODED_BYTES)",
+    )
+
+
+def decode_limits_from_args(args: argparse.Namespace) -> DecodeLimits:
+    """The bounds files are decoded within: --max-decoded-bytes, else the default."""
+    given = getattr(args, "max_decoded_bytes", None)
+    return DecodeLimits(max_decoded_bytes=given or DEFAULT_MAX_DECODED_BYTES)
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
 
 
 def add_label_config(parser: argparse.ArgumentParser) -> None:

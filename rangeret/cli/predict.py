@@ -10,6 +10,7 @@ from rangeret.cli.predict_bag import add_bag_options, run_bag
 from rangeret.cli.shared import predictor_from_args
 from rangeret.commands import CommandError
 from rangeret.options import (
+    add_decoded_limit_option,
     add_field_option,
     add_network_options,
     add_selection,
@@ -75,6 +76,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "`network raw id: data raw id`, as `rangeret adapt --label-map` takes)",
     )
     add_field_option(p)
+    add_decoded_limit_option(p)
     add_network_options(p)
 
 
@@ -82,6 +84,8 @@ def run(args: argparse.Namespace) -> int:
     """Predict the scans of the source chosen (a dataset's split or sequences, files, or a bag)."""
     if args.label_map is not None and args.dataset is None:
         raise CommandError("--label-map is for --dataset")
+    if args.max_decoded_bytes is not None and args.files is None:
+        raise CommandError("--max-decoded-bytes is for --files")
     if args.bag is None:
         for option, value in (("--topic", args.topic), ("--bag-format", args.bag_format)):
             if value:

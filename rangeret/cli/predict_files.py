@@ -7,11 +7,12 @@ input, DIR gets `<stem>.label` (uint32 raw ids, one per point in the file's orde
 `--save-confidence` `<stem>.npy` (float16 confidences) and with `--write-labelled`
 `<stem>.labelled.<ext>`: the file again in its own format and encoding with `label` and
 `confidence` added (a `.bin` has no room for them: its `.label` is its labelled form). Files are
-labelled one at a time. A file that cannot be read or labelled is reported and the others still
-run; the command then exits 1 naming every failure. DIR/run.json records the network and, for
-each file, its format, points, invalid points and which field (or fill value) gave each value; its
-`runs` lists every run into DIR. Labelling into a DIR of another checkpoint's labels is refused
-before any file is read unless --overwrite.
+labelled one at a time, each within --max-decoded-bytes (what its header declares it decodes to,
+checked before it is read whole). A file that cannot be read or labelled is reported and the
+others still run; the command then exits 1 naming every failure. DIR/run.json records the network
+and, for each file, its format, points, invalid points and which field (or fill value) gave each
+value; its `runs` lists every run into DIR. Labelling into a DIR of another checkpoint's labels
+is refused before any file is read unless --overwrite.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from rangeret.commands import CommandError
 from rangeret.io.point_fields import parse_field_overrides
 from rangeret.io.point_files import EXTENSIONS
 from rangeret.io.run_info import check_weights, started_now, write_run_info
+from rangeret.options import decode_limits_from_args
 
 RUNNER = "rangeret predict --files"
 
@@ -82,6 +84,7 @@ def run_files(args: argparse.Namespace) -> int:
         save_confidence=args.save_confidence,
         labelled=args.write_labelled,
         progress=not args.quiet,
+        limits=decode_limits_from_args(args),
     )
     write_run_info(
         out,

@@ -7,7 +7,13 @@ from pathlib import Path
 
 from rangeret.commands import CommandError
 from rangeret.io.point_fields import parse_field_overrides
-from rangeret.options import add_field_option, add_profile_option, profile_from_args
+from rangeret.options import (
+    add_decoded_limit_option,
+    add_field_option,
+    add_profile_option,
+    decode_limits_from_args,
+    profile_from_args,
+)
 from rangeret.plugins import Subcommand
 
 
@@ -37,6 +43,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     add_profile_option(p)
     add_field_option(p)
+    add_decoded_limit_option(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -50,7 +57,12 @@ def run(args: argparse.Namespace) -> int:
     profile = profile_from_args(args)
     overrides = parse_field_overrides(args.field, record=profile.points)
     view = load_labelled_scan(
-        args.scan, args.labels, args.ground_truth, profile=profile, overrides=overrides
+        args.scan,
+        args.labels,
+        args.ground_truth,
+        profile=profile,
+        overrides=overrides,
+        limits=decode_limits_from_args(args),
     )
     for path in write_view(view, args.out, profile):
         print(f"{path.suffix[1:]}: {path}")

@@ -22,6 +22,7 @@ from rangeret.dataset.labels import SEMANTIC_MASK, LabelConfig
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.evaluation.plots import _pyplot
 from rangeret.io.atomic import atomic_path
+from rangeret.io.decode_limits import DEFAULT_LIMITS, DecodeLimits
 from rangeret.io.ply import write_ply
 from rangeret.io.point_fields import to_record
 from rangeret.io.point_files import read_point_file
@@ -67,13 +68,15 @@ def load_labelled_scan(
     *,
     profile: DatasetProfile,
     overrides: dict[str, str] | None = None,
+    limits: DecodeLimits = DEFAULT_LIMITS,
 ) -> LabelledScan:
-    """Read a point-cloud file as the profile's record (`overrides`: `--field` mappings) and its
-    label files, each checked to hold one uint32 per point of the file (a ScanFormatError naming
-    the file and both counts otherwise); invalid points are then left out."""
+    """Read a point-cloud file as the profile's record (`overrides`: `--field` mappings; `limits`:
+    what it may decode to) and its label files, each checked to hold one uint32 per point of the
+    file (a ScanFormatError naming the file and both counts otherwise); invalid points are then
+    left out."""
     scan = Path(scan)
     cloud = to_record(
-        read_point_file(scan, record=profile.points).columns,
+        read_point_file(scan, record=profile.points, limits=limits).columns,
         record=profile.points,
         source=str(scan),
         reflectance_fill=profile.reflectance_fill,

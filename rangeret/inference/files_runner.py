@@ -21,6 +21,7 @@ from rangeret.inference.clouds import label_cloud
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import RunSummary
 from rangeret.inference.timing import StageTimes
+from rangeret.io.decode_limits import DEFAULT_LIMITS, DecodeLimits
 from rangeret.io.point_fields import to_record
 from rangeret.io.point_files import read_point_file, write_labelled
 from rangeret.io.scans import write_confidence, write_labels
@@ -44,13 +45,14 @@ def predict_file(
     save_confidence: bool,
     labelled: bool,
     times: StageTimes | None = None,
+    limits: DecodeLimits = DEFAULT_LIMITS,
 ) -> dict[str, Any]:
-    """Label one file into `out`; what run.json records of it. Bad input raises the
-    RangeRetError naming the file."""
+    """Label one file into `out` (read within `limits`); what run.json records of it. Bad input
+    raises the RangeRetError naming the file."""
     profile = predictor.profile
     times = times if times is not None else StageTimes()
     with times.stage("read"):
-        point_file = read_point_file(path, record=profile.points)
+        point_file = read_point_file(path, record=profile.points, limits=limits)
         cloud = to_record(
             point_file.columns,
             record=profile.points,
@@ -89,9 +91,11 @@ def label_files(
     save_confidence: bool,
     labelled: bool,
     progress: bool = True,
+    limits: DecodeLimits = DEFAULT_LIMITS,
 ) -> tuple[RunSummary, list[dict[str, Any]]]:
-    """Label every file into `out`: the run's summary and, per file, what run.json records of it
-    (or its error). A missing extra stops the run: no file of that format could be read."""
+    """Label every file into `out`, each read within `limits`: the run's summary and, per file,
+    what run.json records of it (or its error). A missing extra stops the run: no file of that
+    format could be read."""
     out.mkdir(parents=True, exist_ok=True)
     summary = RunSummary(total=len(files))
     inputs: list[dict[str, Any]] = []
@@ -106,6 +110,7 @@ def label_files(
                 save_confidence=save_confidence,
                 labelled=labelled,
                 times=summary.times,
+                limits=limits,
             )
         except MissingExtraError:
             raise

@@ -4,9 +4,12 @@ the `files` extra.
 Columns are the scaled coordinates `x`, `y`, `z` (float64, as laspy computes them from the stored
 integers, scale and offset) and every other dimension under its own name, extra-bytes ones
 included. LAS intensity is a uint16: it is read as a reflectance in 0..1, `intensity / 65535`,
-which the reader's notes say (and run.json records). The header alone gives the point count, so a
-LAZ file can be refused before anything is decompressed. Labelled output adds the extra-bytes
-dimensions `label` (uint32) and `confidence` (float32).
+which the reader's notes say (and run.json records). The header's fixed fields are read and
+checked here before laspy parses the rest: its size, the offset to the points, the (E)VLRs it
+declares (each needs its 54 or 60 bytes in the file, so a forged count cannot have laspy read
+a million of them) and the points times the record length, so a file can be refused before
+anything is decompressed or allocated. Labelled output adds the extra-bytes dimensions `label`
+(uint32) and `confidence` (float32).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from rangeret.extras import require_extra
+from rangeret.io.decode_limits import Declared
 from rangeret.io.scans import ScanFormatError
 
 #: The signature every LAS and LAZ file starts with.
@@ -28,6 +32,10 @@ INTENSITY_SCALE = 65535.0
 INTENSITY_NOTE = "LAS intensity (uint16) read as remission = intensity / 65535"
 #: The raw integer coordinates, not columns: their scaled values are.
 _RAW_COORDINATES = ("X", "Y", "Z")
+#: Bytes of the LAS 1.0-1.2 header, the least any version has, and of the LAS 1.4 one.
+MIN_HEADER, HEADER_1_4 = 227, 375
+#: Bytes of a VLR's header and of an extended VLR's.
+VLR_BYTES, EVLR_BYTES = 54, 60
 
 
 class LasFormatError(ScanFormatError):
@@ -50,7 +58,10 @@ def _errors(laspy: Any) -> tuple[type[BaseException], ...]:
     """What laspy and lazrs raise for bad input."""
     import lazrs
 
-    return (laspy.errors.LaspyException, lazrs.LazrsError, ValueError, OSError, EOFError, KeyError)
+    return (
+        laspy.errors.LaspyException, lazrs.LazrsError, ValueError, OSError, EOFError, KeyError,
+        IndexError, TypeError, OverflowError, struct.error,
+    )  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -63,11 +74,78 @@ class LasHeaderInfo:
     point_format: int
 
 
+@dataclass(frozen=True)
+class LasLayout:
+    """The fixed fields of a LAS header that bound the rest of the file."""
+
+    minor: int
+    header_size: int
+    offset: int
+    vlrs: int
+    point_size: int
+    points: int
+    evlr_start: int
+    evlrs: int
+
+
+def read_layout(data: bytes | memoryview, source: str, size: int | None = None) -> LasLayout:
+    """The fixed fields of a LAS header (from the file's first bytes; `size`: the file's, default
+    `len(data)`), checked against the file's size; LasFormatError when they cannot hold."""
+    size = len(data) if size is None else size
+    head = bytes(data[:HEADER_1_4])
+    if not is_las(head):
+        raise LasFormatError(source, "is not a LAS file (no LASF signature)")
+    minor = head[25] if len(head) > 25 else 0
+    need = HEADER_1_4 if minor >= 4 else MIN_HEADER
+    if min(len(head), size) < need:
+        raise LasFormatError(
+            source, f"the LAS 1.{minor} header needs {need} bytes, the file holds {size}"
+        )
+    header_size, offset, vlrs, _, point_size, points = struct.unpack_from("<HIIBHI", head, 94)
+    evlr_start, evlrs = 0, 0
+    if minor >= 4:
+        evlr_start, evlrs, points = struct.unpack_from("<QIQ", head, 235)
+    layout = LasLayout(minor, header_size, offset, vlrs, point_size, points, evlr_start, evlrs)
+    _check_layout(layout, size, source)
+    return layout
+
+
+def _check_layout(layout: LasLayout, size: int, source: str) -> None:
+    """LasFormatError when the header, its VLRs or its EVLRs cannot fit the file."""
+    if not MIN_HEADER <= layout.header_size <= min(layout.offset, size):
+        raise LasFormatError(
+            source,
+            f"the LAS header declares {layout.header_size} header bytes and its points at "
+            f"{layout.offset}, in a file of {size} bytes",
+        )
+    room = layout.offset - layout.header_size
+    if layout.offset > size or layout.vlrs * VLR_BYTES > room:
+        raise LasFormatError(
+            source,
+            f"the LAS header declares {layout.vlrs:,} VLRs, but the {room:,} bytes between its "
+            f"header and its points (at {layout.offset:,} of {size:,}) hold at most "
+            f"{max(room, 0) // VLR_BYTES:,}",
+        )
+    if layout.evlrs and not (
+        layout.offset <= layout.evlr_start and layout.evlr_start + layout.evlrs * EVLR_BYTES <= size
+    ):
+        raise LasFormatError(
+            source,
+            f"the LAS header declares {layout.evlrs:,} EVLRs at {layout.evlr_start:,}, which do "
+            f"not fit in the file's {size:,} bytes",
+        )
+
+
+def declared(data: bytes | memoryview, source: str, size: int | None = None) -> Declared:
+    """The points a LAS/LAZ declares and its point record's bytes, from its header alone."""
+    layout = read_layout(data, source, size)
+    return Declared(layout.points, layout.point_size)
+
+
 def read_header(data: bytes | memoryview, source: str) -> LasHeaderInfo:
     """The header of a LAS/LAZ file's bytes, nothing decompressed; LasFormatError when it
     cannot be read."""
-    if not is_las(bytes(data[:4])):
-        raise LasFormatError(source, "is not a LAS file (no LASF signature)")
+    read_layout(data, source)
     laspy = _laspy()
     try:
         with laspy.open(io.BytesIO(data)) as reader:
@@ -84,7 +162,7 @@ def read_header(data: bytes | memoryview, source: str) -> LasHeaderInfo:
 
 def declared_points(data: bytes | memoryview, source: str) -> int:
     """The points a LAS/LAZ declares, from its header alone."""
-    return read_header(data, source).points
+    return read_layout(data, source).points
 
 
 @dataclass(frozen=True)

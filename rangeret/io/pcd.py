@@ -1,10 +1,16 @@
-"""PCD (Point Cloud Library) files: the header read here, the data decoded and encoded by pypcd4.
+"""PCD (Point Cloud Library) files: the header and the data read here, labelled copies encoded by
+pypcd4.
 
-The header is parsed before any data is touched, so that the declared point count (`POINTS`, else
-`WIDTH * HEIGHT`) can refuse a file before a `binary_compressed` body is decompressed, and so that
-a truncated body is named as such. Fields named `_` are padding and are not columns; a field with
-`COUNT n > 1` gives the columns `NAME__0000` .. `NAME__n-1`. pypcd4 (BSD-3-Clause) comes with the
-`files` extra. ASCII output is written here with enough digits for every value to read back exact.
+The header is parsed and bounded before any data is touched: a point may hold at most
+`MAX_POINT_VALUES` values (its fields with their COUNTs), the declared points (`POINTS`, else
+`WIDTH * HEIGHT`) times the point's bytes are what the caller's `DecodeLimits` bound, and a
+truncated body is named as such. The data then decodes into at most one buffer: a `binary` body
+is read in place, an `ascii` one parsed into one array, a `binary_compressed` one decompressed
+(LZF) into one buffer whose fields are read in place (each value of a field with `COUNT n > 1`
+stored as its own block, as pypcd4 writes them). Fields named `_` are padding and are not
+columns; a field with `COUNT n > 1` gives the columns `NAME__0000` .. `NAME__n-1`. pypcd4 and
+its LZF codec, python-neo-lzf (both BSD-3-Clause), come with the `files` extra. ASCII output is written here with
+enough digits for every value to read back exact.
 """
 
 from __future__ import annotations
@@ -17,6 +23,8 @@ from typing import Any
 import numpy as np
 
 from rangeret.extras import require_extra
+from rangeret.io.ascii_points import read_ascii_rows
+from rangeret.io.decode_limits import Declared, check_point_values
 from rangeret.io.scans import ScanFormatError
 
 #: The encodings of a PCD body.
@@ -31,6 +39,8 @@ NUMPY_TYPES = {
 }  # fmt: skip
 #: Bytes of a header read before it must have ended.
 HEADER_LIMIT = 64 << 10
+#: The name of a padding field.
+PADDING = "_"
 
 
 class PcdFormatError(ScanFormatError):
@@ -52,18 +62,32 @@ class PcdHeader:
     data_offset: int
 
     @property
-    def dtype(self) -> np.dtype:
-        """The numpy record of one point (padding fields under their own `_N` names)."""
-        items = []
-        for i, (name, size, kind, count) in enumerate(
-            zip(self.fields, self.sizes, self.types, self.counts, strict=True)
-        ):
-            base = NUMPY_TYPES[(kind, size)]
-            name = f"_{i}" if name == "_" else name
-            items += (
-                [(name, base)] if count == 1 else [(f"{name}__{c:04d}", base) for c in range(count)]
-            )
-        return np.dtype(items)
+    def point_bytes(self) -> int:
+        """Bytes of one point, padding included."""
+        return sum(s * c for s, c in zip(self.sizes, self.counts, strict=True))
+
+    def base_type(self, i: int) -> np.dtype:
+        """The numpy type of one value of field `i`."""
+        return np.dtype(NUMPY_TYPES[(self.types[i], self.sizes[i])])
+
+    def column_names(self, i: int) -> list[str]:
+        """The columns field `i` gives (`NAME`, or `NAME__0000` .. for a COUNT over 1)."""
+        name, count = self.fields[i], self.counts[i]
+        return [name] if count == 1 else [f"{name}__{c:04d}" for c in range(count)]
+
+    def point_dtype(self) -> np.dtype:
+        """One point as the body stores it: field `i` as `f{i}` (a subarray for COUNT > 1)."""
+        return np.dtype(
+            [
+                (f"f{i}", self.base_type(i)) if c == 1 else (f"f{i}", self.base_type(i), (c,))
+                for i, c in enumerate(self.counts)
+            ]
+        )
+
+    def flat_dtype(self) -> np.dtype:
+        """One point with every value its own field `v{k}`, in order (as pypcd4 writes it)."""
+        kinds = [self.base_type(i) for i, count in enumerate(self.counts) for _ in range(count)]
+        return np.dtype([(f"v{k}", kind) for k, kind in enumerate(kinds)])
 
 
 def is_pcd(head: bytes) -> bool:
@@ -73,7 +97,8 @@ def is_pcd(head: bytes) -> bool:
 
 def parse_header(data: bytes | memoryview, source: str) -> PcdHeader:
     """The header of a PCD file's bytes (only its first lines are read); PcdFormatError when a
-    key is missing or malformed or the fields' lists disagree."""
+    key is missing or malformed or the fields' lists disagree, `DecodeLimitError` when a point
+    would hold more than `MAX_POINT_VALUES` values."""
     head = bytes(data[:HEADER_LIMIT])
     values: dict[str, list[str]] = {}
     offset = 0
@@ -125,14 +150,42 @@ def _header(values: dict[str, list[str]], encoding: str, offset: int, source: st
             )
         if count < 1:
             raise PcdFormatError(source, f"field {name!r} has COUNT {count}")
-    named = [f for f in fields if f != "_"]
-    if len(set(named)) != len(named):
-        raise PcdFormatError(source, f"the PCD header names a field twice ({' '.join(fields)})")
+    check_point_values(sum(counts), source, "its FIELDS with their COUNTs")
     if min(width, height, points) < 0 or (width * height and points != width * height):
         raise PcdFormatError(
             source, f"the PCD header declares POINTS {points} but WIDTH {width} x HEIGHT {height}"
         )
-    return PcdHeader(fields, sizes, types, counts, width, height, points, encoding, offset)
+    header = PcdHeader(fields, sizes, types, counts, width, height, points, encoding, offset)
+    _check_names(header, source)
+    return header
+
+
+def _check_names(header: PcdHeader, source: str) -> None:
+    """PcdFormatError when two fields, once their COUNTs are expanded, give one column name."""
+    named = [f for f in header.fields if f != PADDING]
+    if len(set(named)) != len(named):
+        raise PcdFormatError(
+            source, f"the PCD header names a field twice ({' '.join(header.fields)})"
+        )
+    owner: dict[str, str] = {}
+    for i, field in enumerate(header.fields):
+        if field == PADDING:
+            continue
+        for column in header.column_names(i):
+            other = owner.setdefault(column, field)
+            if other != field:
+                first, second = sorted((other, field), key=header.fields.index)
+                raise PcdFormatError(
+                    source,
+                    f"the PCD fields {first!r} and {second!r} both give the column {column!r} "
+                    "(a field with COUNT n gives NAME__0000 .. NAME__n-1)",
+                )
+
+
+def declared(data: bytes | memoryview, source: str) -> Declared:
+    """The points a PCD declares and the bytes of each, from its header alone."""
+    header = parse_header(data, source)
+    return Declared(header.points, header.point_bytes)
 
 
 def declared_points(data: bytes | memoryview, source: str) -> int:
@@ -142,57 +195,89 @@ def declared_points(data: bytes | memoryview, source: str) -> int:
 
 @dataclass(frozen=True)
 class PcdCloud:
-    """A decoded PCD: its header and its points as one structured array (padding included)."""
+    """A decoded PCD: its header and each field's values ((N,), or (N, COUNT)), padding included."""
 
     header: PcdHeader
-    array: np.ndarray
+    values: tuple[np.ndarray, ...]
 
     def columns(self) -> dict[str, np.ndarray]:
-        """Each field as a 1-D array, padding left out."""
-        names = self.array.dtype.names or ()
-        return {n: self.array[n] for n in names if not _is_padding(n)}
+        """Each field as 1-D arrays (a COUNT over 1 as one per value), padding left out."""
+        out: dict[str, np.ndarray] = {}
+        for i, field in enumerate(self.header.fields):
+            if field == PADDING:
+                continue
+            names = self.header.column_names(i)
+            if len(names) == 1:
+                out[names[0]] = self.values[i]
+            else:
+                out.update((name, self.values[i][:, c]) for c, name in enumerate(names))
+        return out
 
-
-def _is_padding(name: str) -> bool:
-    return name.startswith("_") and name[1:].isdigit()
+    @property
+    def padding(self) -> int:
+        """Padding values per point (fields named `_`, with their COUNTs)."""
+        return sum(
+            c for f, c in zip(self.header.fields, self.header.counts, strict=True) if f == PADDING
+        )
 
 
 def read_pcd(data: bytes | memoryview, source: str) -> PcdCloud:
-    """Decode a PCD file's bytes (any encoding); PcdFormatError when the body is truncated or
-    cannot be decoded."""
+    """Decode a PCD file's bytes (any encoding) into at most one buffer of its declared points;
+    PcdFormatError when the body is truncated or cannot be decoded. The caller bounds the
+    declared size (`declared`) first."""
     header = parse_header(data, source)
     require_extra("reading PCD files", "files")
-    from pypcd4 import PointCloud
-
-    dtype = header.dtype
     body = memoryview(data)[header.data_offset :]
-    _check_body(header, body, dtype, source)
-    if header.points == 0:
-        return PcdCloud(header, np.empty(0, dtype=dtype))
-    stream = io.BytesIO(_pypcd4_header(header).encode("ascii") + bytes(body))
+    _check_body(header, body, source)
+    n = header.points
+    if header.encoding == "binary_compressed":
+        return PcdCloud(header, _compressed_values(header, body, source) if n else _empty(header))
+    point = header.point_dtype()
+    if header.encoding == "binary":
+        array = np.frombuffer(body, dtype=point, count=n)
+    else:
+        what = "ascii PCD data"
+        array = read_ascii_rows(
+            data, header.data_offset, n, point, source=source, error=PcdFormatError, what=what
+        )
+    return PcdCloud(header, tuple(array[f"f{i}"] for i in range(len(header.fields))))
+
+
+def _empty(header: PcdHeader) -> tuple[np.ndarray, ...]:
+    """Each field's values for no points."""
+    array = np.empty(0, dtype=header.point_dtype())
+    return tuple(array[f"f{i}"] for i in range(len(header.fields)))
+
+
+def _compressed_values(header: PcdHeader, body: memoryview, source: str) -> tuple[np.ndarray, ...]:
+    """Each field's values of a `binary_compressed` body: decompressed into one buffer, and each
+    value's block of it read in place."""
+    import lzf
+
+    compressed, need = struct.unpack("<II", bytes(body[:8]))
     try:
-        cloud = PointCloud.from_fileobj(stream)
-    except (ValueError, RuntimeError, TypeError, KeyError, struct.error, OSError) as exc:
-        raise PcdFormatError(
-            source, f"the {header.encoding} PCD data cannot be decoded ({exc})"
-        ) from exc
-    array = np.asarray(cloud.pc_data)
-    if len(array) != header.points:
+        buffer = lzf.decompress(bytes(body[8 : 8 + compressed]), need)
+    except ValueError:
+        buffer = None
+    if buffer is None or len(buffer) != need:
         raise PcdFormatError(
             source,
-            f"the {header.encoding} PCD data holds {len(array)} points, the header declares "
-            f"{header.points} (the file is truncated)",
+            f"the compressed PCD data does not decompress to the {need:,} bytes its size word "
+            "declares (its LZF stream is corrupt)",
         )
-    out = np.empty(header.points, dtype=dtype)
-    for ours, theirs in zip(dtype.names, array.dtype.names, strict=True):
-        out[ours] = array[theirs]
-    return PcdCloud(header, out)
+    n, offset, values = header.points, 0, []
+    for i, count in enumerate(header.counts):
+        kind = header.base_type(i)
+        block = np.frombuffer(buffer, dtype=kind, count=n * count, offset=offset)
+        values.append(block if count == 1 else block.reshape(count, n).T)
+        offset += n * count * kind.itemsize
+    return tuple(values)
 
 
-def _check_body(header: PcdHeader, body: memoryview, dtype: np.dtype, source: str) -> None:
+def _check_body(header: PcdHeader, body: memoryview, source: str) -> None:
     """Refuse a binary body shorter than its points, or a compressed one whose sizes are wrong,
     before anything is decoded."""
-    need = header.points * dtype.itemsize
+    need = header.points * header.point_bytes
     if header.encoding == "binary" and len(body) < need:
         raise PcdFormatError(
             source,
@@ -246,13 +331,15 @@ def labelled_pcd_bytes(cloud: PcdCloud, labels: np.ndarray, confidence: np.ndarr
 
     kept = [i for i, f in enumerate(cloud.header.fields) if f not in ("label", "confidence")]
     header = _subset(cloud.header, kept)
-    names = [n for n in cloud.array.dtype.names if _base_name(n) not in ("label", "confidence")]
-    dtype = np.dtype(
-        [(n, cloud.array.dtype[n]) for n in names] + [("label", "<u4"), ("confidence", "<f4")]
-    )
-    array = np.empty(len(cloud.array), dtype=dtype)
-    for n in names:
-        array[n] = cloud.array[n]
+    flat = header.flat_dtype()
+    dtype = np.dtype([*flat.descr, ("label", "<u4"), ("confidence", "<f4")])
+    array = np.empty(len(labels), dtype=dtype)
+    column = 0
+    for i in kept:
+        values = cloud.values[i] if cloud.values[i].ndim == 2 else cloud.values[i][:, None]
+        for c in range(values.shape[1]):
+            array[f"v{column}"] = values[:, c]
+            column += 1
     array["label"], array["confidence"] = labels, confidence
     text = _pypcd4_header(header, extra=(("label", "U", 4), ("confidence", "F", 4)))
     if header.encoding == "ascii":
@@ -261,10 +348,6 @@ def labelled_pcd_bytes(cloud: PcdCloud, labels: np.ndarray, confidence: np.ndarr
     out = io.BytesIO()
     PointCloud(metadata, array).save(out, encoding=Encoding(header.encoding))
     return out.getvalue()
-
-
-def _base_name(name: str) -> str:
-    return name.split("__")[0] if "__" in name else name
 
 
 def _subset(header: PcdHeader, kept: list[int]) -> PcdHeader:

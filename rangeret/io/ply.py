@@ -19,7 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
+from rangeret.io.ascii_points import read_ascii_rows
 from rangeret.io.atomic import atomic_write_bytes
+from rangeret.io.decode_limits import Declared
 from rangeret.io.scans import ScanFormatError
 
 #: The vertex record written: position, colour and raw label.
@@ -172,6 +174,12 @@ def parse_header(data: bytes | memoryview, source: str | os.PathLike[str]) -> Pl
     return PlyHeader(fmt, count, tuple(properties), tuple(comments), offset)
 
 
+def declared(data: bytes | memoryview, source: str) -> Declared:
+    """The vertices a PLY declares and the bytes of each, from its header alone."""
+    header = parse_header(data, source)
+    return Declared(header.count, header.dtype.itemsize)
+
+
 def declared_points(data: bytes | memoryview, source: str) -> int:
     """The vertices a PLY declares, from its header alone."""
     return parse_header(data, source).count
@@ -190,12 +198,19 @@ class PlyCloud:
 
 
 def read_ply_cloud(data: bytes | memoryview, source: str | os.PathLike[str]) -> PlyCloud:
-    """Decode the vertices of a PLY file's bytes; PlyFormatError when they are truncated."""
+    """Decode the vertices of a PLY file's bytes into one array (read in place where the file's
+    byte order is the machine's); PlyFormatError when they are truncated. The caller bounds the
+    declared size (`declared`) first."""
     header = parse_header(data, source)
     dtype = header.dtype
     native = dtype.newbyteorder("=")
     if header.format == "ascii":
-        return PlyCloud(header, _ascii_vertices(data, header, native, source))
+        what = "ASCII vertex data"
+        array = read_ascii_rows(
+            data, header.data_offset, header.count, native, source=source, error=PlyFormatError,
+            what=what,
+        )  # fmt: skip
+        return PlyCloud(header, array)
     need = header.count * dtype.itemsize
     if len(data) - header.data_offset < need:
         raise PlyFormatError(
@@ -204,36 +219,7 @@ def read_ply_cloud(data: bytes | memoryview, source: str | os.PathLike[str]) -> 
             f"{need} (the file is truncated)",
         )
     array = np.frombuffer(data, dtype=dtype, count=header.count, offset=header.data_offset)
-    return PlyCloud(header, array.astype(native))
-
-
-def _ascii_vertices(
-    data: bytes | memoryview, header: PlyHeader, dtype: np.dtype, source: str | os.PathLike[str]
-) -> np.ndarray:
-    """The first `count` lines of an ASCII body as vertices."""
-    array = np.empty(header.count, dtype=dtype)
-    if header.count == 0:
-        return array
-    lines = bytes(data[header.data_offset :]).split(b"\n", header.count)
-    width = len(header.properties)
-    try:
-        values = np.fromstring(b" ".join(lines[: header.count]).decode("ascii"), sep=" ")
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise PlyFormatError(source, f"a vertex value is not a number ({exc})") from exc
-    if len(lines) < header.count or values.size < header.count * width:
-        raise PlyFormatError(
-            source,
-            f"holds {values.size} ASCII values, {header.count} vertices of {width} properties "
-            f"need {header.count * width} (the file is truncated)",
-        )
-    if values.size != header.count * width:
-        raise PlyFormatError(
-            source, f"its first {header.count} lines hold {values.size} values, not {width} each"
-        )
-    values = values.reshape(header.count, width)
-    for i, (name, _) in enumerate(header.properties):
-        array[name] = values[:, i]
-    return array
+    return PlyCloud(header, array.astype(native, copy=False))
 
 
 def read_ply(path: str | os.PathLike[str]) -> np.ndarray:

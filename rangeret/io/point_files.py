@@ -5,8 +5,11 @@ file's first bytes (`# .PCD`, `VERSION` or `FIELDS` for PCD, `ply` for PLY, `LAS
 anything else whose size is a whole number of the profile's point records is a `.bin` scan. A file
 reads as `{field name: 1-D array}` in the file's point order plus notes on how values were
 converted (LAS intensity's scaling), which `rangeret.io.point_fields.to_record` turns into the
-profile's record. A malformed or truncated file is a `ScanFormatError` naming it and the problem.
-PCD and LAS/LAZ need the `files` extra; PLY and `.bin` do not.
+profile's record. Before anything is decoded, the header's declared points and point size are
+checked against `DecodeLimits` (`rangeret.io.decode_limits`): what would decode past them is a
+`DecodeLimitError`, and a file read from disk is read whole only once its header passed. A
+malformed or truncated file is a `ScanFormatError` naming it and the problem. PCD and LAS/LAZ
+need the `files` extra; PLY and `.bin` do not.
 """
 
 from __future__ import annotations
@@ -21,12 +24,15 @@ import numpy as np
 from rangeret.exceptions import InputFileMissing
 from rangeret.io import las, pcd, ply
 from rangeret.io.atomic import atomic_write_bytes
+from rangeret.io.decode_limits import DEFAULT_LIMITS, Declared, DecodeLimits
 from rangeret.io.scans import PointRecord, ScanFormatError, parse_scan
 
 #: File extensions and the format each names (`.laz` is LAS whose points are compressed).
 EXTENSIONS = {".pcd": "pcd", ".ply": "ply", ".las": "las", ".laz": "las", ".bin": "bin"}
 #: The formats read, as `PointFile.format` names them.
 FORMATS = ("pcd", "ply", "las", "laz", "bin")
+#: Bytes of a file read to judge its header (PCD and PLY headers must end within them).
+HEAD_BYTES = 64 << 10
 
 
 class PointFileError(ScanFormatError):
@@ -104,40 +110,69 @@ def format_of(name: str | os.PathLike[str], head: bytes, size: int, *, record: P
     return known or sniff_format(head, size, record=record, source=str(name))
 
 
-def declared_points(data: bytes | memoryview, fmt: str, *, record: PointRecord, source: str) -> int:
-    """The points a file says it holds, from its header alone (a `.bin`: its size), so that a
+def declare(
+    head: bytes | memoryview, fmt: str, *, record: PointRecord, source: str, size: int | None = None
+) -> Declared:
+    """The points a file says it holds and the bytes of each, from its header alone (`head`:
+    its first bytes; `size`: the file's, default `len(head)`; a `.bin`: its size), so that a
     caller can refuse it before decoding or decompressing anything."""
+    size = len(head) if size is None else size
     if fmt == "pcd":
-        return pcd.declared_points(data, source)
+        return pcd.declared(head, source)
     if fmt == "ply":
-        return ply.declared_points(data, source)
+        return ply.declared(head, source)
     if fmt in ("las", "laz"):
-        return las.declared_points(data, source)
-    return len(data) // record.point_bytes
+        return las.declared(head, source, size)
+    if fmt == "bin":
+        return Declared(size // record.point_bytes, record.point_bytes)
+    raise PointFileError(source, f"format {fmt!r} is not one of {', '.join(FORMATS)}")
+
+
+def declared_points(data: bytes | memoryview, fmt: str, *, record: PointRecord, source: str) -> int:
+    """The points a file says it holds, from its header alone (a `.bin`: its size)."""
+    return declare(data, fmt, record=record, source=source).points
 
 
 def read_point_file(
-    path: str | os.PathLike[str], *, record: PointRecord, fmt: str | None = None
+    path: str | os.PathLike[str],
+    *,
+    record: PointRecord,
+    fmt: str | None = None,
+    limits: DecodeLimits = DEFAULT_LIMITS,
 ) -> PointFile:
-    """Read a point-cloud file (format from `fmt`, else its extension, else its signature)."""
+    """Read a point-cloud file (format from `fmt`, else its extension, else its signature): its
+    header first, checked against `limits`, then the whole file."""
     try:
-        data = Path(path).read_bytes()
+        with open(path, "rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            head = f.read(HEAD_BYTES)
+            fmt = fmt or format_of(path, head[:16], size, record=record)
+            found = declare(head, fmt, record=record, source=str(path), size=size)
+            limits.check(found, record=record, source=str(path))
+            del head
+            f.seek(0)
+            data = f.read()
     except FileNotFoundError as exc:
         raise InputFileMissing.of(exc) from exc
     except IsADirectoryError as exc:
         raise PointFileError(path, "is a folder, not a point-cloud file") from exc
-    fmt = fmt or format_of(path, data[:16], len(data), record=record)
-    return decode_point_file(data, fmt, record=record, source=str(path))
+    return decode_point_file(data, fmt, record=record, source=str(path), limits=limits)
 
 
 def decode_point_file(
-    data: bytes | memoryview, fmt: str, *, record: PointRecord, source: str
+    data: bytes | memoryview,
+    fmt: str,
+    *,
+    record: PointRecord,
+    source: str,
+    limits: DecodeLimits = DEFAULT_LIMITS,
 ) -> PointFile:
-    """Decode a file's bytes in format `fmt` (pcd, ply, las, laz or bin; las and laz alike)."""
+    """Decode a file's bytes in format `fmt` (pcd, ply, las, laz or bin; las and laz alike),
+    its header checked against `limits` first (`DecodeLimitError` past them)."""
+    limits.check(declare(data, fmt, record=record, source=source), record=record, source=source)
     if fmt == "pcd":
         cloud = pcd.read_pcd(data, source)
-        padded = len(cloud.array.dtype.names or ()) - len(cloud.columns())
-        notes = (f"{padded} padding field(s) '_' skipped",) if padded else ()
+        notes = (f"{cloud.padding} padding field(s) '_' skipped",) if cloud.padding else ()
         return PointFile(source, "pcd", cloud.header.encoding, cloud.columns(), notes, cloud)
     if fmt == "ply":
         cloud = ply.read_ply_cloud(data, source)
@@ -150,11 +185,9 @@ def decode_point_file(
         encoding = f"LAS {info.version} point format {info.point_format}"
         kind = "laz" if info.compressed else "las"
         return PointFile(source, kind, encoding, columns, notes, cloud)
-    if fmt == "bin":
-        points = parse_scan(data, source, record=record)
-        columns = {name: points[:, i] for i, name in enumerate(record.fields)}
-        return PointFile(source, "bin", record.describe(), columns)
-    raise PointFileError(source, f"format {fmt!r} is not one of {', '.join(FORMATS)}")
+    points = parse_scan(data, source, record=record)
+    columns = {name: points[:, i] for i, name in enumerate(record.fields)}
+    return PointFile(source, "bin", record.describe(), columns)
 
 
 def labelled_bytes(point_file: PointFile, labels: np.ndarray, confidence: np.ndarray) -> bytes:
