@@ -10,6 +10,9 @@ RANGERET_DATABASE          the SQLite job database (default STATE_DIR/jobs.sqlit
 RANGERET_RETENTION         seconds (or ISO 8601) a finished job's files are kept (default 1 day)
 RANGERET_MAX_BODY_BYTES    largest single-scan or JSON request body (default 64 MiB)
 RANGERET_MAX_POINTS        most points per scan (default 2,000,000)
+RANGERET_MAX_DECODED_BYTES most bytes a PCD, PLY or LAS/LAZ body may decode to: its declared points
+                           times the wider of its point and the profile's record, checked from
+                           its header before anything is allocated (default 256 MiB)
 RANGERET_MAX_ARCHIVE_BYTES largest archive upload (default 4 GiB)
 RANGERET_MAX_EXTRACTED_BYTES largest total of an archive's files once extracted (default 16 GiB)
 RANGERET_MAX_ARCHIVE_MEMBERS most entries per archive, folders included (default 100,000)
@@ -50,6 +53,7 @@ from typing import Annotated
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from rangeret.io.decode_limits import DEFAULT_MAX_DECODED_BYTES
 from service.origins import default_allowed_hosts
 
 MIB = 1 << 20
@@ -71,6 +75,7 @@ class Settings(BaseSettings):
     retention: timedelta = Field(default=timedelta(days=1), gt=timedelta(0))
     max_body_bytes: int = Field(default=64 * MIB, gt=0)
     max_points: int = Field(default=2_000_000, gt=0)
+    max_decoded_bytes: int = Field(default=DEFAULT_MAX_DECODED_BYTES, gt=0)
     max_archive_bytes: int = Field(default=4 * GIB, gt=0)
     max_extracted_bytes: int = Field(default=16 * GIB, gt=0)
     max_archive_members: int = Field(default=100_000, gt=0)

@@ -31,7 +31,7 @@ from service.scan_bodies import (
     OCTET,
     FileBody,
     body_format,
-    check_declared,
+    body_limits,
     decode_file_body,
 )
 from service.schemas import BINARY_CONTENT, LabelFormat, ScanLabels
@@ -88,8 +88,9 @@ def _class_counts(labels: np.ndarray, profile: DatasetProfile) -> dict[str, int]
         "remission, PandaSet's add laser_id), or a point-cloud file: PCD (`application/x-pcd`), "
         "PLY (`application/x-ply` or `application/ply`), LAS (`application/vnd.las`) or LAZ "
         "(`application/vnd.laszip`); an `application/octet-stream` body that starts with a PCD, "
-        "PLY or LAS signature is read as that file. A file's declared point count over the limit "
-        "is refused with 413 before it is decoded. The answer is the bytes of the profile's "
+        "PLY or LAS signature is read as that file. A file whose header declares more points than "
+        "RANGERET_MAX_POINTS, or more than RANGERET_MAX_DECODED_BYTES once decoded, is refused "
+        "with 413 before it is decoded. The answer is the bytes of the profile's "
         "label file, one label per point in the body's order (a `.label` file's uint32 raw ids "
         "of its label configuration; for nuScenes, a `_lidarseg.bin` file's uint8 challenge "
         "classes; a file's points with a NaN or infinite value get the unlabelled raw id), or "
@@ -232,11 +233,12 @@ async def _label_file(
     confidence: bool,
     as_json: bool,
 ) -> Response:
-    """Label a PCD, PLY, LAS or LAZ body: its declared count checked before it is decoded, its
-    valid points labelled, the answer one label per point of the body."""
+    """Label a PCD, PLY, LAS or LAZ body: its header checked against the limits and the body
+    decoded off the event loop, its valid points labelled, the answer one label per point of the
+    body."""
     profile = entry.profile
-    check_declared(body, fmt, profile.points, gw.settings.max_points)
-    decoded: FileBody = await asyncio.to_thread(decode_file_body, body, fmt, profile)
+    limits = body_limits(gw.settings)
+    decoded: FileBody = await asyncio.to_thread(decode_file_body, body, fmt, profile, limits)
     if len(decoded.points):
         points = decoded.points
         labelled = await _labelled(gw, entry, points, knn, confidence)
