@@ -31,6 +31,12 @@ ROW_SOURCES = ("pitch", "laser_id", "ring")
 BEAM_ROWS = ("laser_id", "ring")
 
 
+#: The largest range image: rows and columns (real sensors have at most 256 beams and a few
+#: thousand columns; a larger image only takes memory without bound).
+MAX_HEIGHT = 512
+MAX_WIDTH = 8192
+
+
 class ProjectionError(InputError, ValueError):
     """A projection that cannot be made: settings out of range, or points that do not fit it."""
 
@@ -51,6 +57,11 @@ class ProjectionConfig:
     def __post_init__(self) -> None:
         if self.height < 1 or self.width < 1:
             raise ProjectionError(f"image size must be positive, got {self.height} x {self.width}")
+        if self.height > MAX_HEIGHT or self.width > MAX_WIDTH:
+            raise ProjectionError(
+                f"image size must be at most {MAX_HEIGHT} x {MAX_WIDTH}, got {self.height} x "
+                f"{self.width}"
+            )
         if abs(self.fov_up) + abs(self.fov_down) <= 0:
             raise ProjectionError("the vertical field of view is empty (fov_up and fov_down are 0)")
         if len(self.means) != 5 or len(self.stds) != 5:

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from rangeret.dataset.profiles import BUILTIN_PROFILES
+from rangeret.dataset.projection import MAX_HEIGHT, MAX_WIDTH
 from rangeret.exceptions import InputError
 from rangeret.inference.runtime.backends import BACKENDS, RuntimeChoiceError, check_backend
 from rangeret.inference.runtime.precision import PRECISIONS
@@ -49,13 +50,14 @@ def option(
     choices: tuple[str, ...] | None = None,
     negate: str | None = None,
     minimum: int | None = None,
+    maximum: int | None = None,
     cli_type: Callable[[str], Any] | None = None,
 ) -> Any:
     """An `InferenceSpec` field with its schema: the value's `kind` (bool, int, float or, by
     default, str; None is allowed where the default is None), `help`, `metavar` and `choices` of
     its option, `group` (`WEIGHTS` or `RUN`), `negate` (a bool option spelt as the flag that
-    turns it off), `minimum` (the least integer it takes) and `cli_type` (how the command line
-    reads it)."""
+    turns it off), `minimum` and `maximum` (the least and the most integer it takes) and
+    `cli_type` (how the command line reads it)."""
     metadata = {
         "help": help,
         "kind": kind,
@@ -64,6 +66,7 @@ def option(
         "choices": choices,
         "negate": negate,
         "minimum": minimum,
+        "maximum": maximum,
         "cli_type": cli_type,
     }
     return dataclasses.field(default=default, metadata=metadata)
@@ -104,14 +107,20 @@ class InferenceSpec:
         help="network name; recognised from the checkpoint when omitted",
     )
     height: int | None = option(
-        None, kind=int, group=WEIGHTS, minimum=1, help="range image rows (default: the profile's)"
+        None,
+        kind=int,
+        group=WEIGHTS,
+        minimum=1,
+        maximum=MAX_HEIGHT,
+        help=f"range image rows, at most {MAX_HEIGHT} (default: the profile's)",
     )
     width: int | None = option(
         None,
         kind=int,
         group=WEIGHTS,
         minimum=1,
-        help="range image columns (default: the profile's)",
+        maximum=MAX_WIDTH,
+        help=f"range image columns, at most {MAX_WIDTH} (default: the profile's)",
     )
     fov_up: float | None = option(
         None, kind=float, group=WEIGHTS, metavar="DEG", help=f"upper {_FOV}"
@@ -229,6 +238,9 @@ class InferenceSpec:
             if minimum is not None and value is not None and value < minimum:
                 least = "not be negative" if minimum == 0 else f"be at least {minimum}"
                 return f"{name(f.name)} must {least}, got {value}"
+            maximum = f.metadata["maximum"]
+            if maximum is not None and value is not None and value > maximum:
+                return f"{name(f.name)} must be at most {maximum}, got {value}"
         try:
             check_backend(self.backend, self.precision)
         except RuntimeChoiceError as exc:
