@@ -190,6 +190,8 @@ def read_record(path: Path, kind: str) -> dict[str, Any]:
         record = json.loads(path.read_text())
     except FileNotFoundError:
         return {}
+    except RecursionError as exc:
+        raise RunInfoError(f"{path} is not a readable {kind} (it nests too deeply)") from exc
     except (OSError, ValueError) as exc:
         raise RunInfoError(f"{path} is not a readable {kind} ({exc})") from exc
     if not isinstance(record, dict):
