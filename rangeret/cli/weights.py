@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
         path = fetch_weights(model, args.to)
         print(f"{model.name}: {path}")
         return 0
-    rows = [("name", "dataset", "profile", "mIoU (%)", "cached", "size")]
+    rows = [("name", "dataset", "profile", "mIoU (%)", "cached", "size", "sha256")]
     for model in load_registry().values():
         cached = cached_weights(model)
         size = cached.stat().st_size if cached else model.size
@@ -66,7 +66,8 @@ def run(args: argparse.Namespace) -> int:
                 model.profile,
                 model.miou_text(),
                 "yes" if cached else "no",
-                f"{size / 2**20:.1f} MiB" if size else "unknown",
+                f"{size / 2**20:.1f} MiB" if size else "not pinned",
+                model.sha256[:12] if model.sha256 else "not pinned",
             )
         )
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]

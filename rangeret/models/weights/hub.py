@@ -77,7 +77,9 @@ def locate_weights(model: PublishedModel, to: Path | None = None) -> Path:
 def check_pin(model: PublishedModel, path: Path, sha256: str) -> None:
     """`WeightsError` (the file removed) when `sha256`, the hash of the file's bytes, is not the
     registry's pin for the model."""
-    if model.sha256 is not None and sha256 != model.sha256:
+    if model.sha256 is None:
+        _note_unpinned(model, path, sha256)
+    elif sha256 != model.sha256:
         _remove(path)
         raise WeightsError(
             f"the file downloaded for {model.name} has SHA-256 {sha256}, but the registry pins "
@@ -85,6 +87,26 @@ def check_pin(model: PublishedModel, path: Path, sha256: str) -> None:
             f"{weights_url(model)}"
         )
     log.info("%s: %s (sha256 %s)", model.name, path, sha256)
+
+
+#: The unpinned models whose hash this process has logged already.
+_NOTED: set[str] = set()
+
+
+def _note_unpinned(model: PublishedModel, path: Path, sha256: str) -> None:
+    """Log, once per model and process, the SHA-256 and size of a file the registry does not pin,
+    so that a user can pin it in a registry of their own."""
+    if model.name in _NOTED:
+        return
+    _NOTED.add(model.name)
+    log.warning(
+        "%s is not pinned in the registry: its file %s has sha256 %s and %d bytes; pin them "
+        "(sha256:, size:) in your own registry (RANGERET_REGISTRY) to have them checked",
+        model.name,
+        path,
+        sha256,
+        path.stat().st_size,
+    )
 
 
 def _download(model: PublishedModel, to: Path | None) -> Path:

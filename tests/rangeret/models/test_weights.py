@@ -219,6 +219,9 @@ def test_a_name_resolves_to_its_file_profile_and_resolution(env, weights, hub, t
     assert listed.returncode == 0, listed.stderr
     row = next(line for line in listed.stdout.splitlines() if line.startswith("tiny-kitti "))
     assert " yes " in row and "MiB" in row and "val 1.0" in row
+    assert row.endswith(weights["sha256"][:12])
+    unpinned = next(line for line in listed.stdout.splitlines() if line.startswith("tiny-absent "))
+    assert unpinned.endswith("not pinned  not pinned") and "unknown" not in listed.stdout
 
 
 def test_predict_reads_its_checkpoint_once_by_name_or_by_path(env, weights, hub, tmp_path):
@@ -283,6 +286,10 @@ def test_download_to_a_folder(env, weights, tmp_path):
     run = rangeret(env, "weights", "download", "tiny-unpinned", "--to", str(tmp_path / "models"))
     assert run.returncode == 0, run.stderr
     assert (tmp_path / "models" / "tiny.pt").read_bytes() == weights["bytes"]
+    # An unpinned file's hash and size are logged, once, for the user to pin.
+    said = " ".join(run.stderr.split())
+    assert said.count("tiny-unpinned is not pinned") == 1, run.stderr
+    assert f"sha256 {weights['sha256']} and {len(weights['bytes'])} bytes" in said
     assert not _cached(env)
 
 
