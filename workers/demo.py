@@ -212,10 +212,13 @@ def run_demo(
     )
     print(
         "  RAY_AUTH_MODE=token ray job submit --working-dir . -- python -m workers.predict_job "
-        "--dataset ROOT --split test \\"
+        "--dataset /abs/ROOT --split test \\"
     )
-    print("      --out PRED --submission submission.zip --checkpoint rangeret-kitti-657")
-    print("  rangeret validate-submission submission.zip --dataset ROOT")
+    print(
+        "      --out /abs/PRED --submission /abs/submission.zip --checkpoint rangeret-kitti-657"
+        "   (a Ray job runs in a copy of the working directory: give absolute paths)"
+    )
+    print("  rangeret validate-submission /abs/submission.zip --dataset /abs/ROOT")
     print("(a Ray cluster needs its token: see the README's Ray job recipe)")
     return out
 

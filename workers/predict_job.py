@@ -1,7 +1,10 @@
 """`python -m workers.predict_job`: predict a split on a Ray cluster, then report and archive.
 
-    ray job submit --working-dir . -- python -m workers.predict_job --dataset ROOT --split test \\
-        --out PRED --submission submission.zip --checkpoint rangeret-kitti-657
+    ray job submit --working-dir . -- python -m workers.predict_job --dataset /abs/ROOT \\
+        --split test --out /abs/PRED --submission /abs/submission.zip --checkpoint rangeret-kitti-657
+
+(the job runs in a copy of the working directory, so its paths are absolute: a relative one is
+refused in one line, `workers.job_paths`).
 
 Connects to the cluster in RAY_ADDRESS (set by `ray job submit`), or starts a local Ray when
 none is set. On a multi-node cluster ROOT and PRED must be on storage every node mounts. The job
@@ -40,6 +43,7 @@ from rangeret.options import (
 from rangeret.submission.benchmarks import no_archive_reason, write_benchmark_archive
 from rangeret.submission.leaderboard import description_text
 from workers.cluster import connect
+from workers.job_paths import check_job_paths
 from workers.pipeline import describe_spec, run_pipeline
 from workers.progress import ProgressWriter
 from workers.sizing import PipelineOptions
@@ -138,6 +142,10 @@ def run(args: argparse.Namespace) -> int:
     written last, also when failed scans or bad input (the errors `run_command` reports as one
     line) end the job, except that input refused before the output folder exists leaves no folder
     behind; a job stopped by anything else leaves none."""
+    check_job_paths(
+        inputs=[("--dataset", args.dataset)],
+        outputs=[("--out", args.out), ("--submission", args.submission), ("--report", args.report)],
+    )
     recorder = ProgressWriter(args.out)
     existed = Path(args.out).is_dir()
     try:

@@ -1005,11 +1005,11 @@ def test_the_readmes_ray_job_submit_recipe_runs_as_written(tmp_path, token_exist
                 "-- python",
                 '--runtime-env-json \'{"excludes": [".venv", ".git", "runs", "tests"]}\' -- python',
             )
-            line = line.replace("--dataset ROOT", f"--dataset {data}").replace(
+            line = line.replace("--dataset /data/semantickitti", f"--dataset {data}").replace(
                 "--split test", "--sequences 11"
             )
-            line = line.replace("--out PRED", f"--out {tmp_path / 'pred'}")
-            line = line.replace("submission.zip", str(tmp_path / "submission.zip"))
+            line = line.replace("--out /results/pred", f"--out {tmp_path / 'pred'}")
+            line = line.replace("/results/submission.zip", str(tmp_path / "submission.zip"))
             line = line.replace(
                 "--checkpoint rangeret-kitti-657",
                 f"--checkpoint {weights} --height 32 --width 256 --allow-partial",
@@ -1020,6 +1020,11 @@ def test_the_readmes_ray_job_submit_recipe_runs_as_written(tmp_path, token_exist
         "ray get-auth-token --generate > /dev/null",
         f"ray start --head {ports}",
     ]
+    if token_exists:
+        # A relative path names a file in the job's copy of the working directory: one line.
+        (submit,) = [line for line in script if line.startswith("ray job submit")]
+        relative = submit.replace(f"--dataset {data}", "--dataset runs/nowhere/dataset")
+        script.append(f"{relative} || echo relative-refused")
     env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
     env.update(HOME=str(home), PATH=f"{Path(sys.executable).parent}{os.pathsep}{env['PATH']}")
     proc = subprocess.Popen(
@@ -1047,6 +1052,16 @@ def test_the_readmes_ray_job_submit_recipe_runs_as_written(tmp_path, token_exist
     assert (home / ".ray" / "auth_token").read_text() != "" and (
         not token_exists or (home / ".ray" / "auth_token").read_text() == "a" * 64
     )
+    if token_exists:
+        said = " ".join(output.split())
+        assert "relative-refused" in output
+        assert (
+            "--dataset runs/nowhere/dataset is relative, and this Ray job runs in its copy of the "
+            "uploaded working directory"
+        ) in said, output[-3000:]
+        assert (
+            "Traceback" not in output.split("relative-refused")[0].rsplit("ray job submit", 1)[-1]
+        )
 
 
 def test_the_health_check_tells_a_ray_pod_from_the_gateway(tmp_path):
