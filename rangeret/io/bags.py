@@ -109,8 +109,9 @@ def bag_format(path: Path) -> str:
 
 def check_target(target: Path, fmt: str, *, overwrite: bool, source: Path | None = None) -> None:
     """BagError unless a bag of kind `fmt` may be written at `target`: a ROS 1 bag's name ends
-    in .bag and a rosbag2 folder's does not, an existing target needs `overwrite`, and the
-    source is never the target."""
+    in .bag and a rosbag2 folder's does not, an existing target needs `overwrite`, and whatever
+    `overwrite` says, the target neither is, holds nor lies inside the source, and an existing
+    folder is replaced only when this command wrote it (its run record beside it)."""
     if fmt not in BAG_FORMATS:
         raise BagError(f"unknown bag format {fmt!r}; the formats: {', '.join(BAG_FORMATS)}")
     if (fmt == "ros1") != (target.suffix == ".bag"):
@@ -118,8 +119,22 @@ def check_target(target: Path, fmt: str, *, overwrite: bool, source: Path | None
         raise BagError(f"{target}: the name of a {fmt} bag must {need}")
     if source is not None and target.resolve() == source.resolve():
         raise BagError(f"{target}: the labelled bag cannot replace the bag it is read from")
-    if (target.exists() or target.is_symlink()) and not overwrite:
+    if source is not None and source.resolve().is_relative_to(target.resolve()):
+        raise BagError(
+            f"{target}: the labelled bag cannot replace a folder that holds the bag it is read "
+            f"from ({source}); choose another --out"
+        )
+    if source is not None and target.resolve().is_relative_to(source.resolve()):
+        raise BagError(f"{target}: the labelled bag cannot be written inside the bag it reads")
+    if not (target.exists() or target.is_symlink()):
+        return
+    if not overwrite:
         raise BagError(f"{target} exists; pass --overwrite to replace it")
+    if target.is_dir() and not run_record_path(target).is_file():
+        raise BagError(
+            f"{target} is a folder this command did not write (no {run_record_path(target).name} "
+            "beside it), so --overwrite does not replace it; choose another --out"
+        )
 
 
 def run_record_path(target: Path) -> Path:

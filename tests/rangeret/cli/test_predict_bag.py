@@ -81,6 +81,38 @@ def test_an_existing_out_is_refused_in_one_line(tmp_path, network, capsys):
     assert bag_format(tmp_path / "out.bag") == "ros1"
 
 
+def test_an_out_that_holds_the_input_or_was_not_written_here_is_never_replaced(
+    tmp_path, network, capsys
+):
+    """`--overwrite` replaces a bag this command wrote, never the folder that holds its input
+    (with everything beside it), a folder inside the input, or a folder of someone else's."""
+    drive = tmp_path / "drive"
+    drive.mkdir()
+    (drive / "notes.txt").write_text("keep me")
+    source = write_bag(drive / "in.bag", "ros1", [_cloud(np.ones((5, 4), np.float32))])
+    source2 = write_bag(tmp_path / "in2", "rosbag2-sqlite3", [_cloud(np.ones((5, 4), np.float32))])
+    other = tmp_path / "someone-else"
+    other.mkdir()
+    (other / "data.txt").write_text("theirs")
+    cases = [
+        (source, drive, "cannot replace a folder that holds the bag it is read from"),
+        (source2, source2 / "inner", "cannot be written inside the bag it reads"),
+        (source, other, "is a folder this command did not write"),
+    ]
+    for bag, out, words in cases:
+        argv = ["predict", "-q", "--bag", str(bag), "--topic", "/points", "--out", str(out),
+                "--bag-format", "rosbag2-sqlite3", "--overwrite", *network]  # fmt: skip
+        assert main(argv) == 1, out
+        err = capsys.readouterr().err
+        assert words in err and err.count("\n") == 1, err
+    assert (drive / "notes.txt").read_text() == "keep me" and bag_format(source) == "ros1"
+    assert (other / "data.txt").read_text() == "theirs" and bag_format(source2) == "rosbag2-sqlite3"
+    written = tmp_path / "labelled"
+    argv = ["predict", "-q", "--bag", str(source), "--topic", "/points", "--out", str(written),
+            "--bag-format", "rosbag2-sqlite3", *network]  # fmt: skip
+    assert main(argv) == 0 and main([*argv, "--overwrite"]) == 0  # its own bag, replaced
+
+
 def test_a_bad_message_exits_1_naming_how_many_failed(tmp_path, network, capsys):
     rng = np.random.default_rng(2)
     good = rng.uniform(-10, 10, size=(50, 4)).astype(np.float32)

@@ -232,6 +232,9 @@ def test_an_existing_target_is_refused_before_reading(tmp_path, predictor, point
     (tmp_path / "out").mkdir()
     with pytest.raises(BagError, match="exists; pass --overwrite"):
         label_bag(predictor, source, "/points", tmp_path / "out", progress=False)
+    with pytest.raises(BagError, match="is a folder this command did not write"):
+        label_bag(predictor, source, "/points", tmp_path / "out", overwrite=True, progress=False)
+    (tmp_path / "out.run.json").write_text("{}")  # an earlier run's record: its own output
     summary = label_bag(predictor, source, "/points", tmp_path / "out", overwrite=True,
                         progress=False)  # fmt: skip
     assert summary.ok and (tmp_path / "out" / "metadata.yaml").is_file()

@@ -85,6 +85,9 @@ def test_a_target_name_must_fit_its_kind_and_an_existing_one_needs_overwrite(tmp
     (tmp_path / "out").mkdir()
     with pytest.raises(BagError, match="exists; pass --overwrite"):
         check_target(tmp_path / "out", "rosbag2-sqlite3", overwrite=False)
+    with pytest.raises(BagError, match="is a folder this command did not write"):
+        check_target(tmp_path / "out", "rosbag2-sqlite3", overwrite=True)
+    run_record_path(tmp_path / "out").write_text("{}")  # one this command wrote
     check_target(tmp_path / "out", "rosbag2-sqlite3", overwrite=True)
     with pytest.raises(BagError, match="cannot replace the bag it is read from"):
         check_target(tmp_path / "out", "rosbag2-sqlite3", overwrite=True, source=tmp_path / "out")
@@ -153,12 +156,13 @@ def test_a_failed_copy_leaves_nothing_and_an_old_target_as_it_was(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in"]
     target.mkdir()
     (target / "old").write_text("kept")
+    run_record_path(target).write_text("{}")  # an earlier run's, so --overwrite may replace it
     with pytest.raises(RuntimeError, match="stop"):
         _copy(source, target, "rosbag2-sqlite3", overwrite=True, fail=True)
     assert (target / "old").read_text() == "kept"
     _copy(source, target, "rosbag2-sqlite3", overwrite=True)
     assert not (target / "old").exists() and bag_format(target) == "rosbag2-sqlite3"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["in", "out"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in", "out", "out.run.json"]
 
 
 def test_a_compressed_rosbag2_bag_is_copied_compressed_alike(tmp_path):
