@@ -6,11 +6,11 @@ The header is parsed and bounded before any data is touched: a point may hold at
 `WIDTH * HEIGHT`) times the point's bytes are what the caller's `DecodeLimits` bound, and a
 truncated body is named as such. The data then decodes into at most one buffer: a `binary` body
 is read in place, an `ascii` one parsed into one array, a `binary_compressed` one decompressed
-(LZF) into one buffer whose fields are read in place (each value of a field with `COUNT n > 1`
-stored as its own block, as pypcd4 writes them). Fields named `_` are padding and are not
-columns; a field with `COUNT n > 1` gives the columns `NAME__0000` .. `NAME__n-1`. pypcd4 and
-its LZF codec, python-neo-lzf (both BSD-3-Clause), come with the `files` extra. ASCII output is written here with
-enough digits for every value to read back exact.
+(LZF, `rangeret.io.lzf_codec`) into one buffer whose fields are read in place (each value of a
+field with `COUNT n > 1` stored as its own block, as pypcd4 writes them). Fields named `_` are
+padding and are not columns; a field with `COUNT n > 1` gives the columns `NAME__0000` ..
+`NAME__n-1`. pypcd4 and its LZF codec, python-neo-lzf (both BSD-3-Clause), come with the `files`
+extra. ASCII output is written here with enough digits for every value to read back exact.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import numpy as np
 from rangeret.extras import require_extra
 from rangeret.io.ascii_points import read_ascii_rows
 from rangeret.io.decode_limits import Declared, check_point_values
+from rangeret.io.lzf_codec import decompress_into
 from rangeret.io.scans import ScanFormatError
 
 #: The encodings of a PCD body.
@@ -252,14 +253,10 @@ def _empty(header: PcdHeader) -> tuple[np.ndarray, ...]:
 def _compressed_values(header: PcdHeader, body: memoryview, source: str) -> tuple[np.ndarray, ...]:
     """Each field's values of a `binary_compressed` body: decompressed into one buffer, and each
     value's block of it read in place."""
-    import lzf
-
     compressed, need = struct.unpack("<II", bytes(body[:8]))
-    try:
-        buffer = lzf.decompress(bytes(body[8 : 8 + compressed]), need)
-    except ValueError:
-        buffer = None
-    if buffer is None or len(buffer) != need:
+    stream = np.frombuffer(body, dtype=np.uint8, count=compressed, offset=8)
+    buffer = decompress_into(stream, need)
+    if buffer is None:
         raise PcdFormatError(
             source,
             f"the compressed PCD data does not decompress to the {need:,} bytes its size word "
