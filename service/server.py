@@ -162,7 +162,7 @@ def check_models(models: ModelSet) -> dict[str, LoadedWeights]:
             if len(models) == 1:
                 raise
             raise CommandError(f"model {name}: {exc}") from exc
-        if spec.backend == "onnxruntime":
+        if spec.backend == "onnxruntime" and spec.onnx is None:
             weights.export_onnx()  # once here, so that workers started next load it from the cache
         loaded[name] = weights
     return loaded

@@ -166,7 +166,7 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
     if args.actors is not None and args.actors < 1:
         raise CommandError(f"--actors must be at least 1, got {args.actors}")
     weights = load_weights(spec)
-    if spec.backend == "onnxruntime":
+    if spec.backend == "onnxruntime" and spec.onnx is None:
         weights.export_onnx()  # once here, so that the model actors load it from the cache
     info, profile = weights.info, weights.profile
     label_config = profile.labels

@@ -58,7 +58,14 @@ class Predictor:
         self.onnx: OnnxForward | None = None
         if spec.backend == "onnxruntime":
             self.network = weights.network.cpu().eval()
-            self.onnx = OnnxForward(self.network, self.profile, self.device, self.checkpoint_sha256)
+            self.onnx = OnnxForward(
+                self.network,
+                self.profile,
+                self.device,
+                self.checkpoint_sha256,
+                export=None if spec.onnx is None else Path(spec.onnx),
+                batch_size=spec.batch_size,
+            )
         else:
             self.network = weights.network.to(self.device).eval()
         #: Raw ids of the network's profile -> the data's, for a run on another sensor's data.

@@ -159,6 +159,13 @@ class InferenceSpec:
         "once per checkpoint into $RANGERET_CACHE/onnx (else ~/.cache/rangeret/onnx); "
         "onnxruntime runs fp32 only, and on CUDA needs the onnxruntime-gpu package",
     )
+    onnx: str | None = option(
+        None,
+        group=RUN,
+        metavar="FILE.onnx",
+        help="with --backend onnxruntime: run this export (`rangeret export`) rather than the "
+        "cached one, once it agrees with the checkpoint, resolution, profile and batch size",
+    )
     tta_flip: bool = option(
         False, kind=bool, group=RUN, help="test-time augmentation: add the mirrored view"
     )
@@ -241,6 +248,11 @@ class InferenceSpec:
             maximum = f.metadata["maximum"]
             if maximum is not None and value is not None and value > maximum:
                 return f"{name(f.name)} must be at most {maximum}, got {value}"
+        if self.onnx is not None and self.backend != "onnxruntime":
+            return (
+                f"{name('onnx')} is an export for {name('backend')} onnxruntime: add that, or "
+                f"leave {name('onnx')} out"
+            )
         try:
             check_backend(self.backend, self.precision)
         except RuntimeChoiceError as exc:

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from rangeret.dataset.profiles import DatasetProfile
+from rangeret.exceptions import RangeRetError
 from rangeret.extras import require_extra
 from rangeret.inference.runtime.onnx_export import (
     INPUT_NAME,
@@ -126,6 +127,39 @@ def cached_export(
     return path
 
 
+class ExportFileError(RangeRetError, ValueError):
+    """An export given with `--onnx` that cannot run this network: one sentence naming it."""
+
+
+def given_export(
+    path: Path,
+    network: torch.nn.Module,
+    profile: DatasetProfile,
+    checkpoint_sha256: str | None,
+    batch_size: int,
+) -> Path:
+    """`path`, an export `rangeret export` wrote, once it records these weights, network,
+    projection and profile, and takes batches of `batch_size`; an `ExportFileError` naming what
+    differs otherwise."""
+    require_extra("--backend onnxruntime", "onnx")
+    if not path.is_file():
+        raise ExportFileError(f"--onnx {path}: no such file")
+    sha = checkpoint_sha256 or state_sha256(network)
+    expected = onnx_metadata(network, profile, dynamic_batch=True, checkpoint_sha256=sha)
+    problem = export_mismatch(path, expected)
+    if problem is not None:
+        raise ExportFileError(
+            f"--onnx {path} {problem}: export this checkpoint again with rangeret export, or "
+            "leave --onnx out to use the cached export"
+        )
+    if batch_size > 1 and not read_metadata(path).get("dynamic_batch"):
+        raise ExportFileError(
+            f"--onnx {path} takes batches of 1 scan and this run makes batches of {batch_size}: "
+            "export it with --dynamic-batch, or pass --batch-size 1"
+        )
+    return path
+
+
 @contextlib.contextmanager
 def export_heartbeat(enabled: bool) -> Iterator[None]:
     """Whether exports made inside say "still exporting (N s)" while they run (off for -q);
@@ -175,8 +209,15 @@ class OnnxForward:
         profile: DatasetProfile,
         device: torch.device,
         checkpoint_sha256: str | None,
+        *,
+        export: Path | None = None,
+        batch_size: int = 1,
     ) -> None:
-        self.path = cached_export(network, profile, checkpoint_sha256)
+        self.path = (
+            cached_export(network, profile, checkpoint_sha256)
+            if export is None
+            else given_export(export, network, profile, checkpoint_sha256, batch_size)
+        )
         try:
             self.session = make_session(self.path, device)
         except ValueError:

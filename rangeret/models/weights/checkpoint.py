@@ -150,6 +150,18 @@ class CheckpointContent:
     info: CheckpointInfo
 
 
+def _load_reason(exc: BaseException) -> str:
+    """Why torch.load refused a file, in a few words: its unpickler's own line where it gave one,
+    never torch's advice to load the file without `weights_only`."""
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    for line in lines:
+        if line.startswith("WeightsUnpickler error:"):
+            return line.removeprefix("WeightsUnpickler error:").strip().rstrip(".")
+    if not lines or "weights_only" in lines[0]:
+        return "it is no file of tensors and plain data"
+    return lines[0].rstrip(".")
+
+
 def checkpoint_from_bytes(
     data: bytes,
     path: str | os.PathLike[str],
@@ -166,12 +178,17 @@ def checkpoint_from_bytes(
     the tensors against another network (fine-tuning with a new head)."""
     path = Path(path)
     digest = sha256 or hashlib.sha256(data).hexdigest()
+    if path.suffix.lower() == ".onnx":
+        raise CheckpointError(
+            f"{path} is an ONNX export, not a checkpoint: pass the checkpoint it was exported from "
+            "as --checkpoint, and the export as --onnx with --backend onnxruntime"
+        )
     try:
         content = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as exc:
-        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise CheckpointError(
-            f"{path} is not a RangeRet checkpoint: torch.load(weights_only=True) cannot read it ({reason})"
+            f"{path} is not a RangeRet checkpoint: torch.load(weights_only=True) cannot read it "
+            f"({_load_reason(exc)})"
         ) from exc
 
     if isinstance(content, Mapping) and content.get("format") == FORMAT:

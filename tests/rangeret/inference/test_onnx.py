@@ -433,3 +433,47 @@ def test_the_heartbeat_beats_while_an_export_runs_unless_turned_off(tmp_path, ca
     said = [r.getMessage() for r in caplog.records]
     assert len(said) == 2 and said[0].startswith("exporting net") and said[1].startswith("exported")
     assert not [t for t in threading.enumerate() if t.name == "onnx-export-progress"]
+
+
+# An export given with --onnx -----------------------------------------------------------------
+
+
+def test_predict_runs_the_export_it_is_given_and_exports_nothing(
+    setup, exports, predictions, tmp_path, monkeypatch, capsys
+):
+    """`--onnx FILE`: the file `rangeret export` wrote runs as it is (nothing is exported into
+    an empty cache) and labels as the cached export does; an export of other weights, a batch-1
+    export for batches of 2, `--onnx` without onnxruntime, and an export given as `--checkpoint`
+    are one line each, never torch's advice about `weights_only`."""
+    empty = tmp_path / "empty-cache"
+    monkeypatch.setenv(CACHE_VARIABLE, str(empty))
+    given = exports["rangeret-cir"]["path"]
+    ort = ("--backend", "onnxruntime")
+    out = _predict(setup, tmp_path / "given", *ort, "--onnx", str(given))
+    assert not list(empty.rglob("*.onnx"))
+    labels = prediction_path(out, "08", "000000").read_bytes()
+    assert labels == prediction_path(predictions["onnxruntime"], "08", "000000").read_bytes()
+
+    single = tmp_path / "cir-batch1.onnx"
+    weights = setup["weights"]["rangeret-cir"]
+    args = ["export", "--checkpoint", str(weights), *SIZE, "--out", str(single)]
+    assert rangeret_main(args) == 0
+    capsys.readouterr()
+    base = ["predict", "-q", "--dataset", str(setup["real"]), "--sequences", "08"]
+    base += ["--out", str(tmp_path / "refused"), *NET]
+    other = exports["rangeret-thesis"]["path"]
+    cases = [
+        ([*ort, "--onnx", str(other), "--checkpoint", str(weights)], "was made from checkpoint"),
+        (
+            [*ort, "--onnx", str(single), "--checkpoint", str(weights), "--batch-size", "2"],
+            "takes batches of 1 scan and this run makes batches of 2",
+        ),
+        (["--onnx", str(given), "--checkpoint", str(weights)], "is an export for --backend"),
+        (["--checkpoint", str(given)], "is an ONNX export, not a checkpoint"),
+    ]
+    for extra, words in cases:
+        assert rangeret_main([*base, *extra]) == 1, extra
+        err = capsys.readouterr().err
+        assert words in err and err.count("\n") == 1, err
+        assert "weights_only" not in err.replace("weights_only=True", "")
+    assert not (tmp_path / "refused").exists()

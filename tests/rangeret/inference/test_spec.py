@@ -33,6 +33,7 @@ NETWORK_FLAGS = {
     "--device",
     "--precision",
     "--backend",
+    "--onnx",
     "--tta-flip",
     "--tta-shifts",
 }
