@@ -272,6 +272,7 @@ def run_serve(args: argparse.Namespace) -> int:
     from service.app import create_app
     from service.protocols import GatewayProtocol
 
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # no line per request to Serve
     settings = settings_from_args(args)
     problem = settings.address_problem()
     if problem:

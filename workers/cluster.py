@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+from typing import Any
 
 from workers.sizing import (
     FREE_GPU_WAIT_S,
@@ -22,6 +23,43 @@ from workers.sizing import (
 )
 
 log = logging.getLogger("workers.cluster")
+
+#: Set to 0, a Ray started here registers its node on loopback and its processes listen there
+#: only (Ray's switch for machines that run no multi-node cluster, read when Ray is imported).
+LOOPBACK_VARIABLE = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+
+
+def session_folder() -> str:
+    """The temp folder of a Ray this process starts: its own, and short, since Ray's socket
+    paths under it must stay within the 107 bytes a Unix socket's path may have."""
+    return f"/tmp/rangeret-ray-{os.getpid()}"
+
+
+def start_local(**options: Any) -> Any:
+    """Start a Ray of this machine alone (`ray.init` with `options`, no dashboard unless they
+    say otherwise) on loopback, in `session_folder()`; its context. A warning says so where Ray
+    still registered its node on another address."""
+    import ray
+    from ray._private import ray_constants  # the switch, where Ray was imported before it was set
+
+    before = os.environ.get(LOOPBACK_VARIABLE)
+    os.environ[LOOPBACK_VARIABLE] = "0"  # for the processes Ray starts
+    switch = ray_constants.ENABLE_RAY_CLUSTER
+    ray_constants.ENABLE_RAY_CLUSTER = False  # for this process's own node address
+    try:
+        context = ray.init(**{"include_dashboard": False, "_temp_dir": session_folder(), **options})
+    finally:
+        ray_constants.ENABLE_RAY_CLUSTER = switch
+        if before is None:
+            del os.environ[LOOPBACK_VARIABLE]
+        else:
+            os.environ[LOOPBACK_VARIABLE] = before
+    address = ray.util.get_node_ip_address()
+    if address not in ("127.0.0.1", "::1"):
+        log.warning(
+            "the local Ray registered its node on %s and listens on that interface too", address
+        )
+    return context
 
 
 def read_resources() -> ClusterResources:
@@ -64,16 +102,17 @@ def cluster_layout(options: PipelineOptions, wait: float = FREE_GPU_WAIT_S) -> L
 
 
 def connect(address: str | None) -> None:
-    """Join the cluster at `address` (or RAY_ADDRESS); start a local Ray when there is none."""
+    """Join the cluster at `address` (or RAY_ADDRESS); start a local Ray when there is none, on
+    loopback and in a session folder of its own (`start_local`)."""
+    address = address or os.environ.get("RAY_ADDRESS")
     import ray
 
     if ray.is_initialized():
         return
-    address = address or os.environ.get("RAY_ADDRESS")
     if address:
         ray.init(address=address, log_to_driver=True)
     else:
-        ray.init(include_dashboard=False)
+        start_local()
     res = ray.cluster_resources()
     log.info(
         "Ray cluster: %d nodes, %g CPUs, %g GPUs",

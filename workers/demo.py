@@ -39,6 +39,7 @@ from rangeret.sim.nuscenes_tree import simulate_nuscenes
 from rangeret.submission.archives import TEST_SEQUENCES
 from rangeret.submission.benchmarks import no_archive_reason, write_benchmark_archive
 from rangeret.submission.leaderboard import LeaderboardEntry, description_text
+from workers.cluster import start_local
 from workers.pipeline import describe_spec, run_pipeline
 from workers.sizing import PipelineOptions
 
@@ -264,12 +265,7 @@ def _local_ray() -> Iterator[Path]:
 
     redirect = _StderrRedirect()
     try:
-        context = ray.init(
-            address="local",
-            num_cpus=os.cpu_count() or 2,
-            include_dashboard=False,
-            log_to_driver=False,
-        )
+        context = start_local(address="local", num_cpus=os.cpu_count() or 2, log_to_driver=False)
     except BaseException:
         redirect.stop(show=True)
         raise

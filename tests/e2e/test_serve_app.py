@@ -564,6 +564,7 @@ def test_a_late_busy_broken_or_gone_serve_application_is_a_json_503_or_504(tmp_p
     finally:
         gw.stop()
     assert "Traceback" not in gw.output()
+    assert "HTTP Request" not in gw.output()  # no log line per request to the application
 
 
 def test_a_serve_url_that_never_answers_stops_the_gateway_with_one_sentence(tmp_path):
