@@ -19,13 +19,16 @@ class RangeRetError(Exception):
     problems: Sequence[str] = ()
 
     def summary(self) -> str:
-        """The one line to show: the message, or the number of problems and the first of them."""
+        """The one line to show: the message, the one problem, or how many there are (each then
+        listed once, by `detail_lines`)."""
         n = len(self.problems)
-        return f"{n} problem(s), the first: {self.problems[0]}" if n else str(self)
+        if n == 1:
+            return self.problems[0]
+        return f"{n} problems:" if n else str(self)
 
     def detail_lines(self) -> list[str]:
-        """The lines to show below the summary (every problem)."""
-        return list(self.problems)
+        """The lines to show below the summary: every problem, where there are several."""
+        return list(self.problems) if len(self.problems) > 1 else []
 
 
 class InputError(RangeRetError):

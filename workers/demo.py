@@ -174,9 +174,10 @@ def run_demo(
     print(report.table())
     print(
         f"\nDone in {time.perf_counter() - started:.0f} s with {info.name} at "
-        f"{profile.projection.height}x{profile.projection.width} on {', '.join(run.devices)}. Results in {out}/:"
+        f"{profile.projection.height}x{profile.projection.width} on {run.actors_text()}. Results in "
+        f"{out}/:"
     )
-    print(f"  dataset (simulated, {profile.name} layout):".ljust(43) + f"{dataset}")
+    print(f"  dataset (simulated, {profile.name} layout):".ljust(42) + f" {dataset}")
     print(f"  predictions tree:                         {preds}")
     print(f"  evaluation report:                        {out / 'report.json'}")
     for p in plots:

@@ -64,6 +64,23 @@ class PipelineRun:
     layout: Layout | None = None
     devices: list[str] = field(default_factory=list)
 
+    def actors_text(self) -> str:
+        """The model actors by device, for people: `cpu (2 model actors: processes 14452,
+        14460)`; "no model actor" when none ran."""
+        by_device: dict[str, list[str]] = {}
+        for worker in self.devices:
+            device, _, pid = worker.partition("@")
+            by_device.setdefault(device, []).append(pid)
+        if not by_device:
+            return "no model actor"
+        parts = []
+        for device, pids in sorted(by_device.items()):
+            count = f"{len(pids)} model actor{'s' if len(pids) > 1 else ''}"
+            parts.append(
+                f"{device} ({count}: process{'es' if len(pids) > 1 else ''} {', '.join(pids)})"
+            )
+        return ", ".join(parts)
+
     def precision(self, spec: InferenceSpec) -> str | None:
         """The precision the network ran at on the run's devices (`auto` resolved per device
         type, as each model actor resolved it), comma-separated; None when no batch ran."""

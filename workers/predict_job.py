@@ -209,7 +209,7 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
     )
     run = run_pipeline(spec, profile, pending, args.out, options, progress=recorder.batch)
     precision = run.precision(spec)
-    log.info("model actors: %s", ", ".join(run.devices) or "none needed")
+    log.info("model actors: %s", run.actors_text())
     summary = replace(run.summary, total=len(entries), skipped=len(done))
     print(summary.text())
 

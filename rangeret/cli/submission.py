@@ -174,10 +174,11 @@ def run_validate(args: argparse.Namespace) -> int:
             progress=not args.quiet,
         )
     if not check.ok:
+        problems = check.problems
+        if len(problems) == 1:
+            raise CommandError(f"{args.archive} would be refused: {problems[0]}")
         raise CommandError(
-            f"{args.archive} would be refused: {len(check.problems)} problem(s), the first: "
-            f"{check.problems[0]}",
-            check.problems,
+            f"{args.archive} would be refused for {len(problems)} problems:", problems
         )
     print(check.summary())
     return 0

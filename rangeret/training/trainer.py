@@ -79,6 +79,7 @@ from rangeret.training.state import (
     set_rng_state,
 )
 from rangeret.training.validation import VAL_METRICS, confusion_matrix, validate
+from rangeret.wording import plural
 
 log = logging.getLogger("rangeret.training")
 
@@ -198,7 +199,7 @@ class Trainer:
         stop = self.total_steps if until_step is None else min(until_step, self.total_steps)
         log.info(
             "%s (%s profile) at %dx%d: %d training and %d validation scans, %d steps per epoch, "
-            "%d steps (%d epochs) on %s x %d in %s%s",
+            "%d steps (%s) on %s x %d in %s%s",
             self.config.model,
             self.profile.name,
             self.projection.height,
@@ -207,7 +208,7 @@ class Trainer:
             len(self.val_set),
             self.steps_per_epoch,
             self.total_steps,
-            self.num_epochs,
+            plural(self.num_epochs, "epoch"),
             self.device,
             self.ranks.world_size,
             self.precision,

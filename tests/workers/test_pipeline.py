@@ -81,6 +81,8 @@ def test_one_model_actor_per_gpu_and_a_node_leaving(cluster, tmp_path):
     assert run.layout.actors == 2
     assert len(run.devices) == 2, run.devices
     assert all(d.startswith("cpu@") for d in run.devices), run.devices
+    pids = ", ".join(d.split("@")[1] for d in run.devices)
+    assert run.actors_text() == f"cpu (2 model actors: processes {pids})"
     assert not run.summary.failed and run.summary.written == 8
     assert tree_bytes(tmp_path / "a") == tree_bytes(tmp_path / "single")
 
@@ -154,3 +156,13 @@ def test_a_job_takes_the_gpus_other_actors_leave(cluster, tmp_path):
     finally:
         for holder in holders:
             ray.kill(holder)
+
+
+def test_the_model_actors_are_named_by_device_and_process_for_people():
+    from workers.pipeline import PipelineRun
+
+    run = PipelineRun(summary=None, evaluator=None, devices=["cuda:1@20", "cpu@7", "cuda:1@21"])  # type: ignore[arg-type]
+    assert run.actors_text() == (
+        "cpu (1 model actor: process 7), cuda:1 (2 model actors: processes 20, 21)"
+    )
+    assert PipelineRun(summary=None, evaluator=None).actors_text() == "no model actor"  # type: ignore[arg-type]
