@@ -62,19 +62,27 @@ def _value(percent: float) -> str:
 
 def plot_iou(report: EvaluationReport, path: Path | str, *, config: LabelConfig) -> Path:
     """Bar chart of per-class IoU in the classes' colours (the label configuration's), with the
-    mIoU line."""
+    mIoU line; a class absent from the data (no point predicted or labelled) is a grey hatched
+    column marked "absent", not a bar at 0."""
     plt = _pyplot()
     include = report.confusion.include
     iou = report.confusion.iou()[include] * 100
+    tp, fp, fn = report.confusion.stats()
+    absent = (tp + fp + fn)[include] == 0
     colours = (
         config.class_rgb()[include] / 255.0
         if config.num_classes == len(report.class_names)
-        else None
+        else np.tile([0.27, 0.51, 0.71], (len(include), 1))
     )
 
     fig, ax = plt.subplots(figsize=(11, 4.5))
-    bars = ax.bar(range(len(include)), iou, color=colours, edgecolor="black", linewidth=0.5)
-    ax.bar_label(bars, labels=[_value(v) for v in iou], fontsize=7, padding=2)
+    x = np.arange(len(include))
+    bars = ax.bar(x[~absent], iou[~absent], color=colours[~absent], edgecolor="black", lw=0.5)
+    ax.bar_label(bars, labels=[_value(v) for v in iou[~absent]], fontsize=7, padding=2)
+    if absent.any():
+        ax.bar(x[absent], 100, color="0.92", edgecolor="0.6", hatch="//", lw=0.5, label="absent")
+        for i in x[absent]:
+            ax.text(i, 50, "absent", rotation=90, ha="center", va="center", fontsize=7, color="0.4")
     ax.axhline(
         100 * report.miou, color="crimson", linestyle="--", label=f"mIoU {100 * report.miou:.1f} %"
     )
@@ -131,7 +139,7 @@ def plot_miou_by_sequence(report: EvaluationReport, path: Path | str) -> Path:
     names = list(report.by_sequence)
     miou = [100 * cm.miou() for cm in report.by_sequence.values()]
 
-    fig, ax = plt.subplots(figsize=(max(4.0, 1.5 + 0.7 * len(names)), 4))
+    fig, ax = plt.subplots(figsize=(2.2 + 0.6 * len(names), 3.2))  # narrow for a few sequences
     bars = ax.bar(range(len(names)), miou, color="steelblue", edgecolor="black", linewidth=0.5)
     ax.bar_label(bars, labels=[_value(v) for v in miou], fontsize=7, padding=2)
     ax.axhline(
@@ -235,8 +243,9 @@ def plot_range_image(
     config: LabelConfig,
     title: str = "",
 ) -> Path:
-    """Stacked PNG of one scan's range image, its ground truth and the prediction (training classes
-    in the label configuration's colours; empty pixels black)."""
+    """Stacked PNG of one scan's range image (with its colour bar in metres), its ground truth and
+    the prediction (training classes in the label configuration's colours, named in a legend of
+    the classes shown; empty pixels black)."""
     plt = _pyplot()
     palette = config.class_rgb()
     panels: list[tuple[str, np.ndarray]] = []
@@ -259,7 +268,21 @@ def plot_range_image(
         ax.set_title(name, fontsize=9, loc="left")
         ax.set_xticks([])
         ax.set_yticks([])
+    shown = np.unique(
+        np.concatenate(
+            [prediction.ravel(), *([ground_truth.ravel()] if ground_truth is not None else [])]
+        )
+    )
+    names = config.class_names
+    handles = [
+        plt.Rectangle((0, 0), 1, 1, color=palette[c] / 255.0, label=names[c])
+        for c in shown
+        if c < len(names)
+    ]
+    fig.legend(
+        handles=handles, loc="lower center", ncol=min(len(handles), 8), fontsize=7, frameon=False
+    )
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.04 + 0.035 * ((len(handles) - 1) // 8 + 1), 1, 1))
     return _save(fig, path)

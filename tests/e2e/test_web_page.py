@@ -181,8 +181,8 @@ def test_without_the_token_the_page_shows_the_sign_in_and_no_data(setup, page):
     sign_in(tab)
     tab.wait_for_selector("#tabs:not([hidden])")
     tab.click("nav button[data-tab=health]")
-    tab.wait_for_selector("#health dd[data-field=backend]")
-    assert tab.inner_text("#health dd[data-field=backend]") == "local"
+    tab.wait_for_selector("#health dd[data-field='labelled by']")
+    assert tab.inner_text("#health dd[data-field='labelled by']") == "the gateway's own process"
     assert tab.inner_text("#health dd[data-field=model]") == "rangeret-cir"
     assert tab.inner_text("#health dd[data-field=profile]") == "semantickitti"
     assert state(tab, ".model")["demo_weights"] is False and tab.is_hidden("#model-note")

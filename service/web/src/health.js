@@ -1,5 +1,6 @@
-/** "Health": the gateway's `/healthz` with the token: model, profile, precision, backend,
- * workers and queue depth, refreshed while the page is open. */
+/** "Health": the gateway's `/healthz` with the token: model, profile, precision, where scans
+ * are labelled (`backend`, said in words), workers and queue depth, refreshed while the page is
+ * open. */
 
 import { el } from './dom.js';
 
@@ -55,7 +56,7 @@ export class HealthPanel {
       ['profile', health.profile],
       ['point fields', health.point_fields.join(', ')],
       ['precision', health.precision || '–'],
-      ['backend', health.backend],
+      ['labelled by', labelledBy(health.backend)],
       ['workers', workersText(health.workers)],
       ['queue depth', String(health.queue_depth)],
       ['batch size', String(health.batch_size)],
@@ -70,4 +71,11 @@ export class HealthPanel {
       ]),
     );
   }
+}
+
+/** Where the gateway labels single scans, in words (`/healthz`'s `backend`). */
+function labelledBy(backend) {
+  if (backend === 'local') return "the gateway's own process";
+  if (backend === 'serve') return 'the Ray Serve application';
+  return backend;
 }

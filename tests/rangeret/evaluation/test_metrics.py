@@ -164,3 +164,26 @@ def test_a_table_with_every_point_scored_names_one_count():
     ev.add(labels, labels, "08", np.zeros(3, np.uint8))
     table = ev.report(sequences=["08"]).table()
     assert "3 points predicted, 3 of them scored\n" in table + "\n" and "the other" not in table
+
+
+def test_classes_absent_from_the_data_are_grey_columns_in_the_iou_plot(tmp_path):
+    """iou.png draws a class with no point predicted or labelled as a grey hatched column (the
+    fill 0.92 grey), not as a 0.0 bar; with every class present there is no such column."""
+    from matplotlib.image import imread
+
+    from rangeret.evaluation.plots import plot_iou
+
+    cfg = semantickitti()
+    grey = round(0.92 * 255)
+
+    def grey_pixels(classes: np.ndarray, name: str) -> int:
+        ev = RawLabelEvaluator(config=cfg)
+        raw = cfg.to_raw(classes)
+        ev.add(raw, raw, "08", np.zeros(raw.size, np.int64))
+        image = imread(plot_iou(ev.report(sequences=["08"]), tmp_path / name, config=cfg))
+        rgb = np.round(image[..., :3] * 255).astype(int)
+        return int(np.all(rgb == grey, axis=-1).sum())
+
+    every = np.repeat(np.arange(1, cfg.num_classes), 10)
+    none, one = grey_pixels(every, "every.png"), grey_pixels(every[every != 3], "one-absent.png")
+    assert none < 200 and one > 20 * max(none, 100), (none, one)  # antialiasing aside
