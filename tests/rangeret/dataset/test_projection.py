@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rangeret.dataset.projection import CHANNEL_MEANS, CHANNEL_STDS, project
+from rangeret.dataset.projection import (
+    CHANNEL_MEANS,
+    CHANNEL_STDS,
+    ProjectionConfig,
+    ProjectionError,
+    project,
+)
 from rangeret.io.scans import read_labels, read_scan
 from tests.support.paths import data_path
 
@@ -148,3 +154,11 @@ def test_a_projection_is_checked_where_it_is_made(scan):
         with pytest.raises(ValueError, match=name) as raised:
             Projection(**{**fields, name: value})
         assert raised.match(detail)
+
+
+@pytest.mark.parametrize(("height", "width"), [(100_000, 1024), (64, 100_000), (513, 8193)])
+def test_an_image_past_the_largest_is_one_line(height, width):
+    with pytest.raises(ProjectionError) as exc:
+        ProjectionConfig(height=height, width=width)
+    assert str(exc.value) == f"image size must be at most 512 x 8192, got {height} x {width}"
+    assert ProjectionConfig(height=512, width=8192).width == 8192

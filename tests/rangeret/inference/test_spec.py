@@ -111,6 +111,8 @@ def test_the_command_line_and_a_mapping_give_the_same_spec():
         ({"device": "tpu"}, "device must be one of auto, cpu, cuda, got 'tpu'"),
         ({"fov_up": float("nan")}, "fov_up takes a number, got nan"),
         ({"checkpoint": 7}, "checkpoint takes a string, got 7"),
+        ({"height": 100_000}, "height must be at most 512, got 100000"),
+        ({"width": "100000"}, "width must be at most 8192, got 100000"),
     ],
 )
 def test_a_bad_mapping_is_one_sentence_naming_its_key(values, sentence):

@@ -112,3 +112,13 @@ def test_a_record_whose_runs_are_not_a_list_is_one_error(tmp_path):
     (tmp_path / RUN_INFO).write_text(json.dumps({**_network(SHA_A), "runs": "x"}))
     with pytest.raises(RunInfoError, match="`runs` is not a list"):
         _write(tmp_path, SHA_A, ["08"])
+
+
+def test_a_record_nested_100000_deep_is_one_error(tmp_path):
+    (tmp_path / RUN_INFO).write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(RunInfoError) as exc:
+        check_weights(tmp_path, SHA_A)
+    assert (
+        str(exc.value)
+        == f"{tmp_path / RUN_INFO} is not a readable run record (it nests too deeply)"
+    )
