@@ -31,8 +31,8 @@ log = logging.getLogger(__name__)
 
 
 class ScanLabeller(Protocol):
-    """What labels single scans: `service.local_labeller.LocalLabeller` (in this process) or
-    `service.serve_client.ServeLabeller` (the Serve application)."""
+    """What labels single scans: `service.pooled_labeller.PooledLabeller` (the loaded models in
+    this process) or `service.serve_client.ServeLabeller` (the Serve application)."""
 
     backend: str
 
@@ -56,6 +56,11 @@ class ScanLabeller(Protocol):
 
     async def health(self) -> dict:
         """`{"backend", "ok", "workers": [descriptions], "error"}` for /healthz."""
+        ...
+
+    def loaded(self) -> list[str] | None:
+        """The models whose networks are loaded in this process now; None where the networks
+        are another process's (the Serve application's)."""
         ...
 
 
@@ -91,8 +96,7 @@ class Gateway:
     def loaded_models(self) -> list[str] | None:
         """The models whose networks are loaded in this process now; None where the labeller
         keeps no pool (the Serve application holds them)."""
-        loaded = getattr(self.labeller, "loaded", None)
-        return None if loaded is None else loaded()
+        return self.labeller.loaded()
 
     def __post_init__(self) -> None:
         self.metrics = GatewayMetrics(

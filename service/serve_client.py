@@ -127,6 +127,10 @@ class ServeLabeller:
         """Scans sent to the application and not answered yet."""
         return self._in_flight
 
+    def loaded(self) -> None:
+        """None: the application loads and unloads the networks itself."""
+        return None
+
     async def health(self) -> dict:
         """Whether the application answers, and what it serves."""
         client = self._client or self._new_client()

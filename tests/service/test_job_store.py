@@ -209,6 +209,9 @@ class FakeLabeller:
     def depth(self):
         return 0
 
+    def loaded(self):
+        return ["default"]
+
     async def health(self):
         return {"backend": "local", "ok": True, "actors": [{"pid": os.getpid()}]}
 
