@@ -184,8 +184,12 @@ def run_demo(
         print(f"  plot:                                     {p}")
     if benchmark and split is None:
         print(f"  submission archive (partial, for tests):  {archive}")
+        print(
+            f"    (it holds the demo's few scans: rangeret validate-submission {archive} "
+            f"--dataset {dataset} --allow-partial checks it)"
+        )
     elif benchmark:
-        print(f"  submission archive ({split}):".ljust(44) + f"{archive}")
+        print(f"  submission archive ({split}):".ljust(43) + f" {archive}")
     if ray_logs is not None:
         print(f"  Ray's own logs:                           {ray_logs}")
     if demo_weights:

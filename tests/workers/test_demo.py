@@ -64,6 +64,17 @@ def test_demo_end_to_end(tmp_path, capfd):
     assert check.warnings == []
     assert not (out / "dataset" / "sequences" / "11" / "labels").exists()
     assert "--checkpoint rangeret-kitti-657" in printed
+    # The check the demo suggests for its own archive passes, and its summary has its spaces.
+    suggested = re.search(
+        r"(rangeret validate-submission \S+ --dataset \S+ --allow-partial)", printed
+    )
+    assert suggested is not None, printed
+    from rangeret.cli.main import main as rangeret_main
+
+    command, *rest = suggested.group(1).split()[1:]
+    assert rangeret_main([command, "-q", *rest]) == 0
+    assert not re.search(r"\):\S", printed), printed
+    assert "cpu@" not in printed and re.search(r"on cpu \(\d model actors?: process", printed)
     run = json.loads((out / "predictions" / "run.json").read_text())
     assert run["runner"] == "rangeret demo" and run["demo_weights"] is True
     assert run["checkpoint_sha256"] == report["checkpoint_sha256"]
