@@ -42,6 +42,10 @@ def read_scores(path: Path | str) -> ReportScores:
         data = json.loads(path.read_text())
     except FileNotFoundError:
         raise ComparisonError(f"{path} does not exist") from None
+    except RecursionError:
+        raise ComparisonError(
+            f"{path} is not a JSON evaluation report (it nests too deeply)"
+        ) from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ComparisonError(f"{path} is not a JSON evaluation report ({exc})") from None
     if not isinstance(data, dict):

@@ -383,6 +383,8 @@ def validate_nuscenes_submission(
         else:
             try:
                 data = json.loads(zf.read(entries[meta_name]).decode("utf-8"))
+            except RecursionError:
+                check.problems.append(f"{archive}: {meta_name} is not JSON (it nests too deeply)")
             except (zipfile.BadZipFile, OSError, ValueError) as exc:
                 check.problems.append(f"{archive}: {meta_name} is not JSON ({exc})")
             else:

@@ -79,7 +79,6 @@ from rangeret.training.state import (
     set_rng_state,
 )
 from rangeret.training.validation import VAL_METRICS, confusion_matrix, validate
-from rangeret.wording import plural
 
 log = logging.getLogger("rangeret.training")
 
@@ -208,7 +207,7 @@ class Trainer:
             len(self.val_set),
             self.steps_per_epoch,
             self.total_steps,
-            plural(self.num_epochs, "epoch"),
+            f"{self.num_epochs} epoch{'' if self.num_epochs == 1 else 's'}",
             self.device,
             self.ranks.world_size,
             self.precision,

@@ -26,18 +26,16 @@ import logging
 import re
 import shlex
 import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from rangeret.dataset.layout import ScanEntry, is_complete
 from rangeret.inference.spec import InferenceSpec
 from service.jobs.executors import JobControl, JobError, Progress
+from service.jobs.jobs_api import JobsApi, JobsApiError, JobsApiUnreachable
 from workers.progress import JobProgress, progress_path, read_progress
 
 if TYPE_CHECKING:
-    from ray.job_submission import JobSubmissionClient
-
     from service.served_models import ModelCatalog
 
 log = logging.getLogger(__name__)
@@ -48,25 +46,13 @@ MAX_SUBMISSIONS = 3
 POLL_S = 1.0
 #: Longest the Jobs API may go without answering before the jobs that wait on it fail.
 UNREACHABLE_S = 60.0
-#: Longest one request to the Jobs API may take.
-REQUEST_TIMEOUT_S = 10.0
 #: Longest a cancel waits for its Ray job to end once it is asked to stop.
 STOP_WAIT_S = 30.0
-#: Characters of a dead job's log kept in the failed job's reason.
-LOG_TAIL_CHARS = 300
 
 #: Ray job statuses of a job that has not ended.
 WAITING_STATUSES = frozenset({"PENDING", "RUNNING"})
 #: Ray job statuses of a job that has ended.
 ENDED_STATUSES = frozenset({"SUCCEEDED", "FAILED", "STOPPED"})
-
-
-class JobsApiError(Exception):
-    """The Jobs API refused a request or gave an answer the gateway cannot use."""
-
-
-class JobsApiUnreachable(JobsApiError):
-    """The Jobs API did not answer (not listening, timed out, or a server error)."""
 
 
 class Verdict(enum.Enum):
@@ -93,108 +79,6 @@ def submission_id(job_id: str, number: int) -> str:
     return f"{job_id}-{number}"
 
 
-class JobsApi:
-    """The Ray Jobs API at `address` through Ray's own `JobSubmissionClient`, which sends the Ray
-    token (RAY_AUTH_TOKEN, RAY_AUTH_TOKEN_PATH or ~/.ray/auth_token) when RAY_AUTH_MODE=token.
-
-    Every request is bounded by `timeout` seconds, and every failure is a `JobsApiError` (or
-    `JobsApiUnreachable`) with one sentence that names the address.
-    """
-
-    def __init__(self, address: str, timeout: float = REQUEST_TIMEOUT_S) -> None:
-        self.address = address
-        self.timeout = timeout
-        self._client: JobSubmissionClient | None = None
-
-    def status(self, sid: str) -> str | None:
-        """The Ray job's status (PENDING, RUNNING, SUCCEEDED, FAILED, STOPPED); None when the
-        Jobs API does not know the submission id."""
-        try:
-            info = self._call(lambda c: c.get_job_info(sid))
-        except _NotFound:
-            return None
-        return str(getattr(info.status, "value", info.status))
-
-    def submit(self, sid: str, entrypoint: str, metadata: dict[str, str]) -> None:
-        """Submit `entrypoint` as the Ray job `sid`, with no runtime environment to upload."""
-        self._call(
-            lambda c: c.submit_job(entrypoint=entrypoint, submission_id=sid, metadata=metadata)
-        )
-
-    def stop(self, sid: str) -> bool:
-        """Ask the Ray job to stop; False when it had ended or the Jobs API does not know it."""
-        try:
-            return bool(self._call(lambda c: c.stop_job(sid)))
-        except _NotFound:
-            return False
-
-    def log_tail(self, sid: str, chars: int = LOG_TAIL_CHARS) -> str:
-        """The end of the Ray job's log on one line ("" when it cannot be read)."""
-        try:
-            text = self._call(lambda c: c.get_job_logs(sid))
-        except JobsApiError:
-            return ""
-        lines = [line.strip() for line in str(text).splitlines() if line.strip()]
-        tail = " | ".join(lines[-3:])
-        return tail[-chars:]
-
-    def _connect(self) -> JobSubmissionClient:
-        """The client, made on first use (it checks the cluster's Ray version, so it needs the
-        Jobs API to answer)."""
-        if self._client is None:
-            self._client = _bounded_client(self.address, self.timeout)
-        return self._client
-
-    def _call(self, request: Callable[[JobSubmissionClient], Any]) -> Any:
-        """Run one request, its failures turned into `JobsApiError`s naming the address."""
-        from ray.exceptions import AuthenticationError
-
-        try:
-            return request(self._connect())
-        except AuthenticationError as exc:
-            raise JobsApiError(
-                f"the Ray Jobs API at {self.address} refused the gateway's Ray token "
-                f"({_first_line(exc.message)}; set RAY_AUTH_MODE=token and the cluster's token "
-                "in RAY_AUTH_TOKEN or RAY_AUTH_TOKEN_PATH)"
-            ) from exc
-        except OSError as exc:  # requests' errors and the client's ConnectionError
-            raise JobsApiUnreachable(
-                f"the Ray Jobs API at {self.address} does not answer ({_first_line(str(exc))})"
-            ) from exc
-        except RuntimeError as exc:
-            text = _first_line(str(exc))
-            if "status code 404" in text:
-                raise _NotFound(text) from exc
-            if "status code 5" in text:
-                raise JobsApiUnreachable(
-                    f"the Ray Jobs API at {self.address} failed a request ({text})"
-                ) from exc
-            raise JobsApiError(
-                f"the Ray Jobs API at {self.address} refused a request ({text})"
-            ) from exc
-
-
-class _NotFound(JobsApiError):
-    """The Jobs API does not know the submission id."""
-
-
-def _bounded_client(address: str, timeout: float) -> JobSubmissionClient:
-    """A `JobSubmissionClient` whose every request gives up after `timeout` seconds (Ray's own
-    client waits for ever on a server that accepts the connection and never answers)."""
-    from ray.job_submission import JobSubmissionClient
-
-    class BoundedClient(JobSubmissionClient):
-        def __init__(self) -> None:
-            self._request_timeout = timeout
-            super().__init__(address)
-
-        def _do_request(self, method: str, endpoint: str, **kwargs: Any) -> Any:
-            kwargs.setdefault("timeout", self._request_timeout)
-            return super()._do_request(method, endpoint, **kwargs)
-
-    return BoundedClient()
-
-
 #: An absolute path in a log line: a '/' that starts no word, then path characters.
 _ABSOLUTE_PATH = re.compile(r"(?<![\w.:/])/[\w.@+-]+(?:/[\w.@+-]*)*")
 
@@ -203,14 +87,6 @@ def without_paths(text: str) -> str:
     """`text` with every absolute path cut to its last part (`…/name`), so that a reason shown to
     a client names no server folder (read roots, the Python path, job folders)."""
     return _ABSOLUTE_PATH.sub(lambda m: "…/" + m.group(0).rstrip("/").rsplit("/", 1)[-1], text)
-
-
-def _first_line(text: str) -> str:
-    """The first non-empty line of `text`, whitespace collapsed and cut to 300 characters."""
-    for line in text.splitlines():
-        if line.strip():
-            return " ".join(line.split())[:300].rstrip(".")
-    return "no details"
 
 
 class RayJobExecutor:

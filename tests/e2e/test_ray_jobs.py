@@ -34,15 +34,8 @@ from rangeret.dataset.layout import KITTI_LAYOUT, list_scans, velodyne_dir
 from rangeret.dataset.profiles import load_profile
 from rangeret.inference.spec import InferenceSpec
 from service.jobs import JobControl, JobError, JobManager, JobStore
-from service.jobs.ray_jobs import (
-    JobsApi,
-    JobsApiError,
-    JobsApiUnreachable,
-    RayJobExecutor,
-    Verdict,
-    submission_id,
-    verdict,
-)
+from service.jobs.jobs_api import JobsApi, JobsApiError, JobsApiUnreachable
+from service.jobs.ray_jobs import RayJobExecutor, Verdict, submission_id, verdict
 from service.schemas import JobState
 from service.served_models import ModelCatalog, ModelEntry
 from tests.support.apps import one_model
@@ -778,7 +771,7 @@ def test_an_unreadable_scan_fails_the_job_naming_it(cluster, gateways):
 def test_a_refused_ray_token_is_one_sentence_naming_the_address(cluster, tmp_path):
     script = (
         "import sys\n"
-        "from service.jobs.ray_jobs import JobsApi, JobsApiError\n"
+        "from service.jobs.jobs_api import JobsApi, JobsApiError\n"
         "try:\n"
         "    JobsApi(sys.argv[1]).status('x-1')\n"
         "except JobsApiError as exc:\n"

@@ -230,7 +230,9 @@ def test_compare_refuses_reports_that_do_not_compare(tmp_path, capsys):
     panda = _write_report(tmp_path / "b.json", "pandaset", {"car": 0.5, "road": 0.8}, 0.9)
     fewer = _write_report(tmp_path / "c.json", "semantickitti", {"car": 0.5}, 0.9)
     (tmp_path / "d.json").write_text("{not json")
+    (tmp_path / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
     cases = [
+        ([base, tmp_path / "deep.json"], "deep.json is not a JSON evaluation report (it nests"),
         ([base, panda], "b.json is a report of the pandaset profile"),
         ([base, fewer], "c.json evaluates other classes than"),
         ([base, tmp_path / "d.json"], "d.json is not a JSON evaluation report"),
