@@ -10,9 +10,14 @@ answers by status (200, 503 from a full queue or a failed batch, other 4xx, othe
 errors), the gateway process's resident memory (VmRSS; Ray actors are other processes) after the
 warm-up, after the run and sampled every second in between, the mean network batch of the run
 from /metrics, and a verdict on whether the memory grew by more than `--rss-growth-mib` after the
-warm-up. A printed verdict, not an assertion; run by hand (`--help` for every option), e.g.
+warm-up. With `--hostile-every N`, once the warm-up of good requests is over, every N-th request
+of each client sends one of the tests' hostile point-cloud bodies in turn (decoded-size bombs,
+colliding columns, corrupt LZF, non-finite values...), whose answers must all be 400 or 413.
+A printed verdict, not an assertion; run by hand (`--help` for every option), e.g.
 
     python benchmarks/bench_soak.py --clients 8 --seconds 600 --warmup-s 10 --out soak.json
+    python benchmarks/bench_soak.py --clients 32 --seconds 60 --warmup-s 10 --hostile-every 4 \
+        --rss-growth-mib 100
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
-from _common import REAL_SCAN, require_real_scan
+from _common import REAL_SCAN, REPO, require_real_scan
 from _gateway import StartedGateway, start_gateway
 
 OCTET = "application/octet-stream"
@@ -122,11 +127,13 @@ class Answer:
     status: int | None
     latency: float
     good: bool = True  # a 200 whose body has the expected size or shape
+    hostile: bool = False  # a hostile body, whose right answer is a 400 or 413
 
 
 @dataclass
 class Load:
-    """Everything the client threads share: what to send, where, and when to stop."""
+    """Everything the client threads share: what to send, where, and when to stop; with
+    `hostile_every`, once `hostile_on` is set, every so many requests send a hostile body."""
 
     url: str
     body: bytes
@@ -134,6 +141,9 @@ class Load:
     headers: dict[str, str]
     json_every: int
     timeout: float
+    hostile: list[tuple[str, bytes, str]] = field(default_factory=list)
+    hostile_every: int = 0
+    hostile_on: threading.Event = field(default_factory=threading.Event)
     stop: threading.Event = field(default_factory=threading.Event)
     answers: list[list[Answer]] = field(default_factory=list)
     examples: dict[str, str] = field(default_factory=dict)  # the first answer of each failure
@@ -160,6 +170,9 @@ def client_loop(load: Load, answers: list[Answer]) -> None:
     with httpx.Client(base_url=load.url, timeout=load.timeout) as client:
         while not load.stop.is_set():
             n += 1
+            if load.hostile_on.is_set() and load.hostile_every and n % load.hostile_every == 0:
+                send_hostile(client, load, answers, n // load.hostile_every)
+                continue
             want_json = load.json_every > 0 and n % load.json_every == 0
             start = time.perf_counter()
             try:
@@ -196,6 +209,46 @@ def client_loop(load: Load, answers: list[Answer]) -> None:
                 load.stop.wait(min(max(wait, 0.0), MAX_BACKOFF_S))
             elif kind != "200":
                 load.stop.wait(0.1)
+
+
+def send_hostile(client: httpx.Client, load: Load, answers: list[Answer], i: int) -> None:
+    """Send the `i`-th hostile body (in turn); a 400 or 413 is its right answer."""
+    name, body, media = load.hostile[i % len(load.hostile)]
+    start = time.perf_counter()
+    try:
+        r = client.post("/v1/scans", content=body, headers={**load.headers, "Content-Type": media})
+    except httpx.HTTPError as exc:
+        end = time.perf_counter()
+        answers.append(Answer(end, "transport", None, end - start, hostile=True))
+        load.note("transport", f"{name}: {type(exc).__name__}: {exc}")
+        return
+    end = time.perf_counter()
+    right = r.status_code in (400, 413)
+    answers.append(Answer(end, kind_of(r.status_code), r.status_code, end - start, right, True))
+    if not right:
+        load.note(f"hostile {name} {r.status_code}", r.text)
+
+
+def hostile_bodies() -> list[tuple[str, bytes, str]]:
+    """The hostile point-cloud bodies of the project's tests (name, body, Content-Type): headers
+    that ask for far more than the limits, columns that collide, short or corrupt data."""
+    sys.path.insert(0, str(REPO))
+    from tests.support import hostile_files as h
+
+    pcd, las = "application/x-pcd", "application/vnd.las"
+    nan = np.full((1000, RECORD_FIELDS), np.nan, np.float32).tobytes()
+    return [
+        ("wide compressed PCD", h.wide_compressed_pcd(20_000), pcd),
+        ("COUNT 20,000,000 PCD", h.count_bomb_pcd(), pcd),
+        ("colliding PCD columns", h.colliding_pcd(), pcd),
+        ("short ASCII PCD", h.short_ascii_pcd(), pcd),
+        ("corrupt LZF PCD", h.bad_lzf_pcd(overflowing=False), pcd),
+        ("overflowing LZF PCD", h.bad_lzf_pcd(overflowing=True), pcd),
+        ("a million VLRs LAS", h.vlr_bomb_las(), las),
+        ("2^40 points LAZ", h.huge_laz(), "application/vnd.laszip"),
+        ("wide PLY header", h.wide_ply_header(2_000_000), "application/x-ply"),
+        ("non-finite .bin", nan, OCTET),
+    ]
 
 
 def sample_rss(pid: int | None, t0: float, stop: threading.Event, out: list[list[float]]) -> None:
@@ -372,8 +425,15 @@ def soak(args: argparse.Namespace, url: str, pid: int | None, gw: StartedGateway
         )
     body, points, what = make_body(args.points, args.seed)
     load = Load(url, body, points, headers, args.json_every, args.timeout)
+    if args.hostile_every:
+        load.hostile, load.hostile_every = hostile_bodies(), args.hostile_every
     devices = ", ".join(sorted({str(w.get("device")) for w in health.get("workers") or []})) or "?"
     mix = f", 1 request in {args.json_every} asking for JSON" if args.json_every else ""
+    if args.hostile_every:
+        mix += (
+            f", after the warm-up 1 request in {args.hostile_every} a hostile body "
+            f"({len(load.hostile)} kinds in turn)"
+        )
     print(
         f"soak: {args.clients} clients x {args.seconds:g} s after {args.warmup_s:g} s of warm-up, "
         f"{what}{mix}, {url}"
@@ -392,6 +452,7 @@ def soak(args: argparse.Namespace, url: str, pid: int | None, gw: StartedGateway
         died = wait_until(time.perf_counter() + args.warmup_s, gw)
         t0 = time.perf_counter()
         rss_before = rss_mib(pid)
+        load.hostile_on.set()
         batch_before = batch_histogram(url, headers)
         samples: list[list[float]] = [] if rss_before is None else [[0.0, round(rss_before, 1)]]
         sampling = threading.Event()
@@ -418,7 +479,26 @@ def soak(args: argparse.Namespace, url: str, pid: int | None, gw: StartedGateway
     elif batch_after:
         batch_delta = batch_after
     window = [a for per in load.answers for a in per if t0 <= a.end <= t1]
-    report = summarise(args, window, t1 - t0, rss_before, rss_after, samples, batch_delta)
+    hostile = [a for a in window if a.hostile]
+    report = summarise(
+        args,
+        [a for a in window if not a.hostile],
+        t1 - t0,
+        rss_before,
+        rss_after,
+        samples,
+        batch_delta,
+    )
+    if args.hostile_every:
+        report["hostile"] = {
+            "sent": len(hostile),
+            "400 or 413": sum(a.good for a in hostile),
+            "other": dict(Counter(str(a.status) for a in hostile if not a.good)),
+        }
+        print(
+            f"hostile bodies: {len(hostile)} sent, {report['hostile']['400 or 413']} answered "
+            f"400 or 413, others: {report['hostile']['other'] or 'none'}"
+        )
     report.update(
         url=url, scan=what, points=points, json_every=args.json_every, examples=load.examples
     )
@@ -451,6 +531,14 @@ def main() -> None:
         help="ask every K-th request of each client for JSON (default 0: never)",
     )
     load.add_argument("--seed", type=int, default=0, help="seed of the random scan")
+    load.add_argument(
+        "--hostile-every",
+        type=int,
+        default=0,
+        metavar="N",
+        help="after the warm-up, every N-th request of each client sends one of the tests' "
+        "hostile point-cloud bodies, whose answer must be a 400 or 413 (default 0: none)",
+    )
     load.add_argument(
         "--timeout", type=float, default=120.0, help="seconds one request may take (default 120)"
     )
