@@ -17,7 +17,43 @@ WEB_STAMP := $(WEB)/node_modules/.installed
 CHROMIUM_INSTALL := apt-get update && apt-get install -y --no-install-recommends chromium
 IPROUTE_INSTALL := apt-get update && apt-get install -y --no-install-recommends iproute2
 
-.PHONY: demo test lint web browser netns bench gpu-check clean
+# The service image (deploy/Dockerfile), `make image`: VARIANT=gpu (the default: the CUDA runtime
+# base, torch's cu130 build, Python 3.12) or VARIANT=cpu (Debian bookworm, torch's CPU build,
+# Python 3.11); IMAGE names it. CONTAINER: docker or podman, by default the first of them whose
+# `info` succeeds. BASE_IMAGE replaces the variant's base. OFFLINE=1 installs every Python package
+# from the variant's wheelhouse, deploy/wheelhouse/$(TORCH_BUILD)-py$(IMAGE_PYTHON), which
+# `make wheelhouse` fills (pip download of the pinned requirements for the image's Python and
+# platform, torch from TORCH_INDEX: empty takes the torch build pip finds with its own
+# configuration), and builds with no network.
+VARIANT ?= gpu
+ifeq ($(VARIANT),cpu)
+IMAGE ?= rangeret:0.1.0-cpu
+BASE_IMAGE ?= debian:bookworm-slim
+IMAGE_PYTHON ?= 3.11
+IMAGE_GLIBC ?= 36
+TORCH_BUILD ?= cpu
+else
+IMAGE ?= rangeret:0.1.0
+BASE_IMAGE ?=
+IMAGE_PYTHON ?= 3.12
+IMAGE_GLIBC ?= 39
+TORCH_BUILD ?= cu130
+endif
+TORCH_INDEX ?= https://download.pytorch.org/whl/$(TORCH_BUILD)
+WHEELHOUSE := $(TORCH_BUILD)-py$(IMAGE_PYTHON)
+CONTAINER ?= $(shell for c in docker podman; do $$c info >/dev/null 2>&1 && { echo $$c; break; }; done)
+# pip download for the image's Python and platform: manylinux wheels up to the base's glibc.
+IMAGE_WHEELS := --only-binary=:all: --python-version $(IMAGE_PYTHON) --implementation cp \
+	--abi cp$(subst .,,$(IMAGE_PYTHON)) \
+	$(foreach v,$(shell seq $(IMAGE_GLIBC) -1 17),--platform manylinux_2_$(v)_x86_64) \
+	--platform manylinux2014_x86_64 --platform manylinux2010_x86_64 --platform manylinux1_x86_64
+IMAGE_BUILD_ARGS := --build-arg PYTHON=python$(IMAGE_PYTHON) --build-arg TORCH_BUILD=$(TORCH_BUILD) \
+	$(if $(BASE_IMAGE),--build-arg BASE_IMAGE=$(BASE_IMAGE)) \
+	$(if $(OFFLINE),--build-arg WHEELHOUSE=$(WHEELHOUSE) --network none)
+# The image test's tools (podman, and mmdebstrap for its base), installed when missing (as root).
+PODMAN_INSTALL := apt-get update && apt-get install -y podman buildah runc mmdebstrap
+
+.PHONY: demo test lint web browser netns bench gpu-check clean wheelhouse image podman image-test
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -54,6 +90,28 @@ netns:
 
 test: lint $(WEB_STAMP) browser netns
 	$(BIN)/python -m pytest
+
+wheelhouse: $(STAMP)
+	rm -rf deploy/wheelhouse/$(WHEELHOUSE)
+	$(BIN)/python -m pip download -q --dest deploy/wheelhouse/$(WHEELHOUSE) $(IMAGE_WHEELS) \
+	    $(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX)) -c deploy/constraints.txt torch
+	$(BIN)/python -m pip download -q --dest deploy/wheelhouse/$(WHEELHOUSE) $(IMAGE_WHEELS) \
+	    -c deploy/constraints.txt -r deploy/requirements.txt "setuptools>=68" wheel
+
+image: $(WEB_STAMP)
+	@test -n "$(CONTAINER)" || { echo "make image needs docker or podman whose 'info' succeeds (CONTAINER=podman chooses one)" >&2; exit 1; }
+	$(CONTAINER) build -f deploy/Dockerfile $(IMAGE_BUILD_ARGS) \
+	    $(if $(filter podman,$(notdir $(CONTAINER))),--format docker) -t $(IMAGE) .
+
+podman:
+	@command -v podman >/dev/null 2>&1 && command -v mmdebstrap >/dev/null 2>&1 || { \
+	  if [ "$$(id -u)" = 0 ]; then $(PODMAN_INSTALL); \
+	  else echo "The image test needs podman and mmdebstrap: run  sudo sh -c '$(PODMAN_INSTALL)'" >&2; exit 1; fi; }
+
+# The CPU image built offline on a base made here, and run as the manifests run it (minutes; not
+# part of `make test`): tests/image/run.py.
+image-test: $(STAMP) $(WEB_STAMP) podman
+	$(BIN)/python -m tests.image.run
 
 bench: $(STAMP)
 	for b in benchmarks/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done

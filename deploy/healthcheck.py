@@ -1,11 +1,14 @@
 """Container health check: the gateway answers /healthz; on a Ray node the raylet is alive.
 
 The container's role is read from its first process's arguments: the entrypoint's mode, or a
-command that runs `ray start` (KubeRay's `/bin/bash -c -- "... ray start ... --block"`).
+command that runs `ray start`: KubeRay's `/bin/bash -c -- "... ray start ... --block"`, or the
+`ray start` itself, which bash runs in its own place as the script's last command
+(`.../python3 .../ray start ...` as process 1).
 """
 
 from __future__ import annotations
 
+import itertools
 import os
 import subprocess
 import sys
@@ -21,6 +24,11 @@ def role(cmdline: Path = Path("/proc/1/cmdline")) -> str:
         args = []
     if any(mode in args for mode in ("ray-head", "ray-worker")) or any(
         "ray start" in arg for arg in args
+    ):
+        return "ray"
+    if any(
+        Path(arg).name == "ray" and following == "start"
+        for arg, following in itertools.pairwise(args)
     ):
         return "ray"
     return "gateway"

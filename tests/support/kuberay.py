@@ -114,6 +114,7 @@ CORE_KINDS = {
     "ConfigMap": "v1",
     "PersistentVolumeClaim": "v1",
     "NetworkPolicy": "networking.k8s.io/v1",
+    "Job": "batch/v1",
 }
 
 #: The annotation that makes KubeRay leave the Ray container's command as written.
@@ -421,6 +422,7 @@ def validate(doc: object) -> list[str]:
         "ConfigMap": _config_map,
         "PersistentVolumeClaim": _claim,
         "NetworkPolicy": _network_policy,
+        "Job": _job,
     }[kind]
     return problems + checker(doc)
 
@@ -617,6 +619,166 @@ def _network_policy(doc: dict) -> list[str]:
     if isinstance(spec, dict) and "podSelector" not in spec:
         problems.append("spec.podSelector: the required field is missing")
     return problems
+
+
+def _job(doc: dict) -> list[str]:
+    """A Job: its spec's fields and pod template, whose restartPolicy must be Never or OnFailure."""
+    problems = _top_level(doc, ["spec"], ["spec"])
+    spec = doc.get("spec")
+    integer = {"type": "integer", "format": "int32", "minimum": 0}
+    problems += _spec_fields(
+        spec,
+        {
+            "template": core_schema("PodTemplateSpec"),
+            "backoffLimit": integer,
+            "activeDeadlineSeconds": {"type": "integer", "format": "int64", "minimum": 1},
+            "ttlSecondsAfterFinished": integer,
+            "completions": integer,
+            "parallelism": integer,
+            "suspend": {"type": "boolean"},
+            "completionMode": {"type": "string", "enum": ["NonIndexed", "Indexed"]},
+        },
+    )
+    if not isinstance(spec, dict):
+        return problems
+    try:
+        pod = spec["template"]["spec"]
+        if pod.get("restartPolicy") not in ("Never", "OnFailure"):
+            problems.append("spec.template.spec.restartPolicy: Never or OnFailure in a Job")
+        if not pod["containers"]:
+            problems.append("spec.template.spec.containers: needs a container")
+    except (KeyError, TypeError, AttributeError):
+        problems.append("spec.template.spec.containers: the required field is missing")
+    return problems
+
+
+# --- kustomize -------------------------------------------------------------------------------
+
+#: The file kustomize reads in a folder.
+KUSTOMIZATION = "kustomization.yaml"
+_KUSTOMIZE_KINDS = {
+    "Kustomization": "kustomize.config.k8s.io/v1beta1",
+    "Component": "kustomize.config.k8s.io/v1alpha1",
+}
+_IMAGE_FIELDS = ("name", "newName", "newTag", "digest")
+
+
+def kustomization_problems(doc: object) -> list[str]:
+    """What kustomize refuses in a kustomization.yaml, for the fields these files use: its kind
+    and apiVersion, `resources` and `components` as lists of paths, and `images` entries (name,
+    newName, newTag, digest; the name required). Any other field is refused here."""
+    if not isinstance(doc, dict):
+        return ["<root>: a kustomization is a mapping"]
+    kind = doc.get("kind", "Kustomization")
+    problems = []
+    if kind not in _KUSTOMIZE_KINDS:
+        return [f"kind: {kind!r} is neither Kustomization nor Component"]
+    if doc.get("apiVersion", _KUSTOMIZE_KINDS[kind]) != _KUSTOMIZE_KINDS[kind]:
+        problems.append(f"apiVersion: a {kind} is {_KUSTOMIZE_KINDS[kind]}")
+    known = {"apiVersion", "kind", "resources", "components", "images"}
+    problems += [f"{key}: not a field these kustomizations use" for key in doc if key not in known]
+    for key in ("resources", "components"):
+        value = doc.get(key, [])
+        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+            problems.append(f"{key}: a list of paths")
+    images = doc.get("images", [])
+    for i, image in enumerate(images if isinstance(images, list) else [None]):
+        if not isinstance(image, dict) or not isinstance(image.get("name"), str):
+            problems.append(f"images[{i}]: a mapping with a name")
+            continue
+        problems += [f"images[{i}].{k}: unknown field" for k in image if k not in _IMAGE_FIELDS]
+        problems += [
+            f"images[{i}].{k}: must be a string"
+            for k in _IMAGE_FIELDS
+            if k in image and not isinstance(image[k], str)
+        ]
+    return problems
+
+
+def _split_image(image: str) -> tuple[str, str, str]:
+    """An image reference as (name, ":tag" or "", "@digest" or "")."""
+    name, at, digest = image.partition("@")
+    slash = name.rfind("/")
+    colon = name.rfind(":")
+    tag = ""
+    if colon > slash:
+        name, tag = name[:colon], name[colon:]
+    return name, tag, at + digest
+
+
+def set_image(image: str, entries: Iterable[Mapping[str, str]]) -> str:
+    """An image reference after kustomize's `images` entries: the first entry whose name is the
+    image's name gives a new name, tag or digest (a digest replaces the tag)."""
+    name, tag, digest = _split_image(image)
+    for entry in entries:
+        if entry["name"] != name:
+            continue
+        name = entry.get("newName", name)
+        if "newTag" in entry:
+            tag, digest = ":" + entry["newTag"], ""
+        if "digest" in entry:
+            tag, digest = "", "@" + entry["digest"]
+        break
+    return name + tag + digest
+
+
+def _set_images(value: object, entries: list[Mapping[str, str]]) -> None:
+    """Apply `images` entries to every `containers` and `initContainers` item found in `value`,
+    at any depth and in any kind (custom resources included), as kustomize 5 does."""
+    if isinstance(value, dict):
+        for key, item in value.items():
+            if key in ("containers", "initContainers") and isinstance(item, list):
+                for container in item:
+                    if isinstance(container, dict) and isinstance(container.get("image"), str):
+                        container["image"] = set_image(container["image"], entries)
+            _set_images(item, entries)
+    elif isinstance(value, list):
+        for item in value:
+            _set_images(item, entries)
+
+
+def kustomize(folder: Path, images: Iterable[Mapping[str, str]] | None = None) -> list[dict]:
+    """The documents `kubectl kustomize folder` gives, for the fields these kustomizations use:
+    each resource file's documents (a folder resource is kustomized itself), the components'
+    `images` added after the folder's own, and every `images` entry applied to container images.
+    `images` (optional) replaces the entries of the same name first, as an operator editing the
+    one line would. Paths outside the folder are refused, as kustomize's load restrictor does."""
+    overrides = {e["name"]: dict(e) for e in images or []}
+    return _kustomize(Path(folder).resolve(), overrides, allow_component=False)
+
+
+def _kustomize(folder: Path, overrides: dict, allow_component: bool) -> list[dict]:
+    path = folder / KUSTOMIZATION
+    (doc,) = load_manifests(path)
+    problems = kustomization_problems(doc)
+    if problems:
+        raise ManifestError(f"{path}: " + "; ".join(problems))
+    if doc.get("kind") == "Component" and not allow_component:
+        raise ManifestError(f"{path}: a Component is not kustomized on its own")
+    docs: list[dict] = []
+    for resource in doc.get("resources", []):
+        target = (folder / resource).resolve()
+        if target.is_dir():
+            docs += _kustomize(target, overrides, allow_component=False)
+        elif target.is_relative_to(folder):
+            docs += load_manifests(target)
+        else:
+            raise ManifestError(f"{path}: {resource} is not in or below {folder}")
+    entries = list(doc.get("images", []))
+    for component in doc.get("components", []):
+        (part,) = load_manifests((folder / component).resolve() / KUSTOMIZATION)
+        if part.get("kind") != "Component":
+            raise ManifestError(f"{path}: {component} is not a Component")
+        docs = _with_images(docs, part.get("images", []), overrides)
+    return _with_images(docs, entries, overrides)
+
+
+def _with_images(docs: list[dict], entries: list, overrides: dict) -> list[dict]:
+    entries = [{**entry, **overrides.get(entry["name"], {})} for entry in entries]
+    docs = copy.deepcopy(docs)
+    if entries:
+        _set_images(docs, entries)
+    return docs
 
 
 # --- the Serve config ------------------------------------------------------------------------

@@ -1,0 +1,237 @@
+"""The operator's path through the manifests: the kustomizations `kubectl apply -k` reads (the
+image named in one line), the one-off Job that fills the volumes, and the user every pod runs
+as. Kustomizations are not Kubernetes objects: `tests/support/kuberay.py` renders them
+(`kustomize`), and where kubectl is installed its own rendering must be the same."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.support.kuberay import (
+    KUBERAY,
+    KUSTOMIZATION,
+    ManifestError,
+    find,
+    kustomization_problems,
+    kustomize,
+    load_manifests,
+    set_image,
+    validate,
+)
+from tests.support.paths import REPO
+
+#: The folders `kubectl apply -k` takes, and the manifests each applies.
+FOLDERS = {
+    ".": ["storage.yaml", "models.yaml", "rayservice.yaml", "networkpolicy.yaml", "gateway.yaml"],
+    "fill-volumes": ["job.yaml"],
+    "test-set": ["rayjob.yaml"],
+}
+UID = 10001
+
+
+def _images(docs: list[dict]) -> list[str]:
+    return sorted(set(re.findall(r'"image": "([^"]+)"', json.dumps(docs))))
+
+
+def _pods(docs: list[dict]) -> list[tuple[str, dict]]:
+    """(where, pod spec) of every pod template in the documents."""
+    found = []
+
+    def walk(value: object, where: str) -> None:
+        if isinstance(value, dict):
+            if isinstance(value.get("containers"), list):
+                found.append((where, value))
+            for key, item in value.items():
+                walk(item, f"{where}.{key}")
+        elif isinstance(value, list):
+            for i, item in enumerate(value):
+                walk(item, f"{where}[{i}]")
+
+    for doc in docs:
+        walk(doc, f"{doc['kind']}/{doc['metadata']['name']}")
+    return found
+
+
+def test_each_kustomization_renders_its_manifests_valid_with_the_one_image_line():
+    (component,) = load_manifests(KUBERAY / "image" / KUSTOMIZATION)
+    assert component["kind"] == "Component" and kustomization_problems(component) == []
+    (entry,) = component["images"]
+    line = next(
+        line
+        for line in (KUBERAY / "image" / KUSTOMIZATION).read_text().splitlines()
+        if "name:" in line
+    )
+    assert yaml.safe_load(line.strip().removeprefix("- ")) == entry  # one line holds it all
+    assert entry["name"] == "rangeret"
+    written = f"{entry['newName']}:{entry['newTag']}"
+    for folder, files in FOLDERS.items():
+        (doc,) = load_manifests(KUBERAY / folder / KUSTOMIZATION)
+        assert kustomization_problems(doc) == [] and doc["resources"] == files, folder
+        assert "images" not in doc, folder  # only the component names the image
+        assert [(KUBERAY / folder / c).resolve() for c in doc["components"]] == [
+            (KUBERAY / "image").resolve()
+        ]
+        docs = kustomize(KUBERAY / folder)
+        expected = [d for f in files for d in load_manifests(KUBERAY / folder / f)]
+        assert len(docs) == len(expected) and all(validate(d) == [] for d in docs), folder
+        assert _images(expected) == ["rangeret:0.1.0"], folder
+        assert _images(docs) == [written], folder
+        # The operator's edit of that one line reaches every container of every folder.
+        moved = kustomize(KUBERAY / folder, images=[{**entry, "newName": "reg.io/x/rangeret",
+                                                     "newTag": "1.2"}])  # fmt: skip
+        assert _images(moved) == ["reg.io/x/rangeret:1.2"], folder
+    # Every manifest but the example Secrets is applied by exactly one folder.
+    applied = sorted(str(Path(folder) / f) for folder, files in FOLDERS.items() for f in files)
+    manifests = sorted(
+        p.relative_to(KUBERAY).as_posix()
+        for p in KUBERAY.rglob("*.yaml")
+        if p.name != KUSTOMIZATION and p.name != "secrets.example.yaml"
+    )
+    assert applied == manifests
+
+
+def test_the_kustomize_reading_follows_kustomizes_rules(tmp_path):
+    assert set_image("rangeret:0.1.0", [{"name": "rangeret", "newTag": "2"}]) == "rangeret:2"
+    assert set_image("rangeret", [{"name": "rangeret", "newName": "r.io/a"}]) == "r.io/a"
+    assert set_image(
+        "r.io:5000/rangeret:1", [{"name": "r.io:5000/rangeret", "digest": "sha256:0"}]
+    ) == ("r.io:5000/rangeret@sha256:0")
+    assert set_image("other:1", [{"name": "rangeret", "newTag": "2"}]) == "other:1"
+    assert kustomization_problems({"resources": "a.yaml"})
+    assert kustomization_problems({"images": [{"name": "x", "newTag": 1}]})
+    assert kustomization_problems({"kind": "Component", "apiVersion": "v1"})
+    assert kustomization_problems({"patches": []})  # not a field these files use
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "a.yaml").write_text("apiVersion: v1\nkind: ConfigMap\nmetadata: {name: a}\n")
+    (tmp_path / "sub" / KUSTOMIZATION).write_text("resources: [../a.yaml]\n")
+    with pytest.raises(ManifestError, match="not in or below"):
+        kustomize(tmp_path / "sub")  # kustomize's load restrictor
+
+
+@pytest.mark.skipif(not shutil.which("kubectl"), reason="kubectl is not installed")
+def test_kubectl_kustomize_renders_the_same():
+    for folder in FOLDERS:
+        rendered = subprocess.run(
+            ["kubectl", "kustomize", str(KUBERAY / folder)],
+            capture_output=True,
+            text=True,
+            check=True,
+            timeout=60,
+        ).stdout
+        theirs = [d for d in yaml.safe_load_all(rendered) if d]
+        key = lambda d: (d["kind"], d["metadata"]["name"])  # noqa: E731
+        assert sorted(theirs, key=key) == sorted(kustomize(KUBERAY / folder), key=key), folder
+
+
+def test_every_pod_runs_as_the_images_user_with_fs_group():
+    """uid 10001 (the image's `rangeret`), group and fsGroup 10001 on every pod template, so
+    that a new volume is writable where the storage honours fsGroup; OnRootMismatch spares a
+    full results volume a recursive chown at every start of a service pod."""
+    checked = []
+    for folder in FOLDERS:
+        for where, pod in _pods(kustomize(KUBERAY / folder)):
+            context = pod.get("securityContext") or {}
+            assert (
+                context.get("runAsUser"),
+                context.get("runAsGroup"),
+                context.get("fsGroup"),
+            ) == (
+                UID,
+                UID,
+                UID,
+            ), where
+            if "Job/" not in where:
+                assert context.get("fsGroupChangePolicy") == "OnRootMismatch", where
+            checked.append(where.split(".")[0])
+    assert sorted(set(checked)) == [
+        "Deployment/rangeret-gateway",
+        "Job/rangeret-fill-volumes",
+        "RayJob/rangeret-test-set",
+        "RayService/rangeret",
+    ]
+    dockerfile = (REPO / "deploy" / "Dockerfile").read_text()
+    assert f"useradd --create-home --uid {UID} rangeret" in dockerfile
+
+
+def test_the_fill_job_writes_the_claims_the_service_mounts_read_only():
+    """The data and models claims are writable (a new volume starts empty); every service pod
+    mounts them read-only; the Job mounts all three writable, its root init container gives
+    their roots to 10001 (storage that ignores fsGroup), and its loader waits to be told."""
+    claims = {d["metadata"]["name"]: d for d in load_manifests(KUBERAY / "storage.yaml")}
+    assert claims["rangeret-data"]["spec"]["accessModes"] == ["ReadWriteMany"]
+    assert claims["rangeret-models"]["spec"]["accessModes"] == ["ReadWriteMany"]
+    service = kustomize(KUBERAY) + kustomize(KUBERAY / "test-set")
+    for where, pod in _pods(service):
+        volumes = {v["name"]: v for v in pod.get("volumes", [])}
+        for container in pod["containers"]:
+            for mount in container.get("volumeMounts", []):
+                claim = volumes[mount["name"]].get("persistentVolumeClaim")
+                if claim and claim["claimName"] in ("rangeret-data", "rangeret-models"):
+                    assert mount.get("readOnly") and claim.get("readOnly"), where
+    (job,) = kustomize(KUBERAY / "fill-volumes")
+    pod = job["spec"]["template"]["spec"]
+    assert job["spec"]["backoffLimit"] == 0 and pod["restartPolicy"] == "Never"
+    volumes = {v["name"]: v["persistentVolumeClaim"] for v in pod["volumes"]}
+    assert sorted(c["claimName"] for c in volumes.values()) == sorted(claims)
+    assert not any(c.get("readOnly") for c in volumes.values())
+    (init,) = pod["initContainers"]
+    assert init["securityContext"]["runAsUser"] == 0
+    script = " ".join(init["command"])
+    assert "chown 10001:10001" in script
+    for container in [init, *pod["containers"]]:
+        mounts = {m["mountPath"]: m for m in container["volumeMounts"]}
+        assert sorted(mounts) == ["/data", "/models", "/results"]
+        assert not any(m.get("readOnly") for m in mounts.values())
+    (loader,) = pod["containers"]
+    assert "command" not in loader and loader["args"][0] == "bash"  # through the entrypoint
+    assert "/tmp/filled" in loader["args"][-1]
+
+
+def test_the_init_script_gives_the_roots_to_10001_only_where_needed(tmp_path):
+    """The init container's script, run with stubs for stat and chown: a root-owned volume is
+    chowned, one already 10001's is left alone (an NFS export with root_squash)."""
+    (job,) = load_manifests(KUBERAY / "fill-volumes" / "job.yaml")
+    (init,) = job["spec"]["template"]["spec"]["initContainers"]
+    script = init["command"][-1]
+    bindir = tmp_path / "bin"
+    bindir.mkdir()
+    log = tmp_path / "chown.log"
+    (bindir / "stat").write_text('#!/bin/sh\n[ "$3" = /models ] && echo 10001:10001 || echo 0:0\n')
+    (bindir / "chown").write_text(f'#!/bin/sh\necho "$*" >> {log}\n')
+    for tool in ("stat", "chown"):
+        (bindir / tool).chmod(0o755)
+    subprocess.run(
+        ["sh", "-c", script], env={"PATH": f"{bindir}:/usr/bin:/bin"}, check=True, timeout=30
+    )
+    assert log.read_text().splitlines() == ["10001:10001 /data", "10001:10001 /results"]
+
+
+def test_the_deployment_guide_takes_the_operator_from_image_to_scan():
+    """docs/deploy.md: the versions it needs (KubeRay 1.6 for authOptions.secretName, Kubernetes
+    1.23), `make image`, the push, the one line, then the folders in their order."""
+    text = (REPO / "docs" / "deploy.md").read_text()
+    assert "KubeRay 1.6" in text and "Kubernetes 1.23" in text
+    order = [
+        "make image",
+        "docker push",
+        "deploy/kuberay/image/kustomization.yaml",
+        "kubectl create secret generic rangeret-ray-token",
+        "kubectl apply -f deploy/kuberay/storage.yaml",
+        "kubectl apply -k deploy/kuberay/fill-volumes",
+        "kubectl apply -k deploy/kuberay\n",
+        "kubectl apply -k deploy/kuberay/test-set",
+    ]
+    positions = [text.find(step) for step in order]
+    assert -1 not in positions, [s for s, p in zip(order, positions, strict=True) if p < 0]
+    assert positions == sorted(positions), order
+    assert "fsGroup" in text and "chown" in text and "RANGERET_WEIGHTS" in text
+    assert "kubectl apply -f deploy/kuberay/rayservice.yaml" not in text  # the image is set by -k
+    (job,) = load_manifests(KUBERAY / "fill-volumes" / "job.yaml")
+    assert find([job], "Job")["metadata"]["name"] in text
