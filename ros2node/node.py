@@ -3,7 +3,8 @@
 The subscription callback (on the executor's thread) only leaves each message in the mailbox;
 a thread of its own labels the newest one with `rangeret.inference.clouds.label_cloud` and
 publishes the answer, so the executor keeps taking messages (and counting the ones it drops)
-while the network runs. A timer publishes the report on `/diagnostics` and logs it.
+while the network runs. A timer publishes the report on `/diagnostics` and logs it; another one
+warns once when a matched publisher has sent nothing that arrived for `SILENCE_S` seconds.
 """
 
 from __future__ import annotations
@@ -25,9 +26,14 @@ from ros2node.diagnostics import diagnostic_array
 from ros2node.mailbox import Mailbox, Received
 from ros2node.options import INPUT_QOS_NAMES, OUTPUT_QOS_NAMES, NodeSettings
 from ros2node.stats import NodeStats
+from ros2node.transport import Transport, silence_advice
 
 #: The name the node has unless `--ros-args -r __node:=NAME` renames it.
 NODE_NAME = "rangeret"
+#: How long a publisher may be matched with nothing received before the node warns (seconds).
+SILENCE_S = 10.0
+#: How often the node looks for that silence (seconds).
+SILENCE_CHECK_S = 1.0
 
 
 def qos_profile(choice: str) -> QoSProfile:
@@ -52,9 +58,16 @@ def input_qos_profile(choice: str) -> QoSProfile:
 class LabellingNode(Node):
     """Labels every PointCloud2 of the input topic (the newest one when busy) and publishes it."""
 
-    def __init__(self, predictor: Predictor, settings: NodeSettings, mapping: FieldMapping):
+    def __init__(
+        self,
+        predictor: Predictor,
+        settings: NodeSettings,
+        mapping: FieldMapping,
+        transport: Transport | None = None,
+    ):
         super().__init__(NODE_NAME)
         self.predictor = predictor
+        self.transport = transport or Transport(None, "not configured by the node")
         self.settings = settings
         self.mapping = mapping
         self.palette = palette_of(predictor.label_config) if settings.rgb else None
@@ -74,6 +87,9 @@ class LabellingNode(Node):
         )
         self._last_report = time.perf_counter()
         self.timer = self.create_timer(settings.report_every, self.report)
+        self._received_any = False
+        self._matched_since: float | None = None
+        self.silence_timer = self.create_timer(SILENCE_CHECK_S, self.check_silence)
         self._worker = threading.Thread(target=self._work, name="rangeret-labelling", daemon=True)
         self._worker.start()
 
@@ -87,6 +103,7 @@ class LabellingNode(Node):
             "input_qos": INPUT_QOS_NAMES[self.settings.input_qos],
             "output_topic": self.publisher.topic_name,
             "output_qos": OUTPUT_QOS_NAMES[self.settings.output_qos],
+            "transport": self.transport.description,
             "model": str(info["model"]),
             "checkpoint": str(info["checkpoint"]),
             "checkpoint_sha256": (info["checkpoint_sha256"] or "")[:12],
@@ -107,11 +124,46 @@ class LabellingNode(Node):
             f"({f['output_qos']}{', with rgb' if self.settings.rgb else ''}) with {f['model']} "
             f"from {f['checkpoint']} (sha256 {f['checkpoint_sha256']}), {f['profile']} profile, "
             f"{f['resolution']} on {f['device']} ({f['precision']}, kNN {f['knn']}); "
-            f"reporting on /diagnostics every {self.settings.report_every:g} s"
+            f"reporting on /diagnostics every {self.settings.report_every:g} s; "
+            f"DDS transport: {f['transport']}"
         )
+        if (warning := self.transport.startup_warning()) is not None:
+            self.get_logger().warning(warning)
 
     def _receive(self, msg: PointCloud2) -> None:
+        self._received_any = True
         self.mailbox.put(Received(msg, time.perf_counter()))
+
+    def check_silence(self) -> None:
+        """Warn once, naming what to change, when a publisher has been matched for `SILENCE_S`
+        seconds and nothing has arrived; stop looking once a message arrives."""
+        if self._received_any:
+            self.silence_timer.cancel()
+            return
+        now = time.perf_counter()
+        publishers = self.subscription.get_publisher_count()
+        if publishers == 0:
+            self._matched_since = None
+            return
+        if self._matched_since is None:
+            self._matched_since = now
+        if now - self._matched_since < SILENCE_S:
+            return
+        self.silence_timer.cancel()
+        topic = self.subscription.topic_name
+        self.get_logger().warning(
+            silence_advice(topic, publishers, self._publishers_reliable(topic), self.transport)
+        )
+
+    def _publishers_reliable(self, topic: str) -> bool | None:
+        """Whether any publisher of `topic` is reliable; None when ROS 2 cannot tell."""
+        try:
+            infos = self.get_publishers_info_by_topic(topic)
+        except Exception:  # the graph query is advice only; never stop the node for it
+            return None
+        if not infos:
+            return None
+        return any(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE for i in infos)
 
     def _work(self) -> None:
         while (item := self.mailbox.take()) is not None:

@@ -1,5 +1,9 @@
 """`rangeret ros2`'s body: load the network, start ROS 2, spin until SIGINT or SIGTERM, stop.
 
+Before rclpy starts, the node gives its own process a Fast DDS transport profile unless the user
+has configured the middleware (`ros2node.transport`); the file is removed once ROS 2 is shut
+down.
+
 The node installs its own SIGINT and SIGTERM handlers (rclpy's are turned off), which only set a
 flag: the executor spins in short steps and, once the flag is set, the labelling thread finishes
 its message, the node is destroyed and rclpy shut down, and the command exits 0.
@@ -13,11 +17,17 @@ import signal
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import TYPE_CHECKING
 
 from rangeret.inference.spec import InferenceSpec
 from rangeret.io.point_fields import parse_field_overrides
 from ros2node.clouds import FieldMapping
-from ros2node.options import settings_from_args
+from ros2node.options import NodeSettings, settings_from_args
+from ros2node.transport import Transport, apply_transport_profile
+
+if TYPE_CHECKING:
+    from rangeret.inference.predictor import Predictor
+    from ros2node.node import LabellingNode
 
 log = logging.getLogger("rangeret.ros2")
 
@@ -53,32 +63,50 @@ def run_node(args: argparse.Namespace) -> int:
         )
         if stop.is_set():
             return 0
-        import rclpy
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.signals import SignalHandlerOptions
-
-        from ros2node.node import LabellingNode
-
-        rclpy.init(
-            args=["rangeret", "--ros-args", *args.ros_args],
-            signal_handler_options=SignalHandlerOptions.NO,
-        )
+        transport = apply_transport_profile()
         try:
-            node = LabellingNode(predictor, settings, mapping)
-            executor = SingleThreadedExecutor()
-            executor.add_node(node)
-            node.announce()
-            try:
-                while not stop.is_set() and node.failure is None:
-                    executor.spin_once(timeout_sec=SPIN_STEP)
-            finally:
-                node.close()
-                executor.remove_node(node)
-                executor.shutdown()
-                node.destroy_node()
+            node = _spin(predictor, settings, mapping, transport, args.ros_args, stop)
         finally:
-            rclpy.try_shutdown()
+            transport.remove()
     if node.failure is not None:
         raise node.failure
     log.info("stopped: the node is destroyed and ROS 2 shut down")
     return 0
+
+
+def _spin(
+    predictor: Predictor,
+    settings: NodeSettings,
+    mapping: FieldMapping,
+    transport: Transport,
+    ros_args: list[str],
+    stop: threading.Event,
+) -> LabellingNode:
+    """Start rclpy and the node, spin until `stop` is set or the node fails, then destroy the
+    node and shut rclpy down; the node, for its failure."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    from ros2node.node import LabellingNode
+
+    rclpy.init(
+        args=["rangeret", "--ros-args", *ros_args],
+        signal_handler_options=SignalHandlerOptions.NO,
+    )
+    try:
+        node = LabellingNode(predictor, settings, mapping, transport)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        node.announce()
+        try:
+            while not stop.is_set() and node.failure is None:
+                executor.spin_once(timeout_sec=SPIN_STEP)
+        finally:
+            node.close()
+            executor.remove_node(node)
+            executor.shutdown()
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+    return node

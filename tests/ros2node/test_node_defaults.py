@@ -1,5 +1,7 @@
-"""`rangeret ros2` with its default QoS (sensor data in), best-effort answers, a renamed node, a
-`--field` mapping and no rgb; SIGINT stops it with exit 0."""
+"""`rangeret ros2` with its default QoS (sensor data in) and transport, best-effort answers, a
+renamed node, a `--field` mapping and no rgb: a full-size cloud published best effort, as a
+driver does, is labelled on its first send; a publisher matched for 10 s with nothing arrived
+gets a warning naming what to change; SIGINT stops it with exit 0."""
 
 from __future__ import annotations
 
@@ -11,10 +13,15 @@ from rangeret.io.scans import KITTI_RECORD, read_scan
 from tests.support.ros import domain_id_for, drive_node, make_cloud
 from tests.support.workers import small_weights
 
+#: The driver stays matched and silent until the node warns, at most this long (seconds).
+SILENT_S = 30.0
+#: The node's warning about a matched publisher whose messages never arrive.
+SILENCE_WARNING = "but no message has arrived"
+
 
 @pytest.fixture(scope="module")
 def drive(tmp_path_factory, real_scan_path):
-    points = read_scan(real_scan_path, KITTI_RECORD)[::40]
+    points = read_scan(real_scan_path, KITTI_RECORD)
     cloud = make_cloud(
         {
             "x": (FLOAT32, points[:, 0]),
@@ -40,6 +47,11 @@ def drive(tmp_path_factory, real_scan_path):
         input_topic="lidar/points",
         output_topic="lidar/labelled",
         output_reliable=False,
+        input_reliable=False,
+        resend=False,
+        answer_s=30.0,
+        idle_s=SILENT_S,
+        idle_until=SILENCE_WARNING,
     )
     return cloud, result
 
@@ -76,3 +88,26 @@ def test_sigint_stops_the_node_cleanly(drive):
     assert result.returncode == 0, result.log[-3000:]
     assert "Traceback" not in result.log and "interrupted" not in result.log
     assert "stopped: the node is destroyed and ROS 2 shut down" in result.log
+
+
+def test_a_full_size_best_effort_cloud_is_labelled_on_its_first_send(drive):
+    cloud, result = drive
+    assert cloud.width == 123389 and len(cloud.data) > 3_000_000
+    assert result.extra["sends"] == {"0": 1}, result.log[-3000:]
+    assert 0 in result.answers and result.extra["answer_s"]["0"] < 30.0
+
+
+def test_the_node_applies_its_own_transport_profile_when_the_user_set_none(drive):
+    _, result = drive
+    transport = result.diagnostics["transport"]
+    assert transport.startswith("the node's Fast DDS profile (UDP receive buffer 8 MiB")
+    assert f"DDS transport: {transport}" in result.log
+
+
+def test_a_matched_silent_publisher_gets_one_warning_naming_what_to_change(drive):
+    _, result = drive
+    warnings = [line for line in result.log.splitlines() if SILENCE_WARNING in line]
+    assert len(warnings) == 1, result.log[-3000:]
+    assert "/lidar/points: 1 matched publisher for 10 s" in warnings[0]
+    assert "They publish best effort" in warnings[0]
+    assert "--input-qos reliable" in warnings[0] and "docs/ros2.md" in warnings[0]

@@ -26,6 +26,9 @@ import pytest
 from rangeret.io.pointcloud2 import DATATYPES, CloudField
 from tests.support.paths import REPO
 
+#: Environment variables of ROS 2 and its DDS implementations, which no test run inherits.
+_MIDDLEWARE_PREFIXES = ("ROS_", "RMW_", "FASTDDS_", "FASTRTPS_", "CYCLONEDDS_")
+
 #: The shell step that brings the namespace's loopback up before running the command.
 _LOOPBACK = 'ip link set lo up && exec "$@"'
 
@@ -51,7 +54,7 @@ def namespace_prefix() -> tuple[str, ...]:
 
 def ros_environment(domain_id: int) -> dict[str, str]:
     """The environment of an isolated ROS 2 run on `domain_id`, this checkout importable."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("ROS_", "RMW_"))}
+    env = {k: v for k, v in os.environ.items() if not k.startswith(_MIDDLEWARE_PREFIXES)}
     env.update(
         ROS_DOMAIN_ID=str(domain_id),
         ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
@@ -178,11 +181,19 @@ def drive_node(
     input_topic: str = "points",
     output_topic: str = "points_labelled",
     output_reliable: bool = True,
+    input_reliable: bool = True,
+    resend: bool = True,
+    answer_s: float | None = None,
+    idle_s: float = 0.0,
+    idle_until: str | None = None,
+    env: dict[str, str] | None = None,
     timeout: float = 240.0,
 ) -> Drive:
-    """Start `rangeret ros2 NODE_ARGS` in an isolated namespace, publish `clouds` one after
-    the other (waiting for each answer, or for /diagnostics to count each bad one), stop it with
-    `stop_signal` and return what came back."""
+    """Start `rangeret ros2 NODE_ARGS` in an isolated namespace (`env` added to its
+    environment), wait `idle_s` once it is matched (or until its log holds `idle_until`), publish `clouds` one after the other, reliable
+    or best effort (waiting for each answer, sent again every few seconds unless `resend` is
+    false, or for /diagnostics to count each bad one), stop it with `stop_signal` and return
+    what came back."""
     prefix = namespace_prefix()
     folder.mkdir(parents=True, exist_ok=True)
     job = {
@@ -190,6 +201,10 @@ def drive_node(
         "input_topic": input_topic,
         "output_topic": output_topic,
         "output_reliable": output_reliable,
+        "input_reliable": input_reliable,
+        "resend": resend,
+        "idle_s": idle_s,
+        "idle_until": idle_until,
         "stop_signal": stop_signal,
         "clouds": [c.meta() for c in clouds],
         "folder": str(folder),
@@ -198,11 +213,13 @@ def drive_node(
         folder / "clouds.npz",
         **{f"c{i}": np.frombuffer(c.data, np.uint8) for i, c in enumerate(clouds)},
     )
+    if answer_s is not None:
+        job["answer_s"] = answer_s
     (folder / "job.json").write_text(json.dumps(job))
     run = subprocess.run(
         [*prefix, sys.executable, "-m", "tests.support.ros_driver", str(folder / "job.json")],
         cwd=REPO,
-        env=ros_environment(domain_id),
+        env={**ros_environment(domain_id), **(env or {})},
         capture_output=True,
         text=True,
         timeout=timeout,

@@ -2,10 +2,13 @@
 `python -m tests.support.ros_driver JOB.json`.
 
 Starts `rangeret ros2` as a child (its output in node.log), waits until it subscribes and
-publishes, then publishes each cloud of the job in turn: a cloud expecting an answer is sent
-again every few seconds until its answer (matched by header stamp) arrives (best effort may lose
-a message); after a bad one it waits until /diagnostics counts it. Then it waits for one more
-report, stops the node with the job's signal and writes result.json and answers.npz.
+publishes (and, with the job's `idle_s`, that much longer, or until its log holds `idle_until`),
+then publishes each cloud of the job
+in turn, reliable or best effort as a driver does (`input_reliable`): a cloud expecting an answer
+is sent again every few seconds until its answer (matched by header stamp) arrives, or with
+`resend` false sent once; after a bad one it waits until /diagnostics counts it. Then it waits
+for one more report, stops the node with the job's signal and writes result.json (with each
+cloud's sends and seconds to its answer) and answers.npz.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2, PointField
 
 from tests.support.ros import Cloud
@@ -81,7 +84,11 @@ class Driver(Node):
             if job["output_reliable"]
             else ReliabilityPolicy.BEST_EFFORT,
         )
-        self.publisher = self.create_publisher(PointCloud2, job["input_topic"], reliable)
+        self.publisher = self.create_publisher(
+            PointCloud2,
+            job["input_topic"],
+            reliable if job.get("input_reliable", True) else qos_profile_sensor_data,
+        )
         self.answers: dict[tuple[int, int], Cloud] = {}
         self.reports: list[tuple[dict[str, str], dict[str, str]]] = []
         self.answer_sub = self.create_subscription(
@@ -115,6 +122,11 @@ def spin_until(node: Driver, done, seconds: float, child: subprocess.Popen) -> b
     return done()
 
 
+def log_text(folder: Path) -> str:
+    """The node's log so far."""
+    return (folder / "node.log").read_text(errors="replace")
+
+
 def main(job_path: str) -> int:
     job = json.loads(Path(job_path).read_text())
     folder = Path(job["folder"])
@@ -140,6 +152,13 @@ def main(job_path: str) -> int:
             child,
         )
         result["events"].append(f"ready {ready}")
+        if ready and job.get("idle_s"):
+            logged = job.get("idle_until")
+            spin_until(
+                node, lambda: bool(logged) and logged in log_text(folder), job["idle_s"], child
+            )
+        resend = RESEND_S if job.get("resend", True) else job.get("answer_s", ANSWER_S)
+        result["sends"], result["answer_s"] = {}, {}
         bad = 0
         for i, cloud in enumerate(clouds):
             if not ready:
@@ -151,14 +170,17 @@ def main(job_path: str) -> int:
                 result["sent"].append(i)
                 ok = spin_until(node, lambda b=bad: node.bad_count() >= b, ANSWER_S, child)
             else:
-                deadline = time.monotonic() + ANSWER_S
+                started = time.monotonic()
+                deadline = started + job.get("answer_s", ANSWER_S)
                 ok = False
                 while not ok and time.monotonic() < deadline and child.poll() is None:
                     node.publisher.publish(msg)
                     result["sent"].append(i)
-                    ok = spin_until(node, lambda k=key: k in node.answers, RESEND_S, child)
+                    ok = spin_until(node, lambda k=key: k in node.answers, resend, child)
+                result["sends"][str(i)] = result["sent"].count(i)
                 if ok:
                     result["answers"][str(i)] = node.answers[key].meta()
+                    result["answer_s"][str(i)] = time.monotonic() - started
             result["events"].append(f"cloud {i} {'ok' if ok else 'timed out'}")
         seen = len(node.reports)
         spin_until(node, lambda: len(node.reports) > seen, 30.0, child)
