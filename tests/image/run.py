@@ -11,26 +11,30 @@ collect this file. Each step is logged with the seconds since the start:
 4. the image: `make image VARIANT=cpu CONTAINER=podman OFFLINE=1 BASE_IMAGE=...`, which builds
    `localhost/rangeret:0.1.0-cpu` with `--network none` and `--format docker`; it is left in
    podman's store;
-5. the image as built: its HEALTHCHECK and user, the web page's files, `rangeret --help` and
-   `rangeret weights list` with nothing on stderr;
-6. the manifests as `kubectl apply -k` gives them, the kustomization's one `images:` line pointed
+5. the image as built: its HEALTHCHECK and user, exactly the web page's files;
+6. `rangeret --help` and `rangeret weights list`, nothing on stderr;
+7. the manifests as `kubectl apply -k` gives them, the kustomization's one `images:` line pointed
    at this image;
-7. fresh volumes (podman volumes, nothing copied into them, owned by root like a new claim): uid
+8. fresh volumes for the three claims (podman volumes owned by root, like a new claim's): uid
    10001 cannot write them yet;
-8. the one-off Job of `fill-volumes/`: its root init container gives the volumes to 10001, its
+9. the one-off Job of `fill-volumes/`: its root init container gives the volumes to 10001, its
    loader container takes the dataset and the weights streamed in with `tar` and ends when told;
-9. the RayService's Ray head and one worker of its GPU group, in containers started with the
-   commands and environment KubeRay composes for them (`tests/support/kuberay.py`), the Ray token
-   from the Secret's key, the pod's volumes and `/dev/shm`;
-10. `serve deploy` of the RayService's serveConfigV2 with CPU settings (no GPU per replica, one
+10. the RayService's Ray head, in a container started with the command and environment KubeRay
+    composes (`tests/support/kuberay.py`), the Ray token from the Secret's key, the pod's volumes
+    and `/dev/shm`;
+11. one worker of its GPU group, the same way, joined to the head;
+12. `serve deploy` of the RayService's serveConfigV2 with CPU settings (no GPU per replica, one
     replica);
-11. the gateway container with the Deployment's args and environment, reaching Serve and the
+13. the gateway container with the Deployment's args and environment, reaching Serve and the
     Jobs API;
-12. `rangeret predict` in a container, and every scan through the gateway labelled the same;
-13. a dataset job through the gateway, run as a Ray job in the containers, its predictions the
+14. `rangeret predict` in a container, and every scan through the gateway labelled the same;
+15. a dataset job through the gateway, run as a Ray job in the containers, its predictions the
     same;
-14. the image's HEALTHCHECK command passing in every running container (`podman exec`);
-15. every container running as uid 10001, and every file on the results volume theirs.
+16. the image's HEALTHCHECK command passing in every running container (`podman exec`);
+17. every container running as uid 10001, and every file on the results volume theirs.
+
+`--reuse-image` skips steps 2 to 4 when the image is in podman's store already (for work on the
+later steps).
 
 What it changes from the manifests, so that it runs on one machine: ports (every container is on
 the host network, on loopback only), CPU and memory quantities, no GPUs (the Serve replicas ask for
