@@ -152,7 +152,9 @@ class LabellingNode(Node):
         self.silence_timer.cancel()
         topic = self.subscription.topic_name
         self.get_logger().warning(
-            silence_advice(topic, publishers, self._publishers_reliable(topic), self.transport)
+            silence_advice(
+                topic, publishers, self._publishers_reliable(topic), self.transport, SILENCE_S
+            )
         )
 
     def _publishers_reliable(self, topic: str) -> bool | None:

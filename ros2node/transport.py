@@ -31,8 +31,9 @@ DEFAULT_PROFILE_FILES = ("DEFAULT_FASTDDS_PROFILES.xml", "DEFAULT_FASTRTPS_PROFI
 #: The UDP receive buffer the profile asks for (the kernel caps it at net.core.rmem_max, then
 #: doubles it): 8 MiB, four full-size clouds.
 RECEIVE_BUFFER = 8 * 2**20
-#: Below this net.core.rmem_max (bytes), full-size best-effort clouds were lost (7 of 10 at
-#: 1 MiB, 10 of 10 at 4 MiB, with the node labelling on the CPU).
+#: Below this net.core.rmem_max (bytes), full-size best-effort clouds were lost: with the node
+#: labelling on the CPU, 6 and 7 of 10 arrived at 1 MiB, 9 and 10 of 10 at 4 MiB (the one lost
+#: sent as the publisher matched).
 RMEM_MAX_NEEDED = 4 * 2**20
 #: The shared-memory segment of the node's writers: several labelled clouds (3-5 MB each).
 SHM_SEGMENT = 16 * 2**20
@@ -148,12 +149,14 @@ def apply_transport_profile(
     return Transport(Path(name), description, read_rmem_max())
 
 
-def silence_advice(topic: str, publishers: int, reliable: bool | None, transport: Transport) -> str:
-    """What to change when `publishers` matched publishers of `topic` sent nothing that arrived
-    (`reliable`: whether they publish reliable; None when unknown)."""
+def silence_advice(
+    topic: str, publishers: int, reliable: bool | None, transport: Transport, seconds: float
+) -> str:
+    """What to change when `publishers` publishers of `topic`, matched for `seconds`, sent
+    nothing that arrived (`reliable`: whether they publish reliable; None when unknown)."""
     head = (
-        f"{topic}: {publishers} matched publisher{'s' if publishers != 1 else ''} for 10 s, "
-        "but no message has arrived"
+        f"{topic}: {publishers} matched publisher{'s' if publishers != 1 else ''} for "
+        f"{seconds:g} s, but no message has arrived"
     )
     reliable_fix = "have the publisher publish reliable and run with --input-qos reliable"
     if reliable:

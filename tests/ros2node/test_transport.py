@@ -90,13 +90,13 @@ def test_rmem_max_is_read_and_a_small_one_is_a_startup_warning(tmp_path):
 
 def test_the_silence_advice_names_what_to_change():
     own = Transport(None, "x")
-    reliable = silence_advice("/points", 1, True, own)
+    reliable = silence_advice("/points", 1, True, own, 10.0)
     assert reliable.startswith("/points: 1 matched publisher for 10 s, but no message has arrived")
     assert "They publish reliable: run with --input-qos reliable" in reliable
     small = Transport(Path("p.xml"), "own", 212992)
-    assert "sudo sysctl -w net.core.rmem_max=8388608" in silence_advice("/p", 2, False, small)
-    assert "2 matched publishers" in silence_advice("/p", 2, False, small)
+    assert "sudo sysctl -w net.core.rmem_max=8388608" in silence_advice("/p", 2, False, small, 10.0)
+    assert "2 matched publishers" in silence_advice("/p", 2, False, small, 10.0)
     user = Transport(None, "the user's middleware settings (FASTDDS_DEFAULT_PROFILES_FILE=/x)")
-    advice = silence_advice("/p", 1, None, user)
+    advice = silence_advice("/p", 1, None, user, 10.0)
     assert "FASTDDS_DEFAULT_PROFILES_FILE=/x" in advice and "UDP alone" in advice
     assert "--input-qos reliable" in advice and "They publish" not in advice
