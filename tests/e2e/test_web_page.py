@@ -492,7 +492,7 @@ def test_the_page_works_under_a_path_prefix(setup, page):
         tab.wait_for_function("() => window.rangeretPage.state.scan.rendered", timeout=120_000)
         assert state(tab, ".scan.points") == len(read_scan(setup["small"]))
         tab.click("nav button[data-tab=health]")
-        tab.wait_for_selector("#health dd[data-field=backend]")
+        tab.wait_for_selector("#health dd[data-field='labelled by']")
         static = [url for url in requests if "/static/" in url]
         assert any(url.endswith("three.module.js") for url in static)
         assert any(url.endswith("OrbitControls.js") for url in static)
