@@ -17,6 +17,7 @@ from _official import add_at_confusion, read_mapped, remap_table
 from rangeret.dataset.labels import semantickitti
 from rangeret.dataset.layout import KITTI_LAYOUT, labels_dir, prediction_path, velodyne_dir
 from rangeret.dataset.profiles import load_profile
+from rangeret.dataset.selection import DatasetSelection
 from rangeret.evaluation.evaluate import evaluate_predictions
 from rangeret.evaluation.metrics import confusion_counts
 from rangeret.io.scans import KITTI_RECORD, read_labels, write_labels, write_scan
@@ -80,13 +81,17 @@ def main() -> None:
         build_tree(root, gt_raw)
         table = remap_table(cfg)
         ours = evaluate_predictions(
-            root, root / "pred", ["08"], profile=load_profile("semantickitti")
+            DatasetSelection.named(root, ["08"], KITTI_LAYOUT),
+            root / "pred",
+            profile=load_profile("semantickitti"),
         )
         assert np.array_equal(ours.confusion.matrix, official_end_to_end(root, table))
         t_official = median_time(lambda: official_end_to_end(root, table), repeat=9)
         t_ours = median_time(
             lambda: evaluate_predictions(
-                root, root / "pred", ["08"], profile=load_profile("semantickitti")
+                DatasetSelection.named(root, ["08"], KITTI_LAYOUT),
+                root / "pred",
+                profile=load_profile("semantickitti"),
             ),
             repeat=9,
         )

@@ -19,6 +19,7 @@ from _common import REAL_SCAN, require_real_scan
 
 from rangeret.dataset.layout import KITTI_LAYOUT, velodyne_dir
 from rangeret.dataset.profiles import load_profile
+from rangeret.dataset.selection import DatasetSelection
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.runner import predict_tree
 from rangeret.inference.spec import InferenceSpec
@@ -88,7 +89,9 @@ def main() -> None:
             )
         for name, predictor in (("rangeret-cir", cir), ("rangeret-thesis", thesis)):
             out = tmp / f"pred-{name}"
-            summary = predict_tree(predictor, root, ["08"], out, progress=False)
+            summary = predict_tree(
+                predictor, DatasetSelection.named(root, ["08"], KITTI_LAYOUT), out, progress=False
+            )
             print(
                 f"end to end, rangeret predict over {args.scans} scans, {name}: {summary.written / summary.seconds:.3f} scans/s"
             )

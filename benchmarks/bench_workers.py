@@ -20,6 +20,7 @@ import torch
 from _common import REAL_SCAN, require_real_scan, small_state_dict
 
 from rangeret.dataset.layout import KITTI_LAYOUT, list_scans, velodyne_dir
+from rangeret.dataset.selection import DatasetSelection
 from rangeret.inference.loader import load_weights
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.runner import predict_tree
@@ -74,7 +75,10 @@ def main() -> None:
         for r in range(args.rounds):  # interleaved, so that a noisy spell hits every runner alike
             start = time.perf_counter()  # both sides include loading the network, as a command does
             summary = predict_tree(
-                Predictor.from_spec(spec), tmp / "data", ["08"], tmp / f"single{r}", progress=False
+                Predictor.from_spec(spec),
+                DatasetSelection.named(tmp / "data", ["08"], KITTI_LAYOUT),
+                tmp / f"single{r}",
+                progress=False,
             )
             single = summary.written / (time.perf_counter() - start)
             rates.setdefault("predict", []).append(single)

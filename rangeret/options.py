@@ -16,6 +16,7 @@ from rangeret.commands import CommandError
 from rangeret.dataset.labels import load_label_config
 from rangeret.dataset.layout import missing_sequences, resolve_sequences
 from rangeret.dataset.profiles import DatasetProfile, load_profile
+from rangeret.dataset.selection import DatasetSelection
 from rangeret.inference.spec import WEIGHTS, add_spec_options, group_fields
 from rangeret.io.decode_limits import DECODED_OPTION, DEFAULT_MAX_DECODED_BYTES, DecodeLimits
 from rangeret.submission.leaderboard import DEFAULT_NAME, DEFAULT_URL, LeaderboardEntry
@@ -105,6 +106,17 @@ def selected_sequences(
         )
     log.warning("--allow-partial: %s; %s %s", absent, doing, ", ".join(present))
     return present
+
+
+def selected_dataset(
+    args: argparse.Namespace, profile: DatasetProfile, root: Path, *, doing: str = "using"
+) -> DatasetSelection:
+    """The dataset selection of --dataset ROOT, --split or --sequences and --version, made once
+    where a command starts: the sequences as `selected_sequences` checks them."""
+    version = getattr(args, "version", None)
+    profile.layout.check_version(version)
+    sequences = selected_sequences(args, profile, root, doing=doing)
+    return DatasetSelection(Path(root), tuple(sequences), profile.layout, args.split, version)
 
 
 def add_offset_option(parser: argparse.ArgumentParser, help: str) -> None:

@@ -24,20 +24,18 @@ from typing import IO
 
 import numpy as np
 
-from rangeret.dataset.layout import discover
-from rangeret.dataset.profiles import DEFAULT_PROFILE, DatasetProfile, ProfileError
+from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.projection import project_with
+from rangeret.dataset.selection import DatasetSelection
 from rangeret.evaluation.evaluate import evaluate_predictions
 from rangeret.evaluation.plots import plot_range_image, write_plots
 from rangeret.inference.loader import load_weights
 from rangeret.inference.spec import InferenceSpec
 from rangeret.io.run_info import check_weights, write_run_info
 from rangeret.io.scans import read_scan
-from rangeret.models.weights.demo import DEMO_CHECKPOINTS, DEMO_WARNING, is_demo_path
-from rangeret.sim import SensorConfig, simulate_dataset
-from rangeret.sim.nuscenes_tree import simulate_nuscenes
-from rangeret.submission.archives import TEST_SEQUENCES
-from rangeret.submission.benchmarks import no_archive_reason, write_benchmark_archive
+from rangeret.models.weights.demo import DEMO_WARNING, demo_checkpoint, is_demo_path
+from rangeret.sim.trees import simulate_tree
+from rangeret.submission.benchmarks import benchmark_of
 from rangeret.submission.leaderboard import LeaderboardEntry, description_text
 from workers.cluster import start_local
 from workers.pipeline import describe_spec, run_pipeline
@@ -70,11 +68,8 @@ def run_demo(
     """
     import ray
 
-    if profile is not None and profile.name not in DEMO_CHECKPOINTS and checkpoint is None:
-        raise ProfileError(
-            f"only the {' and '.join(DEMO_CHECKPOINTS)} profiles have bundled demo weights: "
-            f"rangeret demo --profile {profile.name} needs --checkpoint with a network for it"
-        )
+    if profile is not None and checkpoint is None:
+        demo_checkpoint(profile.name)  # refuses a profile without bundled weights before any work
     started = time.perf_counter()
     out = Path(out) if out else Path(f"rangeret-demo-{time.strftime('%Y%m%d-%H%M%S')}")
     out.mkdir(parents=True, exist_ok=True)
@@ -86,34 +81,20 @@ def run_demo(
     info, profile = loaded.info, loaded.profile
     weights = Path(info.path)
     check_weights(preds, info.sha256, overwrite=overwrite)
-    benchmark = no_archive_reason(profile) is None
+    benchmark = benchmark_of(profile)
+    plan = benchmark.demo_plan(profile, valid_scans, test_scans)
     demo_weights = is_demo_path(weights)
-    split = None
-
-    if profile.layout.kind == "tables":
-        split = valid = "mini_val"
-        sequences = {scene: max(1, valid_scans // 2) for scene in profile.splits[split]}
-        n = simulate_nuscenes(dataset, sequences, seed=2026, progress=progress, profile=profile)
-    elif profile.name == DEFAULT_PROFILE:
-        valid = "08"
-        sequences = {valid: valid_scans, **{s: test_scans for s in TEST_SEQUENCES}}
-        sensor = SensorConfig(beams=64, azimuth_steps=2048)
-    else:
-        valid = profile.splits["valid"][0]
-        tests = [s for s in profile.splits.get("test", ()) if s != valid][:1]
-        sequences = {valid: valid_scans, **{s: test_scans for s in tests}}
-        sensor = SensorConfig.for_profile(profile)
-    if split is None:
-        n = simulate_dataset(
-            dataset,
-            sequences,
-            labelled=[valid],
-            sensor=sensor,
-            seed=2026,
-            progress=progress,
-            profile=profile,
-        )
+    n = simulate_tree(
+        dataset,
+        plan.sequences,
+        labelled=list(plan.labelled),
+        sensor=plan.sensor,
+        seed=2026,
+        progress=progress,
+        profile=profile,
+    )
     log.info("simulated %d scans into %s", n, dataset)
+    selection = DatasetSelection(dataset, tuple(plan.sequences), profile.layout, plan.split)
 
     options = PipelineOptions(read_cpus=0.25, write_cpus=0.1)
     write_run_info(
@@ -121,39 +102,38 @@ def run_demo(
         describe_spec(spec, info, profile),
         runner="rangeret demo",
         dataset=dataset,
-        sequences=list(sequences),
+        sequences=list(selection.sequences),
         batch_size=options.batch_size,
         overwrite=overwrite,
     )
     with contextlib.ExitStack() as stack:
         ray_logs = None if ray.is_initialized() else stack.enter_context(_local_ray())
-        entries = discover(dataset, list(sequences), layout=profile.layout, split=split).scans
+        entries = selection.discover().scans
         run = run_pipeline(spec, profile, entries, preds, options)
     if not run.summary.ok:
         raise RuntimeError(f"the demo could not predict {sorted(run.summary.failed)}")
 
-    evaluated = list(profile.splits[split]) if split else [valid]
-    report = evaluate_predictions(
-        dataset, preds, evaluated, checkpoint_sha256=info.sha256, profile=profile, split=split
-    )
+    evaluated = selection.only(plan.evaluated)
+    report = evaluate_predictions(evaluated, preds, checkpoint_sha256=info.sha256, profile=profile)
     if demo_weights:
         report.notes.append(DEMO_WARNING)
     report.write_json(out / "report.json")
     plots = write_plots(report, out / "plots", config=profile.labels)
     plots.append(
         _range_image_png(
-            dataset, preds, profile, evaluated[0], out / "plots" / "range-image.png", split
+            selection.only(plan.evaluated[:1]), preds, profile, out / "plots" / "range-image.png"
         )
     )
 
     archive = out / "submission.zip"
-    if benchmark:
+    if benchmark.writes_archives:
         leaderboard = leaderboard or LeaderboardEntry()
-        check = write_benchmark_archive(
-            profile,
+        check = benchmark.write_archive(
             preds,
             dataset,
             archive,
+            profile=profile,
+            options=plan.archive_options,
             description=description_text(
                 leaderboard,
                 written_by="rangeret demo",
@@ -165,8 +145,7 @@ def run_demo(
             ),
             leaderboard=leaderboard,
             checkpoint_sha256=info.sha256,
-            split=split,
-            allow_partial=split is None,
+            allow_partial=plan.partial_archive,
             progress=progress,
         )
         check.raise_for_problems()
@@ -182,66 +161,30 @@ def run_demo(
     print(f"  evaluation report:                        {out / 'report.json'}")
     for p in plots:
         print(f"  plot:                                     {p}")
-    if benchmark and split is None:
+    if benchmark.writes_archives and plan.partial_archive:
         print(f"  submission archive (partial, for tests):  {archive}")
         print(
             f"    (it holds the demo's few scans: rangeret validate-submission {archive} "
             f"--dataset {dataset} --allow-partial checks it)"
         )
-    elif benchmark:
-        print(f"  submission archive ({split}):".ljust(43) + f" {archive}")
+    elif benchmark.writes_archives:
+        print(f"  submission archive ({plan.split}):".ljust(43) + f" {archive}")
     if ray_logs is not None:
         print(f"  Ray's own logs:                           {ray_logs}")
     if demo_weights:
         print(f"\nNote: {DEMO_WARNING}.")
-    if split is not None:
-        print("\nOn a real nuScenes tree with weights for it:")
-        print(
-            "  rangeret predict --profile nuscenes --dataset ROOT --split val --out PRED "
-            "--checkpoint FILE"
-        )
-        print(
-            "  rangeret evaluate --profile nuscenes --dataset ROOT --predictions PRED --split val "
-            "--json report.json"
-        )
-        print(
-            "  rangeret submission --profile nuscenes --dataset ROOT --predictions PRED "
-            "--split test --out submission.zip"
-        )
-        return out
-    print("\nOn real SemanticKITTI data with a published checkpoint:")
-    print(
-        "  rangeret predict --dataset ROOT --split valid --out PRED --checkpoint rangeret-kitti-657"
-    )
-    print(
-        "  rangeret evaluate --dataset ROOT --predictions PRED --split valid --json report.json --plots plots"
-    )
-    print(
-        "  RAY_AUTH_MODE=token ray job submit --working-dir . -- python -m workers.predict_job "
-        "--dataset /abs/ROOT --split test \\"
-    )
-    print(
-        "      --out /abs/PRED --submission /abs/submission.zip --checkpoint rangeret-kitti-657"
-        "   (a Ray job runs in a copy of the working directory: give absolute paths)"
-    )
-    print("  rangeret validate-submission /abs/submission.zip --dataset /abs/ROOT")
-    print("(a Ray cluster needs its token: see the README's Ray job recipe)")
+    if plan.hints:
+        print("\n" + "\n".join(plan.hints))
     return out
 
 
 def _range_image_png(
-    dataset: Path,
-    preds: Path,
-    profile: DatasetProfile,
-    sequence: str,
-    path: Path,
-    split: str | None = None,
+    selection: DatasetSelection, preds: Path, profile: DatasetProfile, path: Path
 ) -> Path:
-    """The first validation scan's range image, ground truth and prediction as one PNG."""
+    """The first scan of the selection: its range image, ground truth and prediction as one
+    PNG."""
     config = profile.labels
-    entry = discover(
-        dataset, [sequence], with_labels=True, layout=profile.layout, split=split
-    ).scans[0]
+    entry = selection.discover(with_labels=True).scans[0]
     proj = project_with(read_scan(entry.scan_path, profile.points), profile.projection)
     gt = config.to_class(entry.label_file.read(entry.label_path)).astype(np.int64)
     pred = profile.prediction_classes(entry.label_file.read(entry.prediction_in(preds)))

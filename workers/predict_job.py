@@ -27,7 +27,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from rangeret.commands import CommandError, run_command
-from rangeret.dataset.layout import is_complete, list_scans
+from rangeret.dataset.layout import is_complete
 from rangeret.exceptions import RangeRetError
 from rangeret.inference.loader import load_weights
 from rangeret.inference.spec import InferenceSpec
@@ -38,9 +38,9 @@ from rangeret.options import (
     add_network_options,
     add_selection,
     leaderboard_from_args,
-    selected_sequences,
+    selected_dataset,
 )
-from rangeret.submission.benchmarks import no_archive_reason, write_benchmark_archive
+from rangeret.submission.benchmarks import benchmark_of, no_archive_reason
 from rangeret.submission.leaderboard import description_text
 from workers.cluster import connect
 from workers.job_paths import check_job_paths
@@ -170,10 +170,9 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
         weights.export_onnx()  # once here, so that the model actors load it from the cache
     info, profile = weights.info, weights.profile
     label_config = profile.labels
-    sequences = selected_sequences(args, profile, args.dataset, doing="predicting")
-    entries = list_scans(
-        args.dataset, sequences, layout=profile.layout, version=args.version, split=args.split
-    )
+    selection = selected_dataset(args, profile, args.dataset, doing="predicting")
+    sequences = list(selection.sequences)
+    entries = selection.scans()
     complete = [
         not args.overwrite and is_complete(e, args.out, record=profile.points) for e in entries
     ]
@@ -240,11 +239,12 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
     if args.submission and no_archive_reason(profile) is not None:
         raise CommandError(f"{no_archive_reason(profile)}; every prediction was written")
     if args.submission:
-        check = write_benchmark_archive(
-            profile,
+        check = benchmark_of(profile).write_archive(
             args.out,
             args.dataset,
             args.submission,
+            profile=profile,
+            options=selection.archive_options(),
             description=description_text(
                 leaderboard,
                 written_by="workers.predict_job",
@@ -255,8 +255,6 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
             ),
             leaderboard=leaderboard,
             checkpoint_sha256=info.sha256,
-            split=args.split,
-            version=args.version,
             allow_partial=args.allow_partial,
             progress=not args.quiet,
         )

@@ -17,7 +17,6 @@ import numpy as np
 from rangeret.dataset.beams import beam_band, beam_elevations, beam_values, nearest_beams
 from rangeret.dataset.distance import point_ranges
 from rangeret.dataset.label_map import LabelMap, target_labels
-from rangeret.dataset.layout import SequenceLayout
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.projection import project
 from rangeret.exceptions import InputError
@@ -58,7 +57,7 @@ def check_profiles(source: DatasetProfile, target: DatasetProfile) -> None:
     """An `AdaptError` in one sentence unless both profiles are folder layouts and the target's
     point record holds nothing but x, y, z, the reflectance and maybe its beam."""
     for role, profile in (("source", source), ("target", target)):
-        if not isinstance(profile.layout, SequenceLayout):
+        if profile.layout.folders is None:
             raise AdaptError(
                 f"the {role} profile {profile.name} reads a version's tables; adapting a dataset "
                 "of tables comes later, only folder layouts are adapted for now"

@@ -11,7 +11,7 @@ from rangeret.options import (
     add_profile_option,
     add_selection,
     profile_from_args,
-    selected_sequences,
+    selected_dataset,
 )
 from rangeret.plugins import Subcommand
 
@@ -38,15 +38,9 @@ def run(args: argparse.Namespace) -> int:
     from rangeret.evaluation.evaluate import evaluate_predictions
 
     profile = profile_from_args(args)
-    sequences = selected_sequences(args, profile, args.dataset, doing="evaluating")
+    selection = selected_dataset(args, profile, args.dataset, doing="evaluating")
     report = evaluate_predictions(
-        args.dataset,
-        args.predictions,
-        sequences,
-        progress=not args.quiet,
-        profile=profile,
-        version=args.version,
-        split=args.split,
+        selection, args.predictions, progress=not args.quiet, profile=profile
     )
     print(report.table())
     for note in report.notes:

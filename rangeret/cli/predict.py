@@ -14,7 +14,7 @@ from rangeret.options import (
     add_field_option,
     add_network_options,
     add_selection,
-    selected_sequences,
+    selected_dataset,
 )
 from rangeret.plugins import Subcommand
 
@@ -118,18 +118,15 @@ def run_dataset(args: argparse.Namespace) -> int:
     from rangeret.inference.runner import predict_tree
 
     predictor = predictor_from_args(args)
-    sequences = selected_sequences(args, predictor.profile, args.dataset, doing="predicting")
+    selection = selected_dataset(args, predictor.profile, args.dataset, doing="predicting")
     summary = predict_tree(
         predictor,
-        args.dataset,
-        sequences,
+        selection,
         args.out,
         batch_size=args.batch_size,
         progress=not args.quiet,
         save_confidence=args.save_confidence,
         overwrite=args.overwrite,
-        version=args.version,
-        split=args.split,
     )
     print(summary.text())
     summary.raise_failures(args.out)

@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
             raise CommandError(f"--sequences takes NAME:SCANS items such as 08:10, got {item!r}")
         counts[name] = int(number)
     profile = requested_profile(args)
-    if profile is not None and profile.layout.kind == "tables":
+    if profile is not None and profile.layout.folders is None:
         return _run_tables(args, profile, counts or None)
     if not counts:
         raise CommandError("--sequences is needed: which sequences, and how many scans each")

@@ -1,12 +1,14 @@
 """`rangeret submission` and `rangeret validate-submission`: the benchmark zip of a predictions
-tree, written and checked: SemanticKITTI's for CodaLab/Codabench, or nuScenes-lidarseg's results
-folder with the `nuscenes` profile."""
+tree, written and checked by the benchmark the profile names (`rangeret.submission.benchmarks`):
+SemanticKITTI's for CodaLab/Codabench, nuScenes-lidarseg's results folder with the `nuscenes`
+profile, or another registered benchmark's. Each benchmark adds its own options."""
 
 from __future__ import annotations
 
 import argparse
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from rangeret.commands import CommandError
 from rangeret.dataset.profiles import DatasetProfile
@@ -19,6 +21,9 @@ from rangeret.options import (
 )
 from rangeret.plugins import Subcommand
 
+if TYPE_CHECKING:
+    from rangeret.submission.benchmark import Benchmark
+
 log = logging.getLogger("rangeret")
 
 
@@ -30,36 +35,12 @@ def _allow_partial_option(p: argparse.ArgumentParser) -> None:
     )
 
 
-#: submission.json's meta flags, as their options' destinations.
-META_OPTIONS = ("use_camera", "use_lidar", "use_radar", "use_map", "use_external")
+def _benchmark_options(p: argparse.ArgumentParser, *, writing: bool) -> None:
+    """Every registered benchmark's own options, each in its group."""
+    from rangeret.submission.benchmarks import registered
 
-
-def _nuscenes_options(p: argparse.ArgumentParser, *, meta: bool) -> None:
-    """--split and --version of a nuScenes archive, and with `meta` submission.json's flags."""
-    group = p.add_argument_group("nuScenes-lidarseg (--profile nuscenes)")
-    group.add_argument(
-        "--split",
-        metavar="SPLIT",
-        help="the split the archive is for (default test; also val, mini_val, ...)",
-    )
-    group.add_argument(
-        "--version", metavar="VERSION", help="the version folder (default: the one ROOT holds)"
-    )
-    if not meta:
-        return
-    for key, on in (
-        ("camera", False),
-        ("lidar", True),
-        ("radar", False),
-        ("map", False),
-        ("external", False),
-    ):
-        group.add_argument(
-            f"--use-{key}",
-            action=argparse.BooleanOptionalAction,
-            default=None,
-            help=f"submission.json's meta.use_{key} (default {'true' if on else 'false'})",
-        )
+    for benchmark in registered().values():
+        benchmark.add_arguments(p, writing=writing)
 
 
 def add_submission_arguments(p: argparse.ArgumentParser) -> None:
@@ -83,22 +64,21 @@ def add_submission_arguments(p: argparse.ArgumentParser) -> None:
     )
     add_profile_option(p)
     add_label_config(p)
-    _nuscenes_options(p, meta=True)
+    _benchmark_options(p, writing=True)
 
 
 def run_submission(args: argparse.Namespace) -> int:
     """Write and validate the benchmark zip of a predictions tree."""
     from rangeret.io.run_info import read_run_info
-    from rangeret.submission.benchmarks import write_benchmark_archive
     from rangeret.submission.leaderboard import description_text
-    from rangeret.submission.nuscenes import SubmissionMeta
 
-    profile = _benchmark_profile(args)
+    profile, benchmark, options = _benchmark_profile(args, writing=True)
     if args.workers is not None and args.workers < 1:
         raise CommandError(f"--workers must be at least 1, got {args.workers}")
     run = read_run_info(args.predictions)
+    leaderboard = leaderboard_from_args(args)
     description = description_text(
-        leaderboard_from_args(args),
+        leaderboard,
         written_by="rangeret submission",
         checkpoint_sha256=run.get("checkpoint_sha256"),
         model=run.get("model"),
@@ -106,28 +86,15 @@ def run_submission(args: argparse.Namespace) -> int:
         demo_weights=bool(run.get("demo_weights")),
         notes=[args.description] if args.description else [],
     )
-    meta = None
-    if profile.layout.kind == "tables":
-        defaults = SubmissionMeta()
-        meta = SubmissionMeta(
-            **{
-                name: getattr(defaults, name)
-                if getattr(args, name) is None
-                else getattr(args, name)
-                for name in META_OPTIONS
-            }
-        )
-    check = write_benchmark_archive(
-        profile,
+    check = benchmark.write_archive(
         args.predictions,
         args.dataset,
         args.out,
+        profile=profile,
+        options=options,
         description=description,
-        leaderboard=leaderboard_from_args(args),
+        leaderboard=leaderboard,
         checkpoint_sha256=run.get("checkpoint_sha256"),
-        split=args.split,
-        version=args.version,
-        meta=meta,
         allow_partial=args.allow_partial,
         progress=not args.quiet,
         workers=args.workers,
@@ -146,33 +113,20 @@ def add_validate_arguments(p: argparse.ArgumentParser) -> None:
     _allow_partial_option(p)
     add_profile_option(p)
     add_label_config(p)
-    _nuscenes_options(p, meta=False)
+    _benchmark_options(p, writing=False)
 
 
 def run_validate(args: argparse.Namespace) -> int:
     """Validate a submission zip against the dataset and the official test split."""
-    from rangeret.submission.archives import validate_submission
-    from rangeret.submission.nuscenes import validate_nuscenes_submission
-
-    profile = _benchmark_profile(args)
-    if profile.layout.kind == "tables":
-        check = validate_nuscenes_submission(
-            args.archive,
-            args.dataset,
-            args.split or "test",
-            profile=profile,
-            version=args.version,
-            allow_partial=args.allow_partial,
-            progress=not args.quiet,
-        )
-    else:
-        check = validate_submission(
-            args.archive,
-            args.dataset,
-            allow_partial=args.allow_partial,
-            labels=profile.labels,
-            progress=not args.quiet,
-        )
+    profile, benchmark, options = _benchmark_profile(args, writing=False)
+    check = benchmark.validate_archive(
+        args.archive,
+        args.dataset,
+        profile=profile,
+        options=options,
+        allow_partial=args.allow_partial,
+        progress=not args.quiet,
+    )
     if not check.ok:
         problems = check.problems
         if len(problems) == 1:
@@ -184,33 +138,27 @@ def run_validate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _benchmark_profile(args: argparse.Namespace) -> DatasetProfile:
-    """The profile of --profile and --label-config, which must be a benchmark's: SemanticKITTI's
-    or one of nuScenes' tables; other profiles are refused, and so are nuScenes' options with
-    SemanticKITTI."""
-    from rangeret.submission.benchmarks import no_archive_reason
+def _benchmark_profile(
+    args: argparse.Namespace, *, writing: bool
+) -> tuple[DatasetProfile, Benchmark, dict[str, Any]]:
+    """The profile of --profile and --label-config, its benchmark and that benchmark's options;
+    a profile without a benchmark archive is refused, and so are other benchmarks' options."""
+    from rangeret.submission.benchmarks import benchmark_of, no_archive_reason, registered
 
     profile = profile_from_args(args)
-    if profile.layout.kind == "tables":
-        return profile
     reason = no_archive_reason(profile)
     if reason is not None:
         raise CommandError(reason)
-    given = [
-        option
-        for option, value in (
-            ("--split", args.split),
-            ("--version", args.version),
-            *(("--" + k.replace("_", "-"), getattr(args, k, None)) for k in META_OPTIONS),
-        )
-        if value is not None
-    ]
-    if given:
-        raise CommandError(
-            f"{given[0]} is for nuScenes-lidarseg archives (--profile nuscenes); a SemanticKITTI "
-            "archive always holds the test split"
-        )
-    return profile
+    benchmark = benchmark_of(profile)
+    own = benchmark.option_dests(writing=writing)
+    for other in registered().values():
+        for dest in other.option_dests(writing=writing):
+            if dest not in own and getattr(args, dest, None) is not None:
+                raise CommandError(
+                    f"--{dest.replace('_', '-')} is an option of {other.title} archives; the "
+                    f"{profile.name} profile's are {benchmark.title}'s"
+                )
+    return profile, benchmark, {dest: getattr(args, dest, None) for dest in own}
 
 
 COMMAND = Subcommand(

@@ -72,14 +72,22 @@ class SequenceLayout:
         return f"{int(text):0{self.id_digits}d}" if text.isdigit() else text
 
     @property
-    def kind(self) -> str:
-        """Folders of sequences."""
-        return "folders"
-
-    @property
     def label_file(self) -> LabelFile:
         """SemanticKITTI's `.label` files: one uint32 per point."""
         return KITTI_LABELS
+
+    @property
+    def folders(self) -> SequenceLayout:
+        """The layout as folders of sequences: itself."""
+        return self
+
+    def versions(self, root: Path | str) -> list[str] | None:
+        """None: folders of sequences have no versions."""
+        return None
+
+    def check_version(self, version: str | None) -> None:
+        """A `DatasetLayoutError` when a version is given: folders have none."""
+        _no_version(version)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-data form."""
@@ -201,16 +209,26 @@ class Discovery:
 
 
 class DatasetLayout(Protocol):
-    """What every layout answers: the sequences a ROOT holds and the scans of those chosen."""
-
-    @property
-    def kind(self) -> str:
-        """`folders` or `tables`, for messages and checks."""
-        ...
+    """What every layout answers: the sequences a ROOT holds and the scans of those chosen, and
+    what it allows (versions, resampling, simulation, uploads)."""
 
     @property
     def label_file(self) -> LabelFile:
         """How its label and prediction files hold one label per point."""
+        ...
+
+    @property
+    def folders(self) -> SequenceLayout | None:
+        """The layout as folders of sequences, or None where it is not (a version's tables):
+        what `adapt` resamples and another sensor's data is read in."""
+        ...
+
+    def versions(self, root: Path | str) -> list[str] | None:
+        """The version folders ROOT holds, or None for a layout without versions."""
+        ...
+
+    def check_version(self, version: str | None) -> None:
+        """A `DatasetLayoutError` when `version` is given to a layout without versions."""
         ...
 
     def normalise(self, name: str | int) -> str:
@@ -283,11 +301,6 @@ def list_sequences(
     """Sorted names of the sequences of a dataset (folders holding a velodyne folder, or the
     scenes of a version's tables)."""
     return layout.list_sequences(root, version=version)
-
-
-def normalise_sequence(name: str | int, *, layout: DatasetLayout) -> str:
-    """The on-disk form of a sequence id (8 -> "08" for SemanticKITTI, "008" for 3-digit ids)."""
-    return layout.normalise(name)
 
 
 def resolve_sequences(

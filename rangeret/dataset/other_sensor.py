@@ -16,7 +16,6 @@ from dataclasses import replace
 import numpy as np
 
 from rangeret.dataset.label_map import LabelMap, LabelMapError
-from rangeret.dataset.layout import SequenceLayout
 from rangeret.dataset.profiles import DatasetProfile, ProfileError
 
 
@@ -24,7 +23,7 @@ def check_folder_profiles(network: DatasetProfile, data: DatasetProfile) -> None
     """A ProfileError unless both profiles read folders of sequences and the network's writes
     raw ids (a dataset of tables, such as nuScenes, is not run on another sensor yet)."""
     for role, profile in (("network's", network), ("data's", data)):
-        if not isinstance(profile.layout, SequenceLayout):
+        if profile.layout.folders is None:
             raise ProfileError(
                 f"the {role} profile {profile.name} reads a version's tables; running a network "
                 "on another sensor's data takes folder-layout profiles"

@@ -25,6 +25,7 @@ from rangeret.dataset.labels import LabelConfig, LabelConfigError, parse_label_c
 from rangeret.dataset.layout import DatasetLayout, SequenceLayout
 from rangeret.dataset.projection import BEAM_ROWS, ROW_SOURCES, ProjectionConfig
 from rangeret.dataset.table_layout import SCHEMAS, TableLayout
+from rangeret.evaluation.scoring import SCORINGS, SERVER_SCORING
 from rangeret.exceptions import ConfigError
 from rangeret.io.scans import PointRecord
 
@@ -37,8 +38,10 @@ BUILTIN_PROFILES = ("semantickitti", "semantic-poss", "pandaset", "nuscenes")
 #: What a benchmark's prediction files hold: raw ids (the label configuration's inverse map, as
 #: SemanticKITTI's) or the training classes themselves (nuScenes-lidarseg's challenge indices).
 PREDICTION_IDS = ("raw", "class")
-#: How a benchmark turns a confusion matrix into IoU (`rangeret.evaluation.metrics`).
-SCORINGS = ("semantickitti", "nuscenes")
+#: The benchmark a profile without `benchmark.name` has: SemanticKITTI's for a profile named
+#: `semantickitti`, nuScenes-lidarseg's for one of a version's tables, none for the others.
+KITTI_BENCHMARK = "semantickitti"
+TABLES_BENCHMARK = "nuscenes-lidarseg"
 
 
 class ProfileError(ConfigError, ValueError):
@@ -54,22 +57,27 @@ class KnnVote:
 
 
 @dataclass(frozen=True)
-class Benchmark:
+class BenchmarkRules:
     """What a dataset's benchmark accepts and how it scores: the profile's optional `benchmark`
-    section. The defaults are SemanticKITTI's (and the release's for every dataset)."""
+    section. The defaults are SemanticKITTI's (and the release's for every dataset); `name` is
+    the benchmark's entry in the registry (`rangeret.submission.benchmarks`), None for a dataset
+    without one."""
 
+    #: The registry entry that writes and checks the benchmark's archive; None: no benchmark.
+    name: str | None = None
     #: What prediction files hold (`PREDICTION_IDS`).
     predictions: str = "raw"
     #: The network chooses among classes classes_from..C-1 (nuScenes refuses class 0, ignore).
     classes_from: int = 0
     #: The class of a point that projects nowhere; None: the label configuration's unlabeled one.
     unprojected_class: int | None = None
-    #: How IoU is computed (`SCORINGS`).
-    scoring: str = "semantickitti"
+    #: How IoU is computed (a name of `rangeret.evaluation.scoring.SCORINGS`).
+    scoring: str = SERVER_SCORING.name
 
     def to_dict(self) -> dict[str, Any]:
         """The `benchmark` section."""
         return {
+            "name": self.name,
             "predictions": self.predictions,
             "classes_from": self.classes_from,
             "unprojected_class": self.unprojected_class,
@@ -88,7 +96,7 @@ class DatasetProfile:
     labels: LabelConfig
     knn: KnnVote
     layout: DatasetLayout
-    benchmark: Benchmark = Benchmark()
+    benchmark: BenchmarkRules = BenchmarkRules()
     #: The reflectance a perfect reflector returns: 1 for remission, 255 for 8-bit intensity.
     reflectance_max: float = 1.0
     #: Elevation of each beam in degrees, top beam first, for sensors whose beams are not evenly
@@ -215,7 +223,7 @@ class DatasetProfile:
                 ],
             },
             "splits": {k: list(v) for k, v in labels.splits.items()},
-            **({"benchmark": self.benchmark.to_dict()} if self.benchmark != Benchmark() else {}),
+            "benchmark": self.benchmark.to_dict(),
         }
 
     @classmethod
@@ -293,10 +301,10 @@ class DatasetProfile:
                 tables, channel, label_config.splits, dict(label_config.raw_names)
             )
         votes_from = knn.integer("votes_from", 0, label_config.num_classes - 1)
-        benchmark = _benchmark(f, label_config.num_classes)
         name = f.get("name", str)
         if not name.strip():
             f.fail("name", "must not be empty")
+        benchmark = _benchmark(f, label_config.num_classes, _default_benchmark(name, layout_data))
         return cls(
             name=name,
             description=f.get("description", str),
@@ -323,19 +331,33 @@ _TOP_KEYS = ("name", "description", "sensor", "points", "layout", "knn", "labels
 _BENCHMARK_KEYS = ("predictions", "classes_from", "unprojected_class", "scoring")
 
 
-def _benchmark(f: Fields, num_classes: int) -> Benchmark:
+def _default_benchmark(name: str, layout_data: Mapping[str, Any]) -> str | None:
+    """The registry entry of a profile whose `benchmark` section names none, as profiles meant
+    before they could name one."""
+    if "tables" in layout_data:
+        return TABLES_BENCHMARK
+    return KITTI_BENCHMARK if name == KITTI_BENCHMARK else None
+
+
+def _benchmark(f: Fields, num_classes: int, default_name: str | None) -> BenchmarkRules:
     """The optional `benchmark` section (SemanticKITTI's rules where it is left out)."""
     if "benchmark" not in f.data:
-        return Benchmark()
-    section = f.section("benchmark", _BENCHMARK_KEYS)
+        return BenchmarkRules(name=default_name)
+    section = f.section("benchmark", _BENCHMARK_KEYS, ("name",))
+    name = section.data.get("name", default_name)
+    if "name" in section.data and name is not None:
+        name = section.get("name", str)
+        if not name.strip():
+            section.fail("name", "must name a benchmark, or be null for none")
     unprojected = section.data["unprojected_class"]
     if unprojected is not None:
         unprojected = section.integer("unprojected_class", 0, num_classes - 1)
-    return Benchmark(
+    return BenchmarkRules(
+        name=name,
         predictions=section.choice("predictions", PREDICTION_IDS),
         classes_from=section.integer("classes_from", 0, num_classes - 1),
         unprojected_class=unprojected,
-        scoring=section.choice("scoring", SCORINGS),
+        scoring=section.choice("scoring", tuple(SCORINGS)),
     )
 
 

@@ -20,7 +20,12 @@ from pathlib import Path, PurePosixPath
 from typing import Any
 
 from rangeret.dataset.layout import DatasetLayoutError, Discovery, ScanEntry
-from rangeret.dataset.nuscenes_tables import NuScenesTables, find_version, read_tables
+from rangeret.dataset.nuscenes_tables import (
+    NuScenesTables,
+    find_version,
+    read_tables,
+    version_folders,
+)
 from rangeret.io.scans import LabelFile
 
 #: nuScenes-lidarseg's label and prediction files: one uint8 per point.
@@ -49,9 +54,16 @@ class TableLayout:
             raise DatasetLayoutError("layout.channel must name a sensor channel")
 
     @property
-    def kind(self) -> str:
-        """A version's tables."""
-        return "tables"
+    def folders(self) -> None:
+        """None: a version's tables are not folders of sequences."""
+        return None
+
+    def versions(self, root: Path | str) -> list[str]:
+        """The version folders ROOT holds (those with a scene.json), sorted."""
+        return version_folders(root)
+
+    def check_version(self, version: str | None) -> None:
+        """Any version may be asked for; `open` says when ROOT does not hold it."""
 
     @property
     def label_file(self) -> LabelFile:

@@ -17,6 +17,7 @@ import numpy as np
 from rangeret.dataset.distance import NUM_BANDS
 from rangeret.dataset.labels import LabelConfig
 from rangeret.evaluation.metrics import ConfusionMatrix, EvaluationReport
+from rangeret.evaluation.scoring import SERVER_SCORING, Scoring, scoring_named
 
 if TYPE_CHECKING:
     from rangeret.dataset.profiles import DatasetProfile
@@ -37,11 +38,11 @@ class RawLabelEvaluator:
         *,
         config: LabelConfig,
         predictions: str = "raw",
-        scoring: str = "semantickitti",
+        scoring: Scoring | str = SERVER_SCORING,
         classes_from: int = 0,
     ) -> None:
         self.config = config
-        self.scoring = scoring
+        self.scoring = scoring_named(scoring)
         self.predictions = predictions
         self.classes_from = classes_from
         n = self.config.num_classes

@@ -18,8 +18,9 @@ import numpy as np
 from tqdm import tqdm
 
 from rangeret.dataset.distance import scan_bands
-from rangeret.dataset.layout import ScanEntry, discover
+from rangeret.dataset.layout import ScanEntry
 from rangeret.dataset.profiles import DatasetProfile
+from rangeret.dataset.selection import DatasetSelection
 from rangeret.evaluation.calibration import Calibration
 from rangeret.evaluation.counting import RawLabelEvaluator
 from rangeret.evaluation.metrics import EvaluationReport
@@ -69,27 +70,22 @@ def count_scan(
 
 
 def evaluate_predictions(
-    dataset: Path | str,
+    selection: DatasetSelection,
     predictions: Path | str,
-    sequences: Sequence[str],
     *,
     profile: DatasetProfile,
     checkpoint_sha256: str | None = None,
     progress: bool = False,
-    version: str | None = None,
-    split: str | None = None,
 ) -> EvaluationReport:
     """Evaluate a predictions tree against the dataset's labels, overall, per sequence and per
     distance band.
 
     The profile gives the dataset's layout (and so where each prediction is), point record,
-    labels and benchmark rules; `version` and `split` are a tables layout's. Raises
+    labels and benchmark rules; `selection` the dataset's scans to evaluate. Raises
     `EvaluationError` listing every missing label or prediction file, every file whose length
     does not match its scan and every prediction the benchmark would refuse.
     """
-    found = discover(
-        dataset, sequences, with_labels=True, layout=profile.layout, version=version, split=split
-    )
+    found = selection.discover(with_labels=True)
     problems = list(found.problems)
     pairs = []
     for entry in found.scans:
@@ -101,7 +97,9 @@ def evaluate_predictions(
     if problems:
         raise EvaluationError(problems)
     if not pairs:
-        raise EvaluationError([f"no labelled scan found in sequences {', '.join(sequences)}"])
+        raise EvaluationError(
+            [f"no labelled scan found in sequences {', '.join(selection.sequences)}"]
+        )
 
     evaluator = RawLabelEvaluator.for_profile(profile)
     confidences = [e.confidence_in(predictions) for e, _ in pairs]

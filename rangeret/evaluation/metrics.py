@@ -1,13 +1,10 @@
 """Confusion matrices and the SemanticKITTI benchmark's IoU, mIoU and accuracy.
 
-The semantics are the official evaluator's: C[pred, gt] over the training classes; the columns of
-ignored ground-truth classes are zeroed; TP = diagonal, FP = row sum - TP, FN = column sum - TP;
-IoU_c = TP / (TP + FP + FN + 1e-15); mIoU averages every evaluated class, so a class absent from
-both prediction and ground truth counts as 0; accuracy = sum TP / (TP + FP over evaluated classes).
-With `scoring="nuscenes"` they are nuScenes-lidarseg's devkit's instead: the ignored class's row
-and column are both zeroed, IoU_c = TP / union with the union as float32 (as the devkit divides),
-undefined (NaN, `null` in JSON) for a class absent from both sides, mIoU the mean over the defined
-classes, and the frequency-weighted IoU besides. Matrices are plain counts, so partial results
+The counts are C[pred, gt] over the training classes; TP = diagonal, FP = row sum - TP,
+FN = column sum - TP, accuracy = sum TP / (TP + FP over evaluated classes). Which counts are
+scored and how IoU and mIoU divide are the benchmark's `Scoring` (`rangeret.evaluation.scoring`):
+the SemanticKITTI evaluator's rules by default, nuScenes-lidarseg's devkit's for its profile.
+Matrices are plain counts, so partial results
 from many workers merge by addition. The evaluator (`rangeret.evaluation.counting`)
 keeps one matrix per sequence and distance band (`rangeret.dataset.distance`); the report's matrices by
 sequence, by band and overall are sums of those, so the parts add up to the whole exactly.
@@ -24,10 +21,7 @@ import numpy as np
 from rangeret.dataset.distance import band_limits, band_name
 from rangeret.dataset.labels import LabelConfig
 from rangeret.evaluation.calibration import Calibration
-
-EPS = 1e-15
-#: How a matrix is scored: the SemanticKITTI evaluator's rules or nuScenes-lidarseg's devkit's.
-SCORINGS = ("semantickitti", "nuscenes")
+from rangeret.evaluation.scoring import EPS, SERVER_SCORING, Scoring, scoring_named
 
 
 def confusion_counts(pred: np.ndarray, gt: np.ndarray, num_classes: int) -> np.ndarray:
@@ -60,7 +54,8 @@ class ConfusionMatrix:
     num_classes: int = 20
     ignore: tuple[int, ...] = (0,)
     matrix: np.ndarray = field(default=None)  # type: ignore[assignment]
-    scoring: str = "semantickitti"
+    #: The benchmark's rules (a `Scoring`, or its name).
+    scoring: Scoring = SERVER_SCORING
 
     def __post_init__(self) -> None:
         if self.matrix is None:
@@ -72,22 +67,18 @@ class ConfusionMatrix:
                 f"got {self.matrix.shape}"
             )
         self.ignore = tuple(int(c) for c in self.ignore)
-        if self.scoring not in SCORINGS:
-            raise ValueError(f"scoring must be one of {', '.join(SCORINGS)}, got {self.scoring!r}")
+        self.scoring = scoring_named(self.scoring)
 
     @classmethod
-    def for_config(cls, *, config: LabelConfig, scoring: str = "semantickitti") -> ConfusionMatrix:
+    def for_config(
+        cls, *, config: LabelConfig, scoring: Scoring | str = SERVER_SCORING
+    ) -> ConfusionMatrix:
         """An empty matrix shaped for a label configuration."""
         return cls(
             config.num_classes,
             tuple(c for c in range(config.num_classes) if config.ignored[c]),
             scoring=scoring,
         )
-
-    @property
-    def devkit(self) -> bool:
-        """Whether it scores as nuScenes-lidarseg's devkit does."""
-        return self.scoring == "nuscenes"
 
     @property
     def include(self) -> list[int]:
@@ -111,13 +102,8 @@ class ConfusionMatrix:
         return out
 
     def scored(self) -> np.ndarray:
-        """The counts that are scored: the ignored ground-truth columns zeroed (and, scoring as
-        the devkit, the ignored classes' prediction rows too)."""
-        conf = self.matrix.copy()
-        conf[:, list(self.ignore)] = 0
-        if self.devkit:
-            conf[list(self.ignore), :] = 0
-        return conf
+        """The counts that are scored, as the scoring zeroes the ignored classes."""
+        return self.scoring.scored(self.matrix, self.ignore)
 
     def stats(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """TP, FP and FN per class of the scored counts."""
@@ -130,21 +116,12 @@ class ConfusionMatrix:
     def iou(self) -> np.ndarray:
         """IoU of every class (ignored ones included, as the official evaluators return them;
         NaN where the devkit's union is empty)."""
-        tp, fp, fn = self.stats()
-        if self.devkit:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                return tp / (tp + fp + fn).astype(np.float32)
-        return tp / (tp + fp + fn + EPS)
+        return self.scoring.iou(*self.stats())
 
     def miou(self) -> float:
         """Mean IoU over the evaluated classes; absent classes count as 0, or scoring as the
         devkit are left out (NaN when no class is defined)."""
-        if self.devkit:
-            iou = self.iou()
-            if np.isnan(iou).all():
-                return float("nan")
-            return float(np.nanmean(iou))
-        return float(self.iou()[self.include].mean())
+        return self.scoring.mean(self.iou(), self.include)
 
     def freq_weighted_iou(self) -> float:
         """Each class's IoU weighted by its share of the scored ground-truth points, as the
@@ -211,7 +188,7 @@ class EvaluationReport:
             "points": confusion.evaluated_points(),
             "confusion": confusion.matrix.tolist(),
         }
-        if confusion.devkit:
+        if confusion.scoring.reports_freq_weighted:
             out["freq_weighted_iou"] = _number(confusion.freq_weighted_iou())
         return out
 
@@ -225,9 +202,9 @@ class EvaluationReport:
             **(
                 {
                     "freq_weighted_iou": _number(self.confusion.freq_weighted_iou()),
-                    "scoring": self.confusion.scoring,
+                    "scoring": self.confusion.scoring.name,
                 }
-                if self.confusion.devkit
+                if self.confusion.scoring.reports_freq_weighted
                 else {}
             ),
             "confusion": self.confusion.matrix.tolist(),
@@ -268,7 +245,7 @@ class EvaluationReport:
     def from_dict(cls, data: dict, *, config: LabelConfig) -> EvaluationReport:
         """Rebuild a report from its JSON form (class names it lacks are `config`'s)."""
         ignore = tuple(c for c in range(config.num_classes) if config.ignored[c])
-        scoring = data.get("scoring", "semantickitti")
+        scoring = scoring_named(data.get("scoring", SERVER_SCORING.name))
 
         def matrix(counts: list) -> ConfusionMatrix:
             counts = np.asarray(counts, dtype=np.int64)
@@ -324,7 +301,7 @@ class EvaluationReport:
             )
         lines.append("-" * len(lines[0]))
         lines.append(f"{'mIoU':<{width}}  {_percent(self.miou)}")
-        if self.confusion.devkit:
+        if self.confusion.scoring.reports_freq_weighted:
             lines.append(f"{'fw IoU':<{width}}  {_percent(self.confusion.freq_weighted_iou())}")
         lines.append(f"{'accuracy':<{width}}  {100 * self.accuracy:6.2f}")
         lines.append(self.points_line())

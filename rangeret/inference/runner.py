@@ -19,7 +19,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from rangeret.dataset.layout import ScanEntry, is_complete, list_scans
+from rangeret.dataset.layout import ScanEntry, is_complete
+from rangeret.dataset.selection import DatasetSelection
 from rangeret.inference.loading import (
     LoadedScan,
     batches,
@@ -37,8 +38,7 @@ log = logging.getLogger(__name__)
 
 def predict_tree(
     predictor: Predictor,
-    dataset: Path | str,
-    sequences: Sequence[str],
+    selection: DatasetSelection,
     out: Path | str,
     batch_size: int = 1,
     progress: bool = True,
@@ -48,15 +48,13 @@ def predict_tree(
     read_roots: Sequence[str] | None = None,
     overwrite: bool = False,
     runner: str = "rangeret predict",
-    version: str | None = None,
-    split: str | None = None,
     entries: Sequence[ScanEntry] | None = None,
 ) -> RunSummary:
-    """Write a prediction for every scan of `sequences` where the profile's layout puts it
+    """Write a prediction for every scan of the `selection` where the profile's layout puts it
     (`OUT/sequences/XX/predictions/NNNNNN.label`, or nuScenes' `OUT/lidarseg/<split>/`), and with
-    `save_confidence` each point's confidence beside it (`OUT/sequences/XX/confidence/`); `version`
-    and `split` are a tables layout's. `entries`, when given, are the scans to predict, listed
-    already (a gateway job's); `dataset` and `sequences` then only name the run in `run.json`.
+    `save_confidence` each point's confidence beside it (`OUT/sequences/XX/confidence/`). `entries`,
+    when given, are the scans to predict, listed already (a gateway job's); the selection then
+    only names the run in `run.json`.
 
     `on_progress(done, failed, total)` is called after every batch; setting `cancel` stops the
     run after the current batch (files already written stay complete). With `read_roots`, a scan
@@ -68,9 +66,7 @@ def predict_tree(
     out = Path(out)
     profile = predictor.profile
     if entries is None:
-        entries = list_scans(
-            dataset, sequences, layout=profile.layout, version=version, split=split
-        )
+        entries = selection.scans()
     summary = RunSummary(total=len(entries))
     pending = [
         e
@@ -87,8 +83,8 @@ def predict_tree(
         out,
         predictor.describe(),
         runner=runner,
-        dataset=dataset,
-        sequences=sequences,
+        dataset=selection.root,
+        sequences=selection.sequences,
         batch_size=batch_size,
         overwrite=overwrite,
     )

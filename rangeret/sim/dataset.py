@@ -14,7 +14,7 @@ import numpy as np
 
 from rangeret.dataset.beams import beam_values
 from rangeret.dataset.labels import SEMANTIC_MASK
-from rangeret.dataset.layout import SequenceLayout, labels_dir, velodyne_dir
+from rangeret.dataset.layout import labels_dir, velodyne_dir
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.projection import BEAM_ROWS
 from rangeret.io.atomic import atomic_write_bytes
@@ -106,8 +106,8 @@ def simulate_dataset(
     """
     sensor = sensor or SensorConfig.for_profile(profile)
     check_profile(profile, sensor)
-    layout, record = profile.layout, profile.points
-    if not isinstance(layout, SequenceLayout):
+    layout, record = profile.layout.folders, profile.points
+    if layout is None:
         raise SimulationError(
             f"profile {profile.name} reads a version's tables: simulate it with "
             "rangeret.sim.nuscenes_tree"

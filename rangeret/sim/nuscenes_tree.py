@@ -27,7 +27,7 @@ import numpy as np
 
 from rangeret.dataset.labels import SEMANTIC_MASK
 from rangeret.dataset.profiles import DatasetProfile
-from rangeret.dataset.table_layout import LIDARSEG_LABELS, TableLayout
+from rangeret.dataset.table_layout import LIDARSEG_LABELS
 from rangeret.io.atomic import atomic_write_bytes
 from rangeret.io.scans import write_scan
 from rangeret.sim.dataset import check_profile, sequence_scans
@@ -93,7 +93,7 @@ def simulate_nuscenes(
     so no lidarseg.json is written, as for the test split). The profile must read tables; the
     sensor defaults to the profile's with the HDL-32E's `AZIMUTH_STEPS`.
     """
-    if not isinstance(profile.layout, TableLayout):
+    if profile.layout.folders is not None:
         raise SimulationError(f"profile {profile.name} does not read a version's tables")
     sensor = sensor or SensorConfig.for_profile(profile, azimuth_steps=AZIMUTH_STEPS)
     check_profile(profile, sensor)

@@ -1,82 +1,78 @@
-"""The benchmark archive of a profile, whichever its benchmark: every runner that writes one
-(`rangeret submission`, the Ray job) goes through `write_benchmark_archive`.
+"""The benchmark registry: every `Benchmark` by name, the built-ins and those of other packages.
 
-SemanticKITTI's profile writes the CodaLab/Codabench zip of its test split
-(`rangeret.submission.archives`); a profile of nuScenes' tables writes the nuScenes-lidarseg
-results folder of a split (`rangeret.submission.nuscenes`). Other profiles have no benchmark
-archive.
+A profile names its benchmark in `benchmark.name` (`rangeret profile show` prints it);
+`benchmark_of(profile)` gives the entry every runner asks for the archive, the job zip and the
+demo's plan, or the base `Benchmark` (no archive) for a profile that names none. Built in:
+`semantickitti` (`rangeret.submission.kitti_benchmark`) and `nuscenes-lidarseg`
+(`rangeret.submission.nuscenes_benchmark`). Another package adds one through the entry-point
+group `rangeret.benchmarks`, whose object is a `Benchmark` instance (docs/benchmarks.md); an
+entry that fails to load, or takes a built-in's name, is logged and left out.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
+import logging
+from functools import cache
 
-from rangeret.dataset.profiles import DEFAULT_PROFILE, DatasetProfile
-from rangeret.submission.archives import SubmissionCheck, SubmissionError, write_submission
-from rangeret.submission.leaderboard import LeaderboardEntry
-from rangeret.submission.nuscenes import (
-    SubmissionMeta,
-    submission_json,
-    write_nuscenes_submission,
-)
+from rangeret.dataset.profiles import DatasetProfile, ProfileError
+from rangeret.plugins import load_plugins
+from rangeret.submission.benchmark import Benchmark
+from rangeret.submission.kitti_benchmark import SEMANTICKITTI
+from rangeret.submission.nuscenes_benchmark import NUSCENES_LIDARSEG
+
+log = logging.getLogger(__name__)
+
+BENCHMARKS_GROUP = "rangeret.benchmarks"
+BUILTIN_BENCHMARKS: tuple[Benchmark, ...] = (SEMANTICKITTI, NUSCENES_LIDARSEG)
+#: The entry of a profile that names no benchmark: no archive, the plain job zip and demo.
+NO_BENCHMARK = Benchmark()
+
+
+@cache
+def registered() -> dict[str, Benchmark]:
+    """Every benchmark by name: the built-ins, then the entry points' in name order."""
+    found = {b.name: b for b in BUILTIN_BENCHMARKS}
+    for plugin in load_plugins(BENCHMARKS_GROUP):
+        if not isinstance(plugin, Benchmark) or not plugin.name:
+            log.warning("%s: %r is not a named Benchmark; left out", BENCHMARKS_GROUP, plugin)
+        elif plugin.name in found:
+            log.warning(
+                "%s: a second benchmark named %s is left out", BENCHMARKS_GROUP, plugin.name
+            )
+        else:
+            found[plugin.name] = plugin
+    return found
+
+
+def benchmark_named(name: str) -> Benchmark:
+    """The benchmark called `name`; a `ProfileError` naming the known ones otherwise."""
+    found = registered().get(name)
+    if found is None:
+        raise ProfileError(
+            f"benchmark.name {name!r} is not a known benchmark; known: {', '.join(registered())}"
+        )
+    return found
+
+
+def benchmark_of(profile: DatasetProfile) -> Benchmark:
+    """The benchmark the profile names (`NO_BENCHMARK` where it names none); a `ProfileError`
+    when it is unknown or cannot take the profile's layout."""
+    name = profile.benchmark.name
+    if name is None:
+        return NO_BENCHMARK
+    benchmark = benchmark_named(name)
+    refusal = benchmark.check_profile(profile)
+    if refusal is not None:
+        raise ProfileError(f"profile {profile.name}: {refusal}")
+    return benchmark
 
 
 def no_archive_reason(profile: DatasetProfile) -> str | None:
     """Why the profile has no benchmark archive, or None where it has one."""
-    if profile.layout.kind == "tables" or profile.name == DEFAULT_PROFILE:
+    if benchmark_of(profile).writes_archives:
         return None
+    titles = " and ".join(b.title for b in registered().values() if b.writes_archives)
     return (
-        "submission archives are the SemanticKITTI and nuScenes-lidarseg benchmarks' formats; "
-        f"the {profile.name} profile has no such archive (use `rangeret evaluate` on its "
-        "predictions instead)"
-    )
-
-
-def write_benchmark_archive(
-    profile: DatasetProfile,
-    predictions: Path | str,
-    dataset: Path | str,
-    out: Path | str,
-    *,
-    description: str,
-    leaderboard: LeaderboardEntry,
-    checkpoint_sha256: str | None,
-    split: str | None = None,
-    version: str | None = None,
-    meta: SubmissionMeta | None = None,
-    allow_partial: bool = False,
-    progress: bool = False,
-    workers: int | None = None,
-) -> SubmissionCheck:
-    """Write and validate the archive of a predictions tree for the profile's benchmark
-    (nuScenes: of `split`, default test, with `meta` in submission.json); a profile without
-    one is a `SubmissionError` saying so."""
-    if profile.layout.kind == "tables":
-        meta = meta or SubmissionMeta()
-        return write_nuscenes_submission(
-            predictions,
-            dataset,
-            out,
-            split or "test",
-            profile=profile,
-            meta=meta,
-            submission=submission_json(meta, leaderboard, checkpoint_sha256),
-            description=description,
-            version=version,
-            allow_partial=allow_partial,
-            progress=progress,
-            workers=workers,
-        )
-    reason = no_archive_reason(profile)
-    if reason is not None:
-        raise SubmissionError([reason])
-    return write_submission(
-        predictions,
-        dataset,
-        out,
-        allow_partial=allow_partial,
-        description=description,
-        labels=profile.labels,
-        progress=progress,
-        workers=workers,
+        f"submission archives are the {titles} benchmarks' formats; the {profile.name} profile "
+        "has no such archive (use `rangeret evaluate` on its predictions instead)"
     )

@@ -29,6 +29,7 @@ import zipfile
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 from tqdm import tqdm
@@ -84,9 +85,10 @@ def submission_json(
 
 
 def _tables_layout(profile: DatasetProfile) -> TableLayout:
-    if not isinstance(profile.layout, TableLayout):
+    """The profile's layout of tables (a layout of folders has no `open`)."""
+    if profile.layout.folders is not None:
         raise SubmissionError([f"profile {profile.name} does not read nuScenes tables"])
-    return profile.layout
+    return cast(TableLayout, profile.layout)
 
 
 def _split_scans(

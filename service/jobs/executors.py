@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
 from rangeret.dataset.layout import ScanEntry
+from rangeret.dataset.selection import DatasetSelection
 from rangeret.inference.runner import predict_tree
 from service.jobs.store import JobRecord, JobStore
 from service.model_pool import ModelPool, PoolFull
@@ -140,8 +141,7 @@ class LocalExecutor:
             self.precision, self.inference_backend = predictor.precision, predictor.backend
             summary = predict_tree(
                 predictor,
-                dataset,
-                sequences,
+                DatasetSelection(dataset, tuple(sequences), predictor.profile.layout),
                 out,
                 batch_size=self.batch_size,
                 progress=False,

@@ -17,18 +17,12 @@ from __future__ import annotations
 import asyncio
 import errno
 from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
 
-from rangeret.dataset.layout import (
-    DatasetLayoutError,
-    ScanEntry,
-    list_scans,
-    missing_sequences,
-    resolve_sequences,
-)
+from rangeret.dataset.layout import DatasetLayoutError, ScanEntry
 from rangeret.dataset.profiles import DatasetProfile
-from rangeret.dataset.table_layout import TableLayout
+from rangeret.dataset.selection import DatasetSelection, select_dataset
 from service.archives import ArchiveError, ArchiveLimits, ArchiveRules, FolderRules, extract_with
 from service.errors import ApiError
 from service.jobs.capacity import JobRefused, disk_full, expected_output_bytes
@@ -47,15 +41,29 @@ UPLOAD_FILE = "upload.part"
 DATA_DIR = "data"
 
 
-class JobInput(NamedTuple):
-    """A job's input: the dataset root, its sequences and their scans, and a tables layout's
-    version and the split its predictions go to (None: each scene's own)."""
+@dataclass(frozen=True)
+class JobInput:
+    """A job's input: the dataset selection (root, sequences, a tables layout's version and the
+    split its predictions go to) and its scans."""
 
-    root: Path
-    sequences: list[str]
+    selection: DatasetSelection
     entries: list[ScanEntry]
-    version: str | None = None
-    split: str | None = None
+
+    @property
+    def root(self) -> Path:
+        return self.selection.root
+
+    @property
+    def sequences(self) -> list[str]:
+        return list(self.selection.sequences)
+
+    @property
+    def version(self) -> str | None:
+        return self.selection.version
+
+    @property
+    def split(self) -> str | None:
+        return self.selection.split
 
 
 def resolve_dataset(text: str, roots: Sequence[Path]) -> Path:
@@ -86,11 +94,12 @@ def refused(exc: JobRefused) -> ApiError:
 
 
 def archive_rules(profile: DatasetProfile) -> ArchiveRules:
-    """What an uploaded archive of the profile's layout may hold: nuScenes' tables and files, or
-    sequence folders."""
-    if isinstance(profile.layout, TableLayout):
+    """What an uploaded archive of the profile's layout may hold: sequence folders, or nuScenes'
+    tables and files for a layout that is not folders."""
+    folders = profile.layout.folders
+    if folders is None:
         return NuScenesRules(profile.points, profile.layout)
-    return FolderRules(profile.points, profile.layout)
+    return FolderRules(profile.points, folders)
 
 
 class JobIntake:
@@ -145,10 +154,10 @@ class JobIntake:
             raise ApiError(exc.status_code, str(exc)) from exc
         finally:
             upload.unlink(missing_ok=True)
-        entries = list_scans(
-            found.root, found.sequences, layout=profile.layout, version=found.version
+        selection = DatasetSelection(
+            found.root, tuple(found.sequences), profile.layout, version=found.version
         )
-        return JobInput(found.root, found.sequences, entries, found.version)
+        return JobInput(selection, selection.scans())
 
     async def archive_job(
         self, receive: Callable[[Path], Awaitable[object]], model: ModelEntry
@@ -195,22 +204,27 @@ class JobIntake:
         root = resolve_dataset(request.dataset, roots)
         version = dataset_version(root, request.version, model)
         try:
-            sequences = resolve_sequences(
-                request.split, request.sequences, labels=profile.labels, layout=profile.layout
+            selection = select_dataset(
+                root,
+                layout=profile.layout,
+                labels=profile.labels,
+                split=request.split,
+                sequences=request.sequences,
+                version=version,
             )
             if request.split is not None:
-                missing = missing_sequences(root, sequences, layout=profile.layout, version=version)
+                missing = selection.missing()
                 if missing:
-                    raise ApiError(400, incomplete_split(request.split, sequences, missing))
-            entries = list_scans(
-                root, sequences, layout=profile.layout, version=version, split=request.split
-            )
+                    raise ApiError(
+                        400, incomplete_split(request.split, selection.sequences, missing)
+                    )
+            entries = selection.scans()
         except (DatasetLayoutError, ValueError) as exc:
             raise ApiError(400, f"The dataset cannot be used: {str(exc)[:400]}") from exc
         escaping = escaping_scans(entries, roots)
         if escaping:
             raise ApiError(403, outside_roots_sentence(escaping))
-        return JobInput(root, sequences, entries, version, request.split)
+        return JobInput(selection, entries)
 
     async def dataset_job(self, request: DatasetJobRequest) -> JobRecord:
         """A new job over the dataset `request` names with its model, checked and queued (404
@@ -235,15 +249,7 @@ class JobIntake:
         )
         try:
             return await asyncio.to_thread(
-                jobs.submit,
-                job_id,
-                kind,
-                found.root,
-                found.sequences,
-                expected,
-                model.name,
-                found.version,
-                found.split,
+                jobs.submit, job_id, kind, found.selection, expected, model.name
             )
         except JobRefused as exc:
             raise refused(exc) from exc

@@ -22,6 +22,7 @@ import uuid
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from rangeret.dataset.selection import DatasetSelection
 from service.jobs.capacity import disk_full, disk_short, folder_bytes, queue_full
 from service.jobs.executors import JobControl, JobError, JobExecutor
 from service.jobs.reasons import failure_sentence
@@ -157,16 +158,12 @@ class JobManager:
         self,
         job_id: str,
         kind: str,
-        dataset: Path,
-        sequences: Sequence[str],
+        selection: DatasetSelection,
         expected_bytes: int = 0,
         model: str | None = None,
-        version: str | None = None,
-        split: str | None = None,
     ) -> JobRecord:
-        """Queue a job of the served model `model` (None: the default) whose folder is ready,
-        noting the profile it is accepted for (and a tables layout's `version` and `split`), and
-        wake a runner; `JobRefused` when the queue is full (429) or its `expected_bytes` of
+        """Queue a job over the `selection` of the served model `model` (None: the default)
+        whose folder is ready, noting the profile it is accepted for, and wake a runner; `JobRefused` when the queue is full (429) or its `expected_bytes` of
         output do not fit in the disk the jobs may use (507)."""
         entry = self.models.entries[model or self.models.default]
         with self._admit_lock:
@@ -180,7 +177,13 @@ class JobManager:
                 raise disk_short(expected_bytes, free, self.jobs_dir)
             (self.job_dir(job_id) / PROFILE_FILE).write_text(entry.profile.name + "\n")
             record = self.store.create(
-                job_id, kind, dataset, sequences, entry.name, version=version, split=split
+                job_id,
+                kind,
+                selection.root,
+                selection.sequences,
+                entry.name,
+                version=selection.version,
+                split=selection.split,
             )
             self._expected[job_id] = expected_bytes
         self._wake.set()

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from rangeret.dataset.layout import ScanEntry, is_complete
+from rangeret.dataset.selection import DatasetSelection
 from rangeret.inference.spec import InferenceSpec
 from service.jobs.executors import JobControl, JobError, Progress
 from service.jobs.jobs_api import JobsApi, JobsApiError, JobsApiUnreachable
@@ -125,22 +126,15 @@ class RayJobExecutor:
         self.precision: str | None = None
         self.inference_backend = models.default_entry.spec.backend
 
-    def entrypoint(
-        self,
-        dataset: Path,
-        sequences: list[str],
-        out: Path,
-        model: str | None = None,
-        *,
-        version: str | None = None,
-        split: str | None = None,
-    ) -> str:
-        """The shell command of a job's Ray job: `python -m workers.predict_job` on the dataset's
-        sequences (a tables layout's whole `split` of its `version`, where the job names one)
-        into `out`, with the spec of the model `model` (None: the default)."""
+    def entrypoint(self, selection: DatasetSelection, out: Path, model: str | None = None) -> str:
+        """The shell command of a job's Ray job: `python -m workers.predict_job` on the
+        selection's sequences (a tables layout's whole split of its version, where the job names
+        one) into `out`, with the spec of the model `model` (None: the default)."""
         spec = self.specs[self.models.get(model).name]
-        argv = ["python", "-m", "workers.predict_job", "--dataset", str(Path(dataset).absolute())]
-        argv += ["--split", split] if split else ["--sequences", *sequences]
+        root = str(Path(selection.root).absolute())
+        argv = ["python", "-m", "workers.predict_job", "--dataset", root]
+        split, version = selection.split, selection.version
+        argv += ["--split", split] if split else ["--sequences", *selection.sequences]
         argv += ["--version", version] if version else []
         argv += ["--out", str(Path(out).absolute())]
         argv += ["--inference-spec", json.dumps(spec.to_mapping(), sort_keys=True)]
@@ -314,14 +308,14 @@ class _Follow:
         )  # where the Ray job's records go, even early ones
         progress_path(self.out).unlink(missing_ok=True)
         job = self.control.record()
-        entrypoint = self.executor.entrypoint(
+        selection = DatasetSelection(
             self.dataset,
-            self.sequences,
-            self.out,
-            self.model,
-            version=None if job is None else job.version,
-            split=None if job is None else job.split,
+            tuple(self.sequences),
+            self.executor.models.get(self.model).profile.layout,
+            None if job is None else job.split,
+            None if job is None else job.version,
         )
+        entrypoint = self.executor.entrypoint(selection, self.out, self.model)
         metadata = {"rangeret_job": self.control.job_id}
         since: float | None = None
         while True:

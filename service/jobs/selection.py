@@ -14,7 +14,8 @@ import difflib
 from collections.abc import Sequence
 from pathlib import Path
 
-from rangeret.dataset.nuscenes_tables import TableError, version_folders
+from rangeret.dataset.layout import DatasetLayoutError
+from rangeret.dataset.nuscenes_tables import TableError
 from service.errors import ApiError
 from service.schemas import DatasetJobRequest
 from service.served_models import ModelEntry
@@ -24,13 +25,15 @@ def check_selection(request: DatasetJobRequest, model: ModelEntry) -> None:
     """400 naming the field when `split` is not a split of the model's profile, or `version` is
     given for a model whose profile reads folders of sequences."""
     profile = model.profile
-    if request.version is not None and profile.layout.kind != "tables":
+    try:
+        profile.layout.check_version(request.version)
+    except DatasetLayoutError as exc:
         raise ApiError(
             400,
             f"The field 'version' is for datasets of a version's tables (nuScenes), and model "
             f"{model.name} runs with the {profile.name} profile, whose datasets are folders of "
             "sequences: leave 'version' out.",
-        )
+        ) from exc
     split = request.split
     if split is not None and split not in profile.splits:
         close = difflib.get_close_matches(split, list(profile.splits), n=1, cutoff=0.6)
@@ -45,12 +48,12 @@ def check_selection(request: DatasetJobRequest, model: ModelEntry) -> None:
 def dataset_version(root: Path, version: str | None, model: ModelEntry) -> str | None:
     """The version a job of a tables profile reads under `root`: `version`, which the dataset
     must hold, else the one it holds (400 naming the field otherwise); None for folder layouts."""
-    if model.profile.layout.kind != "tables":
-        return None
     try:
-        held = version_folders(root)
+        held = model.profile.layout.versions(root)
     except TableError as exc:
         raise ApiError(400, "The dataset is not a folder of nuScenes tables.") from exc
+    if held is None:
+        return None
     if version is not None and version not in held:
         holds = f"it holds {', '.join(held)}" if held else "it holds no version's tables"
         raise ApiError(

@@ -23,6 +23,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from rangeret.dataset.layout import DatasetLayout
+from rangeret.dataset.selection import DatasetSelection
 from service.schemas import JobState
 
 #: Failed scans kept in a job's record (the count is always exact).
@@ -154,6 +156,12 @@ class JobRecord:
     version: str | None = None
     #: The split a tables layout's predictions go to (None: each scene's own, or a folder layout).
     split: str | None = None
+
+    def selection(self, layout: DatasetLayout) -> DatasetSelection:
+        """What the job reads of its dataset, in its profile's `layout`."""
+        return DatasetSelection(
+            Path(self.dataset), tuple(self.sequences), layout, self.split, self.version
+        )
 
 
 #: queued -> running: the first start's time is kept when a job resumes.

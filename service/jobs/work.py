@@ -16,7 +16,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from rangeret.dataset.layout import ScanEntry, is_complete, list_scans
+from rangeret.dataset.layout import ScanEntry, is_complete
 from rangeret.dataset.profiles import DatasetProfile
 from service.jobs.executors import JobControl, JobExecutor
 from service.jobs.reasons import scrub
@@ -71,7 +71,6 @@ class JobWork:
         """Do `job`'s work in its `folder` and store its final record (succeeded or failed);
         False when `control` was set before the predictions were through (nothing final
         stored). `JobError` and other exceptions are the caller's to record."""
-        dataset = Path(job.dataset)
         out = folder / PREDICTIONS_DIR
         model = self.models.entries.get(job.model or self.models.default)
         if model is None:
@@ -86,9 +85,7 @@ class JobWork:
         if refusal is not None:
             self.store.finish(job.id, JobState.failed, reason=refusal)
             return True
-        entries = list_scans(
-            dataset, job.sequences, layout=profile.layout, version=job.version, split=job.split
-        )
+        entries = job.selection(profile.layout).scans()
         escaping = escaping_scans(entries, self.read_roots) if self.read_roots else []
         if escaping:
             self.store.finish(
@@ -181,8 +178,8 @@ class JobWork:
     ) -> None:
         """Write the predictions zip and, for labelled sequences, the report and its plots;
         store the job as succeeded with them."""
-        dataset = Path(job.dataset)
         profile = model.profile
+        selection = job.selection(profile.layout)
         zip_path = folder / PREDICTIONS_ZIP
         sha = model.checkpoint_sha256
         description = predictions_description(sha, profile)
@@ -190,21 +187,16 @@ class JobWork:
             out, entries, job.sequences, zip_path, description, profile=profile, sha256=sha
         )
         metrics = report_path = None
-        labelled = labelled_sequences(
-            dataset, job.sequences, layout=profile.layout, version=job.version, split=job.split
-        )
+        labelled = labelled_sequences(selection)
         if labelled:
             report_path, metrics = write_report(
-                dataset,
+                selection.only(labelled),
                 out,
-                labelled,
                 folder,
                 profile=profile,
                 checkpoint_sha256=model.checkpoint_sha256,
                 precision=self.executor.precision,
                 backend=self.executor.inference_backend,
-                version=job.version,
-                split=job.split,
             )
         self.store.finish(
             job.id, JobState.succeeded, metrics=metrics, predictions=zip_path, report=report_path

@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rangeret.dataset.layout import prediction_path
+from rangeret.dataset.layout import KITTI_LAYOUT, prediction_path
 from rangeret.dataset.profiles import load_profile
+from rangeret.dataset.selection import DatasetSelection
 from rangeret.io.scans import write_labels
 from rangeret.sim import simulate_dataset
 from service.jobs import JobManager, JobRefused, JobStore
@@ -44,7 +45,7 @@ def test_job_runs_to_success_with_predictions_and_report(tmp_path):
     manager.start()
     try:
         job_id, _ = manager.new_job()
-        manager.submit(job_id, "dataset", data, ["08"])
+        manager.submit(job_id, "dataset", DatasetSelection.named(data, ["08"], KITTI_LAYOUT))
         assert (
             wait_state(manager, job_id, JobState.succeeded, JobState.failed) is JobState.succeeded
         )
@@ -66,7 +67,9 @@ def test_a_job_reads_evaluates_and_zips_in_the_profile_of_the_gateway(tmp_path):
     manager.start()
     try:
         job_id, folder = manager.new_job()
-        manager.submit(job_id, "dataset", data, ["001", "002"])
+        manager.submit(
+            job_id, "dataset", DatasetSelection.named(data, ["001", "002"], PANDASET.layout)
+        )
         assert (
             wait_state(manager, job_id, JobState.succeeded, JobState.failed) is JobState.succeeded
         ), manager.store.get(job_id).reason
@@ -88,7 +91,7 @@ def test_a_job_accepted_for_another_profile_fails_naming_both(tmp_path):
     make_tree(data, {"08": [30]}, labelled=False)
     first = _manager(tmp_path)
     job_id, folder = first.new_job()
-    first.submit(job_id, "dataset", data, ["08"])
+    first.submit(job_id, "dataset", DatasetSelection.named(data, ["08"], KITTI_LAYOUT))
     first.store.close()
     second = _manager(tmp_path, profile=PANDASET)
     second.start()
@@ -110,7 +113,7 @@ def test_cancel_a_running_job_removes_its_files(tmp_path):
     manager.start()
     try:
         job_id, folder = manager.new_job()
-        manager.submit(job_id, "dataset", data, ["08"])
+        manager.submit(job_id, "dataset", DatasetSelection.named(data, ["08"], KITTI_LAYOUT))
         assert executor.started.wait(30)
         assert manager.cancel(job_id).state is JobState.cancelled
         executor.release.set()
@@ -211,7 +214,12 @@ def test_jobs_run_side_by_side_and_the_queue_and_disk_are_bounded(tmp_path):
 
     def submit(sequence: str, expected: int) -> str:
         job_id, _ = manager.new_job()
-        manager.submit(job_id, "dataset", data, [sequence], expected_bytes=expected)
+        manager.submit(
+            job_id,
+            "dataset",
+            DatasetSelection.named(data, [sequence], KITTI_LAYOUT),
+            expected_bytes=expected,
+        )
         return job_id
 
     manager.start()
@@ -258,7 +266,7 @@ def test_a_job_whose_files_were_linked_out_of_the_roots_since_it_was_queued_fail
     manager.start()
     try:
         job_id, _ = manager.new_job()
-        manager.submit(job_id, "dataset", data, ["08"])
+        manager.submit(job_id, "dataset", DatasetSelection.named(data, ["08"], KITTI_LAYOUT))
         assert wait_state(manager, job_id, JobState.failed) is JobState.failed
     finally:
         manager.stop()

@@ -13,6 +13,7 @@ import pytest
 from rangeret.dataset.labels import semantickitti
 from rangeret.dataset.layout import KITTI_LAYOUT, list_scans, prediction_path
 from rangeret.dataset.profiles import load_profile
+from rangeret.dataset.selection import DatasetSelection
 from rangeret.io.scans import write_labels
 from rangeret.submission.archives import required_directories
 from service.jobs import JobRecord, write_predictions_zip
@@ -67,7 +68,9 @@ def test_only_sequences_with_every_label_are_evaluated(tmp_path):
     make_tree(data, {"08": [5, 6], "11": [5]})
     make_tree(data, {"12": [5]}, labelled=False)
     (data / "sequences" / "11" / "labels" / "000000.label").unlink()
-    assert labelled_sequences(data, ["08", "11", "12"], layout=KITTI_LAYOUT) == ["08"]
+    assert labelled_sequences(DatasetSelection.named(data, ["08", "11", "12"], KITTI_LAYOUT)) == [
+        "08"
+    ]
 
 
 def test_the_report_and_its_plots_are_written_into_the_job_folder(tmp_path):
@@ -79,9 +82,8 @@ def test_the_report_and_its_plots_are_written_into_the_job_folder(tmp_path):
         truth = config.to_raw(config.to_class(labels)).astype(np.uint32)
         write_labels(prediction_path(pred, "08", f"{i:06d}"), truth)
     path, metrics = write_report(
-        data,
+        DatasetSelection.named(data, ["08"], KITTI_LAYOUT),
         pred,
-        ["08"],
         tmp_path / "job",
         profile=KITTI,
         checkpoint_sha256="ef" * 32,

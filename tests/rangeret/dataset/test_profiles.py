@@ -22,7 +22,7 @@ from rangeret.sim import SensorConfig, simulate_dataset
 
 SEQUENCES = {"1": 3, "2": 2}
 #: The built-in profiles whose datasets are folders of sequences (nuScenes' are tables).
-FOLDER_PROFILES = tuple(n for n in BUILTIN_PROFILES if load_profile(n).layout.kind == "folders")
+FOLDER_PROFILES = tuple(n for n in BUILTIN_PROFILES if load_profile(n).layout.folders is not None)
 
 
 def profile_file(path: Path, base: str, changes: dict[str, Any]) -> Path:

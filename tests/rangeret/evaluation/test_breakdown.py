@@ -18,6 +18,7 @@ from rangeret.dataset.layout import (
     velodyne_dir,
 )
 from rangeret.dataset.profiles import load_profile
+from rangeret.dataset.selection import DatasetSelection
 from rangeret.evaluation.evaluate import evaluate_predictions
 from rangeret.evaluation.metrics import EvaluationReport
 from rangeret.io.scans import KITTI_RECORD, read_scan, write_labels, write_scan
@@ -127,7 +128,9 @@ def test_the_pipelines_counts_equal_evaluate(tmp_path):
     _predict_noisily(data, preds, ["08", "03"], seed=2)
     profile = load_profile(None)
     expected = evaluate_predictions(
-        data, preds, ["03", "08"], profile=load_profile("semantickitti")
+        DatasetSelection.named(data, ["03", "08"], KITTI_LAYOUT),
+        preds,
+        profile=load_profile("semantickitti"),
     ).to_dict()
     keys = ("confusion", "per_sequence", "per_distance")
 
@@ -179,7 +182,9 @@ def test_points_land_in_their_distance_band(tmp_path):
     write_labels(prediction_path(preds, "08", "000000"), np.array([p for _, _, p in points]))
 
     report = evaluate_predictions(
-        data, preds, ["08"], profile=load_profile("semantickitti")
+        DatasetSelection.named(data, ["08"], KITTI_LAYOUT),
+        preds,
+        profile=load_profile("semantickitti"),
     ).to_dict()
     bands = report["per_distance"]
     assert [b["points"] for b in bands] == [1, 3, 1, 1, 1, 2]

@@ -8,6 +8,7 @@ import pytest
 from rangeret.dataset.labels import semantickitti
 from rangeret.dataset.layout import KITTI_LAYOUT, discover, prediction_path
 from rangeret.dataset.profiles import load_profile
+from rangeret.dataset.selection import DatasetSelection
 from rangeret.evaluation.evaluate import EvaluationError, evaluate_predictions
 from rangeret.io.scans import write_labels
 from tests.support.reference import add_at_confusion, read_mapped, remap_table, scores
@@ -28,7 +29,11 @@ def test_matches_the_official_evaluation(tmp_path):
     data, preds = tmp_path / "data", tmp_path / "pred"
     make_tree(data, {"08": [500, 800, 300], "03": [400]})
     _predict_noisily(data, preds, ["08", "03"])
-    report = evaluate_predictions(data, preds, ["03", "08"], profile=load_profile("semantickitti"))
+    report = evaluate_predictions(
+        DatasetSelection.named(data, ["03", "08"], KITTI_LAYOUT),
+        preds,
+        profile=load_profile("semantickitti"),
+    )
 
     cfg = semantickitti()
     table = remap_table(cfg)
@@ -51,12 +56,20 @@ def test_missing_prediction_and_wrong_length_are_named(tmp_path):
     _predict_noisily(data, preds, ["08"])
     prediction_path(preds, "08", "000001").unlink()
     with pytest.raises(EvaluationError, match=r"000001\.label is missing"):
-        evaluate_predictions(data, preds, ["08"], profile=load_profile("semantickitti"))
+        evaluate_predictions(
+            DatasetSelection.named(data, ["08"], KITTI_LAYOUT),
+            preds,
+            profile=load_profile("semantickitti"),
+        )
     write_labels(prediction_path(preds, "08", "000001"), np.zeros(59, np.uint32))
     with pytest.raises(
         EvaluationError, match=r"000001\.label: holds 59 labels but the scan has 60"
     ):
-        evaluate_predictions(data, preds, ["08"], profile=load_profile("semantickitti"))
+        evaluate_predictions(
+            DatasetSelection.named(data, ["08"], KITTI_LAYOUT),
+            preds,
+            profile=load_profile("semantickitti"),
+        )
 
 
 def test_missing_ground_truth_is_named(tmp_path):
@@ -65,6 +78,10 @@ def test_missing_ground_truth_is_named(tmp_path):
     _predict_noisily(data, preds, ["08"])
     (data / "sequences" / "08" / "labels" / "000000.label").unlink()
     with pytest.raises(EvaluationError) as info:
-        evaluate_predictions(data, preds, ["08", "09"], profile=load_profile("semantickitti"))
+        evaluate_predictions(
+            DatasetSelection.named(data, ["08", "09"], KITTI_LAYOUT),
+            preds,
+            profile=load_profile("semantickitti"),
+        )
     text = "\n".join(info.value.problems)
     assert "000000.label is missing" in text and "sequence 09 is missing" in text

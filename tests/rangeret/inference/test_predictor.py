@@ -12,6 +12,7 @@ from rangeret.cli.main import main
 from rangeret.dataset.labels import semantickitti
 from rangeret.dataset.layout import KITTI_LAYOUT, list_scans, prediction_path, velodyne_dir
 from rangeret.dataset.projection import ProjectionConfig, project
+from rangeret.dataset.selection import DatasetSelection
 from rangeret.inference.loading import batches, load_batch, predict_loaded, project_scans
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import RunSummary
@@ -58,7 +59,7 @@ def test_predictor_on_the_real_scan_with_release_shaped_weights(tmp_path, scan):
     torch.save(release, tmp_path / "kitti.pt")
     predictor = Predictor.from_checkpoint(tmp_path / "kitti.pt", device="cpu")
     times = StageTimes()
-    (first,) = predictor.label([predictor.project(scan, times)], times)
+    (first,) = predictor.label_projections([predictor.project(scan, times)], times)
     assert set(times.per_scan_ms()) == {"project", "network", "refine"}
     second = predictor.predict(scan)
     assert first.labels.shape == (len(scan),) and first.labels.dtype == np.uint32
@@ -95,7 +96,7 @@ def test_without_knn_points_take_their_pixel_class_and_unprojected_get_zero(smal
 def test_batches_give_the_same_labels_as_single_scans(small_weights, scan):
     predictor = Predictor.from_checkpoint(small_weights, height=32, width=256, device="cpu")
     scans = [scan[::7], scan[1::9]]
-    batched = predictor.label([predictor.project(p) for p in scans])
+    batched = predictor.label_projections([predictor.project(p) for p in scans])
     for pts, result in zip(scans, batched, strict=True):
         np.testing.assert_array_equal(predictor.predict(pts).labels, result.labels)
 
@@ -211,8 +212,18 @@ def test_each_run_reports_only_its_own_stage_times(tree, tmp_path, small_weights
     from rangeret.inference.runner import predict_tree
 
     predictor = Predictor.from_checkpoint(small_weights, height=32, width=256, device="cpu")
-    first = predict_tree(predictor, tree, ["08"], tmp_path / "a", progress=False)
-    second = predict_tree(predictor, tree, ["08", "42"], tmp_path / "b", progress=False)
+    first = predict_tree(
+        predictor,
+        DatasetSelection.named(tree, ["08"], KITTI_LAYOUT),
+        tmp_path / "a",
+        progress=False,
+    )
+    second = predict_tree(
+        predictor,
+        DatasetSelection.named(tree, ["08", "42"], KITTI_LAYOUT),
+        tmp_path / "b",
+        progress=False,
+    )
     assert first.times.scans["network"] == 3 and second.times.scans["network"] == 4
     assert second.times.scans["read"] == second.times.scans["write"] == 4
     again = pickle.loads(pickle.dumps(second.times))
@@ -236,7 +247,7 @@ def test_each_scan_gets_a_prediction_or_its_named_failure_in_order(tree, small_w
     np.testing.assert_array_equal(found[2].labels, alone.labels)
 
     projected = project_scans([scan[::7], scan[:, :3]], predictor.projection_config, StageTimes())
-    in_memory = predictor.label(projected)
+    in_memory = predictor.label_projections(projected)
     assert in_memory[1] == "points must have shape (N, 4), got (123389, 3)"
     np.testing.assert_array_equal(in_memory[0].labels, predictor.predict(scan[::7]).labels)
 
@@ -247,7 +258,7 @@ def test_each_scan_gets_a_prediction_or_its_named_failure_in_order(tree, small_w
     failed = "the network failed: CUDA out of memory"
     assert predict_loaded(predictor, loaded) == [failed, found[1], failed]
     with pytest.raises(RuntimeError, match="out of memory"):
-        predictor.label(projected)
+        predictor.label_projections(projected)
 
 
 def test_a_run_summary_tallies_every_scan_and_names_each_failure():

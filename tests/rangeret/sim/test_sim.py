@@ -365,7 +365,7 @@ def test_laser_ids_are_the_pitch_rows(scene: Scene, name: str) -> None:
 
 
 @pytest.mark.parametrize(
-    "name", [n for n in BUILTIN_PROFILES if load_profile(n).layout.kind == "folders"]
+    "name", [n for n in BUILTIN_PROFILES if load_profile(n).layout.folders is not None]
 )
 def test_profile_dataset(tmp_path: Path, name: str) -> None:
     profile = load_profile(name)

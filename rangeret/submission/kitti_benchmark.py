@@ -1,0 +1,133 @@
+"""SemanticKITTI semantic segmentation (CodaLab/Codabench): the registry's `semantickitti` entry.
+
+Its archive is the test split's `sequences/XX/predictions/NNNNNN.label` files with every test
+sequence's directory entries (`rangeret.submission.archives`); it takes no option of its own
+and always holds the test split. A gateway job over test sequences only gets the same directory
+entries, so its zip passes the validator; the demo simulates validation sequence 08 and short
+test sequences 11 to 21 and writes a partial archive.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from rangeret.dataset.layout import ScanEntry
+from rangeret.dataset.profiles import DatasetProfile
+from rangeret.sim.raycast import SensorConfig
+from rangeret.submission.archives import (
+    TEST_SEQUENCES,
+    SubmissionCheck,
+    required_directories,
+    validate_submission,
+    write_submission,
+)
+from rangeret.submission.benchmark import (
+    REAL_DATA_HINTS,
+    Benchmark,
+    DemoPlan,
+    write_predictions_zip,
+)
+from rangeret.submission.leaderboard import LeaderboardEntry
+
+#: The demo's labelled validation sequence.
+DEMO_VALID = "08"
+
+
+class SemanticKittiBenchmark(Benchmark):
+    """The SemanticKITTI benchmark server's archive, validator, job zip and demo."""
+
+    name = "semantickitti"
+    title = "SemanticKITTI"
+    writes_archives = True
+
+    def check_profile(self, profile: DatasetProfile) -> str | None:
+        """Its archives are made of folders of sequences."""
+        if profile.layout.folders is None:
+            return f"the {self.title} benchmark takes folders of sequences, not a version's tables"
+        return None
+
+    def write_archive(
+        self,
+        predictions: Path,
+        dataset: Path,
+        out: Path,
+        *,
+        profile: DatasetProfile,
+        options: Mapping[str, Any],
+        description: str,
+        leaderboard: LeaderboardEntry,
+        checkpoint_sha256: str | None,
+        allow_partial: bool = False,
+        progress: bool = False,
+        workers: int | None = None,
+    ) -> SubmissionCheck:
+        """The test split's zip, validated before it is moved into place."""
+        return write_submission(
+            predictions,
+            dataset,
+            out,
+            allow_partial=allow_partial,
+            description=description,
+            labels=profile.labels,
+            progress=progress,
+            workers=workers,
+        )
+
+    def validate_archive(
+        self,
+        archive: Path,
+        dataset: Path,
+        *,
+        profile: DatasetProfile,
+        options: Mapping[str, Any],
+        allow_partial: bool = False,
+        progress: bool = False,
+    ) -> SubmissionCheck:
+        """What the official validator checks, and more (`validate_submission`)."""
+        return validate_submission(
+            archive, dataset, allow_partial=allow_partial, labels=profile.labels, progress=progress
+        )
+
+    def write_job_zip(
+        self,
+        pred_root: Path,
+        entries: Sequence[ScanEntry],
+        sequences: Sequence[str],
+        path: Path,
+        description: str,
+        *,
+        profile: DatasetProfile,
+        workers: int | None = None,
+        sha256: str | None = None,
+    ) -> None:
+        """A job over test sequences only gets every test sequence's directory entries, as the
+        server wants; any other job, those of its own sequences."""
+        if all(s in TEST_SEQUENCES for s in sequences):
+            directories = list(required_directories())
+            write_predictions_zip(pred_root, entries, directories, path, description, workers)
+            return
+        super().write_job_zip(
+            pred_root,
+            entries,
+            sequences,
+            path,
+            description,
+            profile=profile,
+            workers=workers,
+            sha256=sha256,
+        )
+
+    def demo_plan(self, profile: DatasetProfile, valid_scans: int, test_scans: int) -> DemoPlan:
+        """Sequence 08 labelled, a few scans of each test sequence, a partial archive."""
+        return DemoPlan(
+            sequences={DEMO_VALID: valid_scans, **{s: test_scans for s in TEST_SEQUENCES}},
+            labelled=(DEMO_VALID,),
+            evaluated=(DEMO_VALID,),
+            sensor=SensorConfig(beams=64, azimuth_steps=2048),
+            hints=REAL_DATA_HINTS,
+        )
+
+
+SEMANTICKITTI = SemanticKittiBenchmark()

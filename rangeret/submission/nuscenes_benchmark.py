@@ -1,0 +1,181 @@
+"""nuScenes-lidarseg: the registry's `nuscenes-lidarseg` entry.
+
+Its archive is the devkit's results folder of one split (`rangeret.submission.nuscenes`); its own
+options choose the split (default test) and the version folder, and when writing, the five meta
+flags of `submission.json` (`--use-camera` ...). A gateway job's zip is the results folder of the
+splits its keyframes' predictions lie in; the demo simulates v1.0-mini's mini_val scenes and
+writes their whole results folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from rangeret.dataset.layout import ScanEntry
+from rangeret.dataset.profiles import DatasetProfile
+from rangeret.submission.archives import SubmissionCheck
+from rangeret.submission.benchmark import Benchmark, DemoPlan
+from rangeret.submission.leaderboard import LeaderboardEntry
+from rangeret.submission.nuscenes import (
+    META_KEYS,
+    SubmissionMeta,
+    submission_json,
+    validate_nuscenes_submission,
+    write_nuscenes_results,
+    write_nuscenes_submission,
+)
+
+#: The split an archive is for when --split is left out.
+DEFAULT_SPLIT = "test"
+#: The split the demo simulates and archives.
+DEMO_SPLIT = "mini_val"
+_FLAG_DEFAULTS = SubmissionMeta()
+
+
+class NuScenesLidarsegBenchmark(Benchmark):
+    """The nuScenes-lidarseg challenge's results folder, validator, job zip and demo."""
+
+    name = "nuscenes-lidarseg"
+    title = "nuScenes-lidarseg"
+    writes_archives = True
+
+    def check_profile(self, profile: DatasetProfile) -> str | None:
+        """Its archives are made of a version's tables."""
+        if profile.layout.folders is not None:
+            return f"the {self.title} benchmark takes a version's tables, not folders of sequences"
+        return None
+
+    def add_arguments(self, parser: argparse.ArgumentParser, *, writing: bool) -> None:
+        """--split and --version, and when writing submission.json's meta flags."""
+        group = parser.add_argument_group(f"{self.title} (--profile nuscenes)")
+        group.add_argument(
+            "--split",
+            metavar="SPLIT",
+            help=f"the split the archive is for (default {DEFAULT_SPLIT}; also val, mini_val, ...)",
+        )
+        group.add_argument(
+            "--version", metavar="VERSION", help="the version folder (default: the one ROOT holds)"
+        )
+        if not writing:
+            return
+        for key in META_KEYS:
+            flag = key.removeprefix("use_")
+            on = getattr(_FLAG_DEFAULTS, key)
+            group.add_argument(
+                f"--use-{flag}",
+                action=argparse.BooleanOptionalAction,
+                default=None,
+                help=f"submission.json's meta.{key} (default {'true' if on else 'false'})",
+            )
+
+    def option_dests(self, *, writing: bool) -> tuple[str, ...]:
+        """split, version and the meta flags' keys."""
+        return ("split", "version", *(META_KEYS if writing else ()))
+
+    def write_archive(
+        self,
+        predictions: Path,
+        dataset: Path,
+        out: Path,
+        *,
+        profile: DatasetProfile,
+        options: Mapping[str, Any],
+        description: str,
+        leaderboard: LeaderboardEntry,
+        checkpoint_sha256: str | None,
+        allow_partial: bool = False,
+        progress: bool = False,
+        workers: int | None = None,
+    ) -> SubmissionCheck:
+        """The results folder of the split, with submission.json's meta from the options."""
+        meta = SubmissionMeta(
+            **{
+                key: getattr(_FLAG_DEFAULTS, key) if options.get(key) is None else options[key]
+                for key in META_KEYS
+            }
+        )
+        return write_nuscenes_submission(
+            predictions,
+            dataset,
+            out,
+            options.get("split") or DEFAULT_SPLIT,
+            profile=profile,
+            meta=meta,
+            submission=submission_json(meta, leaderboard, checkpoint_sha256),
+            description=description,
+            version=options.get("version"),
+            allow_partial=allow_partial,
+            progress=progress,
+            workers=workers,
+        )
+
+    def validate_archive(
+        self,
+        archive: Path,
+        dataset: Path,
+        *,
+        profile: DatasetProfile,
+        options: Mapping[str, Any],
+        allow_partial: bool = False,
+        progress: bool = False,
+    ) -> SubmissionCheck:
+        """Every check of the devkit's validator, and the project's own."""
+        return validate_nuscenes_submission(
+            archive,
+            dataset,
+            options.get("split") or DEFAULT_SPLIT,
+            profile=profile,
+            version=options.get("version"),
+            allow_partial=allow_partial,
+            progress=progress,
+        )
+
+    def write_job_zip(
+        self,
+        pred_root: Path,
+        entries: Sequence[ScanEntry],
+        sequences: Sequence[str],
+        path: Path,
+        description: str,
+        *,
+        profile: DatasetProfile,
+        workers: int | None = None,
+        sha256: str | None = None,
+    ) -> None:
+        """Each split folder of the job's predictions with its submission.json naming `sha256`."""
+        write_nuscenes_results(
+            pred_root,
+            entries,
+            path,
+            profile=profile,
+            submission=submission_json(_FLAG_DEFAULTS, LeaderboardEntry(), sha256),
+            description=description,
+            workers=workers,
+        )
+
+    def demo_plan(self, profile: DatasetProfile, valid_scans: int, test_scans: int) -> DemoPlan:
+        """Both mini_val scenes, labelled, evaluated and archived whole."""
+        scenes = tuple(profile.splits[DEMO_SPLIT])
+        return DemoPlan(
+            sequences={scene: max(1, valid_scans // 2) for scene in scenes},
+            labelled=scenes,
+            evaluated=scenes,
+            split=DEMO_SPLIT,
+            archive_options={"split": DEMO_SPLIT},
+            partial_archive=False,
+            hints=(
+                "On a real nuScenes tree with weights for it:",
+                "  rangeret predict --profile nuscenes --dataset ROOT --split val --out PRED "
+                "--checkpoint FILE",
+                "  rangeret evaluate --profile nuscenes --dataset ROOT --predictions PRED "
+                "--split val --json report.json",
+                "  rangeret submission --profile nuscenes --dataset ROOT --predictions PRED "
+                "--split test --out submission.zip",
+            ),
+        )
+
+
+NUSCENES_LIDARSEG = NuScenesLidarsegBenchmark()
