@@ -1,4 +1,9 @@
-"""Dynamic batching of single-scan requests in front of the in-process network.
+"""Single scans labelled in the gateway's own process, gathered into batches for one network.
+
+`ScanBatcher` puts a request queue in front of a `rangeret.inference.scan_worker.ScanWorker`, so
+that concurrent requests share network passes of up to `batch_size` scans. The worker's predictor
+is the one the gateway's in-process jobs use: the network runs one pass at a time, so a scan
+waits at most for the job batch in progress.
 
 Requests wait in one queue. The dispatcher takes the oldest request and up to `batch_size - 1`
 more, waiting at most `max_wait` seconds after the oldest arrived for the batch to fill, and
@@ -36,28 +41,24 @@ class _Waiting:
 
 class ScanBatcher:
     """Gathers concurrent single-scan requests into batches of at most `batch_size` for the
-    worker; `on_batch(size, seconds)` is called after each batch."""
+    worker (built before the gateway listens, so its network is loaded and warmed up by then)."""
 
-    def __init__(
-        self,
-        worker: ScanWorker,
-        batch_size: int = 1,
-        max_wait: float = 0.01,
-        on_batch: Callable[[int, float], None] | None = None,
-    ) -> None:
+    def __init__(self, worker: ScanWorker, batch_size: int = 1, max_wait: float = 0.01) -> None:
         if batch_size < 1 or max_wait < 0:
             raise ValueError("batch_size must be at least 1 and max_wait not negative")
         self.worker = worker
         self.batch_size = batch_size
         self.max_wait = max_wait
-        self.on_batch = on_batch
+        self.on_batch: Callable[[int, float], None] | None = None
         self._queue: deque[_Waiting] = deque()
         self._arrived = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self._running = 0
 
-    async def start(self) -> None:
-        """Start the dispatcher (call from the serving event loop)."""
+    async def start(self, on_batch: Callable[[int, float], None] | None = None) -> None:
+        """Start the dispatcher on the serving event loop; `on_batch(size, seconds)` is called
+        after each batch."""
+        self.on_batch = on_batch
         self._task = asyncio.create_task(self._dispatch(), name="batcher")
 
     async def stop(self) -> None:
@@ -72,7 +73,7 @@ class ScanBatcher:
             if not waiting.future.done():
                 waiting.future.set_exception(BackendError("the gateway is shutting down"))
 
-    async def label(self, request: ScanRequest) -> ScanPrediction:
+    async def label_request(self, request: ScanRequest) -> ScanPrediction:
         """One scan labelled within a batch: raw labels (uint32, one per point) and, when asked,
         their confidences; `ScanRejected` when the worker refuses the scan itself."""
         loop = asyncio.get_running_loop()
@@ -130,7 +131,9 @@ class ScanBatcher:
         """Send one batch to the worker and hand each request its labels (or the failure)."""
         self._running += 1
         try:
-            results = await asyncio.to_thread(self.worker.label, [w.request for w in batch])
+            results = await asyncio.to_thread(
+                self.worker.label_requests, [w.request for w in batch]
+            )
         except asyncio.CancelledError:
             for waiting in batch:
                 if not waiting.future.done():

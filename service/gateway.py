@@ -44,7 +44,7 @@ class ScanLabeller(Protocol):
         """Stop; requests still waiting fail."""
         ...
 
-    async def label(
+    async def label_points(
         self, points: np.ndarray, knn: bool = True, confidence: bool = False, *, model: str
     ) -> ScanPrediction:
         """One scan labelled by the model `model`: its points, in that model's point record."""

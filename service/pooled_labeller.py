@@ -1,7 +1,7 @@
 """Single scans of several models labelled in the gateway's own process.
 
 Each loaded model is a `ModelRuntime`: its predictor (shared with the gateway's in-process jobs)
-behind its own `LocalLabeller`, so batches stay per model. `PooledLabeller` takes a request's
+behind its own `ScanBatcher`, so batches stay per model. `PooledLabeller` takes a request's
 model from the `ModelPool`, which keeps at most `--max-loaded` of them: the model is held while
 its scan is labelled, loaded first where it is not (in a worker thread), and a model that cannot
 be loaded because every slot is held by running jobs is a `BackendError` (503, Retry-After).
@@ -17,17 +17,18 @@ import numpy as np
 
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import ScanPrediction
+from rangeret.inference.scan_worker import ScanRequest
+from service.batching import ScanBatcher
 from service.labeller_errors import BackendError
-from service.local_labeller import LocalLabeller
 from service.model_pool import ModelPool, PoolFull
 
 
 @dataclass
 class ModelRuntime:
-    """One loaded model: what labels its single scans, and its predictor (None in tests whose
-    labeller needs no network)."""
+    """One loaded model: the batcher of its single scans, and its predictor (None in tests whose
+    worker needs no network)."""
 
-    labeller: LocalLabeller
+    batcher: ScanBatcher
     predictor: Predictor | None = None
     #: Started on the serving event loop at its first scan.
     started: bool = field(default=False, init=False)
@@ -49,7 +50,7 @@ class PooledLabeller:
         """The pool's `unload`: stop an evicted model's batcher on the serving loop (nobody holds
         it, so no request waits in it)."""
         if runtime.started and self._loop is not None:
-            self._loop.call_soon_threadsafe(asyncio.ensure_future, runtime.labeller.stop())
+            self._loop.call_soon_threadsafe(asyncio.ensure_future, runtime.batcher.stop())
 
     async def start(self, on_batch: Callable[[int, float], None] | None = None) -> None:
         """Remember the serving loop and start the batchers of the models loaded already."""
@@ -62,17 +63,17 @@ class PooledLabeller:
         """Stop every loaded model's batcher; requests still waiting fail."""
         for _, runtime in self.pool.items():
             if runtime.started:
-                await runtime.labeller.stop()
+                await runtime.batcher.stop()
                 runtime.started = False
 
     async def _started(self, runtime: ModelRuntime) -> ModelRuntime:
         async with self._starting:
             if not runtime.started:
-                await runtime.labeller.start(self._on_batch)
+                await runtime.batcher.start(self._on_batch)
                 runtime.started = True
         return runtime
 
-    async def label(
+    async def label_points(
         self, points: np.ndarray, knn: bool = True, confidence: bool = False, *, model: str
     ) -> ScanPrediction:
         """One scan labelled by `model` within a batch of that model's scans."""
@@ -82,13 +83,13 @@ class PooledLabeller:
             raise BackendError(str(exc)) from exc
         try:
             await self._started(runtime)
-            return await runtime.labeller.label(points, knn, confidence)
+            return await runtime.batcher.label_request(ScanRequest(points, knn, confidence))
         finally:
             self.pool.release(model)
 
     def depth(self) -> int:
         """Requests waiting plus batches in the networks, over the loaded models."""
-        return sum(runtime.labeller.depth() for _, runtime in self.pool.items())
+        return sum(runtime.batcher.depth() for _, runtime in self.pool.items())
 
     def loaded(self) -> list[str]:
         """The models loaded now."""
@@ -97,7 +98,7 @@ class PooledLabeller:
     async def health(self) -> dict:
         """The loaded models' workers, each with the model's name."""
         workers = [
-            {**runtime.labeller.worker.info(), "model_id": name}
+            {**runtime.batcher.worker.info(), "model_id": name}
             for name, runtime in self.pool.items()
         ]
         return {"backend": self.backend, "ok": True, "workers": workers}

@@ -63,7 +63,7 @@ class ServeLabeller:
             await self._client.aclose()
             self._client = None
 
-    async def label(
+    async def label_points(
         self, points: np.ndarray, knn: bool = True, confidence: bool = False, *, model: str
     ) -> ScanPrediction:
         """One scan labelled by the application's model `model`, sent as its point records'

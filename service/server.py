@@ -3,7 +3,7 @@ uvicorn.
 
 On a cluster, single scans go to the Serve application at `--serve-url` (RANGERET_SERVE_URL,
 `workers.serve_app`) and jobs become Ray jobs through the Jobs API at `--jobs-address`
-(RANGERET_JOBS_ADDRESS); without them, each runs in this process (`LocalLabeller`,
+(RANGERET_JOBS_ADDRESS); without them, each runs in this process (`ScanBatcher`,
 `predict_tree`) on one network: the checkpoint is read once, and single scans and job batches
 take turns on the network, one pass at a time. Options given on the command line win over
 RANGERET_* variables. With `--models` (RANGERET_MODELS) it serves several networks by name, each
@@ -200,16 +200,16 @@ def build_pool(
 
 
 def _runtime(settings: Settings, spec: InferenceSpec, weights: LoadedWeights) -> ModelRuntime:
-    """One loaded model: its predictor behind a local batcher of the gateway's batch size."""
+    """One loaded model: its predictor behind a batcher of the gateway's batch size."""
     from rangeret.inference.predictor import Predictor
     from rangeret.inference.scan_worker import ScanWorker
-    from service.local_labeller import LocalLabeller
+    from service.batching import ScanBatcher
     from service.pooled_labeller import ModelRuntime
 
     predictor = Predictor(weights, spec)
     worker = ScanWorker(predictor)
-    labeller = LocalLabeller(worker, settings.batch_size, settings.batch_wait_ms / 1000)
-    return ModelRuntime(labeller, predictor)
+    batcher = ScanBatcher(worker, settings.batch_size, settings.batch_wait_ms / 1000)
+    return ModelRuntime(batcher, predictor)
 
 
 def build_labeller(

@@ -163,7 +163,7 @@ class ScanModel:
         try:
             for model in {id(m): m for m in models}.values():
                 indices = [i for i, m in enumerate(models) if m is model]
-                labelled = model.worker.label([requests[i] for i in indices])
+                labelled = model.worker.label_requests([requests[i] for i in indices])
                 for i, result in zip(indices, labelled, strict=True):
                     results[i] = result
         except Exception as exc:

@@ -69,5 +69,7 @@ def label_cloud(
     if not np.any(valid):
         return spread_labels(valid, np.empty(0, np.uint32), None, config=predictor.label_config)
     points = cloud.points if cloud.num_invalid == 0 else cloud.points[valid]
-    (result,) = predictor.label([predictor.project(points, times)], times, with_confidence=True)
+    (result,) = predictor.label_projections(
+        [predictor.project(points, times)], times, with_confidence=True
+    )
     return spread_labels(valid, result.labels, result.confidence, config=predictor.label_config)

@@ -50,7 +50,8 @@ class LoadedScan:
 
     @property
     def ready(self) -> Projection | str:
-        """What `Predictor.label` takes for the scan: its projection, or why it has none."""
+        """What `Predictor.label_projections` takes for the scan: its projection, or why it has
+        none."""
         if self.projection is not None:
             return self.projection
         return self.error or "the scan was not read"
@@ -114,7 +115,9 @@ def predict_loaded(
     network pass; when the pass itself fails (out of device memory, say), each readable scan
     becomes that failure instead of stopping the run, so a dataset run loses no scan unnamed."""
     try:
-        return predictor.label([s.ready for s in scans], times, with_confidence=with_confidence)
+        return predictor.label_projections(
+            [s.ready for s in scans], times, with_confidence=with_confidence
+        )
     except RuntimeError as exc:
         reason = f"the network failed: {exc}"
         return [s.error or reason for s in scans]

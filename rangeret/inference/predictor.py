@@ -3,10 +3,10 @@ refinement, raw ids.
 
 `Predictor` holds a loaded network and the settings of a run. Its stages are separate methods
 (`project`, `logits`, `refine_batch`, `to_raw`) so a pipeline can run them on different workers;
-`label` is the one batch entry point every runner calls (a prediction or the named failure of
-each scan, one network pass at a time per network), and `predict` labels one scan with it. Each
-stage records its time in the `StageTimes` its caller passes, if any. Output is deterministic:
-the same weights, options and batch size give the same labels everywhere.
+`label_projections` is the one batch entry point every runner calls (a prediction or the named
+failure of each scan, one network pass at a time per network), and `predict` labels one scan with
+it. Each stage records its time in the `StageTimes` its caller passes, if any. Output is
+deterministic: the same weights, options and batch size give the same labels everywhere.
 """
 
 from __future__ import annotations
@@ -241,12 +241,12 @@ class Predictor:
     def predict(self, points: np.ndarray) -> ScanPrediction:
         """Raw labels, one per point, for one (N, 4) scan (a scan that cannot be projected raises
         the `ValueError` of `project`)."""
-        (result,) = self.label([self.project(points)])
+        (result,) = self.label_projections([self.project(points)])
         if isinstance(result, str):  # a projected scan always has a prediction
             raise ValueError(result)
         return result
 
-    def label(
+    def label_projections(
         self,
         scans: Sequence[Projection | str],
         times: StageTimes | None = None,

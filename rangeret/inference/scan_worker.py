@@ -94,7 +94,7 @@ class ScanWorker:
         """Who this worker is: process, torch threads, device and model, for health checks."""
         return {"pid": os.getpid(), "threads": torch.get_num_threads(), **self.predictor.describe()}
 
-    def label(self, requests: Sequence[ScanRequest]) -> list[ScanOutcome]:
+    def label_requests(self, requests: Sequence[ScanRequest]) -> list[ScanOutcome]:
         """Each request's scan labelled (with its points' confidences when asked), or the reason
         it cannot be projected, in order; one network pass per set of equal options."""
         results: list[ScanOutcome] = [""] * len(requests)
@@ -103,7 +103,7 @@ class ScanWorker:
             predictor = self.predictor if knn else self.without_knn
             scans = [requests[i].points for i in indices]
             projected = project_scans(scans, predictor.projection_config, StageTimes())
-            labelled = predictor.label(projected, with_confidence=confidence)
+            labelled = predictor.label_projections(projected, with_confidence=confidence)
             for i, result in zip(indices, labelled, strict=True):
                 results[i] = result
         return results

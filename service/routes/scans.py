@@ -257,7 +257,7 @@ async def _labelled(
     if not gw.started:
         raise ApiError(503, "The gateway is starting; try again in a moment.")
     try:
-        labelled = await gw.labeller.label(points, knn, confidence, model=entry.name)
+        labelled = await gw.labeller.label_points(points, knn, confidence, model=entry.name)
     except ScanRejected as exc:
         raise ApiError(400, f"The scan cannot be projected: {exc}.") from exc
     except BackendTimeout as exc:

@@ -195,7 +195,7 @@ def test_confidences_come_with_the_json_form_only(setup, gateway):
         InferenceSpec(checkpoint=str(setup["weights"]), height=32, width=256, device="cpu")
     )
     projected = [predictor.project(read_scan(scan))]
-    reference = predictor.label(projected, with_confidence=True)[0].confidence
+    reference = predictor.label_projections(projected, with_confidence=True)[0].confidence
     json_accept = {**OCTET, "Accept": "application/json"}
     with gateway.client() as client:
         r = client.post(

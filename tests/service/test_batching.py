@@ -28,7 +28,7 @@ class FakeWorker:
         self.in_flight = 0
         self._lock = threading.Lock()
 
-    def label(self, requests):
+    def label_requests(self, requests):
         with self._lock:
             self.batches.append(len(requests))
             self.in_flight += 1
@@ -72,7 +72,7 @@ def test_batcher_gathers_concurrent_requests_up_to_the_batch_size():
         await batcher.start()
         try:
             results = await asyncio.gather(
-                *(batcher.label(_request(n, knn=n % 2 == 0)) for n in range(1, 12))
+                *(batcher.label_request(_request(n, knn=n % 2 == 0)) for n in range(1, 12))
             )
         finally:
             await batcher.stop()
@@ -92,7 +92,7 @@ def test_batcher_waits_at_most_max_wait_and_not_at_all_for_batch_size_one():
         batcher = ScanBatcher(FakeWorker(delay=0), batch_size=batch_size, max_wait=0.2)
         await batcher.start()
         start = time.perf_counter()
-        await batcher.label(_request(3))
+        await batcher.label_request(_request(3))
         elapsed = time.perf_counter() - start
         await batcher.stop()
         return elapsed
@@ -108,9 +108,9 @@ def test_batcher_reports_backend_failures_and_keeps_serving():
         await batcher.start()
         worker.fail = True
         with pytest.raises(BackendError, match="the worker backend failed: actor died"):
-            await batcher.label(_request(2))
+            await batcher.label_request(_request(2))
         worker.fail = False
-        labels = await batcher.label(_request(2))
+        labels = await batcher.label_request(_request(2))
         await batcher.stop()
         return labels
 
@@ -120,8 +120,8 @@ def test_batcher_reports_backend_failures_and_keeps_serving():
 class RejectingWorker(FakeWorker):
     """Refuses every scan of 3 points, as a worker refuses a scan it cannot project."""
 
-    def label(self, requests):
-        labels = super().label(requests)
+    def label_requests(self, requests):
+        labels = super().label_requests(requests)
         return [
             "a laser id is off the image" if len(r.points) == 3 else out
             for r, out in zip(requests, labels, strict=True)
@@ -135,7 +135,7 @@ def test_batcher_refuses_one_scan_and_labels_the_rest_of_its_batch():
         await batcher.start()
         try:
             return worker, await asyncio.gather(
-                *(batcher.label(_request(n)) for n in (2, 3, 4)), return_exceptions=True
+                *(batcher.label_request(_request(n)) for n in (2, 3, 4)), return_exceptions=True
             )
         finally:
             await batcher.stop()
@@ -153,7 +153,7 @@ def test_requests_for_confidences_never_share_a_pass_with_others():
         await batcher.start()
         try:
             results = await asyncio.gather(
-                *(batcher.label(_request(n, confidence=n % 2 == 0)) for n in range(1, 9))
+                *(batcher.label_request(_request(n, confidence=n % 2 == 0)) for n in range(1, 9))
             )
         finally:
             await batcher.stop()

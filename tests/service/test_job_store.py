@@ -203,7 +203,7 @@ class FakeLabeller:
     async def stop(self):
         return None
 
-    async def label(self, points, knn=True, confidence=False, *, model):
+    async def label_points(self, points, knn=True, confidence=False, *, model):
         return ScanPrediction(np.full(len(points), 40, dtype=np.uint32))
 
     def depth(self):

@@ -24,7 +24,7 @@ class FakeWorker:
     def __init__(self, model: str = "rangeret-cir") -> None:
         self.model = model
 
-    def label(self, requests):
+    def label_requests(self, requests):
         raise AssertionError("no scan is labelled in these tests")
 
     def info(self):

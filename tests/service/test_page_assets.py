@@ -35,7 +35,7 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 class FakeWorker:
     """A healthy scan worker that is never asked to label here."""
 
-    def label(self, requests):
+    def label_requests(self, requests):
         raise AssertionError("no scan is labelled in these tests")
 
     def info(self):

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.inference.spec import InferenceSpec
-from service.local_labeller import LocalLabeller
+from service.batching import ScanBatcher
 from service.model_pool import ModelPool
 from service.pooled_labeller import ModelRuntime, PooledLabeller
 from service.served_models import ModelCatalog, ModelEntry
@@ -25,7 +25,7 @@ def one_model(
 def pooled(worker: object, name: str = "default") -> PooledLabeller:
     """A pooled labeller whose one loaded model is `worker` (a `ScanWorker` or a fake one)."""
     pool: ModelPool[ModelRuntime] = ModelPool([name], _unloadable)
-    pool.preload(name, ModelRuntime(LocalLabeller(worker), getattr(worker, "predictor", None)))
+    pool.preload(name, ModelRuntime(ScanBatcher(worker), getattr(worker, "predictor", None)))
     return PooledLabeller(pool)
 
 

@@ -345,7 +345,7 @@ def test_model_actors_warm_up_before_their_first_batch(setup):
         return [error for _, error in labelled.results]
 
     def through_scan_worker() -> list:
-        labelled = scan_worker.label([ScanRequest(s) for s in scans])
+        labelled = scan_worker.label_requests([ScanRequest(s) for s in scans])
         return [r if isinstance(r, str) else None for r in labelled]
 
     runs = [

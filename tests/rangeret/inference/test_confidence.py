@@ -39,7 +39,7 @@ def test_without_knn_a_confidence_is_the_pixels_top_probability(tmp_path):
     predictor = Predictor.from_spec(spec)
     points = read_scan(data_path("semantickitti-scan", "000000.bin"))[::7]
     projection = predictor.project(points)
-    result = predictor.label([projection], with_confidence=True)[0]
+    result = predictor.label_projections([projection], with_confidence=True)[0]
     pixel = projection.proj_x >= 0
     assert result.confidence.shape == (len(points),) and result.confidence.dtype == np.float32
     top = torch.softmax(predictor.logits([projection])[0], dim=0).amax(dim=0).numpy()

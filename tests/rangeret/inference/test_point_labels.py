@@ -139,7 +139,9 @@ def test_predictor_labels_go_through_this_step(monkeypatch, real_scan_path):
         predictor = _predictor(knn)
         result = predictor.predict(points)
         assert result.classes.shape == (123_389,)
-        batch = predictor.label([predictor.project(p) for p in (points, points[::2], points)])
+        batch = predictor.label_projections(
+            [predictor.project(p) for p in (points, points[::2], points)]
+        )
         assert [len(r.classes) for r in batch] == [123_389, 61_695, 123_389]
         assert np.array_equal(batch[0].classes, result.classes)
         assert np.array_equal(batch[1].classes, predictor.predict(points[::2]).classes)

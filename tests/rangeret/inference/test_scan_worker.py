@@ -33,10 +33,12 @@ def scans() -> list[np.ndarray]:
 def test_scan_worker_labels_batches_as_the_predictor_does(predictor, scans):
     worker = ScanWorker(predictor)
     assert worker.info()["model"] == "rangeret-cir" and worker.profile.name == "semantickitti"
-    labels = [r.labels for r in worker.label([ScanRequest(s) for s in scans])]
-    expected = [r.labels for r in predictor.label([predictor.project(s) for s in scans])]
+    labels = [r.labels for r in worker.label_requests([ScanRequest(s) for s in scans])]
+    expected = [
+        r.labels for r in predictor.label_projections([predictor.project(s) for s in scans])
+    ]
     assert all(np.array_equal(a, b) for a, b in zip(labels, expected, strict=True))
-    raw, sure, plain = worker.label(
+    raw, sure, plain = worker.label_requests(
         [
             ScanRequest(scans[0], knn=False),
             ScanRequest(scans[0], confidence=True),
@@ -48,7 +50,7 @@ def test_scan_worker_labels_batches_as_the_predictor_does(predictor, scans):
     assert np.array_equal(sure.labels, expected[0]) and np.array_equal(plain.labels, expected[1])
     assert sure.confidence.shape == expected[0].shape
     assert (sure.confidence >= 0).all() and (sure.confidence <= 1).all()
-    bad = worker.label([ScanRequest(scans[0][:, :3]), ScanRequest(scans[1])])
+    bad = worker.label_requests([ScanRequest(scans[0][:, :3]), ScanRequest(scans[1])])
     assert bad[0] == "points must have shape (N, 4), got (17627, 3)"
     assert np.array_equal(bad[1].labels, expected[1])
 
@@ -71,7 +73,7 @@ def test_a_shared_network_runs_one_pass_at_a_time(predictor, scans, monkeypatch)
 
     monkeypatch.setattr(Predictor, "logits", counting)
     requests = [[ScanRequest(scans[0])], [ScanRequest(scans[1], knn=False)]]
-    threads = [threading.Thread(target=worker.label, args=(r,)) for r in requests * 2]
+    threads = [threading.Thread(target=worker.label_requests, args=(r,)) for r in requests * 2]
     threads.append(threading.Thread(target=predictor.predict, args=(scans[0],)))
     for t in threads:
         t.start()
