@@ -5,7 +5,8 @@ central directory is walked from the file header by header, counting, before `zi
 (which builds every entry at once). A tar is read one header at a time by `CheckedTarFile`, whose
 extended (pax, long-name) headers are bounded in size and number, since tarfile reads each into
 memory, and whose sparse members are refused. `archive_kind` tells the formats apart by their
-bytes. `service.archives` checks the members' names and extracts them.
+bytes. `service.archives` checks the members' names and extracts them; `ArchiveError` and
+`ArchiveTooLarge` are the library's (`rangeret.dataset.upload_rules`).
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ import tarfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
+
+from rangeret.dataset.upload_rules import ArchiveError, ArchiveTooLarge
 
 #: The zip end of central directory record, the zip64 locator and record, a central header.
 _EOCD = struct.Struct("<4s4H2LH")
@@ -36,19 +39,6 @@ _TAR_EXTENDED = (
     tarfile.XGLTYPE,
     tarfile.SOLARIS_XHDTYPE,
 )
-
-
-class ArchiveError(ValueError):
-    """An upload that is not a safe archive in the expected layout (answered with 400)."""
-
-    status_code = 400
-
-
-class ArchiveTooLarge(ArchiveError):
-    """An archive over the member-count, size, extracted-size or points limits (answered with
-    413)."""
-
-    status_code = 413
 
 
 def archive_kind(path: Path) -> str:

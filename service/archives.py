@@ -7,12 +7,13 @@ on the bytes actually read; there is no compression-ratio rule, since a label fi
 compresses like a bomb of zeros. `max_bytes` bounds the archive file itself.
 
 Every member is checked before anything is written: no absolute path, no `..`, no link, device,
-pipe or sparse file, and nothing but what the layout's `ArchiveRules` take: for every folder
-layout, `sequences/XX/velodyne/NNNNNN.bin` and `sequences/XX/labels/NNNNNN.label` (and their
-folders, `FolderRules`); for nuScenes' tables, `service.nuscenes_archives`. Then each file is
-read (never more than its declared size), checked by the rules (a scan of the profile's point
-record, a label file) and written under the destination where the rules put it, with names built
-from the checked parts only; the rules then check that the files make one dataset.
+pipe or sparse file, and nothing but what the `ArchiveRules` the layout gives take
+(`DatasetLayout.upload_rules`, in the library: `sequences/XX/velodyne/NNNNNN.bin` and
+`sequences/XX/labels/NNNNNN.label` for every folder layout in `rangeret.dataset.upload_rules`,
+nuScenes' tables and sweeps in `rangeret.dataset.table_upload_rules`). Then each file is read
+(never more than its declared size), checked by the rules (a scan of the profile's point record,
+a label file) and written under the destination where the rules put it, with names built from
+the checked parts only; the rules then check that the files make one dataset.
 """
 
 from __future__ import annotations
@@ -24,16 +25,20 @@ import tarfile
 import zipfile
 import zlib
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Protocol
+from typing import IO
 
-from rangeret.dataset.layout import SequenceLayout, sequence_dir
-from rangeret.io.scans import LABEL_BYTES, PointRecord, ScanFormatError, parse_scan
+from rangeret.dataset.layout import SequenceLayout
+from rangeret.dataset.upload_rules import (
+    ArchiveError,
+    ArchiveRules,
+    ArchiveTooLarge,
+    ExtractedDataset,
+)
+from rangeret.io.scans import PointRecord
 from service.archive_listing import (
     MAX_NAME,
-    ArchiveError,
-    ArchiveTooLarge,
     CheckedTarFile,
     TarHeaders,
     archive_kind,
@@ -41,12 +46,6 @@ from service.archive_listing import (
     sparse_member,
     too_many_members,
 )
-
-_DIRECTORY = re.compile(r"^sequences(/[A-Za-z0-9_-]{1,64}(/(velodyne|labels))?)?/?$")
-_FILE = re.compile(
-    r"^sequences/([A-Za-z0-9_-]{1,64})/(velodyne|labels)/([A-Za-z0-9_-]{1,64})\.(bin|label)$"
-)
-_SUFFIX = {"velodyne": "bin", "labels": "label"}
 
 
 @dataclass(frozen=True)
@@ -58,98 +57,6 @@ class ArchiveLimits:
     max_members: int
     max_points: int
     max_extracted_bytes: int
-
-
-@dataclass
-class ExtractedDataset:
-    """The dataset an archive held: where it now lies and what it contains (and, for a tables
-    layout, the version of its tables)."""
-
-    root: Path
-    sequences: list[str]
-    scans: int
-    labelled: list[str] = field(default_factory=list)
-    version: str | None = None
-
-
-class ArchiveRules(Protocol):
-    """What the archive of one dataset layout may hold, and how its files become a dataset.
-
-    One instance checks one archive: `accept` notes what each file holds for `finish`.
-    """
-
-    def check_name(self, name: str, is_dir: bool) -> None:
-        """`ArchiveError` when a member (its name safe and without a leading `./`) is not one
-        the layout holds."""
-        ...
-
-    def point_bytes(self, name: str) -> int | None:
-        """Bytes per point of a file member, for the points limit (None: not a point file)."""
-        ...
-
-    def accept(self, name: str, data: bytes, root: Path) -> Path:
-        """Check a file member's bytes (`ArchiveError` when they are wrong) and return where it
-        goes under the destination `root`."""
-        ...
-
-    def finish(self, root: Path) -> ExtractedDataset:
-        """The dataset extracted under `root`; `ArchiveError` when its files do not make one."""
-        ...
-
-
-class FolderRules:
-    """A folder layout's archive: `sequences/XX/velodyne/*.bin` scans of `record` and optional
-    `sequences/XX/labels/*.label`, written into `layout`'s folders."""
-
-    def __init__(self, record: PointRecord, layout: SequenceLayout) -> None:
-        self.record = record
-        self.layout = layout
-        self.scans: dict[str, dict[str, int]] = {}
-        self.labels: dict[str, dict[str, int]] = {}
-
-    def check_name(self, name: str, is_dir: bool) -> None:
-        """`ArchiveError` for a member outside `sequences/XX/velodyne|labels`."""
-        if is_dir:
-            if not _DIRECTORY.match(name):
-                raise ArchiveError(
-                    f"Archive member {name[:200]!r} is a folder outside the layout "
-                    "sequences/XX/velodyne|labels."
-                )
-            return
-        match = _FILE.match(name)
-        if not match or _SUFFIX[match.group(2)] != match.group(4):
-            raise ArchiveError(
-                f"Archive member {name[:200]!r} is not a sequences/XX/velodyne/*.bin scan or "
-                "sequences/XX/labels/*.label file."
-            )
-
-    def point_bytes(self, name: str) -> int:
-        """A scan's record size, or a label's four bytes."""
-        return self.record.point_bytes if name.endswith(".bin") else LABEL_BYTES
-
-    def accept(self, name: str, data: bytes, root: Path) -> Path:
-        """Count a scan's points or a label file's labels; its place in the layout under
-        `root`."""
-        seq, folder, stem, _ = _FILE.match(name).groups()
-        if folder == "velodyne":
-            try:
-                points = parse_scan(data, name, record=self.record)
-            except ScanFormatError as exc:
-                raise ArchiveError(f"Archive member {exc.source}: {exc.problem}.") from exc
-            self.scans.setdefault(seq, {})[stem] = len(points)
-        else:
-            if len(data) % LABEL_BYTES:
-                raise ArchiveError(
-                    f"Archive member {name!r} is {len(data)} bytes, not a whole number of "
-                    "uint32 labels."
-                )
-            self.labels.setdefault(seq, {})[stem] = len(data) // LABEL_BYTES
-        return sequence_dir(root, seq, layout=self.layout) / folder / f"{stem}.{_SUFFIX[folder]}"
-
-    def finish(self, root: Path) -> ExtractedDataset:
-        """The extracted dataset, once every label file is known to match a scan of its
-        length."""
-        return _summarise(root, self.scans, self.labels)
 
 
 @dataclass(frozen=True)
@@ -242,7 +149,7 @@ def extract_archive(
 ) -> ExtractedDataset:
     """Check every member of `archive` (scans as `record`s), then write its scans and labels
     under `dest` in `layout`, so the dataset there reads like any other of its profile."""
-    return extract_with(archive, dest, limits, FolderRules(record, layout))
+    return extract_with(archive, dest, limits, layout.upload_rules(record))
 
 
 def extract_with(
@@ -349,35 +256,3 @@ def _extract(
         with open(target, "xb") as out:
             out.write(data)
     return rules.finish(root)
-
-
-def _summarise(
-    root: Path, scans: dict[str, dict[str, int]], labels: dict[str, dict[str, int]]
-) -> ExtractedDataset:
-    """The extracted dataset, once every label file is known to match a scan of its length."""
-    if not scans:
-        raise ArchiveError("The archive holds no scan under sequences/XX/velodyne/.")
-    for seq, found in labels.items():
-        have = scans.get(seq, {})
-        for stem, count in sorted(found.items()):
-            if stem not in have:
-                raise ArchiveError(
-                    f"Label file sequences/{seq}/labels/{stem}.label has no matching scan."
-                )
-            if count != have[stem]:
-                raise ArchiveError(
-                    f"Label file sequences/{seq}/labels/{stem}.label holds {count} labels but its scan "
-                    f"has {have[stem]} points."
-                )
-        missing = sorted(set(have) - set(found))
-        if missing:
-            raise ArchiveError(
-                f"Sequence {seq} has labels for some scans but not for {len(missing)} of them "
-                f"(the first: {missing[0]}.bin)."
-            )
-    return ExtractedDataset(
-        root=root,
-        sequences=sorted(scans),
-        scans=sum(len(v) for v in scans.values()),
-        labelled=sorted(labels),
-    )

@@ -30,7 +30,7 @@ NUSCENES_MODULES = {
     "rangeret/dataset/table_layout.py",
     "rangeret/submission/nuscenes.py",
     "rangeret/sim/nuscenes_tree.py",
-    "service/nuscenes_archives.py",
+    "rangeret/dataset/table_upload_rules.py",
 }
 LAYOUT_CLASSES = {"SequenceLayout", "TableLayout", "DatasetLayout"}
 NAME_OWNERS = ("profile", "benchmark", "layout")

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from rangeret.dataset.labels import LabelConfig
+from rangeret.dataset.upload_rules import ArchiveRules, FolderRules
 from rangeret.exceptions import DatasetError
 from rangeret.io.scans import (
     KITTI_LABELS,
@@ -92,6 +93,10 @@ class SequenceLayout:
     def to_dict(self) -> dict[str, Any]:
         """Plain-data form."""
         return {"sequence_folders": list(self.sequence_folders), "id_digits": self.id_digits}
+
+    def upload_rules(self, record: PointRecord) -> ArchiveRules:
+        """An upload's rules: `sequences/XX/velodyne|labels` files, written into these folders."""
+        return FolderRules(record, self)
 
     def list_sequences(self, root: Path | str, *, version: str | None = None) -> list[str]:
         """Sorted names of the sequence folders (those holding a velodyne folder)."""
@@ -237,6 +242,10 @@ class DatasetLayout(Protocol):
 
     def to_dict(self) -> dict[str, Any]:
         """The profile's `layout` section."""
+        ...
+
+    def upload_rules(self, record: PointRecord) -> ArchiveRules:
+        """What an uploaded archive (scans of `record`) may hold; callers need not know layouts."""
         ...
 
     def discover(

@@ -26,7 +26,9 @@ from rangeret.dataset.nuscenes_tables import (
     read_tables,
     version_folders,
 )
-from rangeret.io.scans import LabelFile
+from rangeret.dataset.table_upload_rules import NuScenesRules
+from rangeret.dataset.upload_rules import ArchiveRules
+from rangeret.io.scans import LabelFile, PointRecord
 
 #: nuScenes-lidarseg's label and prediction files: one uint8 per point.
 LIDARSEG_LABELS = LabelFile(1)
@@ -77,6 +79,11 @@ class TableLayout:
     def to_dict(self) -> dict[str, Any]:
         """The profile's `layout` section."""
         return {"tables": self.tables, "channel": self.channel}
+
+    def upload_rules(self, record: PointRecord) -> ArchiveRules:
+        """An uploaded archive's rules: one version's tables, sweeps of `record` and label files,
+        each kept at its own path (`rangeret.dataset.table_upload_rules`)."""
+        return NuScenesRules(record, self)
 
     def open(self, root: Path | str, version: str | None = None) -> NuScenesTables:
         """The tables of ROOT's version (the one it holds, or `version`)."""

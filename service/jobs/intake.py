@@ -3,13 +3,13 @@ checked, and queued.
 
 An archive job is refused before its upload is read when the queue is full (429) or its declared
 length does not fit in the disk the job folders may use (507); the upload is received into a new
-job folder, checked and extracted there in its model's profile's layout (`service.archives`),
-and the folder is removed again whatever stops it on the way. A dataset job names a folder under
-the data roots (403 outside them, 404 when absent) in its model's profile, with a split of that
-profile and, for a tables layout, a version (`service.jobs.selection`), and its scans must stay
-under the roots once links are resolved. Either is queued with the output its scans are expected
-to write (`service.jobs.capacity`). Every refusal is an `ApiError` with its status and sentence;
-the blocking steps run in worker threads, never on the event loop.
+job folder, checked and extracted there (`service.archives`) by the rules its model's profile's
+layout gives, and the folder is removed again whatever stops it on the way. A dataset job names a
+folder under the data roots (403 outside them, 404 when absent) in its model's profile, with a
+split of that profile and, for a tables layout, a version (`service.jobs.selection`), and its
+scans must stay under the roots once links are resolved. Either is queued with the output its
+scans are expected to write (`service.jobs.capacity`). Every refusal is an `ApiError` with its
+status and sentence; the blocking steps run in worker threads, never on the event loop.
 """
 
 from __future__ import annotations
@@ -21,15 +21,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rangeret.dataset.layout import DatasetLayoutError, ScanEntry
-from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.selection import DatasetSelection, select_dataset
-from service.archives import ArchiveError, ArchiveLimits, ArchiveRules, FolderRules, extract_with
+from rangeret.dataset.upload_rules import ArchiveError
+from service.archives import ArchiveLimits, extract_with
 from service.errors import ApiError
 from service.jobs.capacity import JobRefused, disk_full, expected_output_bytes
 from service.jobs.manager import JobManager
 from service.jobs.selection import check_selection, dataset_version, incomplete_split
 from service.jobs.store import JobRecord
-from service.nuscenes_archives import NuScenesRules
 from service.paths import escaping_scans, outside_roots_sentence
 from service.schemas import DatasetJobRequest
 from service.served_models import ModelCatalog, ModelEntry
@@ -93,15 +92,6 @@ def refused(exc: JobRefused) -> ApiError:
     return ApiError(exc.status_code, str(exc))
 
 
-def archive_rules(profile: DatasetProfile) -> ArchiveRules:
-    """What an uploaded archive of the profile's layout may hold: sequence folders, or nuScenes'
-    tables and files for a layout that is not folders."""
-    folders = profile.layout.folders
-    if folders is None:
-        return NuScenesRules(profile.points, profile.layout)
-    return FolderRules(profile.points, folders)
-
-
 class JobIntake:
     """Prepares, checks and queues new jobs for `jobs`, under the gateway's `settings`, each in
     the profile of its model among `models`."""
@@ -147,9 +137,8 @@ class JobIntake:
         (400 or 413 when it is not one the gateway takes), removing the upload; its input."""
         profile = model.profile
         try:
-            found = extract_with(
-                upload, folder / DATA_DIR, self.archive_limits(), archive_rules(profile)
-            )
+            rules = profile.layout.upload_rules(profile.points)
+            found = extract_with(upload, folder / DATA_DIR, self.archive_limits(), rules)
         except ArchiveError as exc:
             raise ApiError(exc.status_code, str(exc)) from exc
         finally:

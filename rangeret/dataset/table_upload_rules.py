@@ -1,25 +1,32 @@
-"""Uploaded nuScenes archives: what a tables layout's archive may hold, and the checks of its tree.
+"""What an uploaded archive of a version's tables may hold (nuScenes), and the checks of its tree.
 
     <version>/<table>.json                       the tables of one version (v1.0-mini, say)
     samples/LIDAR_TOP/<name>.pcd.bin             keyframe sweeps, in the profile's point record
     lidarseg/<version>/<token>_lidarseg.bin      optional labels, one uint8 per point
 
-and the folders of these (the sensor channel is the profile's). `service.archives` lists, bounds
-and extracts the members with these rules as it does a folder layout's; once they are written,
-the version's tables must read, name the profile's categories and list every sweep of the
-archive as a keyframe (and every label file as its labels, of one label per point), and every
-keyframe of the tables must be in the archive. A scene has labels for all its keyframes or none.
+and the folders of these (the sensor channel is the layout's). `TableLayout.upload_rules` gives
+these rules, and whoever takes the upload lists, bounds and extracts the members with them as it
+does a folder layout's (`rangeret.dataset.upload_rules`); once they are written, the version's
+tables must read, name the profile's categories and list every sweep of the archive as a keyframe
+(and every label file as its labels, of one label per point), and every keyframe of the tables
+must be in the archive. A scene has labels for all its keyframes or none.
 """
 
 from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Protocol
 
-from rangeret.dataset.layout import DatasetLayoutError, Discovery, ScanEntry, discover
-from rangeret.dataset.table_layout import TableLayout
+from rangeret.dataset.layout import (
+    DatasetLayout,
+    DatasetLayoutError,
+    Discovery,
+    ScanEntry,
+    discover,
+)
+from rangeret.dataset.upload_rules import ArchiveError, ExtractedDataset
 from rangeret.io.scans import PointRecord, ScanFormatError, parse_scan
-from service.archives import ArchiveError, ExtractedDataset
 
 #: A version folder's name (v1.0-mini, v1.0-trainval, v1.0-test).
 _VERSION = r"v[0-9][A-Za-z0-9._-]{0,62}"
@@ -39,10 +46,19 @@ def _folder_pattern(channel: str) -> re.Pattern[str]:
     )
 
 
+class ChannelLayout(DatasetLayout, Protocol):
+    """A layout of a version's tables, whose sweeps are those of one sensor channel."""
+
+    @property
+    def channel(self) -> str:
+        """The sensor channel whose sweeps the archive holds (LIDAR_TOP)."""
+        ...
+
+
 class NuScenesRules:
     """The archive of a tables layout (`layout`), its sweeps in `record` (see the module)."""
 
-    def __init__(self, record: PointRecord, layout: TableLayout) -> None:
+    def __init__(self, record: PointRecord, layout: ChannelLayout) -> None:
         self.record = record
         self.layout = layout
         self._sweep = _sweep_pattern(layout.channel)
