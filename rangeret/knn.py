@@ -6,9 +6,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from rangeret.dataset.fields import is_int
 from rangeret.dataset.projection import ProjectionError, check_pixels
 from rangeret.inference.knn import refine_batch, to_device
-from rangeret.inference.settings import KnnSettings, is_integer
+from rangeret.inference.settings import KnnSettings
 
 __all__ = ["refine"]
 
@@ -47,7 +48,7 @@ def refine(
     """
     knn = KnnSettings(k, search, sigma, cutoff)
     _check_class_ids(num_classes, votes_from, unprojected)
-    if chunk_size is not None and (not is_integer(chunk_size) or chunk_size < 1):
+    if chunk_size is not None and (not is_int(chunk_size) or chunk_size < 1):
         raise ProjectionError(f"chunk_size must be a positive integer, got {chunk_size!r}")
     given = (proj_range, unproj_range, proj_argmax, proj_x, proj_y)
     devices = {x.device for x in given if isinstance(x, torch.Tensor)}
@@ -109,10 +110,10 @@ def _check_argmax(classes: np.ndarray, shape: tuple[int, ...], num_classes: int)
 
 def _check_class_ids(num_classes: int, votes_from: int, unprojected: int) -> None:
     """Raise ValueError, naming the argument, unless there are classes and both ids are among them."""
-    if not is_integer(num_classes) or num_classes < 2:
+    if not is_int(num_classes) or num_classes < 2:
         raise ProjectionError(f"num_classes must be an integer >= 2, got {num_classes!r}")
     for name, value in (("votes_from", votes_from), ("unprojected", unprojected)):
-        if not is_integer(value) or not 0 <= value < num_classes:
+        if not is_int(value) or not 0 <= value < num_classes:
             raise ProjectionError(
                 f"{name} must be a class id in 0..{num_classes - 1}, got {value!r}"
             )

@@ -16,6 +16,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from rangeret.dataset.fields import is_int
 from rangeret.io.atomic import atomic_write_text
 
 #: The record's name in the job's output folder.
@@ -53,9 +54,7 @@ class JobProgress:
         if not isinstance(data, dict):
             raise ValueError("a progress record is a JSON object")
         counts = {name: data.get(name, 0) for name in ("total", "done", "failed")}
-        if not all(
-            isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in counts.values()
-        ):
+        if not all(is_int(v) and v >= 0 for v in counts.values()):
             raise ValueError(f"bad counts in a progress record: {counts}")
         failures = data.get("failures", {})
         if not isinstance(failures, dict) or not all(

@@ -15,6 +15,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+from rangeret.dataset.fields import is_int, is_number
 from rangeret.inference.models_file import (
     ModelSet,
     ModelsFileError,
@@ -81,7 +82,7 @@ def _models(args: Mapping[str, object], base: InferenceSpec) -> ModelSet:
 
 def _batch_wait_ms(wait: object) -> float:
     """`batch_wait_ms` once it is a number of milliseconds, zero or more."""
-    if isinstance(wait, bool) or not isinstance(wait, int | float):
+    if not is_number(wait):
         raise ValueError(f"batch_wait_ms{WHERE} takes a number, got {wait!r}")
     if wait < 0:
         raise ValueError(f"batch_wait_ms must not be negative, got {wait:g}")
@@ -92,7 +93,7 @@ def _max_per_replica(value: object, models: int) -> int:
     """`max_num_models_per_replica` once it is a whole number from 1 (default: every model)."""
     if value is None:
         return models
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+    if not is_int(value) or value < 1:
         raise ValueError(
             f"max_num_models_per_replica{WHERE} takes a whole number from 1, got {value!r}"
         )

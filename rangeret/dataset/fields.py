@@ -2,24 +2,28 @@
 
 Profiles and label configurations are plain data (YAML or JSON); every check of a field goes
 through `Fields`, so each message names its file (or "checkpoint X", "profile Y") and the field.
+`is_int` and `is_number` are the project's one test of a plain value that must be an integer or a
+number and not a bool, wherever such a value is read (files, JSON, arguments, options).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from numbers import Integral, Real
 from typing import Any, NoReturn
 
 from rangeret.exceptions import ConfigError
 
 
 def is_int(value: Any) -> bool:
-    """An int that is not a bool (YAML's true is an int to Python)."""
-    return isinstance(value, int) and not isinstance(value, bool)
+    """An integer (a numpy one too) that is not a bool: YAML's and JSON's true is an int to
+    Python, but never a count, a size or an id; every check of an integer value asks this."""
+    return isinstance(value, Integral) and not isinstance(value, bool)
 
 
 def is_number(value: Any) -> bool:
-    """An int or float that is not a bool."""
-    return isinstance(value, int | float) and not isinstance(value, bool)
+    """A real number (an integer too) that is not a bool; every check of a number asks this."""
+    return isinstance(value, Real) and not isinstance(value, bool)
 
 
 class Fields:

@@ -438,7 +438,7 @@ def _build(f: Fields, content: _Content, normalise: Callable[[str | int], str]) 
     split_ids: dict[str, tuple[str, ...]] = {}
     for name, ids in content.splits.items():
         if not isinstance(ids, list | tuple) or not all(
-            isinstance(s, str | int) and not isinstance(s, bool) for s in ids
+            isinstance(s, str) or is_int(s) for s in ids
         ):
             content.splits_field.fail(str(name), "must be a list of sequence ids")
         split_ids[str(name)] = tuple(normalise(s) for s in ids)

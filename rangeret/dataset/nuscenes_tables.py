@@ -20,6 +20,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
+from rangeret.dataset.fields import is_int
 from rangeret.exceptions import DatasetError
 
 #: The tables every version folder holds (the devkit loads all of them).
@@ -135,7 +136,7 @@ def _read(
     for i, record in enumerate(tables["category"]):
         where = f"{table_dir / 'category.json'}: record {i}"
         name, index = _field(record, "name", str, where), record.get("index")
-        if isinstance(index, bool) or not isinstance(index, int):
+        if not is_int(index):
             raise TableError(
                 f"{where} ({name}) has no integer index: use the category.json that comes with "
                 "nuScenes-lidarseg"
@@ -224,6 +225,6 @@ def _index(table_dir: Path, name: str, records: list[dict[str, Any]]) -> dict[st
 
 def _field(record: Mapping[str, Any], key: str, kind: type, where: str) -> Any:
     value = record.get(key)
-    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+    if not (is_int(value) if kind is int else isinstance(value, kind)):
         raise TableError(f"{where} has no {kind.__name__} {key!r} (got {value!r})")
     return value

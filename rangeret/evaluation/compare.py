@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from numbers import Real
 from pathlib import Path
 
 import numpy as np
 
+from rangeret.dataset.fields import is_number
 from rangeret.dataset.profiles import LEGACY_PROFILE
 from rangeret.exceptions import InputError
 
@@ -52,7 +52,7 @@ def read_scores(path: Path | str) -> ReportScores:
         raise ComparisonError(f"{path} is not a JSON evaluation report (not a JSON object)")
     iou = data.get("iou")
     numbers = [data.get("miou"), data.get("accuracy"), *(iou.values() if iou else [])]
-    if not (isinstance(iou, dict) and iou and all(_is_number(v) for v in numbers)):
+    if not (isinstance(iou, dict) and iou and all(is_number(v) for v in numbers)):
         raise ComparisonError(
             f"{path} is not an evaluation report: it needs numbers `miou`, `accuracy` and an "
             "`iou` object of per-class numbers"
@@ -150,8 +150,3 @@ def report_labels(paths: list[Path]) -> list[str]:
         if len(set(tails)) == len(tails):
             return tails
     return [f"{tail} ({i + 1})" for i, tail in enumerate(tails)]
-
-
-def _is_number(value: object) -> bool:
-    """A JSON number (not a boolean)."""
-    return isinstance(value, Real) and not isinstance(value, bool)

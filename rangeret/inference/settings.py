@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from numbers import Integral, Real
 
+from rangeret.dataset.fields import is_int, is_number
 from rangeret.exceptions import InputError
 
 
@@ -32,23 +32,17 @@ class KnnSettings:
 
 def _knn_problem(k: object, search: object, sigma: object, cutoff: object) -> str | None:
     """What is wrong with kNN parameters, naming the parameter; None when they can be used."""
-    if not is_integer(search) or search < 1 or search % 2 == 0:
+    if not is_int(search) or search < 1 or search % 2 == 0:
         return f"search must be an odd integer >= 1, got {search!r}"
-    if not is_integer(k) or k < 1:
+    if not is_int(k) or k < 1:
         return f"k must be an integer >= 1, got {k!r}"
     if k > search * search:
         return f"k must be at most search**2 = {search * search}, got {k}"
-    if not isinstance(sigma, Real) or not sigma > 0:
+    if not is_number(sigma) or not sigma > 0:
         return f"sigma must be a number > 0, got {sigma!r}"
-    if not isinstance(cutoff, Real) or math.isnan(cutoff):
+    if not is_number(cutoff) or math.isnan(cutoff):
         return f"cutoff must be a number (<= 0 for no cutoff), got {cutoff!r}"
     return None
-
-
-def is_integer(value: object) -> bool:
-    """Whether `value` is an integer (a numpy one included), not a bool: what a count or a class
-    id of these settings must be."""
-    return isinstance(value, Integral) and not isinstance(value, bool)
 
 
 #: The refinement every runner applies unless told otherwise.

@@ -31,6 +31,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from rangeret.dataset.fields import is_int
 from rangeret.exceptions import ModelError
 from rangeret.models.blocks.decay import DECAYS
 from rangeret.models.blocks.embedding import patch_grid
@@ -84,14 +85,14 @@ class ModelConfig:
         ):
             value = getattr(self, field)
             _check(
-                _is_int(value) and value >= 1, f"{field} must be a positive integer, got {value!r}"
+                is_int(value) and value >= 1, f"{field} must be a positive integer, got {value!r}"
             )
         for field in ("patch_size", "stride"):
             pair = getattr(self, field)
             _check(
                 isinstance(pair, tuple)
                 and len(pair) == 2
-                and all(_is_int(v) and v >= 1 for v in pair),
+                and all(is_int(v) and v >= 1 for v in pair),
                 f"{field} must be a pair of positive integers, got {pair!r}",
             )
         _check(self.mixer in MIXERS, f"mixer must be one of {MIXERS}, got {self.mixer!r}")
@@ -205,16 +206,11 @@ def resolve_config(
 
 def _pair(value: Any, field: str) -> tuple[int, int]:
     """An int or a pair of ints as a pair (patch sizes and strides may be given either way)."""
-    if _is_int(value):
+    if is_int(value):
         return (value, value)
-    if isinstance(value, (list, tuple)) and len(value) == 2 and all(_is_int(v) for v in value):
+    if isinstance(value, (list, tuple)) and len(value) == 2 and all(is_int(v) for v in value):
         return (value[0], value[1])
     raise ModelConfigError(f"{field} must be an int or a pair of ints, got {value!r}")
-
-
-def _is_int(value: Any) -> bool:
-    """True for ints proper (bools are ints to python, but not sizes)."""
-    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def _check(condition: bool, message: str) -> None:
