@@ -83,7 +83,6 @@ def checkpoint_facts(value: str) -> list[tuple[str, str]]:
     published model's name), as (name, text) pairs; a file that is missing or not a checkpoint
     is a one-line error."""
 
-    from rangeret.models.weights.checkpoint import network_from_bytes
     from rangeret.models.weights.hub import resolve_weights
     from rangeret.models.weights.run_profile import profile_for_checkpoint
 
@@ -94,16 +93,7 @@ def checkpoint_facts(value: str) -> list[tuple[str, str]]:
         )
     if not resolved.path.is_file():
         raise CommandError(f"{resolved.path} is not a checkpoint file but a folder")
-    data, sha256 = resolved.read()
-    network = network_from_bytes(
-        data,
-        resolved.path,
-        model=resolved.model,
-        height=resolved.height,
-        width=resolved.width,
-        sha256=sha256,
-    )
-    info = network.checkpoint_info
+    info = resolved.network().checkpoint_info
     config = info.config
     facts = [
         ("path", str(Path(info.path).resolve())),

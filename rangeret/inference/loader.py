@@ -17,7 +17,6 @@ import torch
 
 from rangeret.dataset.profiles import DatasetProfile, load_profile
 from rangeret.inference.spec import InferenceSpec
-from rangeret.models.weights.checkpoint import checkpoint_from_bytes, network_from_bytes
 from rangeret.models.weights.checkpoint_info import CheckpointInfo
 from rangeret.models.weights.demo import note_loaded, resolve_checkpoint
 from rangeret.models.weights.hub import ResolvedWeights, resolve_weights
@@ -66,29 +65,6 @@ class LoadedWeights:
         return cached_export(self.network, self.profile, self.sha256)
 
 
-def load_weights(spec: InferenceSpec, *, profile: DatasetProfile | None = None) -> LoadedWeights:
-    """The network and profile of `spec`'s weights fields, the checkpoint read once (see the
-    module). `profile` stands for the profile `spec.profile` names, for callers that hold one
-    already (a label configuration of their own in it)."""
-    resolved, data, sha256 = _read(spec, profile)
-    note_loaded(resolved.path, sha256)
-    network = network_from_bytes(
-        data,
-        resolved.path,
-        model=resolved.model,
-        height=resolved.height,
-        width=resolved.width,
-        default_resolution=default_resolution(resolved.profile),
-        sha256=sha256,
-    )
-    info = network.checkpoint_info
-    settled = profile_for_checkpoint(
-        info, requested=resolved.profile, fov_up=spec.fov_up, fov_down=spec.fov_down
-    )
-    log.debug("loaded %s (sha256 %s) for the %s profile", info.path, sha256[:12], settled.name)
-    return LoadedWeights(network, settled, info)
-
-
 @dataclass(frozen=True)
 class WeightsIdentity:
     """What a spec's weights are without building their network: the checkpoint's SHA-256, the
@@ -100,38 +76,42 @@ class WeightsIdentity:
     model: str
 
 
+def load_weights(spec: InferenceSpec, *, profile: DatasetProfile | None = None) -> LoadedWeights:
+    """The network and profile of `spec`'s weights fields, the checkpoint read once (see the
+    module). `profile` stands for the profile `spec.profile` names, for callers that hold one
+    already (a label configuration of their own in it)."""
+    resolved = _resolved(spec, profile)
+    network = resolved.network(default_resolution=default_resolution(resolved.profile))
+    info = network.checkpoint_info
+    note_loaded(resolved.path, info.sha256)
+    settled = profile_for_checkpoint(
+        info, requested=resolved.profile, fov_up=spec.fov_up, fov_down=spec.fov_down
+    )
+    log.debug("loaded %s (sha256 %s) for the %s profile", info.path, info.sha256[:12], settled.name)
+    return LoadedWeights(network, settled, info)
+
+
 def identify_weights(spec: InferenceSpec) -> WeightsIdentity:
     """The identity of `spec`'s weights, the checkpoint read once and checked as `load_weights`
     checks it (pin, profile, class count), its tensors not loaded into a network."""
-    resolved, data, sha256 = _read(spec, None)
-    content = checkpoint_from_bytes(
-        data,
-        resolved.path,
-        model=resolved.model,
-        height=resolved.height,
-        width=resolved.width,
-        default_resolution=default_resolution(resolved.profile),
-        sha256=sha256,
-    )
+    resolved = _resolved(spec, None)
+    content = resolved.checkpoint(default_resolution=default_resolution(resolved.profile))
+    note_loaded(resolved.path, content.info.sha256)
     settled = profile_for_checkpoint(
         content.info, requested=resolved.profile, fov_up=spec.fov_up, fov_down=spec.fov_down
     )
-    return WeightsIdentity(sha256, settled, content.info.name)
+    return WeightsIdentity(content.info.sha256, settled, content.info.name)
 
 
-def _read(
-    spec: InferenceSpec, profile: DatasetProfile | None
-) -> tuple[ResolvedWeights, bytes, str]:
-    """Where `spec`'s weights are, their bytes (read once) and their SHA-256, pin checked."""
+def _resolved(spec: InferenceSpec, profile: DatasetProfile | None) -> ResolvedWeights:
+    """Where `spec`'s weights are and how to load them (`profile`, else the one it names)."""
     requested = profile if profile is not None else _requested_profile(spec.profile)
     path = (
         resolve_checkpoint(None, requested.name if requested is not None else None)
         if spec.checkpoint is None
         else spec.checkpoint
     )
-    resolved = resolve_weights(path, requested, spec.model, spec.height, spec.width)
-    data, sha256 = resolved.read()
-    return resolved, data, sha256
+    return resolve_weights(path, requested, spec.model, spec.height, spec.width)
 
 
 def _requested_profile(name: str | None) -> DatasetProfile | None:

@@ -37,7 +37,6 @@ from rangeret.models.configs import OVERRIDES, ModelConfig, resolve_config
 from rangeret.models.weights.checkpoint import (
     CheckpointContent,
     CheckpointError,
-    checkpoint_from_bytes,
 )
 from rangeret.models.weights.hub import resolve_weights
 from rangeret.training.config import TrainConfig, TrainConfigError
@@ -95,26 +94,7 @@ def read_parent(source: str, overrides: Mapping[str, Any] | None = None) -> Pare
             "(`rangeret weights list` names those)",
             str(resolved.path),
         )
-    data, sha256 = resolved.read()
-    content = checkpoint_from_bytes(
-        data,
-        resolved.path,
-        model=resolved.model,
-        height=resolved.height,
-        width=resolved.width,
-        sha256=sha256,
-    )
-    if content.info.published and overrides:
-        content = checkpoint_from_bytes(
-            data,
-            resolved.path,
-            model=content.config.name,
-            height=resolved.height,
-            width=resolved.width,
-            sha256=sha256,
-            **overrides,
-        )
-    return Parent(source, content)
+    return Parent(source, resolved.checkpoint(overrides=overrides))
 
 
 def settle_network(

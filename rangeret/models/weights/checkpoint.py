@@ -132,8 +132,14 @@ def network_from_bytes(
         sha256=sha256,
         **overrides,
     )
+    return network_of(content)
+
+
+def network_of(content: CheckpointContent) -> RangeRet:
+    """The network a checkpoint's content describes, its tensors loaded strictly (`CheckpointError`
+    naming every wrong key), in eval mode, with its `checkpoint_info`."""
     network = RangeRet(content.config)
-    _check_keys(Path(path), network, content.state_dict, content.info.published)
+    _check_keys(Path(content.info.path), network, content.state_dict, content.info.published)
     network.load_state_dict(content.state_dict, strict=True)
     network.eval()
     network.checkpoint_info = content.info

@@ -14,13 +14,22 @@ import contextlib
 import hashlib
 import logging
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.exceptions import ModelError
 from rangeret.extras import extra_installed, require_extra
 from rangeret.models.weights.registry import PublishedModel, lookup, profile_for_published
+
+if TYPE_CHECKING:  # torch is imported when weights are read, not to resolve their name
+    from rangeret.models.network import RangeRet
+    from rangeret.models.weights.checkpoint import CheckpointContent
+
+#: The resolution of a published file, which records none, unless one is asked for.
+DEFAULT_RESOLUTION = (64, 1024)
 
 log = logging.getLogger(__name__)
 
@@ -186,7 +195,8 @@ def published_name(value: str | Path) -> PublishedModel | None:
 class ResolvedWeights:
     """Where a `--checkpoint` value leads, and the profile, network and resolution to load it
     with (what was asked for, completed by a published model's registry entry, whose pin the
-    loaded bytes must match)."""
+    loaded bytes must match): the one path from a resolved name to its checkpoint's content
+    (`checkpoint`) or its network (`network`), the file read once either way."""
 
     path: Path
     profile: DatasetProfile | None
@@ -205,6 +215,34 @@ class ResolvedWeights:
         if self.published is not None:
             check_pin(self.published, self.path, sha256)
         return data, sha256
+
+    def checkpoint(
+        self,
+        *,
+        default_resolution: tuple[int, int] = DEFAULT_RESOLUTION,
+        overrides: Mapping[str, Any] | None = None,
+    ) -> CheckpointContent:
+        """The file's network configuration, tensors and records, its bytes read once (`read`),
+        no network built. A published file runs at `default_resolution` unless a height or width
+        was given; `overrides` are the switches a published file's tensors cannot tell, applied
+        once its network is recognised (the project's own files record theirs)."""
+        from rangeret.models.weights.checkpoint import checkpoint_from_bytes
+
+        data, sha256 = self.read()
+        shape = dict(height=self.height, width=self.width, default_resolution=default_resolution)
+        content = checkpoint_from_bytes(data, self.path, self.model, sha256=sha256, **shape)
+        if content.info.published and overrides:
+            content = checkpoint_from_bytes(
+                data, self.path, content.config.name, sha256=sha256, **shape, **overrides
+            )
+        return content
+
+    def network(self, *, default_resolution: tuple[int, int] = DEFAULT_RESOLUTION) -> RangeRet:
+        """The file's network in eval mode with its `checkpoint_info`, built from one read of
+        its bytes (`checkpoint`)."""
+        from rangeret.models.weights.checkpoint import network_of
+
+        return network_of(self.checkpoint(default_resolution=default_resolution))
 
 
 def resolve_weights(
