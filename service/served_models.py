@@ -1,21 +1,27 @@
 """The models a gateway serves: each one's name, network options, profile and checkpoint.
 
-`ModelCatalog` is what the gateway knows of its models from checking them at start (their
-weights loaded once each), whether or not they are loaded now: every request, job and page picks
-one by name (`?model=`, a job's `model`), or gets the default. A plain `--checkpoint` is the one
-model named `default`.
+`ModelCatalog` is the gateway's `ModelSet` (the names in order, the default, each one's spec)
+with what checking each model at start found (`WeightsIdentity`: its checkpoint's SHA-256, its
+profile and its network), whether or not its network is loaded now: every request, job and page
+picks one by name (`?model=`, a job's `model`), or gets the default. A plain `--checkpoint` is
+the one model named `default`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from fastapi import Query
 
 from rangeret.dataset.profiles import DatasetProfile
+from rangeret.inference.models_file import ModelSet, UnknownModelError
 from rangeret.inference.spec import InferenceSpec
 from service.errors import ApiError
+
+if TYPE_CHECKING:  # torch is imported when the gateway starts, not to build its parser
+    from rangeret.inference.loader import WeightsIdentity
 
 #: The header that names the model of every scan answer.
 MODEL_HEADER = "X-RangeRet-Model"
@@ -37,17 +43,28 @@ class ModelEntry:
     checkpoint_sha256: str | None = None
     network: str | None = None
 
+    @classmethod
+    def identified(cls, name: str, spec: InferenceSpec, identity: WeightsIdentity) -> ModelEntry:
+        """The model `name` of `spec`, as checking its weights identified them."""
+        return cls(name, spec, identity.profile, identity.sha256, identity.model)
 
-@dataclass(frozen=True)
+
 class ModelCatalog:
-    """The served models by name, in the models file's order, and the default one."""
+    """The served models: a `ModelSet` of their specs, and each one's entry by name."""
 
-    entries: dict[str, ModelEntry]
-    default: str
+    def __init__(self, entries: Mapping[str, ModelEntry], default: str) -> None:
+        self.models = ModelSet({name: entry.spec for name, entry in entries.items()}, default)
+        self.entries = dict(entries)
 
-    def __post_init__(self) -> None:
-        if self.default not in self.entries:
-            raise ValueError(f"the default model {self.default!r} is not among the models")
+    @classmethod
+    def identified(
+        cls, models: ModelSet, identities: Mapping[str, WeightsIdentity]
+    ) -> ModelCatalog:
+        """The catalog of `models`, each with the identity checking its weights found."""
+        entries = {
+            name: ModelEntry.identified(name, spec, identities[name]) for name, spec in models
+        }
+        return cls(entries, models.default)
 
     @classmethod
     def one(cls, entry: ModelEntry) -> ModelCatalog:
@@ -55,29 +72,32 @@ class ModelCatalog:
         return cls({entry.name: entry}, entry.name)
 
     @property
+    def default(self) -> str:
+        """The default model's name."""
+        return self.models.default
+
+    @property
     def names(self) -> list[str]:
         """The models' names, in order."""
-        return list(self.entries)
+        return self.models.names
 
     def __iter__(self) -> Iterator[ModelEntry]:
-        return iter(self.entries.values())
+        return (self.entries[name] for name in self.models.names)
 
     def __len__(self) -> int:
-        return len(self.entries)
+        return len(self.models)
 
     def get(self, name: str | None = None) -> ModelEntry:
         """The model `name` (None: the default); a 404 naming the known models otherwise."""
-        if name is None:
-            return self.entries[self.default]
-        entry = self.entries.get(name)
-        if entry is None:
+        try:
+            return self.entries[self.models.resolve(name)]
+        except UnknownModelError as exc:
             raise ApiError(
                 404,
                 f"There is no model {name[:64]!r}; this gateway serves {', '.join(self.names)}.",
-            )
-        return entry
+            ) from exc
 
     @property
     def default_entry(self) -> ModelEntry:
         """The default model."""
-        return self.entries[self.default]
+        return self.entries[self.models.default]

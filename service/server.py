@@ -170,13 +170,9 @@ def check_models(models: ModelSet) -> dict[str, LoadedWeights]:
 
 def catalog_of(models: ModelSet, loaded: dict[str, LoadedWeights]) -> ModelCatalog:
     """What the gateway knows of each model from checking it."""
-    from service.served_models import ModelCatalog, ModelEntry
+    from service.served_models import ModelCatalog
 
-    entries = {
-        name: ModelEntry(name, spec, loaded[name].profile, loaded[name].sha256, loaded[name].model)
-        for name, spec in models
-    }
-    return ModelCatalog(entries, models.default)
+    return ModelCatalog.identified(models, {name: w.identity for name, w in loaded.items()})
 
 
 def build_pool(

@@ -86,7 +86,7 @@ class ScanModel:
     def __init__(
         self,
         models: Mapping[str, Any],
-        built: Mapping[str, Mapping[str, str]],
+        built: Mapping[str, Mapping[str, str | None]],
         max_per_replica: int,
     ) -> None:
         import ray
@@ -122,14 +122,11 @@ class ScanModel:
         """The model `name`'s network, whose checkpoint must be the one the application was
         built with."""
         started = time.perf_counter()
-        worker = ScanWorker(Predictor.from_spec(self.models.spec(name)))
-        expected = self.built[name]["checkpoint_sha256"]
-        if worker.predictor.checkpoint_sha256 != expected:
-            raise RuntimeError(
-                f"model {name}: its checkpoint is sha256 {worker.predictor.checkpoint_sha256} now "
-                f"and was sha256 {expected} when the application was built; deploy it again"
-            )
-        model = ReplicaModel(name, worker, self._unloaded)
+        predictor = Predictor.from_spec(self.models.spec(name))
+        predictor.weights.identity.check_same(
+            self.built[name], name, "the application was built", "deploy it again"
+        )
+        model = ReplicaModel(name, ScanWorker(predictor), self._unloaded)
         self._loaded[name] = id(model)
         log.info("model %s loaded in %.2f s", name, time.perf_counter() - started)
         return model
@@ -246,20 +243,16 @@ def deployment_options(batch_size: int, batch_wait_ms: float, gpus: float) -> di
     }
 
 
-def built_models(models: ModelSet) -> dict[str, dict[str, str]]:
-    """Each model's checkpoint SHA-256, profile and network, its checkpoint read once now; a
-    model whose weights cannot be served is one `ValueError` naming it."""
+def built_models(models: ModelSet) -> dict[str, dict[str, str | None]]:
+    """Each model's identity as `/info` lists it (checkpoint SHA-256, profile, network), its
+    checkpoint read once now; a model whose weights cannot be served is one `ValueError` naming
+    it."""
     built = {}
     for name, spec in models:
         try:
-            identity = identify_weights(spec)
+            built[name] = identify_weights(spec).describe()
         except RangeRetError as exc:
             raise ValueError(f"model {name}{WHERE}: {exc}") from exc
-        built[name] = {
-            "checkpoint_sha256": identity.sha256,
-            "profile": identity.profile.name,
-            "network": identity.model,
-        }
     return built
 
 

@@ -10,12 +10,14 @@ checked). A process loads its checkpoint from disk exactly once this way.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
 from rangeret.dataset.profiles import DatasetProfile, load_profile
+from rangeret.exceptions import ModelError
 from rangeret.inference.spec import InferenceSpec
 from rangeret.models.weights.checkpoint_info import CheckpointInfo
 from rangeret.models.weights.demo import note_loaded, resolve_checkpoint
@@ -48,6 +50,11 @@ class LoadedWeights:
         """The network's name."""
         return self.info.name if self.info is not None else type(self.network).__name__
 
+    @property
+    def identity(self) -> WeightsIdentity:
+        """What these weights are, as `identify_weights` tells it without a network."""
+        return WeightsIdentity(self.sha256, self.profile, self.model)
+
     @classmethod
     def of_network(cls, network: torch.nn.Module, profile: DatasetProfile) -> LoadedWeights:
         """A network built or loaded by other means, checked against `profile`'s class count."""
@@ -65,15 +72,39 @@ class LoadedWeights:
         return cached_export(self.network, self.profile, self.sha256)
 
 
+class WeightsChanged(ModelError, RuntimeError):
+    """Weights loaded for a served model that are not the ones the server checked at its start."""
+
+
 @dataclass(frozen=True)
 class WeightsIdentity:
-    """What a spec's weights are without building their network: the checkpoint's SHA-256, the
-    profile it runs with and the network's name, for a server that describes models it has not
-    loaded."""
+    """What a model's weights are: the checkpoint's SHA-256 (None for a network that came from
+    no file), the profile it runs with and the network's name; one identity for every server
+    that describes models it has not loaded (the gateway's catalog, the Serve builder)."""
 
-    sha256: str
+    sha256: str | None
     profile: DatasetProfile
     model: str
+
+    def describe(self) -> dict[str, str | None]:
+        """As a server lists it and compares it: `checkpoint_sha256`, `profile`, `network`."""
+        return {
+            "checkpoint_sha256": self.sha256,
+            "profile": self.profile.name,
+            "network": self.model,
+        }
+
+    def check_same(
+        self, checked: Mapping[str, str | None], name: str, when: str, remedy: str
+    ) -> None:
+        """`WeightsChanged` naming the model `name` and both checkpoints unless these weights
+        are those `checked` describes (`describe`), as they were `when` a server checked them."""
+        if self.describe() != dict(checked):
+            raise WeightsChanged(
+                f"model {name}: its checkpoint is sha256 {self.sha256} ({self.model}, "
+                f"{self.profile.name} profile) now and was sha256 {checked.get('checkpoint_sha256')} "
+                f"({checked.get('network')}, {checked.get('profile')} profile) when {when}; {remedy}"
+            )
 
 
 def load_weights(spec: InferenceSpec, *, profile: DatasetProfile | None = None) -> LoadedWeights:
