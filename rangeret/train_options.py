@@ -17,29 +17,13 @@ import typing
 from pathlib import Path
 from typing import Any
 
+from rangeret.inference.network_fields import option_help
 from rangeret.training.config import TrainConfig, TrainConfigError
 from rangeret.training.config_file import (
     field_choices,
     read_config_file,
     split_optional,
 )
-
-
-def _default_text(f: dataclasses.Field) -> str | None:
-    """How the help shows a field's default: its `default_text`, else the value itself (none for
-    required settings, flags, empty lists and None)."""
-    if "default_text" in f.metadata:
-        return f.metadata["default_text"]
-    value = f.default
-    if (
-        f.metadata.get("required")
-        or value is dataclasses.MISSING
-        or value is None
-        or isinstance(value, bool)
-        or value == ()
-    ):
-        return None
-    return " ".join(map(str, value)) if isinstance(value, tuple) else str(value)
 
 
 def option_flag(f: dataclasses.Field) -> str | None:
@@ -60,15 +44,7 @@ def add_dataclass_options(
             continue
         meta = f.metadata
         kind, _ = split_optional(hints[f.name])
-        help_text = meta["help"]
-        shown = _default_text(f)
-        if shown:
-            help_text += f" (default: {shown})"
-        options: dict[str, Any] = {
-            "dest": f.name,
-            "default": None,
-            "help": help_text.replace("%", "%%"),
-        }
+        options: dict[str, Any] = {"dest": f.name, "default": None, "help": option_help(f)}
         if kind is bool:
             options["action"] = "store_true"
         elif "parse" in meta:

@@ -2,11 +2,12 @@
 
 Every runner takes its network from a spec: `rangeret predict` and the other commands build it
 from their options, the Serve application from its arguments, a gateway's Ray job from one JSON
-option, the library from keywords. Each field carries its command-line help, type, default and
-choices (`option`), so the command line's network options (`add_spec_options`), the checks of a
-mapping (`InferenceSpec.from_mapping`) and the mapping sent to another process (`to_mapping`)
-are all derived from the fields: a network option is written once. Torch-free, since every
-`rangeret` call builds its parser from it.
+option, the library from keywords. Each field is declared by a `FieldSchema`
+(`rangeret.inference.network_fields`, which also holds the fields `TrainConfig` shares) with its
+command-line help, kind, default and allowed values, so the command line's network options
+(`add_spec_options`), the checks of a mapping (`InferenceSpec.from_mapping`) and the mapping sent
+to another process (`to_mapping`) are all derived from the fields: a network option is written
+once. Torch-free, since every `rangeret` call builds its parser from it.
 """
 
 from __future__ import annotations
@@ -19,21 +20,28 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rangeret.dataset.profiles import BUILTIN_PROFILES
-from rangeret.dataset.projection import MAX_HEIGHT, MAX_WIDTH
+from rangeret.dataset.fields import is_int, is_number
 from rangeret.exceptions import InputError
+from rangeret.inference.network_fields import (
+    BATCH_SIZE,
+    DEVICE,
+    FOV_DOWN,
+    FOV_UP,
+    HEIGHT,
+    KIND_NAMES,
+    MODEL,
+    PRECISION,
+    PROFILE,
+    WIDTH,
+    FieldSchema,
+    option_help,
+)
 from rangeret.inference.runtime.backends import BACKENDS, RuntimeChoiceError, check_backend
-from rangeret.inference.runtime.precision import PRECISIONS
 from rangeret.inference.settings import DEFAULT_KNN, KnnSettings, TtaSettings
 
-#: The networks a checkpoint can hold.
-MODELS = ("rangeret-thesis", "rangeret-cir")
-#: Where the network runs.
-DEVICES = ("auto", "cpu", "cuda")
 #: The field groups: which weights load (every command that loads a network, `export`
 #: included), and how a run uses them.
 WEIGHTS, RUN = "weights", "run"
-_FOV = "vertical field of view (default: the profile's)"
 
 
 class InferenceSpecError(InputError, ValueError):
@@ -41,35 +49,17 @@ class InferenceSpecError(InputError, ValueError):
 
 
 def option(
-    default: Any,
+    schema: FieldSchema,
     *,
-    help: str,
     group: str,
-    kind: type = str,
-    metavar: str | None = None,
-    choices: tuple[str, ...] | None = None,
+    note: str = "",
     negate: str | None = None,
-    minimum: int | None = None,
-    maximum: int | None = None,
     cli_type: Callable[[str], Any] | None = None,
 ) -> Any:
-    """An `InferenceSpec` field with its schema: the value's `kind` (bool, int, float or, by
-    default, str; None is allowed where the default is None), `help`, `metavar` and `choices` of
-    its option, `group` (`WEIGHTS` or `RUN`), `negate` (a bool option spelt as the flag that
-    turns it off), `minimum` and `maximum` (the least and the most integer it takes) and
-    `cli_type` (how the command line reads it)."""
-    metadata = {
-        "help": help,
-        "kind": kind,
-        "group": group,
-        "metavar": metavar,
-        "choices": choices,
-        "negate": negate,
-        "minimum": minimum,
-        "maximum": maximum,
-        "cli_type": cli_type,
-    }
-    return dataclasses.field(default=default, metadata=metadata)
+    """An `InferenceSpec` field of `schema` (`note` added to its help) in `group` (`WEIGHTS` or
+    `RUN`), with `negate` (a bool option spelt as the flag that turns it off) and `cli_type`
+    (how the command line reads it, where not by its kind)."""
+    return schema.field(note=note, group=group, negate=negate, cli_type=cli_type)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -83,99 +73,72 @@ class InferenceSpec:
     """
 
     checkpoint: str | None = option(
-        None,
+        FieldSchema(
+            "checkpoint",
+            str,
+            "weights: a published model's name (`rangeret weights list`: rangeret-kitti-657, "
+            "rangeret-panda-600, rangeret-poss-528; fetched from the cache or the model hub, with "
+            "its profile), the project's own checkpoint or a published .pt file",
+            default_text="the bundled demo weights, trained on simulated scenes only",
+            metavar="FILE",
+        ),
         group=WEIGHTS,
-        metavar="FILE",
         cli_type=Path,
-        help="weights: a published model's name (`rangeret weights list`: rangeret-kitti-657, "
-        "rangeret-panda-600, rangeret-poss-528; fetched from the cache or the model hub, with "
-        "its profile), the project's own checkpoint or a published .pt file (default: the "
-        "bundled demo weights, trained on simulated scenes only)",
     )
-    profile: str | None = option(
-        None,
-        group=WEIGHTS,
-        metavar="NAME|FILE",
-        help=f"dataset profile: {', '.join(BUILTIN_PROFILES)} or a YAML file "
-        "(`rangeret profile show NAME` prints one to start from); default: the checkpoint's, "
-        "else semantickitti",
-    )
-    model: str | None = option(
-        None,
-        group=WEIGHTS,
-        choices=MODELS,
-        help="network name; recognised from the checkpoint when omitted",
-    )
-    height: int | None = option(
-        None,
-        kind=int,
-        group=WEIGHTS,
-        minimum=1,
-        maximum=MAX_HEIGHT,
-        help=f"range image rows, at most {MAX_HEIGHT} (default: the profile's)",
-    )
-    width: int | None = option(
-        None,
-        kind=int,
-        group=WEIGHTS,
-        minimum=1,
-        maximum=MAX_WIDTH,
-        help=f"range image columns, at most {MAX_WIDTH} (default: the profile's)",
-    )
-    fov_up: float | None = option(
-        None, kind=float, group=WEIGHTS, metavar="DEG", help=f"upper {_FOV}"
-    )
-    fov_down: float | None = option(
-        None, kind=float, group=WEIGHTS, metavar="DEG", help=f"lower {_FOV}"
-    )
-    batch_size: int = option(
-        1, kind=int, group=RUN, metavar="N", minimum=1, help="scans per network pass (default 1)"
-    )
+    profile: str | None = option(PROFILE, group=WEIGHTS)
+    model: str | None = option(MODEL, group=WEIGHTS)
+    height: int | None = option(HEIGHT, group=WEIGHTS)
+    width: int | None = option(WIDTH, group=WEIGHTS)
+    fov_up: float | None = option(FOV_UP, group=WEIGHTS)
+    fov_down: float | None = option(FOV_DOWN, group=WEIGHTS)
+    batch_size: int = option(BATCH_SIZE, group=RUN)
     knn: bool = option(
-        True,
-        kind=bool,
+        FieldSchema(
+            "knn", bool, "take each point's pixel class, without kNN refinement", default=True
+        ),
         group=RUN,
         negate="--no-knn",
-        help="take each point's pixel class, without kNN refinement",
     )
-    device: str = option(
-        "auto",
-        group=RUN,
-        choices=DEVICES,
-        help="auto picks CUDA when present (default)",
-    )
-    precision: str = option(
-        "auto",
-        group=RUN,
-        choices=PRECISIONS,
-        help="precision of the network's passes; auto is fp16 on CUDA and fp32 on the CPU "
-        "(default; always fp32 with --backend onnxruntime)",
-    )
+    device: str = option(DEVICE, group=RUN)
+    precision: str = option(PRECISION, group=RUN, note="always fp32 with --backend onnxruntime")
     backend: str = option(
-        "torch",
+        FieldSchema(
+            "backend",
+            str,
+            "run the network in torch or in onnxruntime on its ONNX export, made once per "
+            "checkpoint into $RANGERET_CACHE/onnx (else ~/.cache/rangeret/onnx); onnxruntime "
+            "runs fp32 only, and on CUDA needs the onnxruntime-gpu package",
+            default="torch",
+            choices=BACKENDS,
+        ),
         group=RUN,
-        choices=BACKENDS,
-        help="run the network in torch (default) or in onnxruntime on its ONNX export, made "
-        "once per checkpoint into $RANGERET_CACHE/onnx (else ~/.cache/rangeret/onnx); "
-        "onnxruntime runs fp32 only, and on CUDA needs the onnxruntime-gpu package",
     )
     onnx: str | None = option(
-        None,
+        FieldSchema(
+            "onnx",
+            str,
+            "with --backend onnxruntime: run this export (`rangeret export`) rather than the "
+            "cached one, once it agrees with the checkpoint, resolution, profile and batch size",
+            metavar="FILE.onnx",
+        ),
         group=RUN,
-        metavar="FILE.onnx",
-        help="with --backend onnxruntime: run this export (`rangeret export`) rather than the "
-        "cached one, once it agrees with the checkpoint, resolution, profile and batch size",
     )
     tta_flip: bool = option(
-        False, kind=bool, group=RUN, help="test-time augmentation: add the mirrored view"
+        FieldSchema(
+            "tta_flip", bool, "test-time augmentation: add the mirrored view", default=False
+        ),
+        group=RUN,
     )
     tta_shifts: int = option(
-        0,
-        kind=int,
+        FieldSchema(
+            "tta_shifts",
+            int,
+            "test-time augmentation: add N azimuth-rotated views",
+            default=0,
+            metavar="N",
+            minimum=0,
+        ),
         group=RUN,
-        metavar="N",
-        minimum=0,
-        help="test-time augmentation: add N azimuth-rotated views",
     )
 
     def __post_init__(self) -> None:
@@ -238,16 +201,9 @@ class InferenceSpec:
         """What is wrong with the fields taken together, each spelt by `name`; None when they can
         be used."""
         for f in dataclasses.fields(self):
-            minimum, choices = f.metadata["minimum"], f.metadata["choices"]
-            value = getattr(self, f.name)
-            if choices is not None and value is not None and value not in choices:
-                return f"{name(f.name)} must be one of {', '.join(choices)}, got {value!r}"
-            if minimum is not None and value is not None and value < minimum:
-                least = "not be negative" if minimum == 0 else f"be at least {minimum}"
-                return f"{name(f.name)} must {least}, got {value}"
-            maximum = f.metadata["maximum"]
-            if maximum is not None and value is not None and value > maximum:
-                return f"{name(f.name)} must be at most {maximum}, got {value}"
+            problem = f.metadata["schema"].problem(getattr(self, f.name), name(f.name))
+            if problem is not None:
+                return problem
         if self.onnx is not None and self.backend != "onnxruntime":
             return (
                 f"{name('onnx')} is an export for {name('backend')} onnxruntime: add that, or "
@@ -311,39 +267,30 @@ def _made(
     return spec
 
 
-_KINDS = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
-
-
 def _checked(f: dataclasses.Field, value: Any, key: str) -> Any:
-    """`value` for field `f` (an integer or a number may come as its text), or an
-    `InferenceSpecError` naming `key`."""
-    kind = f.metadata["kind"]
+    """`value` for field `f`, or an `InferenceSpecError` naming `key`."""
+    kind = f.metadata["schema"].kind
     if value is None and f.default is None:
         return None
     converted = _as_kind(kind, value)
     if converted is None:
-        raise InferenceSpecError(f"{key} takes {_KINDS[kind]}, got {value!r}")
+        raise InferenceSpecError(f"{key} takes {KIND_NAMES[kind]}, got {value!r}")
     return converted
 
 
 def _as_kind(kind: type, value: Any) -> Any:
-    """`value` as `kind`, or None when it is not one."""
-    if isinstance(value, bool):
-        return value if kind is bool else None
-    if kind is bool:
-        return None
-    if kind is str:
-        return value if isinstance(value, str) else None
+    """`value` as `kind` (an integer or a finite number may come as its text), or None when it
+    is not one."""
+    if kind is bool or kind is str:
+        return value if isinstance(value, kind) else None
     if isinstance(value, str):
         try:
             value = int(value) if kind is int else float(value)
         except ValueError:
             return None
     if kind is int:
-        return value if isinstance(value, int) else None
-    if isinstance(value, int | float) and math.isfinite(value):
-        return float(value)
-    return None
+        return int(value) if is_int(value) else None
+    return float(value) if is_number(value) and math.isfinite(value) else None
 
 
 def group_fields(group: str) -> tuple[str, ...]:
@@ -360,16 +307,16 @@ def add_spec_options(
     for f in dataclasses.fields(InferenceSpec):
         if names is not None and f.name not in names:
             continue
-        meta = f.metadata
-        if meta["kind"] is bool:
+        schema, meta = f.metadata["schema"], f.metadata
+        if schema.kind is bool:
             action = "store_false" if meta["negate"] else "store_true"
-            parser.add_argument(flag(f.name), dest=f.name, action=action, help=meta["help"])
+            parser.add_argument(flag(f.name), dest=f.name, action=action, help=option_help(f))
             continue
-        kwargs: dict[str, Any] = {"help": meta["help"], "default": f.default}
-        if meta["choices"] is not None:
-            kwargs["choices"] = list(meta["choices"])
+        kwargs: dict[str, Any] = {"help": option_help(f), "default": f.default}
+        if schema.choices is not None:
+            kwargs["choices"] = list(schema.choices)
         else:
-            kwargs["type"] = meta["cli_type"] or meta["kind"]
-        if meta["metavar"] is not None:
-            kwargs["metavar"] = meta["metavar"]
+            kwargs["type"] = meta["cli_type"] or schema.kind
+        if schema.metavar is not None:
+            kwargs["metavar"] = schema.metavar
         parser.add_argument(flag(f.name), dest=f.name, **kwargs)

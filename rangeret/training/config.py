@@ -2,7 +2,9 @@
 
 Each field carries its own command-line help in its metadata (`setting`): the `rangeret train`
 options, the YAML configuration file (`rangeret.training.config_file`) and the checks of that
-file are all derived from these fields, so a setting is written once.
+file are all derived from these fields, so a setting is written once. The nine settings a network
+run shares (profile, model, height, width, fov_up, fov_down, batch_size, device, precision) are
+declared once for both in `rangeret.inference.network_fields`, with their checks.
 
 A config travels to Ray workers as a dict, is stored in every checkpoint's metadata and in the
 resume state, and a resumed run must agree with it on every field that changes the arithmetic
@@ -30,8 +32,18 @@ from rangeret.dataset.profiles import (
 )
 from rangeret.dataset.projection import ProjectionConfig
 from rangeret.exceptions import ConfigError
-from rangeret.inference.runtime.precision import PRECISIONS
-from rangeret.models.configs import OVERRIDES, list_models
+from rangeret.inference.network_fields import (
+    BATCH_SIZE,
+    DEVICE,
+    FOV_DOWN,
+    FOV_UP,
+    HEIGHT,
+    MODEL,
+    PRECISION,
+    PROFILE,
+    WIDTH,
+)
+from rangeret.models.configs import OVERRIDES
 from rangeret.models.weights.hub import published_name
 from rangeret.training.losses import LOSSES, WEIGHTINGS
 from rangeret.training.range_mixes import MIXES
@@ -47,7 +59,6 @@ RUNTIME_FIELDS = (
     "device",
     "checkpoint_every",
 )
-DEVICES = ("auto", "cpu", "cuda")
 
 
 class TrainConfigError(ConfigError, ValueError):
@@ -97,13 +108,14 @@ def parse_override(text: str) -> tuple[str, Any]:
 
 def setting(default: Any = dataclasses.MISSING, *, help: str, group: str, **cli: Any) -> Any:
     """A `TrainConfig` field with its schema: `help` and `group` of its command-line option, and
-    optionally `flag`, `metavar`, `nargs`, `choices` (a sequence or a function giving one),
-    `negate` (a bool option that turns the field off), `required` (to be given on the command
-    line or in the file, even with a default), `settled_by` (the name of a setting that, when
-    given, settles a required one left out), `resolve` (a function applied to every given
-    value, e.g. `absolute_path`), `parse` (applied to each item given on the command line, which
-    then add to the file's mapping), `keys` (the names of a mapping setting), `default_text` (how
-    the help shows the default) and `flag=None` (no option)."""
+    optionally `flag`, `metavar`, `nargs`, `choices`, `negate` (a bool option that turns the field
+    off), `required` (to be given on the command line or in the file, even with a default),
+    `settled_by` (the name of a setting that, when given, settles a required one left out),
+    `resolve` (a function applied to every given value, e.g. `absolute_path`), `parse` (applied
+    to each item given on the command line, which then add to the file's mapping), `keys` (the
+    names of a mapping setting), `default_text` (how the help shows the default) and `flag=None`
+    (no option). The settings shared with `InferenceSpec` are made by their `FieldSchema.field`
+    instead, which fills in the same keys."""
     return dataclasses.field(default=default, metadata={"help": help, "group": group, **cli})
 
 
@@ -129,13 +141,8 @@ class TrainConfig:
         required=True,
         resolve=absolute_path,
     )
-    profile: str = setting(
-        DEFAULT_PROFILE,
-        help=f"dataset profile: {', '.join(BUILTIN_PROFILES)} or a YAML file; "
-        "`rangeret profile show NAME` prints one to start from",
-        group="data",
-        metavar="NAME|FILE",
-        resolve=profile_reference,
+    profile: str = dataclasses.replace(PROFILE, default=DEFAULT_PROFILE, default_text=None).field(
+        group="data", resolve=profile_reference
     )
     train_sequences: tuple[str, ...] | None = setting(
         None,
@@ -160,30 +167,10 @@ class TrainConfig:
         metavar="FILE",
         resolve=absolute_path,
     )
-    height: int | None = setting(
-        None, help="range image rows", group="data", metavar="HEIGHT", default_text="the profile's"
-    )
-    width: int | None = setting(
-        None,
-        help="range image columns",
-        group="data",
-        metavar="WIDTH",
-        default_text="the profile's",
-    )
-    fov_up: float | None = setting(
-        None,
-        help="upper vertical field of view",
-        group="data",
-        metavar="DEG",
-        default_text="the profile's",
-    )
-    fov_down: float | None = setting(
-        None,
-        help="lower vertical field of view",
-        group="data",
-        metavar="DEG",
-        default_text="the profile's",
-    )
+    height: int | None = HEIGHT.field(group="data")
+    width: int | None = WIDTH.field(group="data")
+    fov_up: float | None = FOV_UP.field(group="data")
+    fov_down: float | None = FOV_DOWN.field(group="data")
     augment: bool = setting(
         True,
         help="no point augmentation (scale, rotation, shift, flip)",
@@ -207,11 +194,9 @@ class TrainConfig:
         group="data",
         metavar="N",
     )
-    model: str = setting(
-        "rangeret-thesis",
-        help="network to train; with --init-from the checkpoint's, which it may only repeat",
+    model: str = dataclasses.replace(MODEL, default="rangeret-thesis", default_text=None).field(
+        note="with --init-from the checkpoint's, which it may only repeat",
         group="network",
-        choices=list_models,
         required=True,
         settled_by="init_from",
     )
@@ -248,12 +233,7 @@ class TrainConfig:
         group="optimisation",
         metavar="N",
     )
-    batch_size: int = setting(
-        1,
-        help="scans per step and per trainer, 1 in the thesis",
-        group="optimisation",
-        metavar="N",
-    )
+    batch_size: int = BATCH_SIZE.field(note="per trainer, 1 in the thesis", group="optimisation")
     optimizer: str = setting(
         "adamw", help="the optimiser", group="optimisation", choices=tuple(OPTIMIZERS)
     )
@@ -302,13 +282,7 @@ class TrainConfig:
         group="optimisation",
         metavar="NORM",
     )
-    precision: str = setting(
-        "auto",
-        help="precision of the training step and validation; auto is fp16 on CUDA and fp32 on "
-        "the CPU",
-        group="optimisation",
-        choices=PRECISIONS,
-    )
+    precision: str = PRECISION.field(group="optimisation")
     seed: int = setting(
         0,
         help="seed of initialisation, order and augmentation",
@@ -330,17 +304,21 @@ class TrainConfig:
         metavar="N",
         default_text="at epoch ends",
     )
-    device: str = setting("auto", help="auto picks CUDA when present", group="run", choices=DEVICES)
+    device: str = DEVICE.field(group="run")
     progress: bool = setting(True, help="progress bars (-q turns them off)", group="run", flag=None)
 
     def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            schema = f.metadata.get("schema")
+            problem = schema.problem(getattr(self, f.name)) if schema else None
+            if problem is not None:
+                raise TrainConfigError(problem)
         checks = [
             (self.epochs >= 1, f"epochs must be at least 1, got {self.epochs}"),
             (
                 self.max_steps is None or self.max_steps >= 1,
                 f"max_steps must be at least 1, got {self.max_steps}",
             ),
-            (self.batch_size >= 1, f"batch_size must be at least 1, got {self.batch_size}"),
             (
                 self.optimizer in OPTIMIZERS,
                 f"optimizer must be one of {tuple(OPTIMIZERS)}, got {self.optimizer!r}",
@@ -367,10 +345,6 @@ class TrainConfig:
             (
                 self.clip_grad >= 0,
                 f"clip_grad must not be negative (0 turns clipping off), got {self.clip_grad}",
-            ),
-            (
-                self.precision in PRECISIONS,
-                f"precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}",
             ),
             (set(self.mixes) <= set(MIXES), f"mixes must be chosen from {MIXES}, got {self.mixes}"),
             (

@@ -20,6 +20,8 @@ from typing import Any
 
 import yaml
 
+from rangeret.dataset.fields import is_int, is_number
+from rangeret.inference.network_fields import KIND_NAMES
 from rangeret.io.bounded_yaml import load_yaml
 from rangeret.training.config import TrainConfig, TrainConfigError, override_pairs
 
@@ -33,9 +35,7 @@ def _fields() -> dict[str, tuple[dataclasses.Field, Any]]:
 def field_choices(f: dataclasses.Field) -> tuple[Any, ...] | None:
     """The values a field (or each of its items) may take, from its `choices` metadata."""
     choices = f.metadata.get("choices")
-    if choices is None:
-        return None
-    return tuple(choices() if callable(choices) else choices)
+    return None if choices is None else tuple(choices)
 
 
 def split_optional(hint: Any) -> tuple[Any, bool]:
@@ -46,27 +46,24 @@ def split_optional(hint: Any) -> tuple[Any, bool]:
     return hint, False
 
 
-_KINDS = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
 _PLURALS = {bool: "booleans", int: "integers", float: "numbers", str: "strings (quoted: '00')"}
 
 
 def _scalar(kind: type, value: Any) -> Any:
-    """`value` as `kind`, or raise TypeError: no bool for a number, ints are numbers."""
-    if kind is bool and isinstance(value, bool):
+    """`value` as `kind` (a number may come as its text, as YAML 1.1 reads 1e-3), or raise
+    TypeError naming the kind: no bool for a number, ints are numbers."""
+    if (kind is bool or kind is str) and isinstance(value, kind):
         return value
-    if kind is int and isinstance(value, int) and not isinstance(value, bool):
-        return value
-    if kind is float and not isinstance(value, bool):
-        if isinstance(value, int | float):
+    if kind is int and is_int(value):
+        return int(value)
+    if kind is float and is_number(value):
+        return float(value)
+    if kind is float and isinstance(value, str):
+        try:
             return float(value)
-        if isinstance(value, str):
-            try:
-                return float(value)
-            except ValueError:
-                pass
-    if kind is str and isinstance(value, str):
-        return value
-    raise TypeError(_KINDS[kind])
+        except ValueError:
+            pass
+    raise TypeError(KIND_NAMES[kind])
 
 
 def check_setting(name: str, value: Any, source: str) -> Any:
