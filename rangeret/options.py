@@ -232,12 +232,6 @@ def leaderboard_from_args(args: argparse.Namespace) -> LeaderboardEntry:
         raise CommandError(str(exc)) from exc
 
 
-def add_projection_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    """--height, --width, --fov-up, --fov-down: explicit values in place of the profile's (the
-    project's own checkpoints fix their resolution)."""
-    add_spec_options(parser, ("height", "width", "fov_up", "fov_down"))
-
-
 def add_precision_option(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
     """--precision auto|fp32|fp16|bf16: the forward pass's precision."""
     add_spec_options(parser, ("precision",))

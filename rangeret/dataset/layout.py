@@ -298,12 +298,6 @@ def prediction_path(pred_root: Path | str, sequence: str, name: str) -> Path:
     return predictions_dir(pred_root, sequence) / f"{name}.label"
 
 
-def confidence_path(pred_root: Path | str, sequence: str, name: str) -> Path:
-    """Where the point confidences of scan `sequence/name` of a folder layout live in a
-    predictions tree, beside its prediction (`sequences/XX/confidence/NNNNNN.npy`)."""
-    return Path(pred_root) / "sequences" / sequence / "confidence" / f"{name}.npy"
-
-
 def list_sequences(
     root: Path | str, *, layout: DatasetLayout, version: str | None = None
 ) -> list[str]:

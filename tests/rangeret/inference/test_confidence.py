@@ -9,7 +9,7 @@ import torch
 
 from rangeret.cli.main import main as rangeret_main
 from rangeret.dataset.labels import semantickitti
-from rangeret.dataset.layout import KITTI_LAYOUT, confidence_path, prediction_path, velodyne_dir
+from rangeret.dataset.layout import KITTI_LAYOUT, prediction_path, velodyne_dir
 from rangeret.inference.point_labels import point_confidences
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.spec import InferenceSpec
@@ -66,8 +66,7 @@ def test_predict_saves_one_confidence_per_point_beside_each_prediction(tmp_path)
     assert rangeret_main([*common, "--out", str(tmp_path / "plain"), "--save-confidence"]) == 0
     for i, step in enumerate((3, 5)):
         name = f"{i:06d}"
-        path = confidence_path(tmp_path / "plain", "08", name)
-        assert path.parent.name == "confidence" and path.suffix == ".npy"
+        path = tmp_path / "plain" / "sequences" / "08" / "confidence" / f"{name}.npy"
         assert np.load(path).dtype == np.float16
         values = read_confidence(path, num_points=len(scan[i::step]))
         assert ((values >= 0) & (values <= 1)).all() and values.max() > 0
@@ -127,7 +126,7 @@ def test_evaluate_reports_calibration_where_every_scan_has_confidences(tmp_path)
     assert isinstance(rebuilt, Calibration) and np.isclose(rebuilt.ece(), calibration["ece"])
 
     # Without confidences for every scan there is no calibration, and a note says why.
-    confidence_path(tmp_path / "pred", "08", "000001").unlink()
+    (tmp_path / "pred" / "sequences" / "08" / "confidence" / "000001.npy").unlink()
     assert rangeret_main([*args]) == 0
     report = json.loads(report_path.read_text())
     assert "calibration" not in report and "confidence files" in " ".join(report["notes"])
