@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rangeret.commands import CommandError
 from rangeret.dataset.labels import load_label_config
@@ -20,6 +21,9 @@ from rangeret.dataset.selection import DatasetSelection
 from rangeret.inference.spec import WEIGHTS, add_spec_options, group_fields
 from rangeret.io.decode_limits import DECODED_OPTION, DEFAULT_MAX_DECODED_BYTES, DecodeLimits
 from rangeret.submission.leaderboard import DEFAULT_NAME, DEFAULT_URL, LeaderboardEntry
+
+if TYPE_CHECKING:
+    from rangeret.adapt.tree import AdaptPlan
 
 log = logging.getLogger("rangeret")
 
@@ -130,6 +134,76 @@ def add_offset_option(parser: argparse.ArgumentParser, help: str) -> None:
         metavar=("DX", "DY", "DZ"),
         help=help,
     )
+
+
+def add_adapt_options(p: argparse.ArgumentParser) -> None:
+    """The options of an adapt run (`rangeret adapt`, `python -m workers.adapt_job`): dataset,
+    profiles, output, selection, offset, label map and --overwrite."""
+    p.add_argument(
+        "--dataset", type=Path, required=True, metavar="ROOT", help="the labelled source dataset"
+    )
+    p.add_argument(
+        "--profile",
+        required=True,
+        metavar="SOURCE",
+        help="the source dataset's profile: a built-in name or a YAML file",
+    )
+    p.add_argument(
+        "--to-profile",
+        required=True,
+        metavar="TARGET",
+        help="the target sensor's profile (its beams, image, range, reflectance scale, record, "
+        "labels and layout): a built-in name or a YAML file",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        metavar="OUT",
+        help="the adapted dataset's root, outside ROOT (and not holding it)",
+    )
+    add_selection(p)
+    add_offset_option(
+        p,
+        "where the target sensor sits in the source sensor's frame (m: forward, left, up; "
+        "default 0 0 0): every point moves by minus this offset",
+    )
+    p.add_argument(
+        "--label-map",
+        type=Path,
+        metavar="MAP.yaml",
+        help="a YAML mapping `source raw id: target raw id` (many to one); without it raw ids "
+        "are kept and must be the target profile's",
+    )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="adapt every chosen scan again and replace its outputs, also where OUT/adapt.json "
+        "records other settings (without it, scans already adapted with these settings are "
+        "kept); the dataset itself is never written",
+    )
+
+
+def adapt_plan_from_args(args: argparse.Namespace) -> AdaptPlan:
+    """The adapt run the options of `add_adapt_options` ask for: profiles, offset and label map
+    checked, scans listed and `OUT/adapt.json` begun (`plan_adaptation`); every driver of
+    `adapt` starts here. `rangeret.adapt` loads only then, so that parsers stay light."""
+    from rangeret.adapt.resample import check_offset, check_profiles
+    from rangeret.adapt.tree import AdaptSettings, plan_adaptation
+    from rangeret.dataset.label_map import load_label_map
+
+    if args.version is not None:
+        raise CommandError("--version is for a dataset of tables; adapt reads folders of sequences")
+    source, target = load_profile(args.profile), load_profile(args.to_profile)
+    check_profiles(source, target)
+    settings = AdaptSettings(
+        source,
+        target,
+        check_offset(args.sensor_offset),
+        None if args.label_map is None else load_label_map(args.label_map, target),
+    )
+    sequences = selected_sequences(args, source, args.dataset, doing="adapting")
+    return plan_adaptation(args.dataset, args.out, sequences, settings, overwrite=args.overwrite)
 
 
 def add_profile_option(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:

@@ -20,11 +20,10 @@ import logging
 import sys
 from collections.abc import Sequence
 
-from rangeret.adapt import AdaptSettings, AdaptStats, ScanJob, adapt_one
-from rangeret.adapt.runs import add_adapt_arguments, plan_from_args, report
+from rangeret.adapt import AdaptSettings, AdaptStats, ScanJob, adapt_one, finish, summary
 from rangeret.commands import CommandError, run_command
 from rangeret.exceptions import RangeRetError
-from rangeret.options import add_output_options
+from rangeret.options import adapt_plan_from_args, add_adapt_options, add_output_options
 from workers.cluster import connect
 
 log = logging.getLogger("workers.adapt_job")
@@ -38,7 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m workers.adapt_job", description=__doc__.split("\n\n")[0]
     )
-    add_adapt_arguments(p)
+    add_adapt_options(p)
     p.add_argument(
         "--task-cpus",
         type=float,
@@ -61,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.task_cpus > 0:
         raise CommandError(f"--task-cpus must be positive, got {args.task_cpus:g}")
-    plan = plan_from_args(args)
+    plan = adapt_plan_from_args(args)
     todo = plan.todo
     log.info(
         "%d scans of %s: %d to adapt, %d already done",
@@ -77,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
         settings = ray.put(plan.settings)
         window = max(1, int(ray.cluster_resources().get("CPU", 1) * IN_FLIGHT_PER_CPU))
         results = _gather(task, settings, todo, window, progress=not args.quiet)
-    return report(plan, results)
+    print(summary(plan, results, finish(plan, results)))
+    return 0
 
 
 def _gather(

@@ -8,7 +8,8 @@ Ray job can hand the jobs of step 2 to its workers):
    outputs, marks those an earlier run with the same settings finished, and records the settings
    in `OUT/adapt.json` before anything else is written;
 2. `adapt_one` reads one scan and its labels, adapts them (`adapt_scan`) and writes them;
-3. `finish` writes `OUT/adapt.json` with the counts of the scans adapted.
+3. `finish` writes `OUT/adapt.json` with the counts of the scans adapted, and `summary` says
+   what was adapted, dropped and left empty, for the driver to print.
 
 An output folder that is, holds or lies inside the dataset is refused, so no input is ever
 replaced; settings other than those `adapt.json` records need `overwrite`.
@@ -181,6 +182,31 @@ def finish(plan: AdaptPlan, results: Iterable[AdaptStats]) -> Path:
     this run (`scans.skipped`: those an earlier run finished); its path."""
     total = sum(results, AdaptStats())
     return _write_info(plan, total)
+
+
+def summary(plan: AdaptPlan, results: Iterable[AdaptStats], record: Path) -> str:
+    """What the run adapted, dropped and left empty, the target's beams no source point can
+    reach, and `record` (the `OUT/adapt.json` that `finish` wrote), in lines."""
+    total = sum(results, AdaptStats())
+    skipped = f" ({plan.skipped} already there)" if plan.skipped else ""
+    lines = [f"scans adapted into {plan.out}: {total.scans}{skipped}"]
+    if total.scans:
+        lines.append(
+            f"points: {total.points_kept:,} of {total.points_in:,} kept; dropped "
+            f"{total.dropped_fov:,} outside the field of view, {total.dropped_range:,} out of "
+            f"range, {total.dropped_collisions:,} on a pixel another point won"
+        )
+    if total.empty_scans:
+        lines.append(f"{total.empty_scans} scan(s) kept no point and were left out")
+    source, target = plan.settings.source, plan.settings.target
+    beams = unmeasured_beams(source, target)
+    if beams:
+        lines.append(
+            f"{len(beams)} beam(s) of {target.name} lie outside the source's field of view and "
+            f"stay empty: {', '.join(map(str, beams))}"
+        )
+    lines.append(f"record: {record}")
+    return "\n".join(lines)
 
 
 def read_adapt_info(out: Path | str) -> dict[str, Any]:

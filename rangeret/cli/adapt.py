@@ -5,21 +5,16 @@ from __future__ import annotations
 
 import argparse
 
+from rangeret.options import adapt_plan_from_args, add_adapt_options
 from rangeret.plugins import Subcommand
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    from rangeret.adapt.runs import add_adapt_arguments
-
-    add_adapt_arguments(p)
-
-
 def run(args: argparse.Namespace) -> int:
-    """Adapt every scan of the chosen sequences to the target profile, in this process."""
-    from rangeret.adapt import AdaptStats, adapt_one
-    from rangeret.adapt.runs import plan_from_args, report
+    """Adapt every scan of the chosen sequences to the target profile, in this process, and
+    print what was adapted."""
+    from rangeret.adapt import AdaptStats, adapt_one, finish, summary
 
-    plan = plan_from_args(args)
+    plan = adapt_plan_from_args(args)
     todo = plan.todo
     results: list[AdaptStats] = []
     bar = None
@@ -35,9 +30,10 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if bar is not None:
             bar.close()
-    return report(plan, results)
+    print(summary(plan, results, finish(plan, results)))
+    return 0
 
 
 COMMAND = Subcommand(
-    "adapt", "resample a labelled dataset to another sensor's profile", add_arguments, run
+    "adapt", "resample a labelled dataset to another sensor's profile", add_adapt_options, run
 )
