@@ -1,4 +1,5 @@
-# The two commands of the quick start: `make demo` (the main job) and `make test` (the whole suite).
+# The two commands of the quick start: `make demo` (the main job) and `make test` (the whole suite);
+# `make check` is the fast loop: lint and the tests not marked slow.
 # Both build the virtual environment in .venv and the gateway's web page (`make web`) on first use;
 # `make test` also installs chromium for the browser tests (as root; otherwise it names the command).
 # The environment holds every extra (`.[all,dev]`: Ray, the gateway, ONNX, the hub, the test tools).
@@ -53,7 +54,7 @@ IMAGE_BUILD_ARGS := --build-arg PYTHON=python$(IMAGE_PYTHON) --build-arg TORCH_B
 # The image test's tools (podman, and mmdebstrap for its base), installed when missing (as root).
 PODMAN_INSTALL := apt-get update && apt-get install -y podman buildah runc mmdebstrap
 
-.PHONY: demo test lint web browser netns bench gpu-check clean wheelhouse image podman image-test
+.PHONY: demo test check lint web browser netns bench gpu-check clean wheelhouse image podman image-test
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -90,6 +91,10 @@ netns:
 
 test: lint $(WEB_STAMP) browser netns
 	$(BIN)/python -m pytest
+
+# The slow tests (Ray clusters, the browser, whole runs) are left out, and with them the browser.
+check: lint $(WEB_STAMP) netns
+	$(BIN)/python -m pytest -m "not slow"
 
 wheelhouse: $(STAMP)
 	rm -rf deploy/wheelhouse/$(WHEELHOUSE)
