@@ -10,7 +10,9 @@ more, waiting at most `max_wait` seconds after the oldest arrived for the batch 
 hands the whole batch to the scan worker in a worker thread; the worker runs one network pass per
 set of equal options (`rangeret.inference.scan_worker.group_by_options`, as a Serve replica
 does). While a batch is in the network, new requests gather, so under load batches fill without
-waiting. The event loop only moves arrays around.
+waiting. The event loop only moves arrays around. The dispatcher runs while requests wait and
+ends once none is left, so an idle batcher holds nothing on the event loop: a model's network is
+gone as soon as the pool that evicted it and the requests it answered let go of it.
 """
 
 from __future__ import annotations
@@ -54,15 +56,18 @@ class ScanBatcher:
         self._arrived = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self._running = 0
+        #: Whether requests are taken (between `start` and `stop`).
+        self.accepting = False
 
     async def start(self, on_batch: Callable[[int, float], None] | None = None) -> None:
-        """Start the dispatcher on the serving event loop; `on_batch(size, seconds)` is called
-        after each batch."""
+        """Take requests from now on (on the serving event loop); `on_batch(size, seconds)` is
+        called after each batch."""
         self.on_batch = on_batch
-        self._task = asyncio.create_task(self._dispatch(), name="batcher")
+        self.accepting = True
 
     async def stop(self) -> None:
-        """Stop the dispatcher and fail the requests still waiting."""
+        """Take no more requests, stop the dispatcher and fail the requests still waiting."""
+        self.accepting = False
         if self._task is not None:
             self._task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -75,11 +80,17 @@ class ScanBatcher:
 
     async def label_request(self, request: ScanRequest) -> ScanPrediction:
         """One scan labelled within a batch: raw labels (uint32, one per point) and, when asked,
-        their confidences; `ScanRejected` when the worker refuses the scan itself."""
+        their confidences; `ScanRejected` when the worker refuses the scan itself, `BackendError`
+        before `start` or after `stop`."""
+        if not self.accepting:
+            raise BackendError("the gateway is not taking scans now (starting or shutting down)")
         loop = asyncio.get_running_loop()
-        self._queue.append(_Waiting(request, loop.time(), loop.create_future()))
+        waiting = _Waiting(request, loop.time(), loop.create_future())
+        self._queue.append(waiting)
         self._arrived.set()
-        return await self._queue[-1].future
+        if self._task is None or self._task.done():
+            self._task = asyncio.create_task(self._dispatch(), name="batcher")
+        return await waiting.future
 
     def waiting(self) -> int:
         """Requests queued and not yet sent to the worker."""
@@ -101,12 +112,9 @@ class ScanBatcher:
                 batch.append(waiting)
         return batch
 
-    async def _wait_for_arrival(self, timeout: float | None) -> bool:
+    async def _wait_for_arrival(self, timeout: float) -> bool:
         """Wait until a request arrives; False when `timeout` passed first."""
         self._arrived.clear()
-        if timeout is None:
-            await self._arrived.wait()
-            return True
         try:
             await asyncio.wait_for(self._arrived.wait(), timeout)
         except asyncio.TimeoutError:
@@ -114,10 +122,9 @@ class ScanBatcher:
         return True
 
     async def _dispatch(self) -> None:
+        """Send batches to the worker while requests wait; return once none is left."""
         loop = asyncio.get_running_loop()
-        while True:
-            while not self._queue:
-                await self._wait_for_arrival(None)
+        while self._queue:
             deadline = self._queue[0].arrived + self.max_wait
             while self._live() < self.batch_size:
                 remaining = deadline - loop.time()

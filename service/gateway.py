@@ -85,7 +85,8 @@ class Gateway:
 
     @property
     def profile(self) -> DatasetProfile:
-        """The default model's profile (what jobs run with)."""
+        """The default model's profile: that of a request or job that names no model (each job
+        runs with its own model's), the one `/healthz` and the gateway's info metric report."""
         return self.models.default_entry.profile
 
     @property

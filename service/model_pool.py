@@ -6,7 +6,9 @@ run): a held model is never evicted. A model that is not loaded and finds every 
 `PoolFull`, which the gateway answers with a 503 and `Retry-After`. Loading and evicting happen
 under one lock, the load itself outside it (a request for a loaded model never waits for
 another's load), and two requests never load the same model twice; evicting calls `unload` and
-forgets the object, and a later use loads it again (the checkpoint read again).
+forgets the object, and a later use loads it again (the checkpoint read again). The pool is the
+only long-lived holder of what it loaded, so the objects alive are those `loaded` names plus any
+a holder still uses: an evicted network is freed once its last user lets go.
 """
 
 from __future__ import annotations
@@ -83,17 +85,11 @@ class ModelPool(Generic[T]):
         with self._lock:
             self._holds[name] -= 1
 
-    def preload(self, name: str, item: T) -> bool:
-        """Keep `item`, loaded by other means, as the model `name` while a slot is free (a model
-        already loaded is kept as it is); whether it was kept."""
+    def free_slots(self) -> int:
+        """Slots neither loaded nor being loaded: how many models a use loads now without
+        evicting one."""
         with self._lock:
-            if name in self._loaded:
-                return True
-            if len(self._loaded) + len(self._loading) >= self.max_loaded:
-                return False
-            self._loaded[name] = item
-            self.loads[name] += 1
-            return True
+            return self.max_loaded - len(self._loaded) - len(self._loading)
 
     def items(self) -> list[tuple[str, T]]:
         """The loaded models and their objects, least recently used first."""

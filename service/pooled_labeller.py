@@ -4,14 +4,15 @@ Each loaded model is a `ModelRuntime`: its predictor (shared with the gateway's 
 behind its own `ScanBatcher`, so batches stay per model. `PooledLabeller` takes a request's
 model from the `ModelPool`, which keeps at most `--max-loaded` of them: the model is held while
 its scan is labelled, loaded first where it is not (in a worker thread), and a model that cannot
-be loaded because every slot is held by running jobs is a `BackendError` (503, Retry-After).
+be loaded because every slot is held by running jobs is a `BackendError` (503, Retry-After). The
+labeller keeps no model of its own: what the pool evicts is gone once its last request ends.
 """
 
 from __future__ import annotations
 
 import asyncio
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -30,8 +31,6 @@ class ModelRuntime:
 
     batcher: ScanBatcher
     predictor: Predictor | None = None
-    #: Started on the serving event loop at its first scan.
-    started: bool = field(default=False, init=False)
 
 
 class PooledLabeller:
@@ -41,48 +40,34 @@ class PooledLabeller:
 
     def __init__(self, pool: ModelPool[ModelRuntime]) -> None:
         self.pool = pool
-        pool.unload = self.unload
         self._on_batch: Callable[[int, float], None] | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._starting = asyncio.Lock()
-
-    def unload(self, runtime: ModelRuntime) -> None:
-        """The pool's `unload`: stop an evicted model's batcher on the serving loop (nobody holds
-        it, so no request waits in it)."""
-        if runtime.started and self._loop is not None:
-            self._loop.call_soon_threadsafe(asyncio.ensure_future, runtime.batcher.stop())
+        self._serving = False
 
     async def start(self, on_batch: Callable[[int, float], None] | None = None) -> None:
-        """Remember the serving loop and start the batchers of the models loaded already."""
+        """Take scans from now on; `on_batch(size, seconds)` is called after each batch of any
+        model."""
         self._on_batch = on_batch
-        self._loop = asyncio.get_running_loop()
-        for _, runtime in self.pool.items():
-            await self._started(runtime)
+        self._serving = True
 
     async def stop(self) -> None:
         """Stop every loaded model's batcher; requests still waiting fail."""
+        self._serving = False
         for _, runtime in self.pool.items():
-            if runtime.started:
-                await runtime.batcher.stop()
-                runtime.started = False
-
-    async def _started(self, runtime: ModelRuntime) -> ModelRuntime:
-        async with self._starting:
-            if not runtime.started:
-                await runtime.batcher.start(self._on_batch)
-                runtime.started = True
-        return runtime
+            await runtime.batcher.stop()
 
     async def label_points(
         self, points: np.ndarray, knn: bool = True, confidence: bool = False, *, model: str
     ) -> ScanPrediction:
         """One scan labelled by `model` within a batch of that model's scans."""
+        if not self._serving:
+            raise BackendError("the gateway is not taking scans now (starting or shutting down)")
         try:
             runtime = await asyncio.to_thread(self.pool.acquire, model)
         except PoolFull as exc:
             raise BackendError(str(exc)) from exc
         try:
-            await self._started(runtime)
+            if not runtime.batcher.accepting:  # loaded since the labeller started
+                await runtime.batcher.start(self._on_batch)
             return await runtime.batcher.label_request(ScanRequest(points, knn, confidence))
         finally:
             self.pool.release(model)

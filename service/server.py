@@ -1,14 +1,17 @@
-"""`rangeret serve`: build the single-scan labeller and the job executor, then run the gateway on
-uvicorn.
+"""`rangeret serve`: check the models, build the single-scan labeller and the job executor, then
+run the gateway on uvicorn.
 
 On a cluster, single scans go to the Serve application at `--serve-url` (RANGERET_SERVE_URL,
 `workers.serve_app`) and jobs become Ray jobs through the Jobs API at `--jobs-address`
 (RANGERET_JOBS_ADDRESS); without them, each runs in this process (`ScanBatcher`,
-`predict_tree`) on one network: the checkpoint is read once, and single scans and job batches
-take turns on the network, one pass at a time. Options given on the command line win over
-RANGERET_* variables. With `--models` (RANGERET_MODELS) it serves several networks by name, each
-with its own profile, at most `--max-loaded` of them loaded at once; a plain `--checkpoint` is
-the one model `default`.
+`predict_tree`) on the networks of the gateway's pool (`ModelPool`): a model's single scans and
+job batches take turns on its one network, one pass at a time. Options given on the command line
+win over RANGERET_* variables. With `--models` (RANGERET_MODELS) it serves several networks by
+name, each with its own profile; a plain `--checkpoint` is the one model `default`. Every
+model's checkpoint is checked at start, but only the networks the pool keeps are built: at most
+`--max-loaded` (the default model first), the others loaded on first use, the least recently
+used one that nothing holds evicted and freed first, so the process holds at most `--max-loaded`
+networks. A model loaded at start reads its checkpoint once.
 """
 
 from __future__ import annotations
@@ -31,8 +34,8 @@ from service.jobs import JobExecutor
 from service.settings import Settings
 
 if TYPE_CHECKING:  # torch is imported when the gateway starts, not to build its parser
-    from rangeret.inference.loader import LoadedWeights
     from rangeret.inference.models_file import ModelSet
+    from service.model_loader import ModelLoader
     from service.model_pool import ModelPool
     from service.pooled_labeller import ModelRuntime
     from service.served_models import ModelCatalog
@@ -148,64 +151,34 @@ def model_set(args: argparse.Namespace, settings: Settings) -> ModelSet:
         raise CommandError(str(exc)) from exc
 
 
-def check_models(models: ModelSet) -> dict[str, LoadedWeights]:
-    """Every model's weights, loaded once each to check them (checkpoint, pin, profile, class
-    count), by name; a `CommandError` naming the model for one a gateway cannot serve."""
+def check_models(
+    models: ModelSet, loader: ModelLoader, pool: ModelPool[ModelRuntime] | None
+) -> ModelCatalog:
+    """The catalog of the models, each checked once (checkpoint, pin, profile, class count), the
+    default first: those the pool has room for are loaded into it from that one read, the others
+    identified without building their network (`ModelLoader.check`); a `CommandError` naming the
+    model for one a gateway cannot serve."""
     from rangeret.exceptions import RangeRetError
-    from rangeret.inference.loader import load_weights
+    from service.served_models import ModelCatalog
 
-    loaded = {}
-    for name, spec in models:
+    for name in [models.default, *(n for n in models.names if n != models.default)]:
         try:
-            weights = load_weights(spec)
+            loader.check(name, pool)
         except RangeRetError as exc:
             if len(models) == 1:
                 raise
             raise CommandError(f"model {name}: {exc}") from exc
-        if spec.backend == "onnxruntime" and spec.onnx is None:
-            weights.export_onnx()  # once here, so that workers started next load it from the cache
-        loaded[name] = weights
-    return loaded
+    return ModelCatalog.identified(models, loader.identities)
 
 
-def catalog_of(models: ModelSet, loaded: dict[str, LoadedWeights]) -> ModelCatalog:
-    """What the gateway knows of each model from checking it."""
-    from service.served_models import ModelCatalog
-
-    return ModelCatalog.identified(models, {name: w.identity for name, w in loaded.items()})
-
-
-def build_pool(
-    settings: Settings, models: ModelSet, loaded: dict[str, LoadedWeights]
-) -> ModelPool[ModelRuntime]:
-    """The pool of networks loaded in this process: the checked weights kept up to
-    `max_loaded` (the default model first), the rest loaded again on first use."""
-    from rangeret.inference.loader import load_weights
+def build_pool(settings: Settings, loader: ModelLoader) -> ModelPool[ModelRuntime]:
+    """The pool of networks loaded in this process, at most `max_loaded`, each loaded by
+    `loader` on first use (and again after its eviction)."""
     from rangeret.inference.scan_worker import use_cpus
     from service.model_pool import ModelPool
 
     use_cpus(float(os.cpu_count() or 1))  # the networks have the gateway's machine to themselves
-    pool: ModelPool[ModelRuntime] = ModelPool(
-        models.names,
-        lambda name: _runtime(settings, models.spec(name), load_weights(models.spec(name))),
-        max_loaded=settings.max_loaded,
-    )
-    for name in [models.default, *(n for n in models.names if n != models.default)]:
-        pool.preload(name, _runtime(settings, models.spec(name), loaded[name]))
-    return pool
-
-
-def _runtime(settings: Settings, spec: InferenceSpec, weights: LoadedWeights) -> ModelRuntime:
-    """One loaded model: its predictor behind a batcher of the gateway's batch size."""
-    from rangeret.inference.predictor import Predictor
-    from rangeret.inference.scan_worker import ScanWorker
-    from service.batching import ScanBatcher
-    from service.pooled_labeller import ModelRuntime
-
-    predictor = Predictor(weights, spec)
-    worker = ScanWorker(predictor)
-    batcher = ScanBatcher(worker, settings.batch_size, settings.batch_wait_ms / 1000)
-    return ModelRuntime(batcher, predictor)
+    return ModelPool(loader.models.names, loader, max_loaded=settings.max_loaded)
 
 
 def build_labeller(
@@ -266,6 +239,7 @@ def run_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from service.app import create_app
+    from service.model_loader import ModelLoader
     from service.protocols import GatewayProtocol
 
     logging.getLogger("httpx").setLevel(logging.WARNING)  # no line per request to Serve
@@ -278,10 +252,10 @@ def run_serve(args: argparse.Namespace) -> int:
     check_state(settings)  # before minutes of loading weights
     args.batch_size = settings.batch_size
     models = model_set(args, settings)
-    loaded = check_models(models)
-    catalog = catalog_of(models, loaded)
+    loader = ModelLoader(models, settings.batch_size, settings.batch_wait_ms / 1000)
     in_process = not (settings.serve_url and settings.jobs_address)
-    pool = build_pool(settings, models, loaded) if in_process else None
+    pool = build_pool(settings, loader) if in_process else None
+    catalog = check_models(models, loader, pool)
     labeller = build_labeller(settings, catalog, pool)
     executor = build_executor(settings, catalog, pool)
     for entry in catalog:

@@ -23,11 +23,10 @@ def one_model(
 
 
 def pooled(worker: object, name: str = "default") -> PooledLabeller:
-    """A pooled labeller whose one loaded model is `worker` (a `ScanWorker` or a fake one)."""
-    pool: ModelPool[ModelRuntime] = ModelPool([name], _unloadable)
-    pool.preload(name, ModelRuntime(ScanBatcher(worker), getattr(worker, "predictor", None)))
+    """A pooled labeller whose one model is `worker` (a `ScanWorker` or a fake one), loaded
+    before the gateway starts as `rangeret serve` loads its default model."""
+    runtime = ModelRuntime(ScanBatcher(worker), getattr(worker, "predictor", None))
+    pool: ModelPool[ModelRuntime] = ModelPool([name], lambda _: runtime)
+    pool.acquire(name)
+    pool.release(name)
     return PooledLabeller(pool)
-
-
-def _unloadable(name: str) -> ModelRuntime:
-    raise AssertionError(f"the model {name} was evicted in a test whose pool never evicts")

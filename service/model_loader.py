@@ -1,0 +1,72 @@
+"""What the gateway's pool loads: a served model's network, built from its checkpoint, moved to
+its device and warmed up behind its own batcher.
+
+`ModelLoader` is the `ModelPool`'s `load`. It keeps what checking each model found (its
+`WeightsIdentity`, which the catalog describes) and refuses weights whose checkpoint has changed
+since, as a model evicted and used again reads its checkpoint again. At start `ModelLoader.check`
+checks every model once: one the pool has room for is loaded into it from that one read of its
+checkpoint, any other is identified without building its network, so a gateway builds only the
+networks its pool keeps.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from rangeret.inference.loader import WeightsIdentity, identify_weights, load_weights
+from rangeret.inference.models_file import ModelSet
+from rangeret.inference.predictor import Predictor
+from rangeret.inference.scan_worker import ScanWorker
+from service.batching import ScanBatcher
+from service.model_pool import ModelPool
+from service.pooled_labeller import ModelRuntime
+
+
+class ModelLoader:
+    """Loads the models of a `ModelSet` for the pool, each behind a batcher of `batch_size`
+    scans gathered for at most `max_wait` seconds."""
+
+    def __init__(self, models: ModelSet, batch_size: int = 1, max_wait: float = 0.01) -> None:
+        self.models = models
+        self.batch_size = batch_size
+        self.max_wait = max_wait
+        #: Each model's weights as first checked, by name.
+        self.identities: dict[str, WeightsIdentity] = {}
+
+    def __call__(self, name: str) -> ModelRuntime:
+        """The model `name` loaded: its checkpoint read, checked against what it was at start,
+        its network built, moved to its device and warmed up."""
+        if torch.cuda.is_available():
+            torch.cuda.empty_cache()  # the device memory of the networks evicted before this load
+        spec = self.models.spec(name)
+        weights = load_weights(spec)
+        checked = self.identities.setdefault(name, weights.identity)
+        weights.identity.check_same(
+            checked.describe(), name, "the gateway started", "restart the gateway to serve it"
+        )
+        predictor = Predictor(weights, spec)
+        batcher = ScanBatcher(ScanWorker(predictor), self.batch_size, self.max_wait)
+        return ModelRuntime(batcher, predictor)
+
+    def identify(self, name: str) -> WeightsIdentity:
+        """The identity of the model `name`, its network not built, except where an onnxruntime
+        export must be made now (so that workers started next load it from the cache): then it
+        is built for the export and dropped."""
+        spec = self.models.spec(name)
+        if spec.backend == "onnxruntime" and spec.onnx is None:
+            weights = load_weights(spec)
+            weights.export_onnx()
+            identity = weights.identity
+        else:
+            identity = identify_weights(spec)
+        self.identities[name] = identity
+        return identity
+
+    def check(self, name: str, pool: ModelPool[ModelRuntime] | None) -> WeightsIdentity:
+        """Check the model `name` at start: loaded into `pool` where it has a free slot, else
+        identified (`identify`); its identity either way."""
+        if pool is None or not pool.free_slots():
+            return self.identify(name)
+        pool.acquire(name)  # loaded by this loader, which records what it found
+        pool.release(name)
+        return self.identities[name]
