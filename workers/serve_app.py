@@ -7,7 +7,10 @@ has or can add GPUs) serve one or several models by name (`workers.serve_argumen
 arguments). A request names its model with Serve's `serve_multiplexed_model_id` header (none: the
 default model); a replica keeps at most `max_num_models_per_replica` networks loaded, loading on
 first use and unloading the least recently used one (`@serve.multiplexed`), and Serve routes a
-request to a replica that has its model loaded. Each replica gathers concurrent requests into
+request to a replica that has its model loaded. A replica holds no network of its own beyond
+Serve's: its batches name their model by a weak reference (Serve's batcher keeps its last batch
+until the next one), so an unloaded model's network is freed once its last request is answered,
+and its device memory released before the next network is built. Each replica gathers concurrent requests into
 batches of up to `batch_size` scans of one model (`@serve.batch`) and answers in the exchange of
 `workers.scan_wire` through a FastAPI app (`@serve.ingress`). `batch_size` and `batch_wait_ms`
 reach the replicas as the deployment's `user_config`, so a Serve config that changes them there
@@ -22,6 +25,7 @@ import asyncio
 import logging
 import os
 import time
+import weakref
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -122,6 +126,8 @@ class ScanModel:
         """The model `name`'s network, whose checkpoint must be the one the application was
         built with."""
         started = time.perf_counter()
+        if torch.cuda.is_available():
+            torch.cuda.empty_cache()  # the device memory of the networks Serve unloaded
         predictor = Predictor.from_spec(self.models.spec(name))
         predictor.weights.identity.check_same(
             self.built[name], name, "the application was built", "deploy it again"
@@ -135,8 +141,6 @@ class ScanModel:
         """Forget a model Serve unloaded (unless it has been loaded again since)."""
         if self._loaded.get(model.name) == id(model):
             del self._loaded[model.name]
-            if torch.cuda.is_available():
-                torch.cuda.empty_cache()
 
     def reconfigure(self, config: Mapping[str, Any]) -> None:
         """Serve's `user_config`: the batch size and wait, changed in place on running replicas."""
@@ -149,16 +153,20 @@ class ScanModel:
 
     @serve.batch(max_batch_size=1, batch_wait_timeout_s=DEFAULT_BATCH_WAIT_MS / 1000)
     async def label_one(
-        self, models: list[ReplicaModel], requests: list[ScanRequest]
+        self, models: list[weakref.ref[ReplicaModel]], requests: list[ScanRequest]
     ) -> list[ScanOutcome]:
         """A batch of requests labelled, one network pass per model and set of equal options
-        (Serve gathers the requests of one model into a batch)."""
-        return await asyncio.to_thread(self._label, models, requests)
+        (Serve gathers the requests of one model into a batch); each request names its model by
+        a weak reference, alive while the request holds the model."""
+        return await asyncio.to_thread(self._label, [ref() for ref in models], requests)
 
-    def _label(self, models: list[ReplicaModel], requests: list[ScanRequest]) -> list[ScanOutcome]:
+    def _label(
+        self, models: list[ReplicaModel | None], requests: list[ScanRequest]
+    ) -> list[ScanOutcome]:
         results: list[ScanOutcome] = [""] * len(requests)
         try:
             for model in {id(m): m for m in models}.values():
+                assert model is not None  # its request holds it until answered
                 indices = [i for i, m in enumerate(models) if m is model]
                 labelled = model.worker.label_requests([requests[i] for i in indices])
                 for i, result in zip(indices, labelled, strict=True):
@@ -210,7 +218,7 @@ class ScanModel:
             points = parse_scan(body, "the scan", record=model.worker.profile.points)
         except ScanFormatError as exc:
             return JSONResponse({"detail": f"The scan is malformed: {exc.problem}."}, 400)
-        result = await self.label_one(model, ScanRequest(points, knn, confidence))
+        result = await self.label_one(weakref.ref(model), ScanRequest(points, knn, confidence))
         if isinstance(result, str):
             return JSONResponse({"detail": f"The scan cannot be projected: {result}."}, 422)
         body, headers = encode_labels(result)
