@@ -21,6 +21,7 @@ from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect, Request
 
 from service.errors import ApiError
+from service.settings import Settings
 
 #: Bytes beyond a limit that are still read (and dropped) so the client sees the 413.
 DRAIN_MAX = 64 << 20
@@ -45,6 +46,16 @@ def declared_length(request: Request) -> int | None:
     if length < 0:
         raise ApiError(400, "The Content-Length header is negative.")
     return length
+
+
+async def refused_body(
+    request: Request, settings: Settings, error: ApiError, *, upload: bool = False
+) -> ApiError:
+    """`error`, to raise once what is left of the body it refuses is dropped (within the
+    settings' body limit and the body's, or with `upload` an upload's, time limit)."""
+    timeout = settings.upload_timeout_s if upload else settings.body_timeout_s
+    await drain(request, settings.max_body_bytes, timeout=timeout)
+    return error
 
 
 async def drain(

@@ -29,16 +29,11 @@ _SUFFIX = {"velodyne": "bin", "labels": "label"}
 
 
 class ArchiveError(ValueError):
-    """An upload that is not a safe archive in the expected layout (answered with 400)."""
-
-    status_code = 400
+    """An upload that is not a safe archive in the expected layout."""
 
 
 class ArchiveTooLarge(ArchiveError):
-    """An archive over the member-count, size, extracted-size or points limits (answered with
-    413)."""
-
-    status_code = 413
+    """An archive over the member-count, size, extracted-size or points limits."""
 
 
 @dataclass

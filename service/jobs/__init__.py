@@ -7,7 +7,9 @@ what they build on.
   `JobControl` the runner stops a job by;
 - `ray_jobs`: `RayJobExecutor`, each job a Ray job submitted through a cluster's Jobs API (Ray
   is imported only when it is used);
-- `capacity`: `JobRefused` and the queue and disk bounds a new job must fit in;
+- `errors`: what goes wrong when a job is asked for (`BadJobRequest`, `JobRefused`, ...), said
+  without HTTP: the routes answer each with its status;
+- `capacity`: the queue and disk bounds a new job must fit in;
 - `intake`: `JobIntake`, a new job's folder prepared from an upload or a dataset on the server,
   checked and queued;
 - `work`: `JobWork`, a claimed job's work: predict, check, zip, evaluate, final record;
@@ -17,7 +19,8 @@ what they build on.
   expires jobs.
 """
 
-from service.jobs.capacity import JobRefused, disk_full, expected_output_bytes
+from service.jobs.capacity import disk_full, expected_output_bytes
+from service.jobs.errors import JobRefused
 from service.jobs.executors import JobControl, JobError, JobExecutor, LocalExecutor
 from service.jobs.manager import JobManager
 from service.jobs.results import write_predictions_zip

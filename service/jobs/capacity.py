@@ -14,14 +14,7 @@ from pathlib import Path
 
 from rangeret.dataset.layout import ScanEntry
 from rangeret.io.scans import LABEL_BYTES, PointRecord
-
-
-class JobRefused(Exception):
-    """A job the gateway cannot take now: `status_code` 429 (queue full) or 507 (disk full)."""
-
-    def __init__(self, status_code: int, sentence: str) -> None:
-        super().__init__(sentence)
-        self.status_code = status_code
+from service.jobs.errors import NoRoom, QueueFull
 
 
 def expected_output_bytes(entries: Iterable[ScanEntry], record: PointRecord) -> int:
@@ -47,28 +40,25 @@ def folder_bytes(folder: Path) -> int:
     return total
 
 
-def queue_full(max_queued: int) -> JobRefused:
-    """The 429 answer when `max_queued` jobs wait already."""
-    return JobRefused(
-        429,
+def queue_full(max_queued: int) -> QueueFull:
+    """The refusal when `max_queued` jobs wait already."""
+    return QueueFull(
         f"The gateway has {max_queued:,} jobs waiting, its limit (RANGERET_MAX_QUEUED_JOBS); "
         "try again when one has started.",
     )
 
 
-def disk_short(need: int, free: int, folder: Path) -> JobRefused:
-    """The 507 answer when a job's `need` is more than the disk of the job folders has free."""
-    return JobRefused(
-        507,
+def disk_short(need: int, free: int, folder: Path) -> NoRoom:
+    """The refusal when a job's `need` is more than the disk of the job folders has free."""
+    return NoRoom(
         f"The job needs about {need:,} bytes of disk and the disk of the job folders ({folder}) "
         f"has {free:,} bytes free; free space there, or try again later.",
     )
 
 
-def disk_full(need: int, used: int, max_bytes: int) -> JobRefused:
-    """The 507 answer when a job's `need` does not fit beside the `used` bytes."""
-    return JobRefused(
-        507,
+def disk_full(need: int, used: int, max_bytes: int) -> NoRoom:
+    """The refusal when a job's `need` does not fit beside the `used` bytes."""
+    return NoRoom(
         f"The job needs about {need:,} bytes of disk and the job folders hold or expect "
         f"{used:,} of their {max_bytes:,} bytes (RANGERET_MAX_JOB_BYTES); remove finished jobs "
         "or try again later.",

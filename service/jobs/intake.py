@@ -1,15 +1,16 @@
 """A new job's intake: its folder prepared from an uploaded archive or a dataset on the server,
 checked, and queued.
 
-An archive job is refused before its upload is read when the queue is full (429) or its declared
-length does not fit in the disk the job folders may use (507); the upload is received into a new
+An archive job is refused before its upload is read when the queue is full or its declared
+length does not fit in the disk the job folders may use; the upload is received into a new
 job folder, checked and extracted there (`service.archives`) by the rules its model's profile's
 layout gives, and the folder is removed again whatever stops it on the way. A dataset job names a
-folder under the data roots (403 outside them, 404 when absent) in its model's profile, with a
+folder under the data roots (`OutsideDataRoots`, `NoSuchDataset`) in its model's profile, with a
 split of that profile and, for a tables layout, a version (`service.jobs.selection`), and its
 scans must stay under the roots once links are resolved. Either is queued with the output its
-scans are expected to write (`service.jobs.capacity`). Every refusal is an `ApiError` with its
-status and sentence; the blocking steps run in worker threads, never on the event loop.
+scans are expected to write (`service.jobs.capacity`). Every refusal is one of
+`service.jobs.errors` (an `ArchiveError` for an archive its rules refuse), a sentence the routes
+answer with its status; the blocking steps run in worker threads, never on the event loop.
 """
 
 from __future__ import annotations
@@ -22,10 +23,14 @@ from pathlib import Path
 
 from rangeret.dataset.layout import DatasetLayoutError, ScanEntry
 from rangeret.dataset.selection import DatasetSelection, select_dataset
-from rangeret.dataset.upload_rules import ArchiveError
 from service.archives import ArchiveLimits, extract_with
-from service.errors import ApiError
-from service.jobs.capacity import JobRefused, disk_full, expected_output_bytes
+from service.jobs.capacity import disk_full, expected_output_bytes
+from service.jobs.errors import (
+    BadJobRequest,
+    NoRoom,
+    NoSuchDataset,
+    OutsideDataRoots,
+)
 from service.jobs.manager import JobManager
 from service.jobs.selection import check_selection, dataset_version, incomplete_split
 from service.jobs.store import JobRecord
@@ -66,10 +71,10 @@ class JobInput:
 
 
 def resolve_dataset(text: str, roots: Sequence[Path]) -> Path:
-    """The dataset folder named by a job request: 403 outside the data roots, 404 when absent."""
+    """The dataset folder named by a job request: `OutsideDataRoots` outside the data roots,
+    `NoSuchDataset` when absent."""
     if not roots:
-        raise ApiError(
-            403,
+        raise OutsideDataRoots(
             "No data roots are configured (RANGERET_DATA_ROOTS), so no dataset on the server can be used.",
         )
     try:
@@ -77,19 +82,14 @@ def resolve_dataset(text: str, roots: Sequence[Path]) -> Path:
         candidates = [path] if path.is_absolute() else [root / path for root in roots]
         inside = [c.resolve() for c in candidates]
     except (ValueError, OSError) as exc:
-        raise ApiError(400, f"The dataset path is not a usable path ({exc}).") from exc
+        raise BadJobRequest(f"The dataset path is not a usable path ({exc}).") from exc
     inside = [p for p in inside if any(p.is_relative_to(root) for root in roots)]
     if not inside:
-        raise ApiError(403, "The dataset path is outside the configured data roots.")
+        raise OutsideDataRoots("The dataset path is outside the configured data roots.")
     for candidate in inside:
         if candidate.is_dir():
             return candidate
-    raise ApiError(404, "There is no dataset folder at that path under the data roots.")
-
-
-def refused(exc: JobRefused) -> ApiError:
-    """The answer to a job the manager cannot take now, with its status and sentence."""
-    return ApiError(exc.status_code, str(exc))
+    raise NoSuchDataset("There is no dataset folder at that path under the data roots.")
 
 
 class JobIntake:
@@ -104,21 +104,18 @@ class JobIntake:
     # Checks before a body is read ---------------------------------------------------------
 
     def check_queue(self) -> None:
-        """429 when the queue is full, so a job is refused before its body is read."""
-        try:
-            self.jobs.check_queue()
-        except JobRefused as exc:
-            raise refused(exc) from exc
+        """`QueueFull` when the queue is full, so a job is refused before its body is read."""
+        self.jobs.check_queue()
 
     def check_upload(self, declared: int | None) -> None:
-        """507 when an upload's `declared` length (None: not declared) does not fit beside what
+        """`NoRoom` when an upload's `declared` length (None: not declared) does not fit beside what
         the job folders hold or expect (RANGERET_MAX_JOB_BYTES)."""
         if declared is None:
             return
         limit = self.settings.max_job_bytes
         used = self.jobs.disk_usage()
         if used + declared > limit:
-            raise refused(disk_full(declared, used, limit))
+            raise disk_full(declared, used, limit)
 
     # Archive jobs ---------------------------------------------------------------------------
 
@@ -134,13 +131,11 @@ class JobIntake:
 
     def extract_upload(self, upload: Path, folder: Path, model: ModelEntry) -> JobInput:
         """Check and extract the archive at `upload` into the job `folder` in the model's profile
-        (400 or 413 when it is not one the gateway takes), removing the upload; its input."""
+        (an `ArchiveError` when it is not one the gateway takes), removing the upload; its input."""
         profile = model.profile
         try:
             rules = profile.layout.upload_rules(profile.points)
             found = extract_with(upload, folder / DATA_DIR, self.archive_limits(), rules)
-        except ArchiveError as exc:
-            raise ApiError(exc.status_code, str(exc)) from exc
         finally:
             upload.unlink(missing_ok=True)
         selection = DatasetSelection(
@@ -153,7 +148,7 @@ class JobIntake:
     ) -> JobRecord:
         """A new job of `model` from an upload: `receive(path)` writes the upload into the new
         job's folder, which is then extracted and queued; the folder is removed when any step
-        fails, and a full disk is 507 naming the jobs folder."""
+        fails, and a full disk is `NoRoom` naming the jobs folder."""
         jobs = self.jobs
         job_id, folder = await asyncio.to_thread(jobs.new_job)
         try:
@@ -164,8 +159,7 @@ class JobIntake:
         except OSError as exc:
             await asyncio.to_thread(jobs.remove_files, job_id)
             if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-                raise ApiError(
-                    507,
+                raise NoRoom(
                     f"Insufficient storage: the disk of the jobs folder {jobs.jobs_dir} is full; "
                     "free space there, or upload a smaller archive.",
                 ) from exc
@@ -178,13 +172,12 @@ class JobIntake:
 
     def dataset_input(self, request: DatasetJobRequest, model: ModelEntry) -> JobInput:
         """The input a dataset job request names, in its model's profile and under the data
-        roots: 400 for another profile, a split or version the profile or dataset does not have
-        or a dataset that cannot be used, 403 outside the roots (links resolved), 404 when
-        absent."""
+        roots: `BadJobRequest` for another profile, a split or version the profile or dataset does
+        not have or a dataset that cannot be used, `OutsideDataRoots` outside the roots (links
+        resolved), `NoSuchDataset` when absent."""
         profile = model.profile
         if request.profile is not None and request.profile != profile.name:
-            raise ApiError(
-                400,
+            raise BadJobRequest(
                 f"The request is for the {request.profile[:64]!r} profile but the model "
                 f"{model.name} runs with the {profile.name!r} profile.",
             )
@@ -204,15 +197,15 @@ class JobIntake:
             if request.split is not None:
                 missing = selection.missing()
                 if missing:
-                    raise ApiError(
-                        400, incomplete_split(request.split, selection.sequences, missing)
+                    raise BadJobRequest(
+                        incomplete_split(request.split, selection.sequences, missing)
                     )
             entries = selection.scans()
         except (DatasetLayoutError, ValueError) as exc:
-            raise ApiError(400, f"The dataset cannot be used: {str(exc)[:400]}") from exc
+            raise BadJobRequest(f"The dataset cannot be used: {str(exc)[:400]}") from exc
         escaping = escaping_scans(entries, roots)
         if escaping:
-            raise ApiError(403, outside_roots_sentence(escaping))
+            raise OutsideDataRoots(outside_roots_sentence(escaping))
         return JobInput(selection, entries)
 
     async def dataset_job(self, request: DatasetJobRequest) -> JobRecord:
@@ -231,14 +224,11 @@ class JobIntake:
 
     async def submit(self, job_id: str, kind: str, found: JobInput, model: ModelEntry) -> JobRecord:
         """Queue a job of `model` whose folder is ready, with the output its scans are expected
-        to write; 429 or 507 when the gateway cannot take it now."""
+        to write; `JobRefused` when the gateway cannot take it now."""
         jobs = self.jobs
         expected = await asyncio.to_thread(
             expected_output_bytes, found.entries, model.profile.points
         )
-        try:
-            return await asyncio.to_thread(
-                jobs.submit, job_id, kind, found.selection, expected, model.name
-            )
-        except JobRefused as exc:
-            raise refused(exc) from exc
+        return await asyncio.to_thread(
+            jobs.submit, job_id, kind, found.selection, expected, model.name
+        )

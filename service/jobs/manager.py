@@ -133,7 +133,7 @@ class JobManager:
     # Life cycle -----------------------------------------------------------------------------
 
     def check_queue(self) -> None:
-        """`JobRefused` (429) when the queue is full, so an upload is refused before it is read."""
+        """`QueueFull` when the queue is full, so an upload is refused before it is read."""
         if self.max_queued is not None and self.store.count(JobState.queued) >= self.max_queued:
             raise queue_full(self.max_queued)
 
@@ -163,8 +163,9 @@ class JobManager:
         model: str | None = None,
     ) -> JobRecord:
         """Queue a job over the `selection` of the served model `model` (None: the default)
-        whose folder is ready, noting the profile it is accepted for, and wake a runner; `JobRefused` when the queue is full (429) or its `expected_bytes` of
-        output do not fit in the disk the jobs may use (507)."""
+        whose folder is ready, noting the profile it is accepted for, and wake a runner;
+        `QueueFull` when the queue is full, `NoRoom` when its `expected_bytes` of output do not
+        fit in the disk the jobs may use."""
         entry = self.models.entries[model or self.models.default]
         with self._admit_lock:
             self.check_queue()

@@ -1,7 +1,7 @@
 """What a dataset job reads of its dataset, checked against its model's profile: the `split` by the
 profile's own split names, and a tables layout's `version` (nuScenes' `v1.0-mini`, say).
 
-Each refusal is a 400 naming the request's field: a split the profile does not have (with the
+Each refusal is a `BadJobRequest` naming the request's field: a split the profile does not have (with the
 closest name, where one is close), a `version` for a model whose datasets are folders of
 sequences, a version the dataset does not hold, or none where it holds several; and a split whose
 sequences the dataset does not all hold, as `rangeret predict` refuses it without
@@ -16,20 +16,19 @@ from pathlib import Path
 
 from rangeret.dataset.layout import DatasetLayoutError
 from rangeret.dataset.nuscenes_tables import TableError
-from service.errors import ApiError
+from service.jobs.errors import BadJobRequest
 from service.schemas import DatasetJobRequest
 from service.served_models import ModelEntry
 
 
 def check_selection(request: DatasetJobRequest, model: ModelEntry) -> None:
-    """400 naming the field when `split` is not a split of the model's profile, or `version` is
+    """`BadJobRequest` naming the field when `split` is not a split of the model's profile, or `version` is
     given for a model whose profile reads folders of sequences."""
     profile = model.profile
     try:
         profile.layout.check_version(request.version)
     except DatasetLayoutError as exc:
-        raise ApiError(
-            400,
+        raise BadJobRequest(
             f"The field 'version' is for datasets of a version's tables (nuScenes), and model "
             f"{model.name} runs with the {profile.name} profile, whose datasets are folders of "
             "sequences: leave 'version' out.",
@@ -38,8 +37,7 @@ def check_selection(request: DatasetJobRequest, model: ModelEntry) -> None:
     if split is not None and split not in profile.splits:
         close = difflib.get_close_matches(split, list(profile.splits), n=1, cutoff=0.6)
         hint = f" (did you mean {close[0]}?)" if close else ""
-        raise ApiError(
-            400,
+        raise BadJobRequest(
             f"The field 'split' is {split[:64]!r}, which is not a split of the {profile.name} "
             f"profile of model {model.name}: its splits are {', '.join(profile.splits)}{hint}.",
         )
@@ -47,30 +45,27 @@ def check_selection(request: DatasetJobRequest, model: ModelEntry) -> None:
 
 def dataset_version(root: Path, version: str | None, model: ModelEntry) -> str | None:
     """The version a job of a tables profile reads under `root`: `version`, which the dataset
-    must hold, else the one it holds (400 naming the field otherwise); None for folder layouts."""
+    must hold, else the one it holds (`BadJobRequest` naming the field otherwise); None for folder layouts."""
     try:
         held = model.profile.layout.versions(root)
     except TableError as exc:
-        raise ApiError(400, "The dataset is not a folder of nuScenes tables.") from exc
+        raise BadJobRequest("The dataset is not a folder of nuScenes tables.") from exc
     if held is None:
         return None
     if version is not None and version not in held:
         holds = f"it holds {', '.join(held)}" if held else "it holds no version's tables"
-        raise ApiError(
-            400,
+        raise BadJobRequest(
             f"The field 'version' is {version!r}, a version whose tables (scene.json) the "
             f"dataset does not hold: {holds}.",
         )
     if version is not None:
         return version
     if not held:
-        raise ApiError(
-            400,
+        raise BadJobRequest(
             "The dataset holds no nuScenes version folder (such as v1.0-mini/ with scene.json).",
         )
     if len(held) > 1:
-        raise ApiError(
-            400,
+        raise BadJobRequest(
             f"The dataset holds the versions {', '.join(held)}: choose one with the field "
             "'version'.",
         )

@@ -24,8 +24,10 @@ from service.dependencies import GatewayDep, JobsDep
 from service.errors import ApiError, error_responses, validation_sentence
 from service.gateway import Gateway
 from service.jobs import JobManager, JobRecord
+from service.jobs.errors import JobRefused
 from service.jobs.intake import JobIntake
 from service.jobs.results import plot_path, report_plots
+from service.routes.job_errors import answered, job_error_answer
 from service.schemas import (
     DatasetJobRequest,
     JobCreated,
@@ -36,7 +38,7 @@ from service.schemas import (
     file_content,
 )
 from service.served_models import MODEL_QUERY, ModelEntry
-from service.uploads import declared_length, drain, media_type, read_body, receive_archive
+from service.uploads import declared_length, media_type, read_body, receive_archive, refused_body
 
 router = APIRouter(prefix="/v1", tags=["jobs"])
 
@@ -126,7 +128,9 @@ async def create_job(
         entry = await _query_model(request, gw, model)
         record = await _archive_job(request, gw, intake, entry)
     elif kind == "application/json":
-        record = await intake.dataset_job(await _dataset_request(request, gw))
+        dataset_request = await _dataset_request(request, gw)
+        with answered():
+            record = await intake.dataset_job(dataset_request)
     else:
         raise await _wrong_media(
             request,
@@ -178,24 +182,21 @@ async def _query_model(request: Request, gw: Gateway, name: str | None) -> Model
     dropped, for one the gateway does not serve."""
     try:
         return gw.models.get(name)
-    except ApiError:
-        await drain(request, gw.settings.max_body_bytes, timeout=gw.settings.upload_timeout_s)
-        raise
+    except ApiError as exc:
+        raise await refused_body(request, gw.settings, exc, upload=True) from None
 
 
 async def _check_queue(request: Request, gw: Gateway, intake: JobIntake) -> None:
     """429 while too many jobs wait, checked before the body is read (and dropped)."""
     try:
         await asyncio.to_thread(intake.check_queue)
-    except ApiError:
-        await drain(request, gw.settings.max_body_bytes, timeout=gw.settings.body_timeout_s)
-        raise
+    except JobRefused as exc:
+        raise await refused_body(request, gw.settings, job_error_answer(exc)) from exc
 
 
 async def _wrong_media(request: Request, gw: Gateway, detail: str) -> ApiError:
     """The 415 answer saying `detail`, once the body it refuses is dropped."""
-    await drain(request, gw.settings.max_body_bytes, timeout=gw.settings.body_timeout_s)
-    return ApiError(415, detail)
+    return await refused_body(request, gw.settings, ApiError(415, detail))
 
 
 def _created(record: JobRecord) -> JSONResponse:
@@ -344,14 +345,15 @@ async def _archive_job(
     settings = gw.settings
     try:
         await asyncio.to_thread(intake.check_upload, declared_length(request))
-    except ApiError:
-        await drain(request, settings.max_body_bytes, timeout=settings.upload_timeout_s)
-        raise
+    except (ApiError, JobRefused) as exc:
+        answer = exc if isinstance(exc, ApiError) else job_error_answer(exc)
+        raise await refused_body(request, settings, answer, upload=True) from exc
 
     async def receive(path: Path) -> None:
         await receive_archive(request, path, settings.max_archive_bytes, settings.upload_timeout_s)
 
-    return await intake.archive_job(receive, model)
+    with answered():
+        return await intake.archive_job(receive, model)
 
 
 async def _dataset_request(request: Request, gw: Gateway) -> DatasetJobRequest:

@@ -36,7 +36,7 @@ from service.scan_bodies import (
 )
 from service.schemas import BINARY_CONTENT, LabelFormat, ScanLabels
 from service.served_models import MODEL_HEADER, MODEL_QUERY, ModelEntry
-from service.uploads import declared_length, drain, media_type, read_body
+from service.uploads import declared_length, media_type, read_body, refused_body
 
 router = APIRouter(prefix="/v1", tags=["scans"])
 
@@ -154,29 +154,29 @@ async def label_scan(
     limits = gw.settings
     try:
         entry = gw.models.get(model)
-    except ApiError:
-        await drain(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
-        raise
+    except ApiError as exc:
+        raise await refused_body(request, limits, exc) from None
     as_json = json_answer(form, request.headers.get("accept"))
     if confidence and not as_json:
-        await drain(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
-        raise ApiError(
+        refusal = ApiError(
             400,
             "Confidences come only in the JSON answer: send format=json (or 'Accept: "
             "application/json') with confidence=true, or leave confidence out for the raw label "
             "bytes.",
         )
+        raise await refused_body(request, limits, refusal)
     if media_type(request) not in CONTENT_TYPES:
-        await drain(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
-        raise ApiError(
+        given = media_type(request)[:100]
+        refusal = ApiError(
             415,
             f"Send the scan as {', '.join(CONTENT_TYPES)}; "
             + (
-                f"this request's Content-Type is {media_type(request)[:100]}."
-                if media_type(request)
+                f"this request's Content-Type is {given}."
+                if given
                 else "this request has no Content-Type."
             ),
         )
+        raise await refused_body(request, limits, refusal)
     declared = declared_length(request)
     try:
         reserve = (
@@ -184,9 +184,9 @@ async def label_scan(
         )
         place = gw.admission.admit(reserve)
     except QueueFull as exc:
-        await drain(request, limits.max_body_bytes, timeout=limits.body_timeout_s)
         gw.metrics.refused.inc()
-        raise ApiError(503, str(exc), {"Retry-After": str(RETRY_AFTER_S)}) from exc
+        busy = ApiError(503, str(exc), {"Retry-After": str(RETRY_AFTER_S)})
+        raise await refused_body(request, limits, busy) from exc
     with place:
         return await _label(request, gw, entry, knn, confidence, as_json)
 

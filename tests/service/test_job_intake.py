@@ -16,6 +16,7 @@ from rangeret.dataset.profiles import load_profile
 from service.errors import ApiError
 from service.jobs import JobManager, JobStore
 from service.jobs.intake import JobIntake, resolve_dataset
+from service.routes.job_errors import REFUSALS, job_error_answer
 from service.schemas import DatasetJobRequest, JobState
 from service.settings import Settings
 from tests.support.apps import one_model
@@ -54,9 +55,10 @@ def _job_folders(intake: JobIntake) -> list[str]:
 
 
 def _refusal(call, *args) -> ApiError:
-    with pytest.raises(ApiError) as refused:
+    """The answer the routes give to what `call` refuses with."""
+    with pytest.raises(REFUSALS) as refused:
         call(*args)
-    return refused.value
+    return job_error_answer(refused.value)
 
 
 def _zip_into(path: Path, members: dict[str, bytes]) -> None:
@@ -131,9 +133,9 @@ def test_a_dataset_job_is_queued_with_its_folder(tmp_path, roots):
 
 def test_a_dataset_job_that_does_not_fit_leaves_no_folder(tmp_path, roots):
     intake = _intake(tmp_path, roots, max_bytes=100)
-    with pytest.raises(ApiError) as refused:
-        asyncio.run(intake.dataset_job(DatasetJobRequest(dataset="data", sequences=["08"])))
-    assert refused.value.status_code == 507 and "RANGERET_MAX_JOB_BYTES" in refused.value.detail
+    request = DatasetJobRequest(dataset="data", sequences=["08"])
+    refused = _refusal(asyncio.run, intake.dataset_job(request))
+    assert refused.status_code == 507 and "RANGERET_MAX_JOB_BYTES" in refused.detail
     assert _job_folders(intake) == [] and intake.jobs.store.list() == []
 
 
@@ -200,10 +202,9 @@ def test_an_upload_cut_short_or_on_a_full_disk_leaves_no_folder(tmp_path, roots)
     with pytest.raises(ApiError) as slow:
         asyncio.run(intake.archive_job(too_slow, MODEL))
     assert slow.value.status_code == 408
-    with pytest.raises(ApiError) as full:
-        asyncio.run(intake.archive_job(disk_full, MODEL))
-    assert full.value.status_code == 507
-    assert full.value.detail == (
+    full = _refusal(asyncio.run, intake.archive_job(disk_full, MODEL))
+    assert full.status_code == 507
+    assert full.detail == (
         f"Insufficient storage: the disk of the jobs folder {intake.jobs.jobs_dir} is full; "
         "free space there, or upload a smaller archive."
     )

@@ -8,8 +8,9 @@ from pathlib import Path
 import pytest
 
 from rangeret.dataset.profiles import load_profile
-from service.errors import ApiError
+from service.jobs.errors import BadJobRequest
 from service.jobs.selection import check_selection, dataset_version, incomplete_split
+from service.routes.job_errors import job_error_answer
 from service.schemas import DatasetJobRequest
 from tests.support.apps import one_model
 
@@ -18,10 +19,11 @@ NU = one_model(load_profile("nuscenes"), name="nu").default_entry
 
 
 def _refused(call, *args) -> str:
-    with pytest.raises(ApiError) as refused:
+    with pytest.raises(BadJobRequest) as refused:
         call(*args)
-    assert refused.value.status_code == 400
-    return refused.value.detail
+    answer = job_error_answer(refused.value)
+    assert answer.status_code == 400
+    return answer.detail
 
 
 def test_splits_are_the_profiles_own_names():
