@@ -9,6 +9,11 @@ from rangeret.options import adapt_plan_from_args, add_adapt_options
 from rangeret.plugins import Subcommand
 
 
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of an adapt run, as the Ray job takes them too (`add_adapt_options`)."""
+    add_adapt_options(p)
+
+
 def run(args: argparse.Namespace) -> int:
     """Adapt every scan of the chosen sequences to the target profile, in this process, and
     print what was adapted."""
@@ -35,5 +40,5 @@ def run(args: argparse.Namespace) -> int:
 
 
 COMMAND = Subcommand(
-    "adapt", "resample a labelled dataset to another sensor's profile", add_adapt_options, run
+    "adapt", "resample a labelled dataset to another sensor's profile", add_arguments, run
 )
