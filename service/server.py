@@ -151,16 +151,15 @@ def model_set(args: argparse.Namespace, settings: Settings) -> ModelSet:
         raise CommandError(str(exc)) from exc
 
 
-def check_models(
-    models: ModelSet, loader: ModelLoader, pool: ModelPool[ModelRuntime] | None
-) -> ModelCatalog:
-    """The catalog of the models, each checked once (checkpoint, pin, profile, class count), the
+def check_models(loader: ModelLoader, pool: ModelPool[ModelRuntime] | None) -> ModelCatalog:
+    """The catalog of the loader's models, each checked once (checkpoint, pin, profile, class count), the
     default first: those the pool has room for are loaded into it from that one read, the others
     identified without building their network (`ModelLoader.check`); a `CommandError` naming the
     model for one a gateway cannot serve."""
     from rangeret.exceptions import RangeRetError
     from service.served_models import ModelCatalog
 
+    models = loader.models
     for name in [models.default, *(n for n in models.names if n != models.default)]:
         try:
             loader.check(name, pool)
@@ -255,7 +254,7 @@ def run_serve(args: argparse.Namespace) -> int:
     loader = ModelLoader(models, settings.batch_size, settings.batch_wait_ms / 1000)
     in_process = not (settings.serve_url and settings.jobs_address)
     pool = build_pool(settings, loader) if in_process else None
-    catalog = check_models(models, loader, pool)
+    catalog = check_models(loader, pool)
     labeller = build_labeller(settings, catalog, pool)
     executor = build_executor(settings, catalog, pool)
     for entry in catalog:

@@ -63,7 +63,7 @@ def _start(checkpoints: dict[str, Path], max_loaded: int):
     models = _models(checkpoints)
     loader = ModelLoader(models, batch_size=2, max_wait=0.0)
     pool = build_pool(Settings(max_loaded=max_loaded), loader)
-    return pool, check_models(models, loader, pool)
+    return pool, check_models(loader, pool)
 
 
 def test_an_evicted_network_is_freed_and_the_pool_counts_what_the_process_holds(checkpoints):
