@@ -21,6 +21,7 @@ from rangeret.dataset.layout import KITTI_LAYOUT
 from rangeret.io.scans import KITTI_RECORD
 from service import archives
 from service.archives import ArchiveError, ArchiveLimits, ArchiveTooLarge, extract_archive
+from service.routes.job_errors import job_error_answer
 from tests.support.gateway import Gateway, assert_error, gateway_env, start_gateway, wait_job
 from tests.support.workers import build_tree, small_weights
 
@@ -164,7 +165,7 @@ def test_damaged_central_directory_is_an_archive_error(tmp_path, monkeypatch):
             extract_archive(
                 path, tmp_path / "data", _limits(), record=KITTI_RECORD, layout=KITTI_LAYOUT
             )
-        assert info.value.status_code == 400, what
+        assert job_error_answer(info.value).status_code == 400, what
     assert not (tmp_path / "data").exists()
 
 
@@ -203,7 +204,7 @@ def test_tar_extended_headers_are_bounded(tmp_path):
             record=KITTI_RECORD,
             layout=KITTI_LAYOUT,
         )
-    assert info.value.status_code == 400
+    assert job_error_answer(info.value).status_code == 400
     small = _tar_gz(iter([(BIN, SCAN)]), pax={"comment": "made by a test"})
     assert (
         extract_archive(
@@ -249,7 +250,7 @@ def test_declared_sizes_over_the_extracted_limit_are_refused_before_writing(tmp_
             record=KITTI_RECORD,
             layout=KITTI_LAYOUT,
         )
-    assert info.value.status_code == 413
+    assert job_error_answer(info.value).status_code == 413
     assert not (tmp_path / "data").exists()
     assert extract_archive(
         _write(tmp_path, data),
@@ -275,7 +276,7 @@ def test_zip_member_whose_header_lies_about_its_size_is_refused(tmp_path, declar
             record=KITTI_RECORD,
             layout=KITTI_LAYOUT,
         )
-    assert info.value.status_code == 400
+    assert job_error_answer(info.value).status_code == 400
 
 
 def test_tar_member_whose_header_lies_about_its_size_is_refused(tmp_path):
@@ -296,7 +297,7 @@ def test_tar_member_whose_header_lies_about_its_size_is_refused(tmp_path):
             record=KITTI_RECORD,
             layout=KITTI_LAYOUT,
         )
-    assert info.value.status_code == 400
+    assert job_error_answer(info.value).status_code == 400
 
 
 # Zip structure -----------------------------------------------------------------------------------
