@@ -43,7 +43,7 @@ class _Waiting:
 
 class ScanBatcher:
     """Gathers concurrent single-scan requests into batches of at most `batch_size` for the
-    worker (built before the gateway listens, so its network is loaded and warmed up by then)."""
+    worker (whose network is loaded and warmed up before the batcher is built)."""
 
     def __init__(self, worker: ScanWorker, batch_size: int = 1, max_wait: float = 0.01) -> None:
         if batch_size < 1 or max_wait < 0:

@@ -11,11 +11,10 @@ networks its pool keeps.
 
 from __future__ import annotations
 
-import torch
-
 from rangeret.inference.loader import WeightsIdentity, identify_weights, load_weights
 from rangeret.inference.models_file import ModelSet
 from rangeret.inference.predictor import Predictor
+from rangeret.inference.runtime.memory import release_freed_memory
 from rangeret.inference.scan_worker import ScanWorker
 from service.batching import ScanBatcher
 from service.model_pool import ModelPool
@@ -36,8 +35,7 @@ class ModelLoader:
     def __call__(self, name: str) -> ModelRuntime:
         """The model `name` loaded: its checkpoint read, checked against what it was at start,
         its network built, moved to its device and warmed up."""
-        if torch.cuda.is_available():
-            torch.cuda.empty_cache()  # the device memory of the networks evicted before this load
+        release_freed_memory()  # what the networks evicted for this load held
         spec = self.models.spec(name)
         weights = load_weights(spec)
         checked = self.identities.setdefault(name, weights.identity)

@@ -10,7 +10,7 @@ first use and unloading the least recently used one (`@serve.multiplexed`), and 
 request to a replica that has its model loaded. A replica holds no network of its own beyond
 Serve's: its batches name their model by a weak reference (Serve's batcher keeps its last batch
 until the next one), so an unloaded model's network is freed once its last request is answered,
-and its device memory released before the next network is built. Each replica gathers concurrent requests into
+and its memory handed back to the system before the next network is built. Each replica gathers concurrent requests into
 batches of up to `batch_size` scans of one model (`@serve.batch`) and answers in the exchange of
 `workers.scan_wire` through a FastAPI app (`@serve.ingress`). `batch_size` and `batch_wait_ms`
 reach the replicas as the deployment's `user_config`, so a Serve config that changes them there
@@ -39,6 +39,7 @@ from rangeret.inference.loader import identify_weights
 from rangeret.inference.models_file import ModelSet
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import ScanOutcome
+from rangeret.inference.runtime.memory import release_freed_memory
 from rangeret.inference.scan_worker import ScanRequest, ScanWorker, use_cpus
 from rangeret.inference.spec import InferenceSpec
 from rangeret.io.scans import ScanFormatError, parse_scan
@@ -126,8 +127,7 @@ class ScanModel:
         """The model `name`'s network, whose checkpoint must be the one the application was
         built with."""
         started = time.perf_counter()
-        if torch.cuda.is_available():
-            torch.cuda.empty_cache()  # the device memory of the networks Serve unloaded
+        release_freed_memory()  # what the networks Serve unloaded held
         predictor = Predictor.from_spec(self.models.spec(name))
         predictor.weights.identity.check_same(
             self.built[name], name, "the application was built", "deploy it again"
