@@ -1,6 +1,6 @@
 """A gateway process for the HTTP benchmarks: `python -m service` on a free loopback port, with
 its own RANGERET_* environment and log, started once it answers /healthz and stopped with SIGTERM;
-and the single-scan load the benchmarks put on it."""
+its resident memory; and the single-scan load the benchmarks put on it."""
 
 from __future__ import annotations
 
@@ -54,6 +54,19 @@ class StartedGateway:
         if self.proc.returncode == -signal.SIGTERM:  # uvicorn re-raises it once shut down
             return "stopped on SIGTERM after its graceful shutdown"
         return f"stopped on SIGTERM, exit code {self.proc.returncode}"
+
+
+def rss_mib(pid: int | None) -> float | None:
+    """The resident set size (VmRSS) of process `pid` in MiB, or None when it cannot be read."""
+    if pid is None:
+        return None
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
 
 
 def start_gateway(

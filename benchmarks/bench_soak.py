@@ -37,7 +37,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 from _common import REAL_SCAN, REPO, require_real_scan
-from _gateway import StartedGateway, start_gateway
+from _gateway import StartedGateway, rss_mib, start_gateway
 
 OCTET = "application/octet-stream"
 RECORD_FIELDS = 4  # float32 x, y, z, remission: the SemanticKITTI point record this run sends
@@ -84,19 +84,6 @@ def launch(args: argparse.Namespace, tmp: Path) -> StartedGateway:
         settings[key] = value
     shape = f"{height}x{width}" if height and width else "the profile's resolution"
     return start_gateway(net, settings, tmp / "gateway.log", f"{weights_name}, {shape}")
-
-
-def rss_mib(pid: int | None) -> float | None:
-    """The resident set size (VmRSS) of process `pid` in MiB, or None when it cannot be read."""
-    if pid is None:
-        return None
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    except (OSError, ValueError, IndexError):
-        return None
-    return None
 
 
 def batch_histogram(url: str, headers: dict[str, str]) -> tuple[float, float] | None:
