@@ -32,6 +32,7 @@ import pytest
 from rangeret.cli.main import main as rangeret_main
 from rangeret.dataset.layout import KITTI_LAYOUT, list_scans, velodyne_dir
 from rangeret.dataset.profiles import load_profile
+from rangeret.dataset.selection import DatasetSelection
 from rangeret.inference.spec import InferenceSpec
 from service.jobs import JobControl, JobError, JobManager, JobStore
 from service.jobs.jobs_api import JobsApi, JobsApiError, JobsApiUnreachable
@@ -441,7 +442,9 @@ def test_a_relative_checkpoint_that_exists_here_is_given_as_an_absolute_path(tmp
     monkeypatch.chdir(tmp_path)
     (tmp_path / "w.pt").write_bytes(b"")
     executor = RayJobExecutor(ADDRESS, _models(InferenceSpec(checkpoint="w.pt")), api=ScriptedApi())
-    command = executor.entrypoint(Path("data"), ["08"], Path("jobs/x/predictions"))
+    command = executor.entrypoint(
+        DatasetSelection(Path("data"), ("08",), KITTI_LAYOUT), Path("jobs/x/predictions")
+    )
     argv = shlex.split(command)
     spec = json.loads(argv[argv.index("--inference-spec") + 1])
     assert spec == {"checkpoint": str(tmp_path / "w.pt")}
@@ -466,14 +469,20 @@ def test_a_jobs_ray_job_gets_its_models_spec(tmp_path):
         return json.loads(argv[argv.index("--inference-spec") + 1])
 
     out = tmp_path / "out"
-    assert spec_of(executor.entrypoint(tmp_path, ["1"], out, "panda")) == {
+    assert spec_of(
+        executor.entrypoint(DatasetSelection(tmp_path, ("1",), KITTI_LAYOUT), out, "panda")
+    ) == {
         "checkpoint": "/m/panda.pt",
         "profile": "pandaset",
     }
-    assert spec_of(executor.entrypoint(tmp_path, ["08"], out)) == {"checkpoint": "/m/kitti.pt"}
+    assert spec_of(executor.entrypoint(DatasetSelection(tmp_path, ("08",), KITTI_LAYOUT), out)) == {
+        "checkpoint": "/m/kitti.pt"
+    }
     # A tables layout's job names its split and version rather than the split's scenes.
     command = executor.entrypoint(
-        tmp_path, ["scene-0103"], out, "panda", version="v1.0-mini", split="mini_val"
+        DatasetSelection(tmp_path, ("scene-0103",), KITTI_LAYOUT, "mini_val", "v1.0-mini"),
+        out,
+        "panda",
     )
     assert "--split mini_val --version v1.0-mini --out" in command
     assert "--sequences" not in command
