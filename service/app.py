@@ -3,7 +3,7 @@
 `create_app` takes the settings, a single-scan labeller, a job executor and the dataset profile of
 the served network, and builds the `Gateway` (`service.gateway`) that owns the labeller, the job
 store and runner, and the metrics. The endpoints are in `service.routes` (one module per
-resource), the error answers in `service.error_handlers`: every error is
+resource), the error answers in `service.http.error_handlers`: every error is
 `{"detail": "<one sentence>"}`. With RANGERET_API_TOKEN set, every /v1 request needs
 `Authorization: Bearer TOKEN` (/metrics and the API description do not; /healthz gives its details only with it).
 The API description is the same whether or not a token is set, with stable operation ids, one
@@ -22,13 +22,15 @@ from fastapi.openapi.utils import get_openapi
 from pydantic import BaseModel
 from pydantic.json_schema import JsonSchemaMode, models_json_schema
 
-from service.dependencies import require_token
-from service.error_handlers import install_error_handlers
-from service.errors import error_responses
 from service.gateway import Gateway, ScanLabeller
+from service.http.dependencies import require_token
+from service.http.error_handlers import install_error_handlers
+from service.http.errors import error_responses
+from service.http.metrics import MetricsMiddleware
+from service.http.origins import OriginGuard
+from service.http.security_headers import NoSniff
 from service.jobs import JobExecutor, check_job_database
-from service.metrics import MetricsMiddleware
-from service.origins import OriginGuard
+from service.models.catalog import ModelCatalog
 from service.routes.health import router as health_router
 from service.routes.jobs import router as jobs_router
 from service.routes.model import router as model_router
@@ -36,8 +38,6 @@ from service.routes.page import router as page_router
 from service.routes.profile import router as profile_router
 from service.routes.scans import router as scans_router
 from service.schemas import ARCHIVE_UPLOAD, DatasetJobRequest, ErrorResponse, ScanLabels
-from service.security_headers import NoSniff
-from service.served_models import ModelCatalog
 from service.settings import Settings
 
 #: The groups of operations in the API description (and the modules of a generated client).

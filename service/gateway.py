@@ -2,7 +2,7 @@
 labeller and its admission, the job manager, metrics).
 
 `create_app` builds one per app and keeps it in `app.state.gateway`; the app's lifespan starts it
-(job store, runner, labeller) and stops it. Routes get it through `service.dependencies`.
+(job store, runner, labeller) and stops it. Routes get it through `service.http.dependencies`.
 """
 
 from __future__ import annotations
@@ -14,12 +14,12 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
 from rangeret.dataset.profiles import DatasetProfile
-from service.admission import ScanAdmission
-from service.errors import ApiError
+from service.http.errors import ApiError
+from service.http.metrics import GatewayMetrics
 from service.jobs import JobExecutor, JobManager, JobStore
-from service.metrics import GatewayMetrics
+from service.labelling.admission import ScanAdmission
+from service.models.catalog import ModelCatalog
 from service.page_assets import PageFiles, PageNotBuilt
-from service.served_models import ModelCatalog
 from service.settings import Settings
 
 if TYPE_CHECKING:
@@ -31,8 +31,8 @@ log = logging.getLogger(__name__)
 
 
 class ScanLabeller(Protocol):
-    """What labels single scans: `service.pooled_labeller.PooledLabeller` (the loaded models in
-    this process) or `service.serve_client.ServeLabeller` (the Serve application)."""
+    """What labels single scans: `service.labelling.pooled.PooledLabeller` (the loaded models in
+    this process) or `service.labelling.serve_client.ServeLabeller` (the Serve application)."""
 
     backend: str
 

@@ -28,17 +28,17 @@ from rangeret.commands import CommandError
 from rangeret.extras import require_extra
 from rangeret.inference.spec import InferenceSpec
 from rangeret.options import add_network_options
-from service.errors import validation_sentence
 from service.gateway import ScanLabeller
+from service.http.errors import validation_sentence
 from service.jobs import JobExecutor
 from service.settings import Settings
 
 if TYPE_CHECKING:  # torch is imported when the gateway starts, not to build its parser
     from rangeret.inference.models_file import ModelSet
-    from service.model_loader import ModelLoader
-    from service.model_pool import ModelPool
-    from service.pooled_labeller import ModelRuntime
-    from service.served_models import ModelCatalog
+    from service.labelling.pooled import ModelRuntime
+    from service.models.catalog import ModelCatalog
+    from service.models.loader import ModelLoader
+    from service.models.pool import ModelPool
 
 log = logging.getLogger("rangeret.serve")
 
@@ -157,7 +157,7 @@ def check_models(loader: ModelLoader, pool: ModelPool[ModelRuntime] | None) -> M
     identified without building their network (`ModelLoader.check`); a `CommandError` naming the
     model for one a gateway cannot serve."""
     from rangeret.exceptions import RangeRetError
-    from service.served_models import ModelCatalog
+    from service.models.catalog import ModelCatalog
 
     models = loader.models
     for name in [models.default, *(n for n in models.names if n != models.default)]:
@@ -174,7 +174,7 @@ def build_pool(settings: Settings, loader: ModelLoader) -> ModelPool[ModelRuntim
     """The pool of networks loaded in this process, at most `max_loaded`, each loaded by
     `loader` on first use (and again after its eviction)."""
     from rangeret.inference.scan_worker import use_cpus
-    from service.model_pool import ModelPool
+    from service.models.pool import ModelPool
 
     use_cpus(float(os.cpu_count() or 1))  # the networks have the gateway's machine to themselves
     return ModelPool(loader.models.names, loader, max_loaded=settings.max_loaded)
@@ -187,12 +187,12 @@ def build_labeller(
     same checkpoint and profile for every model), or else the pool's networks in this process, each behind its
     own batcher."""
     if settings.serve_url:
-        from service.serve_client import ServeLabeller
+        from service.labelling.serve_client import ServeLabeller
 
         labeller = ServeLabeller(settings.serve_url, catalog, settings.serve_timeout_s)
         labeller.check_serves(settings.serve_timeout_s)
         return labeller
-    from service.pooled_labeller import PooledLabeller
+    from service.labelling.pooled import PooledLabeller
 
     assert pool is not None  # `run_serve` builds one whenever a part runs in this process
     return PooledLabeller(pool)
@@ -238,8 +238,8 @@ def run_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from service.app import create_app
-    from service.model_loader import ModelLoader
-    from service.protocols import GatewayProtocol
+    from service.http.protocols import GatewayProtocol
+    from service.models.loader import ModelLoader
 
     logging.getLogger("httpx").setLevel(logging.WARNING)  # no line per request to Serve
     settings = settings_from_args(args)

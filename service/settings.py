@@ -54,7 +54,7 @@ from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from rangeret.io.decode_limits import DEFAULT_MAX_DECODED_BYTES
-from service.origins import default_allowed_hosts
+from service.http.origins import default_allowed_hosts
 
 MIB = 1 << 20
 GIB = 1 << 30

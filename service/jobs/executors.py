@@ -19,11 +19,11 @@ from rangeret.dataset.layout import ScanEntry
 from rangeret.dataset.selection import DatasetSelection
 from rangeret.inference.runner import predict_tree
 from service.jobs.store import JobRecord, JobStore
-from service.model_pool import ModelPool, PoolFull
+from service.models.pool import ModelPool, PoolFull
 from service.schemas import JobState
 
 if TYPE_CHECKING:
-    from service.pooled_labeller import ModelRuntime
+    from service.labelling.pooled import ModelRuntime
 
 #: `progress(seen, failed, pending)`: of the scans a `predict` call had to predict, `seen` are
 #: through and `failed` of them failed.

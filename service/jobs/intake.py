@@ -3,7 +3,7 @@ checked, and queued.
 
 An archive job is refused before its upload is read when the queue is full or its declared
 length does not fit in the disk the job folders may use; the upload is received into a new
-job folder, checked and extracted there (`service.archives`) by the rules its model's profile's
+job folder, checked and extracted there (`service.archives.extraction`) by the rules its model's profile's
 layout gives, and the folder is removed again whatever stops it on the way. A dataset job names a
 folder under the data roots (`OutsideDataRoots`, `NoSuchDataset`) in its model's profile, with a
 split of that profile and, for a tables layout, a version (`service.jobs.selection`), and its
@@ -23,7 +23,7 @@ from pathlib import Path
 
 from rangeret.dataset.layout import DatasetLayoutError, ScanEntry
 from rangeret.dataset.selection import DatasetSelection, select_dataset
-from service.archives import ArchiveLimits, extract_with
+from service.archives.extraction import ArchiveLimits, extract_with
 from service.jobs.capacity import disk_full, expected_output_bytes
 from service.jobs.errors import (
     BadJobRequest,
@@ -34,9 +34,9 @@ from service.jobs.errors import (
 from service.jobs.manager import JobManager
 from service.jobs.selection import check_selection, dataset_version, incomplete_split
 from service.jobs.store import JobRecord
+from service.models.catalog import ModelCatalog, ModelEntry
 from service.paths import escaping_scans, outside_roots_sentence
 from service.schemas import DatasetJobRequest
-from service.served_models import ModelCatalog, ModelEntry
 from service.settings import Settings
 
 #: The file in a new job's folder an upload is received into (removed once it is extracted).

@@ -28,8 +28,8 @@ from service.jobs.executors import JobControl, JobError, JobExecutor
 from service.jobs.reasons import failure_sentence
 from service.jobs.store import JobDatabaseFull, JobRecord, JobStore
 from service.jobs.work import PROFILE_FILE, JobWork
+from service.models.catalog import ModelCatalog
 from service.schemas import JobState
-from service.served_models import ModelCatalog
 
 log = logging.getLogger(__name__)
 

@@ -37,7 +37,7 @@ from service.jobs.jobs_api import JobsApi, JobsApiError, JobsApiUnreachable
 from workers.progress import JobProgress, progress_path, read_progress
 
 if TYPE_CHECKING:
-    from service.served_models import ModelCatalog
+    from service.models.catalog import ModelCatalog
 
 log = logging.getLogger(__name__)
 

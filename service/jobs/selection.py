@@ -17,8 +17,8 @@ from pathlib import Path
 from rangeret.dataset.layout import DatasetLayoutError
 from rangeret.dataset.nuscenes_tables import TableError
 from service.jobs.errors import BadJobRequest
+from service.models.catalog import ModelEntry
 from service.schemas import DatasetJobRequest
-from service.served_models import ModelEntry
 
 
 def check_selection(request: DatasetJobRequest, model: ModelEntry) -> None:

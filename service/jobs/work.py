@@ -28,9 +28,9 @@ from service.jobs.results import (
     write_report,
 )
 from service.jobs.store import JobRecord, JobStore
+from service.models.catalog import ModelCatalog, ModelEntry
 from service.paths import escaping_scans, outside_roots_sentence
 from service.schemas import JobState
-from service.served_models import ModelCatalog, ModelEntry
 
 #: The file in a job's folder that names the profile the job was accepted for.
 PROFILE_FILE = "profile.txt"

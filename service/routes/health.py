@@ -16,8 +16,8 @@ from fastapi import APIRouter, Depends
 from fastapi.responses import JSONResponse, Response
 from fastapi.security import HTTPAuthorizationCredentials
 
-from service.dependencies import BEARER, GatewayDep, token_matches
-from service.errors import error_responses
+from service.http.dependencies import BEARER, GatewayDep, token_matches
+from service.http.errors import error_responses
 from service.schemas import Health, HealthSummary
 
 router = APIRouter(tags=["service"])

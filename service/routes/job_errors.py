@@ -10,7 +10,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 from rangeret.dataset.upload_rules import ArchiveError, ArchiveTooLarge
-from service.errors import ApiError
+from service.http.errors import ApiError
 from service.jobs.errors import (
     BadJobRequest,
     JobInputError,

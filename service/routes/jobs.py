@@ -20,13 +20,21 @@ from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse, JSONResponse
 from pydantic import ValidationError
 
-from service.dependencies import GatewayDep, JobsDep
-from service.errors import ApiError, error_responses, validation_sentence
 from service.gateway import Gateway
+from service.http.bodies import (
+    declared_length,
+    media_type,
+    read_body,
+    receive_archive,
+    refused_body,
+)
+from service.http.dependencies import GatewayDep, JobsDep
+from service.http.errors import ApiError, error_responses, validation_sentence
 from service.jobs import JobManager, JobRecord
 from service.jobs.errors import JobRefused
 from service.jobs.intake import JobIntake
 from service.jobs.results import plot_path, report_plots
+from service.models.catalog import MODEL_QUERY, ModelEntry
 from service.routes.job_errors import answered, job_error_answer
 from service.schemas import (
     DatasetJobRequest,
@@ -37,8 +45,6 @@ from service.schemas import (
     JobStatus,
     file_content,
 )
-from service.served_models import MODEL_QUERY, ModelEntry
-from service.uploads import declared_length, media_type, read_body, receive_archive, refused_body
 
 router = APIRouter(prefix="/v1", tags=["jobs"])
 

@@ -13,11 +13,11 @@ from typing import Annotated
 from fastapi import APIRouter
 
 from rangeret.models.weights.demo import is_demo_checkpoint
-from service.dependencies import GatewayDep
-from service.errors import error_responses
 from service.gateway import Gateway
+from service.http.dependencies import GatewayDep
+from service.http.errors import error_responses
+from service.models.catalog import MODEL_QUERY, ModelEntry
 from service.schemas import ListedModel, ModelList, ServedModel
-from service.served_models import MODEL_QUERY, ModelEntry
 
 router = APIRouter(prefix="/v1", tags=["service"])
 

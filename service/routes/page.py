@@ -13,8 +13,8 @@ import asyncio
 from fastapi import APIRouter
 from fastapi.responses import Response
 
-from service.dependencies import GatewayDep
-from service.errors import ApiError
+from service.http.dependencies import GatewayDep
+from service.http.errors import ApiError
 from service.page_assets import PageAssets, PageNotBuilt
 
 router = APIRouter(include_in_schema=False)

@@ -11,10 +11,10 @@ from typing import Annotated
 from fastapi import APIRouter
 
 from rangeret.dataset.profiles import DatasetProfile
-from service.dependencies import GatewayDep
-from service.errors import error_responses
+from service.http.dependencies import GatewayDep
+from service.http.errors import error_responses
+from service.models.catalog import MODEL_QUERY
 from service.schemas import ProfileClass, ServedProfile
-from service.served_models import MODEL_QUERY
 
 router = APIRouter(prefix="/v1", tags=["service"])
 

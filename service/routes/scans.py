@@ -2,7 +2,7 @@
 
 The body holds the served profile's point records (SemanticKITTI: x, y, z, remission, 16 bytes per
 point; PandaSet adds the laser id, 20 bytes; nuScenes' `.pcd.bin` the ring), or a PCD, PLY, LAS
-or LAZ file (`service.scan_bodies`); the labels are what the profile's prediction files hold
+or LAZ file (`service.labelling.scan_bodies`); the labels are what the profile's prediction files hold
 (raw ids of its label configuration, or nuScenes' challenge classes), one per point in the
 body's order, and the raw answer is as wide as those files' labels (4 bytes, nuScenes' 1). The answer's form is chosen with `?format=json` (or `raw`), else by the
 `Accept` header.
@@ -21,12 +21,13 @@ from rangeret.dataset.profiles import DatasetProfile
 from rangeret.inference.clouds import spread_labels
 from rangeret.inference.results import ScanPrediction
 from rangeret.io.scans import ScanFormatError, parse_scan
-from service.admission import RETRY_AFTER_S, QueueFull
-from service.dependencies import GatewayDep
-from service.errors import ApiError, error_responses
 from service.gateway import Gateway
-from service.labeller_errors import BackendError, BackendTimeout, ScanRejected
-from service.scan_bodies import (
+from service.http.bodies import declared_length, media_type, read_body, refused_body
+from service.http.dependencies import GatewayDep
+from service.http.errors import ApiError, error_responses
+from service.labelling.admission import RETRY_AFTER_S, QueueFull
+from service.labelling.errors import BackendError, BackendTimeout, ScanRejected
+from service.labelling.scan_bodies import (
     CONTENT_TYPES,
     OCTET,
     FileBody,
@@ -34,9 +35,8 @@ from service.scan_bodies import (
     body_limits,
     decode_file_body,
 )
+from service.models.catalog import MODEL_HEADER, MODEL_QUERY, ModelEntry
 from service.schemas import BINARY_CONTENT, LabelFormat, ScanLabels
-from service.served_models import MODEL_HEADER, MODEL_QUERY, ModelEntry
-from service.uploads import declared_length, media_type, read_body, refused_body
 
 router = APIRouter(prefix="/v1", tags=["scans"])
 

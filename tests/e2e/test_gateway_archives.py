@@ -19,8 +19,13 @@ import pytest
 
 from rangeret.dataset.layout import KITTI_LAYOUT
 from rangeret.io.scans import KITTI_RECORD
-from service import archives
-from service.archives import ArchiveError, ArchiveLimits, ArchiveTooLarge, extract_archive
+from service.archives import extraction as archives
+from service.archives.extraction import (
+    ArchiveError,
+    ArchiveLimits,
+    ArchiveTooLarge,
+    extract_archive,
+)
 from service.routes.job_errors import job_error_answer
 from tests.support.gateway import Gateway, assert_error, gateway_env, start_gateway, wait_job
 from tests.support.workers import build_tree, small_weights

@@ -20,10 +20,10 @@ import pytest
 import uvicorn
 from starlette.requests import Request
 
-import service.protocols as protocols
-from service.errors import ApiError
-from service.protocols import GatewayProtocol, JsonH11Protocol
-from service.uploads import drain, read_body, receive_archive
+import service.http.protocols as protocols
+from service.http.bodies import drain, read_body, receive_archive
+from service.http.errors import ApiError
+from service.http.protocols import GatewayProtocol, JsonH11Protocol
 from tests.support.gateway import TOKEN, Gateway, free_port, gateway_env, start_gateway
 from tests.support.workers import small_weights
 

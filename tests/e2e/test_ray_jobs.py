@@ -37,8 +37,8 @@ from rangeret.inference.spec import InferenceSpec
 from service.jobs import JobControl, JobError, JobManager, JobStore
 from service.jobs.jobs_api import JobsApi, JobsApiError, JobsApiUnreachable
 from service.jobs.ray_jobs import RayJobExecutor, Verdict, submission_id, verdict
+from service.models.catalog import ModelCatalog, ModelEntry
 from service.schemas import JobState
-from service.served_models import ModelCatalog, ModelEntry
 from tests.support.apps import one_model
 from tests.support.gateway import Gateway, gateway_env, start_gateway, wait_job
 from tests.support.paths import REPO

@@ -26,8 +26,8 @@ from rangeret.inference.results import ScanPrediction
 from rangeret.inference.spec import InferenceSpec
 from rangeret.io.scans import read_labels, read_scan
 from rangeret.models.weights.hub import file_sha256 as checkpoint_sha256
-from service.serve_client import ServeLabeller
-from service.served_models import ModelCatalog, ModelEntry
+from service.labelling.serve_client import ServeLabeller
+from service.models.catalog import ModelCatalog, ModelEntry
 from tests.support.gateway import AUTH, OCTET, assert_error, gateway_env, start_gateway
 from tests.support.open_audit import Audit
 from tests.support.workers import build_tree, free_ports, ray_node, small_weights

@@ -14,7 +14,12 @@ import pytest
 from rangeret.dataset.layout import KITTI_LAYOUT, list_scans
 from rangeret.dataset.profiles import load_profile
 from rangeret.io.scans import KITTI_RECORD
-from service.archives import ArchiveError, ArchiveLimits, ArchiveTooLarge, extract_archive
+from service.archives.extraction import (
+    ArchiveError,
+    ArchiveLimits,
+    ArchiveTooLarge,
+    extract_archive,
+)
 
 LIMITS = ArchiveLimits(
     max_bytes=1 << 20, max_members=20, max_points=1000, max_extracted_bytes=1 << 20

@@ -12,8 +12,8 @@ import pytest
 
 from rangeret.inference.results import ScanPrediction
 from rangeret.inference.scan_worker import group_by_options
-from service.batching import ScanBatcher
-from service.labeller_errors import BackendError, ScanRejected
+from service.labelling.batching import ScanBatcher
+from service.labelling.errors import BackendError, ScanRejected
 
 
 class FakeWorker:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from service.errors import validation_sentence
+from service.http.errors import validation_sentence
 
 
 def test_validation_sentences():

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from rangeret.dataset.profiles import load_profile
-from service.errors import ApiError
+from service.http.errors import ApiError
 from service.jobs import JobManager, JobStore
 from service.jobs.intake import JobIntake, resolve_dataset
 from service.routes.job_errors import REFUSALS, job_error_answer

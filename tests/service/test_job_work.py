@@ -12,8 +12,8 @@ import pytest
 from rangeret.dataset.profiles import load_profile
 from service.jobs import JobControl, JobStore, JobWork
 from service.jobs.work import PROFILE_FILE, accepted_profile
+from service.models.catalog import ModelCatalog
 from service.schemas import JobState
-from service.served_models import ModelCatalog
 from tests.support.apps import one_model
 from tests.support.jobs import FakeExecutor
 from tests.support.trees import make_tree

@@ -21,8 +21,8 @@ from rangeret.inference.models_file import ModelSet
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.spec import InferenceSpec
 from rangeret.models import RangeRet, build_model, save_checkpoint
-from service.model_loader import ModelLoader
-from service.pooled_labeller import PooledLabeller
+from service.labelling.pooled import PooledLabeller
+from service.models.loader import ModelLoader
 from service.server import build_pool, check_models
 from service.settings import Settings
 

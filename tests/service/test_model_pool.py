@@ -14,7 +14,7 @@ import torch
 from rangeret.dataset.profiles import load_profile
 from rangeret.inference.predictor import Predictor
 from rangeret.models import build_model, save_checkpoint
-from service.model_pool import ModelPool, PoolFull
+from service.models.pool import ModelPool, PoolFull
 
 
 class Loads:

@@ -1,5 +1,5 @@
 """Uploaded nuScenes archives on their own (`rangeret.dataset.table_upload_rules` through
-`service.archives.extract_with`): a simulated tree zipped as it ships is extracted as it was, and
+`service.archives.extraction.extract_with`): a simulated tree zipped as it ships is extracted as it was, and
 each fault (a member outside the layout, a second version, a sweep or label file the tables do not
 name, a keyframe without its sweep, a label file of another length, a scene labelled in part, no
 tables) is refused in one sentence before the job sees it."""
@@ -14,7 +14,7 @@ import pytest
 from rangeret.dataset.layout import list_scans
 from rangeret.dataset.profiles import load_profile
 from rangeret.dataset.table_upload_rules import NuScenesRules
-from service.archives import ArchiveError, ArchiveLimits, ArchiveTooLarge, extract_with
+from service.archives.extraction import ArchiveError, ArchiveLimits, ArchiveTooLarge, extract_with
 from tests.support.nuscenes import entries, write_tree
 
 PROFILE = load_profile("nuscenes")

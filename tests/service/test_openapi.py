@@ -19,8 +19,8 @@ from rangeret.inference.scan_worker import ScanWorker
 from rangeret.inference.spec import InferenceSpec
 from rangeret.io.scans import read_scan
 from service.app import create_app
+from service.labelling.scan_bodies import CONTENT_TYPES
 from service.routes.scans import json_answer
-from service.scan_bodies import CONTENT_TYPES
 from service.schemas import LabelFormat
 from service.settings import Settings
 from tests.support.apps import one_model, pooled

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from rangeret.dataset.profiles import load_profile
-from service import scan_bodies
-from service.errors import ApiError
-from service.scan_bodies import DECODE_SLOTS, body_limits, decode_file_body
+from service.http.errors import ApiError
+from service.labelling import scan_bodies
+from service.labelling.scan_bodies import DECODE_SLOTS, body_limits, decode_file_body
 from service.settings import Settings
 from tests.support.hostile_files import count_bomb_pcd, wide_compressed_pcd
 from tests.support.point_files import pcd_bytes

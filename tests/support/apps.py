@@ -5,10 +5,10 @@ from __future__ import annotations
 
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.inference.spec import InferenceSpec
-from service.batching import ScanBatcher
-from service.model_pool import ModelPool
-from service.pooled_labeller import ModelRuntime, PooledLabeller
-from service.served_models import ModelCatalog, ModelEntry
+from service.labelling.batching import ScanBatcher
+from service.labelling.pooled import ModelRuntime, PooledLabeller
+from service.models.catalog import ModelCatalog, ModelEntry
+from service.models.pool import ModelPool
 
 
 def one_model(

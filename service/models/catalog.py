@@ -18,7 +18,7 @@ from fastapi import Query
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.inference.models_file import ModelSet, UnknownModelError
 from rangeret.inference.spec import InferenceSpec
-from service.errors import ApiError
+from service.http.errors import ApiError
 
 if TYPE_CHECKING:  # torch is imported when the gateway starts, not to build its parser
     from rangeret.inference.loader import WeightsIdentity

@@ -21,8 +21,8 @@ import numpy as np
 
 from rangeret.commands import CommandError
 from rangeret.inference.results import ScanPrediction
-from service.labeller_errors import BackendError, BackendTimeout, ScanRejected
-from service.served_models import ModelCatalog
+from service.labelling.errors import BackendError, BackendTimeout, ScanRejected
+from service.models.catalog import ModelCatalog
 from workers.scan_wire import INFO_PATH, OCTET, SCANS_PATH, decode_labels, options_query
 
 log = logging.getLogger(__name__)

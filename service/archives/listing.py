@@ -5,7 +5,7 @@ central directory is walked from the file header by header, counting, before `zi
 (which builds every entry at once). A tar is read one header at a time by `CheckedTarFile`, whose
 extended (pax, long-name) headers are bounded in size and number, since tarfile reads each into
 memory, and whose sparse members are refused. `archive_kind` tells the formats apart by their
-bytes. `service.archives` checks the members' names and extracts them; `ArchiveError` and
+bytes. `service.archives.extraction` checks the members' names and extracts them; `ArchiveError` and
 `ArchiveTooLarge` are the library's (`rangeret.dataset.upload_rules`).
 """
 

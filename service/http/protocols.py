@@ -43,7 +43,7 @@ import h11
 from uvicorn._types import ASGIReceiveCallable, ASGISendCallable, Scope
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
-from service.errors import sentence
+from service.http.errors import sentence
 
 log = logging.getLogger("uvicorn.error")
 

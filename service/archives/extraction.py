@@ -1,7 +1,7 @@
 """Safe extraction of uploaded sequence archives (.zip, .tar, .tar.gz) into a job's folder.
 
 Every entry counts against `max_members`, folders included, and is counted as the archive is
-listed, before its listing is held in memory (`service.archive_listing`). The files' declared
+listed, before its listing is held in memory (`service.archives.listing`). The files' declared
 sizes may add up to at most `max_extracted_bytes`, checked before anything is written and again
 on the bytes actually read; there is no compression-ratio rule, since a label file of one class
 compresses like a bomb of zeros. `max_bytes` bounds the archive file itself.
@@ -37,7 +37,7 @@ from rangeret.dataset.upload_rules import (
     ExtractedDataset,
 )
 from rangeret.io.scans import PointRecord
-from service.archive_listing import (
+from service.archives.listing import (
     MAX_NAME,
     CheckedTarFile,
     TarHeaders,

@@ -8,8 +8,8 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from service.errors import ApiError
 from service.gateway import Gateway
+from service.http.errors import ApiError
 from service.jobs import JobManager
 
 BEARER = HTTPBearer(auto_error=False, description="the gateway's RANGERET_API_TOKEN")

@@ -16,9 +16,9 @@ from rangeret.inference.models_file import ModelSet
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.runtime.memory import release_freed_memory
 from rangeret.inference.scan_worker import ScanWorker
-from service.batching import ScanBatcher
-from service.model_pool import ModelPool
-from service.pooled_labeller import ModelRuntime
+from service.labelling.batching import ScanBatcher
+from service.labelling.pooled import ModelRuntime
+from service.models.pool import ModelPool
 
 
 class ModelLoader:

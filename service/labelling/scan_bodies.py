@@ -25,7 +25,7 @@ from rangeret.io.decode_limits import DecodeLimitError, DecodeLimits
 from rangeret.io.point_fields import PointFieldsError, to_record
 from rangeret.io.point_files import decode_point_file, signature_format
 from rangeret.io.scans import ScanFormatError
-from service.errors import ApiError
+from service.http.errors import ApiError
 from service.settings import Settings
 
 OCTET = "application/octet-stream"

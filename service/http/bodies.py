@@ -20,7 +20,7 @@ from python_multipart.exceptions import FormParserError
 from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect, Request
 
-from service.errors import ApiError
+from service.http.errors import ApiError
 from service.settings import Settings
 
 #: Bytes beyond a limit that are still read (and dropped) so the client sees the 413.

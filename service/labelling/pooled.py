@@ -19,9 +19,9 @@ import numpy as np
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import ScanPrediction
 from rangeret.inference.scan_worker import ScanRequest
-from service.batching import ScanBatcher
-from service.labeller_errors import BackendError
-from service.model_pool import ModelPool, PoolFull
+from service.labelling.batching import ScanBatcher
+from service.labelling.errors import BackendError
+from service.models.pool import ModelPool, PoolFull
 
 
 @dataclass

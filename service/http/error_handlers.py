@@ -17,7 +17,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
-from service.errors import ApiError, default_sentence, sentence, validation_sentence
+from service.http.errors import ApiError, default_sentence, sentence, validation_sentence
 from service.jobs import JobDatabaseFull
 from service.schemas import ErrorResponse
 

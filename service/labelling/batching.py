@@ -25,7 +25,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from service.labeller_errors import BackendError, ScanRejected
+from service.labelling.errors import BackendError, ScanRejected
 
 if TYPE_CHECKING:
     from rangeret.inference.results import ScanPrediction
