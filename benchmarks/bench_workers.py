@@ -21,7 +21,7 @@ from _common import REAL_SCAN, require_real_scan, small_state_dict
 
 from rangeret.dataset.layout import KITTI_LAYOUT, list_scans, velodyne_dir
 from rangeret.dataset.selection import DatasetSelection
-from rangeret.inference.loader import load_weights
+from rangeret.inference.loaded_weights import load_weights
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.runner import predict_tree
 from rangeret.inference.spec import InferenceSpec

@@ -34,7 +34,7 @@ from service.jobs import JobExecutor
 from service.settings import Settings
 
 if TYPE_CHECKING:  # torch is imported when the gateway starts, not to build its parser
-    from rangeret.inference.models_file import ModelSet
+    from rangeret.inference.model_set import ModelSet
     from service.labelling.pooled import ModelRuntime
     from service.models.catalog import ModelCatalog
     from service.models.loader import ModelLoader
@@ -134,7 +134,7 @@ def settings_from_args(args: argparse.Namespace) -> Settings:
 def model_set(args: argparse.Namespace, settings: Settings) -> ModelSet:
     """The models to serve: the models file's (`--models`, RANGERET_MODELS) over the command
     line's other network options, or the one model `default` of those options."""
-    from rangeret.inference.models_file import ModelSet, ModelsFileError, load_models_file
+    from rangeret.inference.model_set import ModelSet, ModelsFileError, load_models_file
 
     spec = InferenceSpec.from_args(args)
     if settings.models is None:

@@ -29,7 +29,7 @@ from rangeret.dataset.projection import project_with
 from rangeret.dataset.selection import DatasetSelection
 from rangeret.evaluation.evaluate import evaluate_predictions
 from rangeret.evaluation.plots import plot_range_image, write_plots
-from rangeret.inference.loader import load_weights
+from rangeret.inference.loaded_weights import load_weights
 from rangeret.inference.spec import InferenceSpec
 from rangeret.io.run_info import check_weights, write_run_info
 from rangeret.io.scans import read_scan

@@ -127,7 +127,7 @@ def run_pipeline(
 ) -> PipelineRun:
     """Predict `entries` into the tree at `out` on the connected Ray cluster.
 
-    `profile` must be the one `spec`'s weights run with (`rangeret.inference.loader.load_weights`
+    `profile` must be the one `spec`'s weights run with (`rangeret.inference.loaded_weights.load_weights`
     settled it): the readers take its point record and projection, the model actors load the
     weights for it, the writers take its labels. The run's summary counts `entries` only.
     `progress(done, failed, total)` is called after every batch; setting `cancel` stops the run

@@ -29,7 +29,7 @@ from pathlib import Path
 from rangeret.commands import CommandError, run_command
 from rangeret.dataset.layout import is_complete
 from rangeret.exceptions import RangeRetError
-from rangeret.inference.loader import load_weights
+from rangeret.inference.loaded_weights import load_weights
 from rangeret.inference.spec import InferenceSpec
 from rangeret.io.run_info import write_run_info
 from rangeret.models.weights.demo import DEMO_WARNING, is_demo_checkpoint

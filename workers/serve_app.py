@@ -35,8 +35,8 @@ from fastapi.responses import JSONResponse, Response
 from ray import serve
 
 from rangeret.exceptions import RangeRetError
-from rangeret.inference.loader import identify_weights
-from rangeret.inference.models_file import ModelSet
+from rangeret.inference.loaded_weights import identify_weights
+from rangeret.inference.model_set import ModelSet
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import ScanOutcome
 from rangeret.inference.runtime.memory import release_freed_memory

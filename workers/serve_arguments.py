@@ -3,7 +3,7 @@ any replica starts.
 
 One model: the fields of `rangeret.inference.spec.InferenceSpec` by name, as `rangeret serve`
 takes them as options; it is the model named `default`. Several models: `models` is either the
-mapping of a models file (each name to its network options, `rangeret.inference.models_file`)
+mapping of a models file (each name to its network options, `rangeret.inference.model_set`)
 with `default` beside it, or the path of a models file, which names its own default; the other
 network options are defaults an entry overrides. Besides them: `batch_size` (the application's,
 not a model's), `batch_wait_ms`, the longest a request waits for others to fill its batch, and
@@ -16,7 +16,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from rangeret.dataset.fields import is_int, is_number
-from rangeret.inference.models_file import (
+from rangeret.inference.model_set import (
     ModelSet,
     ModelsFileError,
     load_models_file,

@@ -174,7 +174,7 @@ class ModelWorker:
     takes a batch, so the first batch's times are those of any other."""
 
     def __init__(self, spec: InferenceSpec, profile: DatasetProfile, cpus: float) -> None:
-        from rangeret.inference.loader import load_weights
+        from rangeret.inference.loaded_weights import load_weights
         from rangeret.inference.predictor import Predictor
         from rangeret.inference.scan_worker import use_cpus, warm_up
 

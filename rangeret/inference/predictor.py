@@ -26,7 +26,7 @@ from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.projection import Projection, ProjectionConfig, project_with
 from rangeret.exceptions import InputError
 from rangeret.inference.description import describe_network
-from rangeret.inference.loader import LoadedWeights, load_weights
+from rangeret.inference.loaded_weights import LoadedWeights, load_weights
 from rangeret.inference.point_labels import point_classes_batch, point_confidences
 from rangeret.inference.results import ScanOutcome, ScanPrediction
 from rangeret.inference.runtime.device import select_device

@@ -16,12 +16,12 @@ from typing import TYPE_CHECKING
 from fastapi import Query
 
 from rangeret.dataset.profiles import DatasetProfile
-from rangeret.inference.models_file import ModelSet, UnknownModelError
+from rangeret.inference.model_set import ModelSet, UnknownModelError
 from rangeret.inference.spec import InferenceSpec
 from service.http.errors import ApiError
 
 if TYPE_CHECKING:  # torch is imported when the gateway starts, not to build its parser
-    from rangeret.inference.loader import WeightsIdentity
+    from rangeret.inference.loaded_weights import WeightsIdentity
 
 #: The header that names the model of every scan answer.
 MODEL_HEADER = "X-RangeRet-Model"

@@ -11,8 +11,8 @@ networks its pool keeps.
 
 from __future__ import annotations
 
-from rangeret.inference.loader import WeightsIdentity, identify_weights, load_weights
-from rangeret.inference.models_file import ModelSet
+from rangeret.inference.loaded_weights import WeightsIdentity, identify_weights, load_weights
+from rangeret.inference.model_set import ModelSet
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.runtime.memory import release_freed_memory
 from rangeret.inference.scan_worker import ScanWorker

@@ -16,7 +16,7 @@ import pytest
 import yaml
 
 from rangeret.dataset.labels import semantickitti
-from rangeret.inference.models_file import ModelSet
+from rangeret.inference.model_set import ModelSet
 from rangeret.models.weights.hub import file_sha256
 from rangeret.submission.archives import validate_submission
 from tests.support.kuberay import (

@@ -16,8 +16,8 @@ import pytest
 import torch
 
 from rangeret.dataset.profiles import load_profile
-from rangeret.inference.loader import WeightsChanged
-from rangeret.inference.models_file import ModelSet
+from rangeret.inference.loaded_weights import WeightsChanged
+from rangeret.inference.model_set import ModelSet
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.spec import InferenceSpec
 from rangeret.models import RangeRet, build_model, save_checkpoint

@@ -15,7 +15,7 @@ import pytest
 
 from rangeret.cli.main import main as rangeret_main
 from rangeret.dataset.layout import KITTI_LAYOUT, discover
-from rangeret.inference.loader import load_weights
+from rangeret.inference.loaded_weights import load_weights
 from rangeret.inference.spec import InferenceSpec
 from tests.support.workers import build_tree, small_weights, tree_bytes
 from workers.pipeline import run_pipeline

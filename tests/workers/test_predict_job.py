@@ -319,7 +319,7 @@ def test_model_actors_warm_up_before_their_first_batch(setup):
     """The pipeline's model actors and the single-scan worker run the network once when they are
     built: a real batch then finds every decay table made and builds none."""
     from rangeret.dataset.layout import discover
-    from rangeret.inference.loader import load_weights
+    from rangeret.inference.loaded_weights import load_weights
     from rangeret.inference.predictor import Predictor
     from rangeret.inference.scan_worker import ScanRequest, ScanWorker
     from rangeret.models.blocks.decay import GridCache

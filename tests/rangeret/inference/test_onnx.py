@@ -25,7 +25,7 @@ from rangeret.cli.main import main as rangeret_main
 from rangeret.dataset.labels import semantickitti
 from rangeret.dataset.layout import KITTI_LAYOUT, prediction_path, velodyne_dir
 from rangeret.dataset.projection import CHANNEL_MEANS, CHANNEL_STDS
-from rangeret.inference.loader import load_weights
+from rangeret.inference.loaded_weights import load_weights
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.runtime import onnx_backend
 from rangeret.inference.runtime.onnx_backend import (

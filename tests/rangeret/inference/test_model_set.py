@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from rangeret.inference.models_file import (
+from rangeret.inference.model_set import (
     DEFAULT_NAME,
     ModelSet,
     ModelsFileError,
