@@ -35,6 +35,7 @@ from rangeret.io.run_info import check_weights, write_run_info
 from rangeret.io.scans import read_scan
 from rangeret.models.weights.demo import DEMO_WARNING, demo_checkpoint, is_demo_path
 from rangeret.sim.trees import simulate_tree
+from rangeret.submission.benchmark import ArchiveRequest
 from rangeret.submission.benchmarks import benchmark_of
 from rangeret.submission.leaderboard import LeaderboardEntry, description_text
 from workers.cluster import start_local
@@ -128,12 +129,14 @@ def run_demo(
     archive = out / "submission.zip"
     if benchmark.writes_archives:
         leaderboard = leaderboard or LeaderboardEntry()
-        check = benchmark.write_archive(
-            preds,
-            dataset,
+        request = ArchiveRequest(
             archive,
-            profile=profile,
-            options=plan.archive_options,
+            dataset,
+            profile,
+            plan.archive_options,
+            allow_partial=plan.partial_archive,
+            progress=progress,
+            predictions=preds,
             description=description_text(
                 leaderboard,
                 written_by="rangeret demo",
@@ -145,9 +148,8 @@ def run_demo(
             ),
             leaderboard=leaderboard,
             checkpoint_sha256=info.sha256,
-            allow_partial=plan.partial_archive,
-            progress=progress,
         )
+        check = benchmark.write_archive(request)
         check.raise_for_problems()
 
     print(report.table())

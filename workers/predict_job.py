@@ -40,6 +40,7 @@ from rangeret.options import (
     leaderboard_from_args,
     selected_dataset,
 )
+from rangeret.submission.benchmark import ArchiveRequest
 from rangeret.submission.benchmarks import benchmark_of, no_archive_reason
 from rangeret.submission.leaderboard import description_text
 from workers.cluster import connect
@@ -239,12 +240,14 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
     if args.submission and no_archive_reason(profile) is not None:
         raise CommandError(f"{no_archive_reason(profile)}; every prediction was written")
     if args.submission:
-        check = benchmark_of(profile).write_archive(
-            args.out,
-            args.dataset,
+        request = ArchiveRequest(
             args.submission,
-            profile=profile,
-            options=selection.archive_options(),
+            args.dataset,
+            profile,
+            selection.archive_options(),
+            allow_partial=args.allow_partial,
+            progress=not args.quiet,
+            predictions=args.out,
             description=description_text(
                 leaderboard,
                 written_by="workers.predict_job",
@@ -255,9 +258,8 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
             ),
             leaderboard=leaderboard,
             checkpoint_sha256=info.sha256,
-            allow_partial=args.allow_partial,
-            progress=not args.quiet,
         )
+        check = benchmark_of(profile).write_archive(request)
         print(check.summary())
     recorder.finish(precision=precision)
     return 0

@@ -22,7 +22,7 @@ from rangeret.options import (
 from rangeret.plugins import Subcommand
 
 if TYPE_CHECKING:
-    from rangeret.submission.benchmark import Benchmark
+    from rangeret.submission.benchmark import ArchiveRequest, Benchmark
 
 log = logging.getLogger("rangeret")
 
@@ -87,17 +87,17 @@ def run_submission(args: argparse.Namespace) -> int:
         notes=[args.description] if args.description else [],
     )
     check = benchmark.write_archive(
-        args.predictions,
-        args.dataset,
-        args.out,
-        profile=profile,
-        options=options,
-        description=description,
-        leaderboard=leaderboard,
-        checkpoint_sha256=run.get("checkpoint_sha256"),
-        allow_partial=args.allow_partial,
-        progress=not args.quiet,
-        workers=args.workers,
+        _request(
+            args,
+            profile,
+            options,
+            args.out,
+            predictions=args.predictions,
+            description=description,
+            leaderboard=leaderboard,
+            checkpoint_sha256=run.get("checkpoint_sha256"),
+            workers=args.workers,
+        )
     )
     print(check.summary())
     if check.partial:
@@ -119,14 +119,7 @@ def add_validate_arguments(p: argparse.ArgumentParser) -> None:
 def run_validate(args: argparse.Namespace) -> int:
     """Validate a submission zip against the dataset and the official test split."""
     profile, benchmark, options = _benchmark_profile(args, writing=False)
-    check = benchmark.validate_archive(
-        args.archive,
-        args.dataset,
-        profile=profile,
-        options=options,
-        allow_partial=args.allow_partial,
-        progress=not args.quiet,
-    )
+    check = benchmark.validate_archive(_request(args, profile, options, args.archive))
     if not check.ok:
         problems = check.problems
         if len(problems) == 1:
@@ -136,6 +129,28 @@ def run_validate(args: argparse.Namespace) -> int:
         )
     print(check.summary())
     return 0
+
+
+def _request(
+    args: argparse.Namespace,
+    profile: DatasetProfile,
+    options: dict[str, Any],
+    archive: Path,
+    **writing: Any,
+) -> ArchiveRequest:
+    """The archive request of the command line: --dataset, --allow-partial, -q, and the
+    `writing` fields of `submission`."""
+    from rangeret.submission.benchmark import ArchiveRequest
+
+    return ArchiveRequest(
+        archive,
+        args.dataset,
+        profile,
+        options,
+        allow_partial=args.allow_partial,
+        progress=not args.quiet,
+        **writing,
+    )
 
 
 def _benchmark_profile(

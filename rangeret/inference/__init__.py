@@ -6,7 +6,7 @@ bags, and the forward-pass runtime (`runtime/`)."""
 
 from __future__ import annotations
 
-import importlib
+from rangeret import lazy_exports
 
 #: The names importable from the package itself (`from rangeret.inference import InferenceSpec`),
 #: each loaded from its module on first use: importing the package, or any module of it, costs
@@ -19,10 +19,4 @@ _EXPORTS = {
 __all__ = sorted(_EXPORTS)
 
 
-def __getattr__(name: str) -> object:
-    """An exported name, imported from its module on first use and kept."""
-    if name not in _EXPORTS:
-        raise AttributeError(f"module 'rangeret.inference' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_EXPORTS[name]), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_exports(__name__, _EXPORTS)

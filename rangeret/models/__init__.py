@@ -11,8 +11,7 @@ demo weights' description) import without torch.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from rangeret import lazy_exports
 
 _EXPORTS = {
     "CheckpointError": "rangeret.models.weights.checkpoint",
@@ -28,9 +27,4 @@ _EXPORTS = {
 __all__ = sorted(_EXPORTS)
 
 
-def __getattr__(name: str) -> Any:
-    if name not in _EXPORTS:
-        raise AttributeError(f"module 'rangeret.models' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_EXPORTS[name]), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_exports(__name__, _EXPORTS)

@@ -4,37 +4,23 @@ or a version's tables (`rangeret.sim.nuscenes_tree`), chosen by what the layout 
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.sim.dataset import simulate_dataset
 from rangeret.sim.nuscenes_tree import simulate_nuscenes
-from rangeret.sim.raycast import SensorConfig
 
 
 def simulate_tree(
     root: str | os.PathLike[str],
     sequences: Mapping[str, int],
-    labelled: Iterable[str] | bool = True,
-    sensor: SensorConfig | None = None,
-    seed: int = 0,
-    progress: bool = False,
     *,
     profile: DatasetProfile,
+    **options: Any,
 ) -> int:
-    """Write `sequences` (name -> number of scans) in the profile's layout under `root`, those
-    `labelled` with ground truth; the number of scans written. The same seed writes the same
-    bytes."""
-    if profile.layout.folders is None:
-        return simulate_nuscenes(
-            root,
-            sequences,
-            labelled=labelled,
-            sensor=sensor,
-            seed=seed,
-            progress=progress,
-            profile=profile,
-        )
-    return simulate_dataset(
-        root, sequences, labelled, sensor, seed=seed, progress=progress, profile=profile
-    )
+    """Write `sequences` (name -> number of scans) in the profile's layout under `root`, with the
+    `options` both writers take (`labelled`, `sensor`, `seed`, `progress`); the number of scans
+    written."""
+    write = simulate_nuscenes if profile.layout.folders is None else simulate_dataset
+    return write(root, sequences, profile=profile, **options)

@@ -51,6 +51,50 @@ class DemoPlan:
     hints: tuple[str, ...] = ()
 
 
+@dataclass(frozen=True)
+class ArchiveRequest:
+    """What writing or checking a benchmark archive takes: the archive, the dataset and its
+    profile, the benchmark's own options, and for writing the predictions and their record."""
+
+    archive: Path
+    dataset: Path
+    profile: DatasetProfile
+    #: The benchmark's options by destination (`Benchmark.option_dests`); None: not given.
+    options: Mapping[str, Any] = field(default_factory=dict)
+    #: A local dataset with missing test scans is accepted (an archive for tests only).
+    allow_partial: bool = False
+    progress: bool = False
+    #: The predictions tree to archive (writing only).
+    predictions: Path | None = None
+    #: The text of `description.txt` (writing only).
+    description: str = ""
+    leaderboard: LeaderboardEntry = field(default_factory=LeaderboardEntry)
+    checkpoint_sha256: str | None = None
+    #: Threads that read and compress the predictions; the archive is the same for any number.
+    workers: int | None = None
+
+    def predictions_tree(self) -> Path:
+        """The predictions tree to archive; a `SubmissionError` when none was given."""
+        if self.predictions is None:
+            raise SubmissionError([f"{self.archive}: no predictions tree was given to archive"])
+        return self.predictions
+
+
+@dataclass(frozen=True)
+class JobPredictions:
+    """A gateway job's predictions to zip: the scans `entries` of its `sequences`, predicted
+    into `pred_root`, zipped at `path` with `description`; `sha256` names the checkpoint."""
+
+    pred_root: Path
+    entries: Sequence[ScanEntry]
+    sequences: Sequence[str]
+    path: Path
+    description: str
+    profile: DatasetProfile
+    workers: int | None = None
+    sha256: str | None = None
+
+
 class Benchmark:
     """One benchmark and task; this base is also the entry of a profile without a benchmark."""
 
@@ -82,54 +126,20 @@ class Benchmark:
 
     # Archives -----------------------------------------------------------------------------
 
-    def write_archive(
-        self,
-        predictions: Path,
-        dataset: Path,
-        out: Path,
-        *,
-        profile: DatasetProfile,
-        options: Mapping[str, Any],
-        description: str,
-        leaderboard: LeaderboardEntry,
-        checkpoint_sha256: str | None,
-        allow_partial: bool = False,
-        progress: bool = False,
-        workers: int | None = None,
-    ) -> SubmissionCheck:
-        """Write and validate the benchmark archive of a predictions tree at `out`; a
-        `SubmissionError` listing every problem, writing nothing."""
-        raise SubmissionError([f"the {profile.name} profile has no benchmark archive"])
+    def write_archive(self, request: ArchiveRequest) -> SubmissionCheck:
+        """Write and validate the benchmark archive of `request.predictions` at
+        `request.archive`; a `SubmissionError` listing every problem, writing nothing."""
+        raise SubmissionError([f"the {request.profile.name} profile has no benchmark archive"])
 
-    def validate_archive(
-        self,
-        archive: Path,
-        dataset: Path,
-        *,
-        profile: DatasetProfile,
-        options: Mapping[str, Any],
-        allow_partial: bool = False,
-        progress: bool = False,
-    ) -> SubmissionCheck:
-        """Check an archive as the benchmark's server would."""
-        raise SubmissionError([f"the {profile.name} profile has no benchmark archive"])
+    def validate_archive(self, request: ArchiveRequest) -> SubmissionCheck:
+        """Check `request.archive` as the benchmark's server would."""
+        raise SubmissionError([f"the {request.profile.name} profile has no benchmark archive"])
 
-    def write_job_zip(
-        self,
-        pred_root: Path,
-        entries: Sequence[ScanEntry],
-        sequences: Sequence[str],
-        path: Path,
-        description: str,
-        *,
-        profile: DatasetProfile,
-        workers: int | None = None,
-        sha256: str | None = None,
-    ) -> None:
+    def write_job_zip(self, job: JobPredictions) -> None:
         """The predictions of a gateway job as a reproducible zip: each scan's prediction at its
         place in the predictions tree, with explicit directory entries and `description.txt`."""
-        directories = sorted({d for e in entries for d in _parents(e.prediction)})
-        write_predictions_zip(pred_root, entries, directories, path, description, workers)
+        directories = sorted({d for e in job.entries for d in _parents(e.prediction)})
+        write_predictions_zip(job, directories)
 
     # The demo -------------------------------------------------------------------------------
 
@@ -160,24 +170,20 @@ REAL_DATA_HINTS = (
 )
 
 
-def write_predictions_zip(
-    pred_root: Path,
-    entries: Sequence[ScanEntry],
-    directories: Sequence[str],
-    path: Path,
-    description: str,
-    workers: int | None = None,
-) -> None:
-    """Zip the predictions of `entries` at their places in the tree `pred_root`, after the
-    `directories` entries, with `description.txt`; reproducible whatever the `workers`."""
-    with atomic_path(path) as tmp, ReproducibleZip(tmp) as zf:
+def write_predictions_zip(job: JobPredictions, directories: Sequence[str]) -> None:
+    """Zip the job's predictions at their places in its predictions tree, after the
+    `directories` entries, with `description.txt`; reproducible whatever its `workers`."""
+    with atomic_path(job.path) as tmp, ReproducibleZip(tmp) as zf:
         for name in directories:
             zf.add_directory(name)
         zf.add_files(
-            ((entry.prediction, entry.prediction_in(pred_root).read_bytes) for entry in entries),
-            workers,
+            (
+                (entry.prediction, entry.prediction_in(job.pred_root).read_bytes)
+                for entry in job.entries
+            ),
+            job.workers,
         )
-        zf.add_file("description.txt", description.rstrip("\n") + "\n")
+        zf.add_file("description.txt", job.description.rstrip("\n") + "\n")
 
 
 def _parents(relative: str) -> list[str]:

@@ -9,11 +9,6 @@ test sequences 11 to 21 and writes a partial archive.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from pathlib import Path
-from typing import Any
-
-from rangeret.dataset.layout import ScanEntry
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.sim.raycast import SensorConfig
 from rangeret.submission.archives import (
@@ -25,11 +20,12 @@ from rangeret.submission.archives import (
 )
 from rangeret.submission.benchmark import (
     REAL_DATA_HINTS,
+    ArchiveRequest,
     Benchmark,
     DemoPlan,
+    JobPredictions,
     write_predictions_zip,
 )
-from rangeret.submission.leaderboard import LeaderboardEntry
 
 #: The demo's labelled validation sequence.
 DEMO_VALID = "08"
@@ -48,76 +44,36 @@ class SemanticKittiBenchmark(Benchmark):
             return f"the {self.title} benchmark takes folders of sequences, not a version's tables"
         return None
 
-    def write_archive(
-        self,
-        predictions: Path,
-        dataset: Path,
-        out: Path,
-        *,
-        profile: DatasetProfile,
-        options: Mapping[str, Any],
-        description: str,
-        leaderboard: LeaderboardEntry,
-        checkpoint_sha256: str | None,
-        allow_partial: bool = False,
-        progress: bool = False,
-        workers: int | None = None,
-    ) -> SubmissionCheck:
+    def write_archive(self, request: ArchiveRequest) -> SubmissionCheck:
         """The test split's zip, validated before it is moved into place."""
         return write_submission(
-            predictions,
-            dataset,
-            out,
-            allow_partial=allow_partial,
-            description=description,
-            labels=profile.labels,
-            progress=progress,
-            workers=workers,
+            request.predictions_tree(),
+            request.dataset,
+            request.archive,
+            allow_partial=request.allow_partial,
+            description=request.description,
+            labels=request.profile.labels,
+            progress=request.progress,
+            workers=request.workers,
         )
 
-    def validate_archive(
-        self,
-        archive: Path,
-        dataset: Path,
-        *,
-        profile: DatasetProfile,
-        options: Mapping[str, Any],
-        allow_partial: bool = False,
-        progress: bool = False,
-    ) -> SubmissionCheck:
+    def validate_archive(self, request: ArchiveRequest) -> SubmissionCheck:
         """What the official validator checks, and more (`validate_submission`)."""
         return validate_submission(
-            archive, dataset, allow_partial=allow_partial, labels=profile.labels, progress=progress
+            request.archive,
+            request.dataset,
+            allow_partial=request.allow_partial,
+            labels=request.profile.labels,
+            progress=request.progress,
         )
 
-    def write_job_zip(
-        self,
-        pred_root: Path,
-        entries: Sequence[ScanEntry],
-        sequences: Sequence[str],
-        path: Path,
-        description: str,
-        *,
-        profile: DatasetProfile,
-        workers: int | None = None,
-        sha256: str | None = None,
-    ) -> None:
+    def write_job_zip(self, job: JobPredictions) -> None:
         """A job over test sequences only gets every test sequence's directory entries, as the
         server wants; any other job, those of its own sequences."""
-        if all(s in TEST_SEQUENCES for s in sequences):
-            directories = list(required_directories())
-            write_predictions_zip(pred_root, entries, directories, path, description, workers)
-            return
-        super().write_job_zip(
-            pred_root,
-            entries,
-            sequences,
-            path,
-            description,
-            profile=profile,
-            workers=workers,
-            sha256=sha256,
-        )
+        if all(s in TEST_SEQUENCES for s in job.sequences):
+            write_predictions_zip(job, list(required_directories()))
+        else:
+            super().write_job_zip(job)
 
     def demo_plan(self, profile: DatasetProfile, valid_scans: int, test_scans: int) -> DemoPlan:
         """Sequence 08 labelled, a few scans of each test sequence, a partial archive."""

@@ -10,14 +10,10 @@ writes their whole results folder.
 from __future__ import annotations
 
 import argparse
-from collections.abc import Mapping, Sequence
-from pathlib import Path
-from typing import Any
 
-from rangeret.dataset.layout import ScanEntry
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.submission.archives import SubmissionCheck
-from rangeret.submission.benchmark import Benchmark, DemoPlan
+from rangeret.submission.benchmark import ArchiveRequest, Benchmark, DemoPlan, JobPredictions
 from rangeret.submission.leaderboard import LeaderboardEntry
 from rangeret.submission.nuscenes import (
     META_KEYS,
@@ -75,22 +71,9 @@ class NuScenesLidarsegBenchmark(Benchmark):
         """split, version and the meta flags' keys."""
         return ("split", "version", *(META_KEYS if writing else ()))
 
-    def write_archive(
-        self,
-        predictions: Path,
-        dataset: Path,
-        out: Path,
-        *,
-        profile: DatasetProfile,
-        options: Mapping[str, Any],
-        description: str,
-        leaderboard: LeaderboardEntry,
-        checkpoint_sha256: str | None,
-        allow_partial: bool = False,
-        progress: bool = False,
-        workers: int | None = None,
-    ) -> SubmissionCheck:
+    def write_archive(self, request: ArchiveRequest) -> SubmissionCheck:
         """The results folder of the split, with submission.json's meta from the options."""
+        options = request.options
         meta = SubmissionMeta(
             **{
                 key: getattr(_FLAG_DEFAULTS, key) if options.get(key) is None else options[key]
@@ -98,62 +81,43 @@ class NuScenesLidarsegBenchmark(Benchmark):
             }
         )
         return write_nuscenes_submission(
-            predictions,
-            dataset,
-            out,
+            request.predictions_tree(),
+            request.dataset,
+            request.archive,
             options.get("split") or DEFAULT_SPLIT,
-            profile=profile,
+            profile=request.profile,
             meta=meta,
-            submission=submission_json(meta, leaderboard, checkpoint_sha256),
-            description=description,
+            submission=submission_json(meta, request.leaderboard, request.checkpoint_sha256),
+            description=request.description,
             version=options.get("version"),
-            allow_partial=allow_partial,
-            progress=progress,
-            workers=workers,
+            allow_partial=request.allow_partial,
+            progress=request.progress,
+            workers=request.workers,
         )
 
-    def validate_archive(
-        self,
-        archive: Path,
-        dataset: Path,
-        *,
-        profile: DatasetProfile,
-        options: Mapping[str, Any],
-        allow_partial: bool = False,
-        progress: bool = False,
-    ) -> SubmissionCheck:
+    def validate_archive(self, request: ArchiveRequest) -> SubmissionCheck:
         """Every check of the devkit's validator, and the project's own."""
         return validate_nuscenes_submission(
-            archive,
-            dataset,
-            options.get("split") or DEFAULT_SPLIT,
-            profile=profile,
-            version=options.get("version"),
-            allow_partial=allow_partial,
-            progress=progress,
+            request.archive,
+            request.dataset,
+            request.options.get("split") or DEFAULT_SPLIT,
+            profile=request.profile,
+            version=request.options.get("version"),
+            allow_partial=request.allow_partial,
+            progress=request.progress,
         )
 
-    def write_job_zip(
-        self,
-        pred_root: Path,
-        entries: Sequence[ScanEntry],
-        sequences: Sequence[str],
-        path: Path,
-        description: str,
-        *,
-        profile: DatasetProfile,
-        workers: int | None = None,
-        sha256: str | None = None,
-    ) -> None:
-        """Each split folder of the job's predictions with its submission.json naming `sha256`."""
+    def write_job_zip(self, job: JobPredictions) -> None:
+        """Each split folder of the job's predictions with its submission.json naming the
+        checkpoint."""
         write_nuscenes_results(
-            pred_root,
-            entries,
-            path,
-            profile=profile,
-            submission=submission_json(_FLAG_DEFAULTS, LeaderboardEntry(), sha256),
-            description=description,
-            workers=workers,
+            job.pred_root,
+            job.entries,
+            job.path,
+            profile=job.profile,
+            submission=submission_json(_FLAG_DEFAULTS, LeaderboardEntry(), job.sha256),
+            description=job.description,
+            workers=job.workers,
         )
 
     def demo_plan(self, profile: DatasetProfile, valid_scans: int, test_scans: int) -> DemoPlan:

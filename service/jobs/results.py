@@ -19,6 +19,7 @@ from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.selection import DatasetSelection
 from rangeret.evaluation.evaluate import evaluate_predictions
 from rangeret.evaluation.plots import write_plots
+from rangeret.submission.benchmark import JobPredictions
 from rangeret.submission.benchmarks import benchmark_of
 from rangeret.submission.leaderboard import LeaderboardEntry, description_text
 from service.jobs.store import JobRecord
@@ -63,16 +64,8 @@ def write_predictions_zip(
     (`Benchmark.write_job_zip`: SemanticKITTI's test sequences with every directory entry the
     server wants, nuScenes' results folder with `submission.json` naming `sha256`). The labels
     are read and deflated in `workers` threads; the archive's bytes do not depend on it."""
-    benchmark_of(profile).write_job_zip(
-        pred_root,
-        entries,
-        sequences,
-        path,
-        description,
-        profile=profile,
-        workers=workers,
-        sha256=sha256,
-    )
+    job = JobPredictions(pred_root, entries, sequences, path, description, profile, workers, sha256)
+    benchmark_of(profile).write_job_zip(job)
 
 
 def write_report(

@@ -12,17 +12,14 @@ from __future__ import annotations
 import argparse
 import json
 import zipfile
-from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
 
 from rangeret.dataset.layout import ScanEntry
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.selection import select_dataset
 from rangeret.io.scans import scan_num_points
 from rangeret.submission.archives import SubmissionCheck, SubmissionError
-from rangeret.submission.benchmark import Benchmark
-from rangeret.submission.leaderboard import LeaderboardEntry
+from rangeret.submission.benchmark import ArchiveRequest, Benchmark, JobPredictions
 
 ENTRY_POINTS = "[rangeret.benchmarks]\ntoy = tests.support.toy_benchmark:TOY\n"
 
@@ -63,58 +60,34 @@ class ToyBenchmark(Benchmark):
         )
         return selection.scans()
 
-    def write_archive(
-        self,
-        predictions: Path,
-        dataset: Path,
-        out: Path,
-        *,
-        profile: DatasetProfile,
-        options: Mapping[str, Any],
-        description: str,
-        leaderboard: LeaderboardEntry,
-        checkpoint_sha256: str | None,
-        allow_partial: bool = False,
-        progress: bool = False,
-        workers: int | None = None,
-    ) -> SubmissionCheck:
-        scans = self._test_scans(Path(dataset), profile)
+    def write_archive(self, request: ArchiveRequest) -> SubmissionCheck:
+        predictions = request.predictions_tree()
+        scans = self._test_scans(request.dataset, request.profile)
         missing = [e.key for e in scans if not e.prediction_in(predictions).is_file()]
         if missing:
             raise SubmissionError([f"no prediction for {key}" for key in missing])
-        with zipfile.ZipFile(out, "w") as zf:
+        with zipfile.ZipFile(request.archive, "w") as zf:
             for entry in scans:
                 zf.write(entry.prediction_in(predictions), _member(entry))
-            note = options.get("toy_note")
+            note = request.options.get("toy_note")
             zf.writestr("toy.json", json.dumps({"scans": len(scans), "note": note}))
-            zf.writestr("description.txt", description)
-        check = self.validate_archive(
-            Path(out), Path(dataset), profile=profile, options=options, allow_partial=allow_partial
-        )
+            zf.writestr("description.txt", request.description)
+        check = self.validate_archive(request)
         check.raise_for_problems()
         return check
 
-    def validate_archive(
-        self,
-        archive: Path,
-        dataset: Path,
-        *,
-        profile: DatasetProfile,
-        options: Mapping[str, Any],
-        allow_partial: bool = False,
-        progress: bool = False,
-    ) -> SubmissionCheck:
-        scans = self._test_scans(Path(dataset), profile)
-        check = SubmissionCheck(path=Path(archive), partial=allow_partial)
+    def validate_archive(self, request: ArchiveRequest) -> SubmissionCheck:
+        scans = self._test_scans(request.dataset, request.profile)
+        check = SubmissionCheck(path=Path(request.archive), partial=request.allow_partial)
         check.sequences = sorted({e.sequence for e in scans})
-        with zipfile.ZipFile(archive) as zf:
+        with zipfile.ZipFile(request.archive) as zf:
             names = set(zf.namelist())
             manifest = json.loads(zf.read("toy.json")) if "toy.json" in names else {}
             if manifest.get("scans") != len(scans):
                 check.problems.append(f"toy.json counts {manifest.get('scans')} of {len(scans)}")
             for entry in scans:
                 member = _member(entry)
-                points = scan_num_points(entry.scan_path, record=profile.points)
+                points = scan_num_points(entry.scan_path, record=request.profile.points)
                 if member not in names:
                     check.problems.append(f"{member} is missing")
                 elif zf.getinfo(member).file_size != 4 * points:
@@ -123,23 +96,12 @@ class ToyBenchmark(Benchmark):
                     check.scans += 1
         return check
 
-    def write_job_zip(
-        self,
-        pred_root: Path,
-        entries: Sequence[ScanEntry],
-        sequences: Sequence[str],
-        path: Path,
-        description: str,
-        *,
-        profile: DatasetProfile,
-        workers: int | None = None,
-        sha256: str | None = None,
-    ) -> None:
-        with zipfile.ZipFile(path, "w") as zf:
-            for entry in entries:
-                zf.write(entry.prediction_in(pred_root), _member(entry))
-            zf.writestr("toy.json", json.dumps({"scans": len(entries), "sha256": sha256}))
-            zf.writestr("description.txt", description)
+    def write_job_zip(self, job: JobPredictions) -> None:
+        with zipfile.ZipFile(job.path, "w") as zf:
+            for entry in job.entries:
+                zf.write(entry.prediction_in(job.pred_root), _member(entry))
+            zf.writestr("toy.json", json.dumps({"scans": len(job.entries), "sha256": job.sha256}))
+            zf.writestr("description.txt", job.description)
 
 
 TOY = ToyBenchmark()
