@@ -152,10 +152,10 @@ def model_set(args: argparse.Namespace, settings: Settings) -> ModelSet:
 
 
 def check_models(loader: ModelLoader, pool: ModelPool[ModelRuntime] | None) -> ModelCatalog:
-    """The catalog of the loader's models, each checked once (checkpoint, pin, profile, class count), the
-    default first: those the pool has room for are loaded into it from that one read, the others
-    identified without building their network (`ModelLoader.check`); a `CommandError` naming the
-    model for one a gateway cannot serve."""
+    """The catalog of the loader's models, each checked once (checkpoint, pin, profile, class
+    count), the default first: those the pool has room for are loaded into it from that one read,
+    the others identified without building their network (`ModelLoader.check`); a `CommandError`
+    naming the model for one a gateway cannot serve."""
     from rangeret.exceptions import RangeRetError
     from service.models.catalog import ModelCatalog
 

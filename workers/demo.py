@@ -114,7 +114,7 @@ def run_demo(
     if not run.summary.ok:
         raise RuntimeError(f"the demo could not predict {sorted(run.summary.failed)}")
 
-    evaluated = selection.only(plan.evaluated)
+    evaluated = selection.only(plan.labelled)
     report = evaluate_predictions(evaluated, preds, checkpoint_sha256=info.sha256, profile=profile)
     if demo_weights:
         report.notes.append(DEMO_WARNING)
@@ -122,7 +122,7 @@ def run_demo(
     plots = write_plots(report, out / "plots", config=profile.labels)
     plots.append(
         _range_image_png(
-            selection.only(plan.evaluated[:1]), preds, profile, out / "plots" / "range-image.png"
+            selection.only(plan.labelled[:1]), preds, profile, out / "plots" / "range-image.png"
         )
     )
 
@@ -133,7 +133,7 @@ def run_demo(
             archive,
             dataset,
             profile,
-            plan.archive_options,
+            selection.archive_options(),
             allow_partial=plan.partial_archive,
             progress=progress,
             predictions=preds,

@@ -59,14 +59,9 @@ class LabelMap:
 def load_label_map(path: Path | str, target: DatasetProfile) -> LabelMap:
     """The label map in the YAML file `path`, checked against the target profile's raw labels;
     a `LabelMapError` naming the file and the id otherwise."""
-    from rangeret.io.bounded_yaml import YamlLimitError, load_yaml
+    from rangeret.io.bounded_yaml import read_yaml
 
-    try:
-        data = load_yaml(path)
-    except (OSError, UnicodeDecodeError) as exc:
-        raise LabelMapError(f"cannot read the label map {path}: {exc}") from exc
-    except YamlLimitError as exc:
-        raise LabelMapError(str(exc)) from exc
+    data = read_yaml(path, "the label map", LabelMapError)
     if not isinstance(data, dict):
         raise LabelMapError(
             f"{path}: must be a mapping of source raw id: target raw id, got {type(data).__name__}"

@@ -432,14 +432,9 @@ MAX_ERROR_CHARS = 400
 
 
 def _read(path: Path) -> DatasetProfile:
-    from rangeret.io.bounded_yaml import YamlLimitError, load_yaml
+    from rangeret.io.bounded_yaml import read_yaml
 
-    try:
-        data = load_yaml(path)
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ProfileError(f"cannot read the profile {path}: {exc}") from exc
-    except YamlLimitError as exc:
-        raise ProfileError(str(exc)) from exc
+    data = read_yaml(path, "the profile", ProfileError)
     try:
         return DatasetProfile.from_dict(data, str(path))
     except ProfileError as exc:

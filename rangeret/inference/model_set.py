@@ -135,14 +135,9 @@ class ModelSet:
 
 def load_models_file(path: Path | str, base: InferenceSpec | None = None) -> ModelSet:
     """The models of the YAML file `path` over `base`; a `ModelsFileError` naming the file."""
-    from rangeret.io.bounded_yaml import YamlLimitError, load_yaml
+    from rangeret.io.bounded_yaml import read_yaml
 
-    try:
-        data = load_yaml(path)
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ModelsFileError(f"cannot read the models file {path}: {exc}") from exc
-    except YamlLimitError as exc:
-        raise ModelsFileError(str(exc)) from exc
+    data = read_yaml(path, "the models file", ModelsFileError)
     return ModelSet.from_mapping(data, base, source=str(path))
 
 

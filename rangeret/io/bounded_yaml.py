@@ -85,3 +85,14 @@ def load_yaml(path: Path | str) -> object:
     if size > MAX_BYTES:
         raise YamlLimitError(f"{path} is {size:,} bytes, larger than the {MAX_BYTES:,} allowed")
     return load_yaml_text(path.read_text(), str(path))
+
+
+def read_yaml(path: Path | str, what: str, error: type[Exception]) -> object:
+    """The YAML file at `path` (`load_yaml`) as `what` (e.g. "the profile"), or `error`: "cannot
+    read WHAT PATH: ..." for a file that cannot be read, the bound it passes for one too large."""
+    try:
+        return load_yaml(path)
+    except (OSError, UnicodeDecodeError) as exc:
+        raise error(f"cannot read {what} {path}: {exc}") from exc
+    except YamlLimitError as exc:
+        raise error(str(exc)) from exc

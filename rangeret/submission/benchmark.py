@@ -35,14 +35,11 @@ class DemoPlan:
 
     #: Scans to simulate per sequence.
     sequences: Mapping[str, int]
-    #: The sequences simulated with ground truth.
+    #: The sequences simulated with ground truth, which the report scores.
     labelled: tuple[str, ...]
-    #: The sequences the report scores.
-    evaluated: tuple[str, ...]
-    #: The split the sequences were chosen by (a tables layout's predictions folder), or None.
+    #: The split the sequences were chosen by (a tables layout's predictions folder and the
+    #: split its archive is for), or None.
     split: str | None = None
-    #: The benchmark's archive options (`Benchmark.option_dests`) for the demo's archive.
-    archive_options: Mapping[str, Any] = field(default_factory=dict)
     #: The archive holds a few scans of the test split only (it is validated as partial).
     partial_archive: bool = True
     #: The simulated sensor (None: the profile's, `SensorConfig.for_profile`).
@@ -120,10 +117,6 @@ class Benchmark:
         """The destinations of the options `add_arguments` adds."""
         return ()
 
-    def refuse_options(self, given: Sequence[str]) -> str:
-        """The sentence refusing other benchmarks' options `given` (as typed) to this one."""
-        return f"{given[0]} is not an option of {self.title or 'this profile'}'s archives"
-
     # Archives -----------------------------------------------------------------------------
 
     def write_archive(self, request: ArchiveRequest) -> SubmissionCheck:
@@ -139,7 +132,7 @@ class Benchmark:
         """The predictions of a gateway job as a reproducible zip: each scan's prediction at its
         place in the predictions tree, with explicit directory entries and `description.txt`."""
         directories = sorted({d for e in job.entries for d in _parents(e.prediction)})
-        write_predictions_zip(job, directories)
+        zip_predictions(job, directories)
 
     # The demo -------------------------------------------------------------------------------
 
@@ -150,7 +143,6 @@ class Benchmark:
         return DemoPlan(
             sequences={valid: valid_scans, **{s: test_scans for s in tests}},
             labelled=(valid,),
-            evaluated=(valid,),
             hints=REAL_DATA_HINTS,
         )
 
@@ -170,7 +162,7 @@ REAL_DATA_HINTS = (
 )
 
 
-def write_predictions_zip(job: JobPredictions, directories: Sequence[str]) -> None:
+def zip_predictions(job: JobPredictions, directories: Sequence[str]) -> None:
     """Zip the job's predictions at their places in its predictions tree, after the
     `directories` entries, with `description.txt`; reproducible whatever its `workers`."""
     with atomic_path(job.path) as tmp, ReproducibleZip(tmp) as zf:

@@ -24,7 +24,7 @@ from rangeret.submission.benchmark import (
     Benchmark,
     DemoPlan,
     JobPredictions,
-    write_predictions_zip,
+    zip_predictions,
 )
 
 #: The demo's labelled validation sequence.
@@ -71,7 +71,7 @@ class SemanticKittiBenchmark(Benchmark):
         """A job over test sequences only gets every test sequence's directory entries, as the
         server wants; any other job, those of its own sequences."""
         if all(s in TEST_SEQUENCES for s in job.sequences):
-            write_predictions_zip(job, list(required_directories()))
+            zip_predictions(job, list(required_directories()))
         else:
             super().write_job_zip(job)
 
@@ -80,7 +80,6 @@ class SemanticKittiBenchmark(Benchmark):
         return DemoPlan(
             sequences={DEMO_VALID: valid_scans, **{s: test_scans for s in TEST_SEQUENCES}},
             labelled=(DEMO_VALID,),
-            evaluated=(DEMO_VALID,),
             sensor=SensorConfig(beams=64, azimuth_steps=2048),
             hints=REAL_DATA_HINTS,
         )

@@ -126,9 +126,7 @@ class NuScenesLidarsegBenchmark(Benchmark):
         return DemoPlan(
             sequences={scene: max(1, valid_scans // 2) for scene in scenes},
             labelled=scenes,
-            evaluated=scenes,
             split=DEMO_SPLIT,
-            archive_options={"split": DEMO_SPLIT},
             partial_archive=False,
             hints=(
                 "On a real nuScenes tree with weights for it:",
