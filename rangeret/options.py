@@ -115,12 +115,16 @@ def selected_sequences(
 def selected_dataset(
     args: argparse.Namespace, profile: DatasetProfile, root: Path, *, doing: str = "using"
 ) -> DatasetSelection:
-    """The dataset selection of --dataset ROOT, --split or --sequences and --version, made once
-    where a command starts: the sequences as `selected_sequences` checks them."""
+    """The dataset selection of --dataset ROOT, --split or --sequences, --version and
+    --panoptic, made once where a command starts: the sequences as `selected_sequences` checks
+    them."""
     version = getattr(args, "version", None)
     profile.layout.check_version(version)
     sequences = selected_sequences(args, profile, root, doing=doing)
-    return DatasetSelection(Path(root), tuple(sequences), profile.layout, args.split, version)
+    panoptic = bool(getattr(args, "panoptic", False))
+    return DatasetSelection(
+        Path(root), tuple(sequences), profile.layout, args.split, version, panoptic
+    )
 
 
 def add_offset_option(parser: argparse.ArgumentParser, help: str) -> None:

@@ -177,7 +177,7 @@ def test_the_default_install_is_the_light_library():
 
     project = _pyproject()["project"]
     names = {re.split(r"[<>=\[ ]", r, maxsplit=1)[0].lower() for r in project["dependencies"]}
-    assert names == {"numpy", "torch", "pyyaml", "tqdm", "matplotlib"}
+    assert names == {"numpy", "torch", "pyyaml", "tqdm", "matplotlib", "scipy"}
     extras = project["optional-dependencies"]
     assert set(EXTRA_MODULES) <= set(extras) - {"all", "dev"}
     assert "ray[default,data,serve]==2.60.0" in extras["ray"]

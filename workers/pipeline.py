@@ -113,6 +113,7 @@ def describe_spec(spec: InferenceSpec, info: CheckpointInfo, profile: DatasetPro
         precision=spec.precision,
         backend=spec.backend,
         parent=info.parent,
+        clustering=spec.clustering,
     )
 
 

@@ -35,12 +35,29 @@ def _allow_partial_option(p: argparse.ArgumentParser) -> None:
     )
 
 
+#: The tasks of --task: semantic segmentation, or objects too (the profile's panoptic benchmark).
+TASKS = {"semantic": False, "panoptic": True}
+
+
 def _benchmark_options(p: argparse.ArgumentParser, *, writing: bool) -> None:
-    """Every registered benchmark's own options, each in its group."""
+    """--task, and every registered benchmark's own options, each in its group (a benchmark
+    whose options another one added already, its semantic sibling's, adds none)."""
     from rangeret.submission.benchmarks import registered
 
+    p.add_argument(
+        "--task",
+        choices=list(TASKS),
+        default="semantic",
+        help="semantic: the profile's semantic benchmark (default); panoptic: its panoptic one "
+        "(SemanticKITTI panoptic, nuScenes-panoptic), of predictions made with --panoptic",
+    )
+    added: set[str] = set()
     for benchmark in registered().values():
+        dests = set(benchmark.option_dests(writing=writing))
+        if dests and dests <= added:
+            continue
         benchmark.add_arguments(p, writing=writing)
+        added |= dests
 
 
 def add_submission_arguments(p: argparse.ArgumentParser) -> None:
@@ -161,10 +178,11 @@ def _benchmark_profile(
     from rangeret.submission.benchmarks import benchmark_of, no_archive_reason, registered
 
     profile = profile_from_args(args)
-    reason = no_archive_reason(profile)
+    panoptic = TASKS[args.task]
+    reason = no_archive_reason(profile, panoptic=panoptic)
     if reason is not None:
         raise CommandError(reason)
-    benchmark = benchmark_of(profile)
+    benchmark = benchmark_of(profile, panoptic=panoptic)
     own = benchmark.option_dests(writing=writing)
     for other in registered().values():
         for dest in other.option_dests(writing=writing):

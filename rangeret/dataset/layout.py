@@ -25,6 +25,7 @@ from typing import Any, Protocol
 from rangeret.dataset.labels import LabelConfig
 from rangeret.dataset.upload_rules import ArchiveRules, FolderRules
 from rangeret.exceptions import DatasetError
+from rangeret.io.panoptic_labels import SHIFTED, NpzLabelFile, PanopticEncoding
 from rangeret.io.scans import (
     KITTI_LABELS,
     LabelFile,
@@ -78,6 +79,12 @@ class SequenceLayout:
         return KITTI_LABELS
 
     @property
+    def panoptic_encoding(self) -> PanopticEncoding:
+        """SemanticKITTI panoptic labels (`instance << 16 | raw id`), in the same `.label`
+        files at the same places as the semantic ones."""
+        return SHIFTED
+
+    @property
     def folders(self) -> SequenceLayout:
         """The layout as folders of sequences: itself."""
         return self
@@ -122,9 +129,11 @@ class SequenceLayout:
         *,
         version: str | None = None,
         split: str | None = None,
+        panoptic: bool = False,
     ) -> Discovery:
         """The scans of `sequences` under `root`, sorted, matched to their labels by file stem
-        (`split` does not change where a folder layout's predictions go)."""
+        (`split` does not change where a folder layout's predictions go, nor `panoptic` where
+        they go or which label files hold the ground truth: a `.label` holds both)."""
         _no_version(version)
         root = Path(root)
         result = Discovery(root=root, sequences=[])
@@ -180,7 +189,7 @@ class ScanEntry:
     prediction: str
     confidence: str
     #: How its label file and its prediction hold one label per point.
-    label_file: LabelFile = KITTI_LABELS
+    label_file: LabelFile | NpzLabelFile = KITTI_LABELS
 
     @property
     def key(self) -> str:
@@ -223,6 +232,11 @@ class DatasetLayout(Protocol):
         ...
 
     @property
+    def panoptic_encoding(self) -> PanopticEncoding:
+        """How its panoptic labels pack a point's semantic label and its object."""
+        ...
+
+    @property
     def folders(self) -> SequenceLayout | None:
         """The layout as folders of sequences, or None where it is not (a version's tables):
         what `adapt` resamples and another sensor's data is read in."""
@@ -257,8 +271,10 @@ class DatasetLayout(Protocol):
         *,
         version: str | None = None,
         split: str | None = None,
+        panoptic: bool = False,
     ) -> Discovery:
-        """The scans of `sequences` under `root` and every problem found on the way."""
+        """The scans of `sequences` under `root` and every problem found on the way; with
+        `panoptic`, their panoptic ground truth and where their panoptic predictions go."""
         ...
 
     def missing(
@@ -350,15 +366,19 @@ def discover(
     layout: DatasetLayout,
     version: str | None = None,
     split: str | None = None,
+    panoptic: bool = False,
 ) -> Discovery:
     """List the scans of `sequences` under `root`, in order, matched to their labels.
 
     Label files found are always attached; with `with_labels` they are required, and a scan
     without a label file (and, in folders, a label file without a scan) is a problem. A missing
     or empty sequence is a problem unless `missing_ok` (partial copies). `version` chooses a
-    tables layout's version; `split`, the folder its predictions go to.
+    tables layout's version; `split`, the folder its predictions go to; `panoptic`, the panoptic
+    ground truth and predictions instead of the semantic ones.
     """
-    return layout.discover(root, sequences, with_labels, missing_ok, version=version, split=split)
+    return layout.discover(
+        root, sequences, with_labels, missing_ok, version=version, split=split, panoptic=panoptic
+    )
 
 
 def is_complete(
@@ -373,9 +393,9 @@ def is_complete(
     pred = entry.prediction_in(out)
     try:
         points = scan_num_points(entry.scan_path, record=record)
-        whole = pred.stat().st_size == points * entry.label_file.bytes
     except (OSError, ScanFormatError):
         return False
+    whole = entry.label_file.holds(pred, points)
     return whole and (not with_confidence or entry.confidence_in(out).is_file())
 
 
@@ -387,11 +407,18 @@ def list_scans(
     layout: DatasetLayout,
     version: str | None = None,
     split: str | None = None,
+    panoptic: bool = False,
 ) -> list[ScanEntry]:
     """The scans of `sequences`, in order; a missing or empty sequence is an error naming it
     unless `missing_ok` (a partial local copy, logged)."""
     found = discover(
-        dataset, sequences, missing_ok=missing_ok, layout=layout, version=version, split=split
+        dataset,
+        sequences,
+        missing_ok=missing_ok,
+        layout=layout,
+        version=version,
+        split=split,
+        panoptic=panoptic,
     )
     if found.problems:
         raise DatasetLayoutError("; ".join(found.problems))

@@ -3,11 +3,16 @@
     ROOT/v1.0-mini/*.json                          the tables of one version
     ROOT/samples/LIDAR_TOP/<name>.pcd.bin          a sweep (`sample_data.filename`)
     ROOT/lidarseg/v1.0-mini/<token>_lidarseg.bin   its labels (`lidarseg.filename`, optional)
+    ROOT/panoptic/v1.0-mini/<token>_panoptic.npz   its panoptic labels (`panoptic.filename`,
+                                                   optional: nuScenes-panoptic)
 
 A scene's keyframes are its samples in order (`scene.first_sample_token`, then each sample's
 `next`); a sample's sweep is the keyframe `sample_data` record of the sensor channel (LIDAR_TOP),
 found through `calibrated_sensor` and `sensor`; its labels are the `lidarseg` record with the
-sweep's token. Every inconsistency is named by table, record and field. Torch-free.
+sweep's token, and its panoptic labels the `panoptic` record with that token. A panoptic file
+is an npz of one array, `data`: a uint16 per point, 1000 x the point's general category index
+(its lidarseg label) + its object's instance (numbered from 1 within a scene; 0 for stuff and for
+points of no object). Every inconsistency is named by table, record and field. Torch-free.
 """
 
 from __future__ import annotations
@@ -39,7 +44,7 @@ TABLES = (
     "sample_annotation",
     "map",
 )
-#: The tables this reader needs; `lidarseg` too where the version has labels.
+#: The tables this reader needs; `lidarseg` and `panoptic` too where the version has them.
 NEEDED = ("category", "sensor", "calibrated_sensor", "scene", "sample", "sample_data")
 #: The largest table read (v1.0-trainval's sample_data.json is about 1 GB).
 MAX_TABLE_BYTES = 4 << 30
@@ -52,12 +57,14 @@ class TableError(DatasetError, ValueError):
 @dataclass(frozen=True)
 class Keyframe:
     """One keyframe sweep of a scene: its sample, its sample_data token and its files, relative
-    to ROOT (the label file is None where the version has no lidarseg record for it)."""
+    to ROOT (the label file is None where the version has no lidarseg record for it, the panoptic
+    file None where it has no panoptic record)."""
 
     sample: str
     token: str
     filename: str
     label_filename: str | None
+    panoptic_filename: str | None = None
 
 
 @dataclass(frozen=True)
@@ -72,6 +79,8 @@ class NuScenesTables:
     categories: Mapping[int, str]
     #: Whether the version ships lidarseg.json (the test split does not).
     has_lidarseg: bool
+    #: Whether the version ships panoptic.json (nuScenes-panoptic).
+    has_panoptic: bool = False
 
     @property
     def table_dir(self) -> Path:
@@ -111,7 +120,7 @@ def read_tables(root: Path | str, version: str, channel: str = "LIDAR_TOP") -> N
     read once per process while the tables' files are unchanged."""
     root = Path(root).resolve()
     table_dir = root / version
-    stamps = tuple(_stamp(table_dir / f"{name}.json") for name in (*NEEDED, "lidarseg"))
+    stamps = tuple(_stamp(table_dir / f"{name}.json") for name in (*NEEDED, "lidarseg", "panoptic"))
     return _read(root, version, channel, stamps)
 
 
@@ -131,6 +140,8 @@ def _read(
     tables = {name: _load(table_dir, name) for name in NEEDED}
     has_lidarseg = (table_dir / "lidarseg.json").is_file()
     lidarseg = _index(table_dir, "lidarseg", _load(table_dir, "lidarseg")) if has_lidarseg else {}
+    has_panoptic = (table_dir / "panoptic.json").is_file()
+    panoptic = _label_files(table_dir, "panoptic") if has_panoptic else {}
 
     categories: dict[int, str] = {}
     for i, record in enumerate(tables["category"]):
@@ -183,6 +194,7 @@ def _read(
                     sd,
                     _field(sweep, "filename", str, f"sample_data {sd}"),
                     None if label is None else _field(label, "filename", str, f"lidarseg {sd}"),
+                    panoptic.get(sd),
                 )
             )
             token = sample.get("next", "")
@@ -193,7 +205,7 @@ def _read(
         if name in scenes:
             raise TableError(f"{where}: scene {name} is listed twice")
         scenes[name] = tuple(frames)
-    return NuScenesTables(root, version, scenes, categories, has_lidarseg)
+    return NuScenesTables(root, version, scenes, categories, has_lidarseg, has_panoptic)
 
 
 def _load(table_dir: Path, name: str) -> list[dict[str, Any]]:
@@ -220,6 +232,19 @@ def _index(table_dir: Path, name: str, records: list[dict[str, Any]]) -> dict[st
     out: dict[str, dict[str, Any]] = {}
     for i, record in enumerate(records):
         out[_field(record, "token", str, f"{table_dir / (name + '.json')}: record {i}")] = record
+    return out
+
+
+def _label_files(table_dir: Path, name: str) -> dict[str, str]:
+    """A label table's file names by token, every record checked; a record without a string
+    token or filename is a TableError naming the table, the record and the field."""
+    out: dict[str, str] = {}
+    for i, record in enumerate(_load(table_dir, name)):
+        where = f"{table_dir / (name + '.json')}: record {i}"
+        token = _field(record, "token", str, where)
+        if token in out:
+            raise TableError(f"{where}: sample_data {token} has a second {name} record")
+        out[token] = _field(record, "filename", str, where)
     return out
 
 

@@ -12,7 +12,7 @@ Torch-free.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -20,12 +20,12 @@ from typing import Any
 import numpy as np
 
 from rangeret import DATA_DIR
+from rangeret.dataset.benchmark_rules import BenchmarkRules, default_benchmark, read_benchmark
 from rangeret.dataset.fields import Fields
 from rangeret.dataset.labels import LabelConfig, LabelConfigError, parse_label_config
 from rangeret.dataset.layout import DatasetLayout, SequenceLayout
 from rangeret.dataset.projection import BEAM_ROWS, ROW_SOURCES, ProjectionConfig
 from rangeret.dataset.table_layout import SCHEMAS, TableLayout
-from rangeret.evaluation.scoring import SCORINGS, SERVER_SCORING
 from rangeret.exceptions import ConfigError
 from rangeret.io.scans import PointRecord
 
@@ -35,13 +35,6 @@ DEFAULT_PROFILE = "semantickitti"
 #: Files written before profiles existed (checkpoints, run records) were all SemanticKITTI's.
 LEGACY_PROFILE = "semantickitti"
 BUILTIN_PROFILES = ("semantickitti", "semantic-poss", "pandaset", "nuscenes")
-#: What a benchmark's prediction files hold: raw ids (the label configuration's inverse map, as
-#: SemanticKITTI's) or the training classes themselves (nuScenes-lidarseg's challenge indices).
-PREDICTION_IDS = ("raw", "class")
-#: The benchmark a profile without `benchmark.name` has: SemanticKITTI's for a profile named
-#: `semantickitti`, nuScenes-lidarseg's for one of a version's tables, none for the others.
-KITTI_BENCHMARK = "semantickitti"
-TABLES_BENCHMARK = "nuscenes-lidarseg"
 
 
 class ProfileError(ConfigError, ValueError):
@@ -57,35 +50,6 @@ class KnnVote:
 
 
 @dataclass(frozen=True)
-class BenchmarkRules:
-    """What a dataset's benchmark accepts and how it scores: the profile's optional `benchmark`
-    section. The defaults are SemanticKITTI's (and the release's for every dataset); `name` is
-    the benchmark's entry in the registry (`rangeret.submission.benchmarks`), None for a dataset
-    without one."""
-
-    #: The registry entry that writes and checks the benchmark's archive; None: no benchmark.
-    name: str | None = None
-    #: What prediction files hold (`PREDICTION_IDS`).
-    predictions: str = "raw"
-    #: The network chooses among classes classes_from..C-1 (nuScenes refuses class 0, ignore).
-    classes_from: int = 0
-    #: The class of a point that projects nowhere; None: the label configuration's unlabeled one.
-    unprojected_class: int | None = None
-    #: How IoU is computed (a name of `rangeret.evaluation.scoring.SCORINGS`).
-    scoring: str = SERVER_SCORING.name
-
-    def to_dict(self) -> dict[str, Any]:
-        """The `benchmark` section."""
-        return {
-            "name": self.name,
-            "predictions": self.predictions,
-            "classes_from": self.classes_from,
-            "unprojected_class": self.unprojected_class,
-            "scoring": self.scoring,
-        }
-
-
-@dataclass(frozen=True)
 class DatasetProfile:
     """One dataset's sensor, point record, labels, kNN rule, layout and splits."""
 
@@ -96,7 +60,7 @@ class DatasetProfile:
     labels: LabelConfig
     knn: KnnVote
     layout: DatasetLayout
-    benchmark: BenchmarkRules = BenchmarkRules()
+    benchmark: BenchmarkRules = field(default_factory=BenchmarkRules)
     #: The reflectance a perfect reflector returns: 1 for remission, 255 for 8-bit intensity.
     reflectance_max: float = 1.0
     #: Elevation of each beam in degrees, top beam first, for sensors whose beams are not evenly
@@ -107,6 +71,23 @@ class DatasetProfile:
     #: The sensor's height above the ground in metres, as the simulator mounts it; None: its
     #: default.
     mount_height: float | None = None
+    #: The classes whose points form objects (panoptic segmentation's "things"), as training
+    #: class indices; empty: the profile has none and `--panoptic` is refused.
+    things: tuple[int, ...] = ()
+
+    @property
+    def thing_names(self) -> list[str]:
+        """The names of the thing classes, in class order."""
+        return [self.labels.class_names[c] for c in self.things]
+
+    def panoptic_refusal(self) -> str | None:
+        """Why the profile cannot give instances (it names no thing class), or None."""
+        if self.things:
+            return None
+        return (
+            f"the {self.name} profile names no thing classes, so --panoptic has no objects to "
+            "find (add a `things:` list of class names to a profile of your own)"
+        )
 
     @property
     def num_classes(self) -> int:
@@ -223,6 +204,7 @@ class DatasetProfile:
                 ],
             },
             "splits": {k: list(v) for k, v in labels.splits.items()},
+            **({"things": self.thing_names} if self.things else {}),
             "benchmark": self.benchmark.to_dict(),
         }
 
@@ -241,7 +223,7 @@ class DatasetProfile:
         knn = f.section("knn", ("votes_from",))
         labels = f.section("labels", ("unlabeled_class", "classes", "raw_labels"))
         splits = f.get("splits", dict)
-        f.finish(_TOP_KEYS, ("benchmark",))
+        f.finish(_TOP_KEYS, ("things", "benchmark"))
 
         height = sensor.integer("height", 1)
         width = sensor.integer("width", 1)
@@ -304,7 +286,10 @@ class DatasetProfile:
         name = f.get("name", str)
         if not name.strip():
             f.fail("name", "must not be empty")
-        benchmark = _benchmark(f, label_config.num_classes, _default_benchmark(name, layout_data))
+        benchmark = read_benchmark(
+            f, label_config.num_classes, default_benchmark(name, layout_data)
+        )
+        things = _things(f, label_config)
         return cls(
             name=name,
             description=f.get("description", str),
@@ -318,6 +303,7 @@ class DatasetProfile:
             beam_angles=beam_angles,
             max_range=_positive(sensor, "max_range"),
             mount_height=_positive(sensor, "mount_height"),
+            things=things,
         )
 
     def to_yaml(self) -> str:
@@ -328,37 +314,23 @@ class DatasetProfile:
 
 
 _TOP_KEYS = ("name", "description", "sensor", "points", "layout", "knn", "labels", "splits")
-_BENCHMARK_KEYS = ("predictions", "classes_from", "unprojected_class", "scoring")
 
 
-def _default_benchmark(name: str, layout_data: Mapping[str, Any]) -> str | None:
-    """The registry entry of a profile whose `benchmark` section names none, as profiles meant
-    before they could name one."""
-    if "tables" in layout_data:
-        return TABLES_BENCHMARK
-    return KITTI_BENCHMARK if name == KITTI_BENCHMARK else None
-
-
-def _benchmark(f: Fields, num_classes: int, default_name: str | None) -> BenchmarkRules:
-    """The optional `benchmark` section (SemanticKITTI's rules where it is left out)."""
-    if "benchmark" not in f.data:
-        return BenchmarkRules(name=default_name)
-    section = f.section("benchmark", _BENCHMARK_KEYS, ("name",))
-    name = section.data.get("name", default_name)
-    if "name" in section.data and name is not None:
-        name = section.get("name", str)
-        if not name.strip():
-            section.fail("name", "must name a benchmark, or be null for none")
-    unprojected = section.data["unprojected_class"]
-    if unprojected is not None:
-        unprojected = section.integer("unprojected_class", 0, num_classes - 1)
-    return BenchmarkRules(
-        name=name,
-        predictions=section.choice("predictions", PREDICTION_IDS),
-        classes_from=section.integer("classes_from", 0, num_classes - 1),
-        unprojected_class=unprojected,
-        scoring=section.choice("scoring", tuple(SCORINGS)),
-    )
+def _things(f: Fields, labels: LabelConfig) -> tuple[int, ...]:
+    """The optional `things` list: class names of the label configuration, none ignored, each
+    once; their class indices in class order."""
+    if "things" not in f.data:
+        return ()
+    names = f.strings("things")
+    index = {name: i for i, name in enumerate(labels.class_names)}
+    for name in names:
+        if name not in index:
+            f.fail("things", f"{name!r} is not a class of the profile's labels")
+        if labels.ignored[index[name]]:
+            f.fail("things", f"{name!r} is an ignored class, which has no objects to score")
+    if len(set(names)) != len(names):
+        f.fail("things", "names a class twice")
+    return tuple(sorted(index[name] for name in names))
 
 
 _SENSOR_KEYS = ("height", "width", "fov_up", "fov_down", "row", "means", "stds")

@@ -33,6 +33,8 @@ class DatasetSelection:
     split: str | None = None
     #: A tables layout's version folder; None: the one ROOT holds.
     version: str | None = None
+    #: Panoptic ground truth and predictions (objects as well as classes) instead of semantic.
+    panoptic: bool = False
 
     def discover(self, with_labels: bool = False, missing_ok: bool = False) -> Discovery:
         """The scans of the selection and every problem found on the way (`with_labels`: label
@@ -44,6 +46,7 @@ class DatasetSelection:
             missing_ok,
             version=self.version,
             split=self.split,
+            panoptic=self.panoptic,
         )
 
     def scans(self, missing_ok: bool = False) -> list[ScanEntry]:
@@ -56,6 +59,7 @@ class DatasetSelection:
             layout=self.layout,
             version=self.version,
             split=self.split,
+            panoptic=self.panoptic,
         )
 
     def missing(self) -> list[str]:
@@ -76,6 +80,10 @@ class DatasetSelection:
     def only(self, sequences: Iterable[str]) -> DatasetSelection:
         """The same selection narrowed to `sequences`."""
         return replace(self, sequences=tuple(sequences))
+
+    def for_task(self, panoptic: bool) -> DatasetSelection:
+        """The same scans, for panoptic segmentation or for semantic segmentation only."""
+        return replace(self, panoptic=panoptic)
 
 
 def select_dataset(

@@ -5,7 +5,11 @@ scene, named as in scene.json (`scene-0103`), and a scan is a keyframe sweep, na
 sample_data token. Predictions go where the nuScenes-lidarseg benchmark wants them:
 
     PRED/lidarseg/<split>/<sample_data token>_lidarseg.bin   one uint8 class index per point
+    PRED/panoptic/<split>/<sample_data token>_panoptic.npz   with --panoptic: uint16 `data`,
+                                                             1000 x class + instance per point
     PRED/confidence/<split>/<sample_data token>.npy          point confidences, when asked
+
+The panoptic ground truth is the version's `panoptic.json` table and the `.npz` files it names.
 
 The split folder is the split the command was given; with named scenes, the first split of the
 profile that lists the scene among those of the version's family (`mini_*` for v1.0-mini, the
@@ -28,6 +32,7 @@ from rangeret.dataset.nuscenes_tables import (
 )
 from rangeret.dataset.table_upload_rules import NuScenesRules
 from rangeret.dataset.upload_rules import ArchiveRules
+from rangeret.io.panoptic_labels import PANOPTIC_NPZ, THOUSANDS, PanopticEncoding
 from rangeret.io.scans import LabelFile, PointRecord
 
 #: nuScenes-lidarseg's label and prediction files: one uint8 per point.
@@ -71,6 +76,11 @@ class TableLayout:
     def label_file(self) -> LabelFile:
         """nuScenes-lidarseg's `_lidarseg.bin` files: one uint8 per point."""
         return LIDARSEG_LABELS
+
+    @property
+    def panoptic_encoding(self) -> PanopticEncoding:
+        """nuScenes-panoptic's labels: 1000 x class + instance, in `_panoptic.npz` files."""
+        return THOUSANDS
 
     def normalise(self, name: str | int) -> str:
         """Scene names are kept as written (`scene-0103`)."""
@@ -117,10 +127,13 @@ class TableLayout:
         *,
         version: str | None = None,
         split: str | None = None,
+        panoptic: bool = False,
     ) -> Discovery:
         """The keyframe sweeps of the scenes `sequences`, in scene order then time order; a
         scene the tables lack, a sweep file or (with `with_labels`) a label file that is not
-        there, and categories other than the profile's are problems naming them."""
+        there, and categories other than the profile's are problems naming them. With
+        `panoptic`, the ground truth is the `panoptic` table's and the predictions are
+        `_panoptic.npz` files."""
         tables = self.open(root, version)
         result = Discovery(root=Path(root), sequences=[])
         result.problems.extend(self._category_problems(tables))
@@ -136,7 +149,8 @@ class TableLayout:
             folder = split or self.split_folder(scene, tables.version)
             for frame in frames:
                 scan = tables.root / frame.filename
-                label = None if frame.label_filename is None else tables.root / frame.label_filename
+                truth = frame.panoptic_filename if panoptic else frame.label_filename
+                label = None if truth is None else tables.root / truth
                 if not scan.is_file():
                     result.problems.append(
                         f"{scan} is missing (the sweep of sample {frame.sample} of {scene})"
@@ -150,19 +164,25 @@ class TableLayout:
                         )
                     label = None
                 elif label is None and with_labels:
+                    table = "panoptic.json" if panoptic else "lidarseg.json"
                     result.problems.append(
-                        f"{tables.table_dir / 'lidarseg.json'} has no record for sweep "
-                        f"{frame.token} of {scene} (no ground truth)"
+                        f"{tables.table_dir / table} has no record for sweep "
+                        f"{frame.token} of {scene} (no {'panoptic ' if panoptic else ''}ground "
+                        "truth)"
                     )
+                if panoptic:
+                    prediction = f"panoptic/{folder}/{frame.token}_panoptic.npz"
+                else:
+                    prediction = f"lidarseg/{folder}/{frame.token}_lidarseg.bin"
                 result.scans.append(
                     ScanEntry(
                         scene,
                         frame.token,
                         scan,
                         label,
-                        f"lidarseg/{folder}/{frame.token}_lidarseg.bin",
+                        prediction,
                         f"confidence/{folder}/{frame.token}.npy",
-                        self.label_file,
+                        PANOPTIC_NPZ if panoptic else self.label_file,
                     )
                 )
         return result

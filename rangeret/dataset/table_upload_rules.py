@@ -3,13 +3,14 @@
     <version>/<table>.json                       the tables of one version (v1.0-mini, say)
     samples/LIDAR_TOP/<name>.pcd.bin             keyframe sweeps, in the profile's point record
     lidarseg/<version>/<token>_lidarseg.bin      optional labels, one uint8 per point
+    panoptic/<version>/<token>_panoptic.npz      optional panoptic labels (nuScenes-panoptic)
 
 and the folders of these (the sensor channel is the layout's). `TableLayout.upload_rules` gives
 these rules, and whoever takes the upload lists, bounds and extracts the members with them as it
 does a folder layout's (`rangeret.dataset.upload_rules`); once they are written, the version's
 tables must read, name the profile's categories and list every sweep of the archive as a keyframe
-(and every label file as its labels, of one label per point), and every keyframe of the tables
-must be in the archive. A scene has labels for all its keyframes or none.
+(and every label or panoptic file as its labels, of one label per point), and every keyframe of
+the tables must be in the archive. A scene has labels for all its keyframes or none.
 """
 
 from __future__ import annotations
@@ -26,12 +27,14 @@ from rangeret.dataset.layout import (
     discover,
 )
 from rangeret.dataset.upload_rules import ArchiveError, ExtractedDataset
+from rangeret.io.panoptic_labels import read_panoptic_npz
 from rangeret.io.scans import PointRecord, ScanFormatError, parse_scan
 
 #: A version folder's name (v1.0-mini, v1.0-trainval, v1.0-test).
 _VERSION = r"v[0-9][A-Za-z0-9._-]{0,62}"
 _TABLE = re.compile(rf"^({_VERSION})/([a-z_]{{1,64}})\.json$")
 _LABEL = re.compile(rf"^lidarseg/({_VERSION})/[A-Za-z0-9]{{1,64}}_lidarseg\.bin$")
+_PANOPTIC = re.compile(rf"^panoptic/({_VERSION})/[A-Za-z0-9]{{1,64}}_panoptic\.npz$")
 #: Most problems of a tree named in one answer.
 _SHOWN = 3
 
@@ -42,7 +45,7 @@ def _sweep_pattern(channel: str) -> re.Pattern[str]:
 
 def _folder_pattern(channel: str) -> re.Pattern[str]:
     return re.compile(
-        rf"^(({_VERSION})|samples(/{re.escape(channel)})?|lidarseg(/({_VERSION}))?)/?$"
+        rf"^(({_VERSION})|samples(/{re.escape(channel)})?|(lidarseg|panoptic)(/({_VERSION}))?)/?$"
     )
 
 
@@ -67,6 +70,7 @@ class NuScenesRules:
         self.tables: set[str] = set()
         self.sweeps: dict[str, int] = {}
         self.labels: dict[str, int] = {}
+        self.panoptic: dict[str, int] = {}
 
     def check_name(self, name: str, is_dir: bool) -> None:
         """`ArchiveError` for a member outside the layout, or of a second version."""
@@ -75,18 +79,20 @@ class NuScenesRules:
             if not match:
                 raise ArchiveError(
                     f"Archive member {name[:200]!r} is a folder outside the nuScenes layout "
-                    f"(a version folder, samples/{self.layout.channel}, lidarseg/<version>)."
+                    f"(a version folder, samples/{self.layout.channel}, lidarseg/<version>, "
+                    "panoptic/<version>)."
                 )
-            self._version(match.group(2) or match.group(5))
+            self._version(match.group(2) or match.group(6))
             return
-        match = _TABLE.match(name) or _LABEL.match(name)
+        match = _TABLE.match(name) or _LABEL.match(name) or _PANOPTIC.match(name)
         if match:
             self._version(match.group(1))
         elif not self._sweep.match(name):
             raise ArchiveError(
                 f"Archive member {name[:200]!r} is not a table (<version>/*.json), a sweep "
-                f"(samples/{self.layout.channel}/*.pcd.bin) or a label file "
-                "(lidarseg/<version>/*_lidarseg.bin)."
+                f"(samples/{self.layout.channel}/*.pcd.bin), a label file "
+                "(lidarseg/<version>/*_lidarseg.bin) or a panoptic file "
+                "(panoptic/<version>/*_panoptic.npz)."
             )
 
     def _version(self, version: str | None) -> None:
@@ -101,8 +107,9 @@ class NuScenesRules:
         self.version = version
 
     def point_bytes(self, name: str) -> int | None:
-        """A sweep's record size, a label's byte; None for a table."""
-        if name.endswith(".json"):
+        """A sweep's record size, a label's byte; None for a table or a panoptic file (its
+        reader bounds what it declares)."""
+        if name.endswith(".json") or _PANOPTIC.match(name):
             return None
         return self.layout.label_file.bytes if _LABEL.match(name) else self.record.point_bytes
 
@@ -119,6 +126,11 @@ class NuScenesRules:
                     f"uint{8 * width} labels."
                 )
             self.labels[name] = len(data) // width
+        elif _PANOPTIC.match(name):
+            try:
+                self.panoptic[name] = len(read_panoptic_npz(name, None, data))
+            except ScanFormatError as exc:
+                raise ArchiveError(f"Archive member {exc.source}: {exc.problem}.") from exc
         else:
             try:
                 self.sweeps[name] = len(parse_scan(data, name, record=self.record))
@@ -139,12 +151,19 @@ class NuScenesRules:
         try:
             scenes = self.layout.list_sequences(root, version=version)
             found = discover(root, scenes, layout=self.layout, version=version)
+            panoptic = (
+                discover(root, scenes, layout=self.layout, version=version, panoptic=True)
+                if self.panoptic
+                else None
+            )
         except (DatasetLayoutError, ValueError) as exc:
             raise ArchiveError(
                 f"The archive's tables cannot be read: {_relative(exc, root)}."
             ) from exc
         problems = [_relative(p, root) for p in found.problems]
         problems += self._unmatched(found, root)
+        if panoptic is not None:
+            problems += _unmatched_files(panoptic, root, self.panoptic, self.sweeps, "panoptic")
         if problems:
             more = f" (and {len(problems) - _SHOWN} more)" if len(problems) > _SHOWN else ""
             raise ArchiveError(
@@ -189,6 +208,26 @@ class NuScenesRules:
                     f"{len(missing)} of them (the first: sample_data {missing[0].name})"
                 )
         return problems
+
+
+def _unmatched_files(
+    found: Discovery, root: Path, files: dict[str, int], sweeps: dict[str, int], table: str
+) -> list[str]:
+    """Label files of `table` (with their label counts) that no keyframe of its table has, and
+    those of another length than their sweep."""
+    named = {_name(e.label_path, root): e for e in found.scans if e.label_path is not None}
+    problems = [
+        f"{name} is not the {table} file of a keyframe in its version's {table}.json"
+        for name in sorted(files.keys() - named.keys())
+    ]
+    for name, entry in sorted(named.items()):
+        sweep = _name(entry.scan_path, root)
+        if name in files and sweep in sweeps and files[name] != sweeps[sweep]:
+            problems.append(
+                f"{name} holds {files[name]} labels but its sweep {sweep} has {sweeps[sweep]} "
+                "points"
+            )
+    return problems
 
 
 def _unlabelled(keyframes: list[ScanEntry]) -> list[ScanEntry]:

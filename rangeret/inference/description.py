@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import asdict
 
 from rangeret.dataset.projection import ProjectionConfig
-from rangeret.inference.settings import KnnSettings, TtaSettings
+from rangeret.inference.settings import ClusterSettings, KnnSettings, TtaSettings
 from rangeret.models.weights.demo import is_demo_checkpoint
 
 
@@ -23,11 +23,14 @@ def describe_network(
     precision: str,
     backend: str = "torch",
     parent: dict | None = None,
+    clustering: ClusterSettings | None = None,
 ) -> dict:
     """The description of a network and its options that logs, reports and `run.json` carry;
     `device` and `precision` are those used, or those asked for where the network runs
     elsewhere; `backend` is where its forward pass runs (torch or onnxruntime); `parent` is the
-    checkpoint the weights were fine-tuned from (`CheckpointInfo.parent`), None if none."""
+    checkpoint the weights were fine-tuned from (`CheckpointInfo.parent`), None if none;
+    `clustering` how objects are found with panoptic segmentation (the `panoptic` key, present
+    only then)."""
     return {
         "model": model,
         "checkpoint": checkpoint,
@@ -41,4 +44,5 @@ def describe_network(
         "device": device,
         "precision": precision,
         "backend": backend,
+        **({"panoptic": asdict(clustering)} if clustering else {}),
     }

@@ -32,10 +32,11 @@ from rangeret.inference.results import ScanOutcome, ScanPrediction
 from rangeret.inference.runtime.device import select_device
 from rangeret.inference.runtime.onnx_backend import OnnxForward
 from rangeret.inference.runtime.precision import forward_precision, resolve_precision
-from rangeret.inference.settings import DEFAULT_KNN, KnnSettings, TtaSettings
+from rangeret.inference.settings import DEFAULT_KNN, ClusterSettings, KnnSettings, TtaSettings
 from rangeret.inference.spec import InferenceSpec
 from rangeret.inference.timing import StageTimes
 from rangeret.inference.tta import transformed_view
+from rangeret.io.panoptic_labels import PanopticEncodingError
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +56,9 @@ class Predictor:
         self.backend = spec.backend
         self.knn: KnnSettings | None = spec.knn_settings
         self.tta: TtaSettings | None = spec.tta
+        self.clustering: ClusterSettings | None = None
+        self._check_clustering(spec.clustering)
+        self.clustering = spec.clustering
         self.onnx: OnnxForward | None = None
         if spec.backend == "onnxruntime":
             self.network = weights.network.cpu().eval()
@@ -147,6 +151,7 @@ class Predictor:
                 projection=self.projection_config,
                 knn=self.knn,
                 tta=self.tta,
+                clustering=self.clustering,
                 device=str(self.device),
                 precision=self.precision,
                 backend=self.backend,
@@ -170,6 +175,20 @@ class Predictor:
         other = copy.copy(self)
         other.knn = knn
         return other
+
+    def with_clustering(self, clustering: ClusterSettings | None) -> Predictor:
+        """The same predictor that finds objects as `clustering` says (None: classes only),
+        sharing everything else; an `InputError` when the profile names no thing class."""
+        self._check_clustering(clustering)
+        other = copy.copy(self)
+        other.clustering = clustering
+        return other
+
+    def _check_clustering(self, clustering: ClusterSettings | None) -> None:
+        """Refuse panoptic segmentation on a profile without thing classes."""
+        refusal = None if clustering is None else self.profile.panoptic_refusal()
+        if refusal is not None:
+            raise InputError(refusal)
 
     def for_data(self, data: DatasetProfile, label_map: LabelMap) -> Predictor:
         """The same network on a dataset of another sensor (`data`'s profile): scans read and
@@ -236,6 +255,38 @@ class Predictor:
         raw = self.profile.output_labels(classes)
         return raw if self.output_map is None else self.output_map.apply(raw)
 
+    def instances(self, projection: Projection, classes: np.ndarray) -> np.ndarray:
+        """Stage 5 with panoptic segmentation: each point's object (uint32, unique in the scan,
+        0 for stuff), the points of each thing class clustered on the range image."""
+        from rangeret.inference.instances import row_gaps, scan_instances
+
+        if self.clustering is None:
+            raise ValueError("this predictor finds no objects (no clustering settings)")
+        return scan_instances(
+            projection, None, classes, self.profile.things, row_gaps(self.profile), self.clustering
+        )
+
+    def scan_prediction(
+        self,
+        projection: Projection,
+        classes: np.ndarray,
+        confidence: np.ndarray | None = None,
+        times: StageTimes | None = None,
+    ) -> ScanOutcome:
+        """One scan's prediction from its final classes: what its file holds (with panoptic
+        segmentation, the layout's panoptic labels of its objects), or why it has none (more
+        objects than its benchmark's label holds)."""
+        raw = self.to_raw(classes)
+        if self.clustering is None:
+            return ScanPrediction(labels=raw, classes=classes, confidence=confidence)
+        with self._record(times).stage("cluster"):
+            instances = self.instances(projection, classes)
+        try:
+            labels = self.profile.layout.panoptic_encoding.encode(raw, instances, classes)
+        except PanopticEncodingError as exc:
+            return str(exc)
+        return ScanPrediction(labels, confidence, classes, instances)
+
     # Whole scans ---------------------------------------------------------------------------
 
     def predict(self, points: np.ndarray) -> ScanPrediction:
@@ -272,8 +323,8 @@ class Predictor:
                     logits, [p.proj_x for p in good], [p.proj_y for p in good], classes
                 )
         done = iter(
-            ScanPrediction(labels=self.to_raw(c), classes=c, confidence=conf)
-            for c, conf in zip(classes, confidences, strict=True)
+            self.scan_prediction(projection, c, conf, times)
+            for projection, c, conf in zip(good, classes, confidences, strict=True)
         )
         return [s if isinstance(s, str) else next(done) for s in scans]
 

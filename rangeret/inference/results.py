@@ -18,13 +18,24 @@ from rangeret.inference.timing import StageTimes
 
 @dataclass
 class ScanPrediction:
-    """The labels of one scan or cloud: raw ids (uint32, one per point) and, when asked, each
-    point's confidence in its label (float32, 0..1) and its training classes."""
+    """The labels of one scan or cloud: what its prediction file holds (uint32, one per point:
+    raw ids or classes, and with panoptic segmentation the benchmark's panoptic labels) and,
+    when asked, each point's confidence in its label (float32, 0..1), its training classes and
+    its object (instance ids unique in the scan, 0 for stuff)."""
 
     labels: np.ndarray
     #: Each point's softmax probability of its final class at its pixel (float32), when asked.
     confidence: np.ndarray | None = None
     classes: np.ndarray | None = None
+    #: Each point's object with panoptic segmentation (uint32, 0 for stuff); None without it.
+    instances: np.ndarray | None = None
+
+    @property
+    def num_instances(self) -> int:
+        """How many objects the scan holds (0 without panoptic segmentation)."""
+        if self.instances is None or not self.instances.size:
+            return 0
+        return int(np.unique(self.instances[self.instances > 0]).size)
 
 
 #: One scan of a batch: its prediction, or the reason it has none.

@@ -1,5 +1,6 @@
 """The settings of a run's post-processing, torch-free so option parsing and settings stay light:
-kNN refinement (its parameters; each profile keeps its own voting rule) and test-time augmentation."""
+kNN refinement (its parameters; each profile keeps its own voting rule), test-time augmentation
+and the clustering of objects for panoptic segmentation."""
 
 from __future__ import annotations
 
@@ -60,3 +61,34 @@ class TtaSettings:
         """(flipped, column shift) of every view, the identity first."""
         shifts = [round(i * width / (self.shifts + 1)) for i in range(self.shifts + 1)]
         return [(f, s) for f in ([False, True] if self.flip else [False]) for s in shifts]
+
+
+class ClusterSettingsError(InputError, ValueError):
+    """Clustering parameters that cannot be used."""
+
+
+#: The angle criterion's threshold in degrees: Bogoslavskyi and Stachniss's choice for 64-beam
+#: scans, which separates objects one behind the other and keeps a slanted surface whole.
+DEFAULT_CLUSTER_ANGLE = 10.0
+#: Clusters with fewer points join the nearest object of their class (`rangeret.inference.instances`).
+DEFAULT_MIN_CLUSTER_POINTS = 10
+
+
+@dataclass(frozen=True)
+class ClusterSettings:
+    """How the points of each thing class become objects: neighbouring pixels join where the
+    angle criterion exceeds `angle` (degrees), and clusters under `min_points` points merge into
+    the nearest object of their class."""
+
+    angle: float = DEFAULT_CLUSTER_ANGLE
+    min_points: int = DEFAULT_MIN_CLUSTER_POINTS
+
+    def __post_init__(self) -> None:
+        if not is_number(self.angle) or not 0 < self.angle < 90:
+            raise ClusterSettingsError(
+                f"angle must be a number of degrees in (0, 90), got {self.angle!r}"
+            )
+        if not is_int(self.min_points) or self.min_points < 1:
+            raise ClusterSettingsError(
+                f"min_points must be an integer >= 1, got {self.min_points!r}"
+            )

@@ -37,7 +37,14 @@ from rangeret.inference.network_fields import (
     option_help,
 )
 from rangeret.inference.runtime.backends import BACKENDS, RuntimeChoiceError, check_backend
-from rangeret.inference.settings import DEFAULT_KNN, KnnSettings, TtaSettings
+from rangeret.inference.settings import (
+    DEFAULT_CLUSTER_ANGLE,
+    DEFAULT_KNN,
+    DEFAULT_MIN_CLUSTER_POINTS,
+    ClusterSettings,
+    KnnSettings,
+    TtaSettings,
+)
 
 #: The field groups: which weights load (every command that loads a network, `export`
 #: included), and how a run uses them.
@@ -141,6 +148,40 @@ class InferenceSpec:
         group=RUN,
     )
 
+    panoptic: bool = option(
+        FieldSchema(
+            "panoptic",
+            bool,
+            "panoptic segmentation: also find the objects, each thing class's points clustered "
+            "into instances on the range image, written as the benchmark's panoptic labels",
+            default=False,
+        ),
+        group=RUN,
+    )
+    cluster_angle: float = option(
+        FieldSchema(
+            "cluster_angle",
+            float,
+            "with --panoptic: neighbouring points of one class join one object where the angle "
+            "between the beam and the line through both exceeds this many degrees (lower joins "
+            "more)",
+            default=DEFAULT_CLUSTER_ANGLE,
+            metavar="DEG",
+        ),
+        group=RUN,
+    )
+    min_cluster_points: int = option(
+        FieldSchema(
+            "min_cluster_points",
+            int,
+            "with --panoptic: a cluster of fewer points joins the nearest object of its class",
+            default=DEFAULT_MIN_CLUSTER_POINTS,
+            metavar="N",
+            minimum=1,
+        ),
+        group=RUN,
+    )
+
     def __post_init__(self) -> None:
         self._settle(_key)
 
@@ -209,6 +250,11 @@ class InferenceSpec:
                 f"{name('onnx')} is an export for {name('backend')} onnxruntime: add that, or "
                 f"leave {name('onnx')} out"
             )
+        if not 0 < self.cluster_angle < 90:
+            return (
+                f"{name('cluster_angle')} must be above 0 and below 90 degrees, got "
+                f"{self.cluster_angle:g}"
+            )
         try:
             check_backend(self.backend, self.precision)
         except RuntimeChoiceError as exc:
@@ -223,6 +269,13 @@ class InferenceSpec:
     def knn_settings(self) -> KnnSettings | None:
         """The kNN refinement the run applies (None: pixel classes)."""
         return DEFAULT_KNN if self.knn else None
+
+    @property
+    def clustering(self) -> ClusterSettings | None:
+        """How objects are found (None: no panoptic segmentation)."""
+        if not self.panoptic:
+            return None
+        return ClusterSettings(self.cluster_angle, self.min_cluster_points)
 
     @property
     def tta(self) -> TtaSettings | None:

@@ -43,6 +43,7 @@ RUN_KEYS = (
     "device",
     "batch_size",
     "overwrite",
+    "panoptic",
 )
 
 
@@ -77,7 +78,12 @@ def write_run_info(
     (`check_weights`).
     """
     out = Path(out)
-    previous = check_weights(out, network.get("checkpoint_sha256"), overwrite=overwrite)
+    previous = check_weights(
+        out,
+        network.get("checkpoint_sha256"),
+        overwrite=overwrite,
+        panoptic=bool(network.get("panoptic")),
+    )
     details: dict[str, Any] = {
         "batch_size": batch_size,
         "dataset": None if dataset is None else str(dataset),
@@ -96,18 +102,30 @@ def write_run_info(
 
 
 def check_weights(
-    out: Path | str, sha256: str | None, *, overwrite: bool = False
+    out: Path | str, sha256: str | None, *, overwrite: bool = False, panoptic: bool = False
 ) -> dict[str, Any]:
-    """The tree's run record, after checking that the runs in it used the weights of `sha256`;
-    a run recorded with other weights is a `WeightsMismatchError` naming both hashes and the
-    tree, unless `overwrite` (mixing is then allowed). Called before anything is written."""
+    """The tree's run record, after checking that the runs in it used the weights of `sha256`
+    and the same task (`panoptic` or semantic: a panoptic run must not take a semantic
+    prediction for its own); a run recorded otherwise is a `WeightsMismatchError` naming the
+    difference and the tree, unless `overwrite` (mixing is then allowed). Called before anything
+    is written."""
     record = read_run_info(out)
-    if overwrite or sha256 is None or not record:
+    if overwrite or not record:
+        return record
+    runs = recorded_runs(record, Path(out) / RUN_INFO)
+    tasks = {bool(run.get("panoptic")) for run in runs}
+    if tasks - {panoptic}:
+        have, this = ("semantic", "panoptic") if panoptic else ("panoptic", "semantic")
+        raise WeightsMismatchError(
+            f"{out} holds {have} predictions and this run is {this}; write to another folder, "
+            "or pass --overwrite to predict into it anyway"
+        )
+    if sha256 is None:
         return record
     others = sorted(
         {
             str(run["checkpoint_sha256"])
-            for run in recorded_runs(record, Path(out) / RUN_INFO)
+            for run in runs
             if run.get("checkpoint_sha256") not in (None, sha256)
         }
     )

@@ -183,6 +183,13 @@ class LabelFile:
             )
         return size // self.bytes
 
+    def holds(self, path: str | os.PathLike[str], num_points: int) -> bool:
+        """Whether the file holds exactly `num_points` labels (its size says so)."""
+        try:
+            return Path(path).stat().st_size == num_points * self.bytes
+        except OSError:
+            return False
+
     def read(self, path: str | os.PathLike[str], num_points: int | None = None) -> np.ndarray:
         """The file's labels as uint32 (N,); with `num_points`, another count raises
         `ScanFormatError`."""

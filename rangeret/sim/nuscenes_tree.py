@@ -1,15 +1,23 @@
-"""A simulated nuScenes tree in the real layout: the version's 13 tables and lidarseg.json, a map
-mask, keyframe sweeps (`.pcd.bin`) and their label files, as nuScenes' devkit loads them.
+"""A simulated nuScenes tree in the real layout: the version's 13 tables, lidarseg.json and
+panoptic.json, a map mask, keyframe sweeps (`.pcd.bin`) and their label files, as nuScenes'
+devkit loads them.
 
     ROOT/v1.0-mini/{category,attribute,visibility,instance,sensor,calibrated_sensor,ego_pose,
-                    log,scene,sample,sample_data,sample_annotation,map,lidarseg}.json
+                    log,scene,sample,sample_data,sample_annotation,map,lidarseg,panoptic}.json
     ROOT/maps/<token>.png
     ROOT/samples/LIDAR_TOP/<log>__LIDAR_TOP__<timestamp>.pcd.bin
     ROOT/lidarseg/v1.0-mini/<sample_data token>_lidarseg.bin
+    ROOT/panoptic/v1.0-mini/<sample_data token>_panoptic.npz
 
 Each scene drives along its own street and has one keyframe every half second (nuScenes annotates
 at 2 Hz); only keyframes are written (no intermediate sweeps, no cameras, no boxes). Tokens are
 derived from the seed and the scene's name, so the same seed writes the same bytes.
+
+A labelled keyframe's panoptic file holds, per point, 1000 x its lidarseg label + its instance:
+points of a thing class (the profile's `things`) carry their simulated object, numbered from 1 within
+the scene in the order the keyframes first see them (so an object keeps its number from keyframe
+to keyframe, as nuScenes-panoptic numbers a scene's annotated instances); stuff points and points
+of no object carry 0. With no boxes the instance table stays empty, as nothing refers to it.
 """
 
 from __future__ import annotations
@@ -29,6 +37,7 @@ from rangeret.dataset.labels import SEMANTIC_MASK
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.table_layout import LIDARSEG_LABELS
 from rangeret.io.atomic import atomic_write_bytes
+from rangeret.io.panoptic_labels import THOUSANDS, write_panoptic_npz
 from rangeret.io.scans import write_scan
 from rangeret.sim.dataset import check_profile, sequence_scans
 from rangeret.sim.raycast import SensorConfig, SimulationError
@@ -45,8 +54,6 @@ LIDAR_TRANSLATION = (0.985793, 0.0, 1.84019)
 AZIMUTH_STEPS = 1086
 #: Scenes written when none are asked for: two of mini_train and both of mini_val.
 DEFAULT_SCENES = {"scene-0061": 3, "scene-0553": 2, "scene-0103": 3, "scene-0916": 2}
-
-
 def _token(*parts: object) -> str:
     """A 32-hex-digit token, like nuScenes', from the seed and names."""
     return hashlib.sha256("/".join(map(str, parts)).encode()).hexdigest()[:32]
@@ -74,6 +81,44 @@ def _write_json(path: Path, records: Any) -> None:
     atomic_write_bytes(path, (json.dumps(records, indent=0) + "\n").encode())
 
 
+def thing_categories(profile: DatasetProfile) -> np.ndarray:
+    """(65536,) bool: whether a raw id (a general category index) is in one of the profile's
+    thing classes."""
+    labels = profile.labels
+    lut = np.zeros(SEMANTIC_MASK + 1, dtype=bool)
+    for raw, cls in labels.raw_to_class.items():
+        lut[raw] = cls in profile.things
+    return lut
+
+
+def panoptic_values(
+    raw: np.ndarray, things: np.ndarray, instances: dict[int, int], scene: str
+) -> np.ndarray:
+    """A keyframe's panoptic values, uint16 per point, from its labels (raw id | object << 16):
+    1000 x raw id + the scene's number of the point's object where the raw id is a thing
+    (`things`), else + 0. `instances` maps the scene's objects to their numbers and gains those
+    this keyframe sees first, numbered on in ascending object order."""
+    raw = np.asarray(raw, dtype=np.uint32)
+    semantic = raw & np.uint32(SEMANTIC_MASK)
+    objects = raw >> np.uint32(16)
+    thing = things[semantic] & (objects > 0)
+    seen, inverse = np.unique(objects[thing], return_inverse=True)
+    for obj in seen.tolist():
+        instances.setdefault(obj, len(instances) + 1)
+    if len(instances) >= THOUSANDS.multiplier:
+        raise SimulationError(
+            f"{scene} holds {len(instances)} objects, more than a panoptic value numbers "
+            f"(at most {THOUSANDS.multiplier - 1} a scene)"
+        )
+    numbers = np.array([instances[obj] for obj in seen.tolist()], dtype=np.uint32)
+    instance = np.zeros(raw.shape, dtype=np.uint32)
+    instance[thing] = numbers[inverse.ravel()]
+    values = semantic * np.uint32(THOUSANDS.multiplier) + instance
+    if values.size and values.max() > np.iinfo(np.uint16).max:
+        raise SimulationError(f"{scene}: raw id {semantic.max()} does not fit a panoptic value")
+    return values.astype(np.uint16)
+
+
 def simulate_nuscenes(
     root: str | os.PathLike[str],
     scenes: Mapping[str, int] | None = None,
@@ -84,14 +129,16 @@ def simulate_nuscenes(
     *,
     profile: DatasetProfile,
     version: str = VERSION,
+    panoptic: bool = True,
 ) -> int:
     """Write a simulated tree of `version` (v1.0-mini) under `root` and return the number of
     keyframes.
 
     `scenes` maps a scene name to its number of keyframes (`DEFAULT_SCENES` when None);
     `labelled` says which scenes get lidarseg records and label files (True: all, False: none,
-    so no lidarseg.json is written, as for the test split). The profile must read tables; the
-    sensor defaults to the profile's with the HDL-32E's `AZIMUTH_STEPS`.
+    so no lidarseg.json is written, as for the test split), and, with `panoptic`, panoptic
+    records and files too (none and no panoptic.json without it). The profile must read tables;
+    the sensor defaults to the profile's with the HDL-32E's `AZIMUTH_STEPS`.
     """
     if profile.layout.folders is not None:
         raise SimulationError(f"profile {profile.name} does not read a version's tables")
@@ -122,8 +169,10 @@ def simulate_nuscenes(
             "sample",
             "sample_data",
             "lidarseg",
+            "panoptic",
         )
     }
+    things = thing_categories(profile)
     tables["category"] = [
         {
             "token": _token(seed, "category", raw),
@@ -183,6 +232,7 @@ def simulate_nuscenes(
             scans = sequence_scans(
                 scene_name, n, sensor, seed, profile=profile, period=KEYFRAME_PERIOD
             )
+            instances: dict[int, int] = {}
             for k, (points, raw, x) in enumerate(scans):
                 stamp = time_us + int(k * KEYFRAME_PERIOD * 1e6)
                 sd = sweeps[k]
@@ -228,6 +278,13 @@ def simulate_nuscenes(
                     tables["lidarseg"].append(
                         {"token": sd, "sample_data_token": sd, "filename": label_name}
                     )
+                    if panoptic:
+                        panoptic_name = f"panoptic/{version}/{sd}_panoptic.npz"
+                        values = panoptic_values(raw, things, instances, scene_name)
+                        write_panoptic_npz(root / panoptic_name, values)
+                        tables["panoptic"].append(
+                            {"token": sd, "sample_data_token": sd, "filename": panoptic_name}
+                        )
                 written += 1
                 if bar is not None:
                     bar.update(1)
@@ -240,6 +297,8 @@ def simulate_nuscenes(
         ]
         if not with_labels:
             del tables["lidarseg"]
+        if not (with_labels and panoptic):
+            del tables["panoptic"]
         for name, records in tables.items():
             _write_json(root / version / f"{name}.json", records)
     finally:

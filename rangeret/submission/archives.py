@@ -107,6 +107,27 @@ def _valid_id_table(config: LabelConfig) -> np.ndarray:
     return table
 
 
+def _count_objects(data: bytes, thing_ids: np.ndarray, counts: list[int]) -> None:
+    """Add a panoptic label file's thing points, and those of them with an instance (its high
+    16 bits), to `counts`."""
+    labels = np.frombuffer(data, dtype="<u4")
+    thing = thing_ids[(labels & 0xFFFF).astype(np.intp)]
+    counts[0] += int(thing.sum())
+    counts[1] += int((thing & (labels >> 16 > 0)).sum())
+
+
+def instance_problem(archive: Path | str, counts: Sequence[int]) -> str | None:
+    """Why an archive of panoptic labels is refused for holding no object at all: its thing
+    points (`counts[0]`) all without an instance (`counts[1]`): semantic labels in a panoptic
+    archive."""
+    if counts[0] and not counts[1]:
+        return (
+            f"{archive}: none of its {counts[0]:,} thing-class points has an instance: these are "
+            "semantic labels, not panoptic ones (predict with --panoptic)"
+        )
+    return None
+
+
 def _label_problem(data: bytes, name: str, num_points: int, valid: np.ndarray) -> str | None:
     """Why a prediction's bytes are wrong for a scan of `num_points` points, or None."""
     if len(data) != num_points * LABEL_BYTES:
@@ -184,8 +205,10 @@ def write_submission(
     labels: LabelConfig,
     progress: bool = False,
     workers: int | None = None,
+    things: Sequence[int] | None = None,
 ) -> SubmissionCheck:
-    """Build the submission zip of a predictions tree for the test scans of `dataset`.
+    """Build the submission zip of a predictions tree for the test scans of `dataset` (with
+    `things`, a panoptic one, validated as such).
 
     `description` is the text of `description.txt` (`rangeret.submission.leaderboard.description_text`);
     without it the file holds the leaderboard's three lines with the benchmark's defaults.
@@ -229,7 +252,9 @@ def write_submission(
                 zf.add_file(DESCRIPTION_NAME, description.rstrip("\n") + "\n")
         if problems:
             raise SubmissionError(problems)
-        check = validate_submission(tmp, dataset, allow_partial=allow_partial, labels=labels)
+        check = validate_submission(
+            tmp, dataset, allow_partial=allow_partial, labels=labels, things=things
+        )
         check.path = out
         check.raise_for_problems()
     return check
@@ -242,6 +267,7 @@ def validate_submission(
     *,
     labels: LabelConfig,
     progress: bool = False,
+    things: Sequence[int] | None = None,
 ) -> SubmissionCheck:
     """Check a submission zip against the dataset's test scans and the official test split.
 
@@ -249,7 +275,8 @@ def validate_submission(
     one label per point) and more: raw ids the learning map can produce, unsafe or unexpected
     entries, duplicates, and, unless `allow_partial`, that the dataset is the full test split.
     A `description.txt` without the leaderboard's three lines is a warning: the server accepts it
-    but shows the method as Anonymous.
+    but shows the method as Anonymous. With `things` (the thing classes: a panoptic archive),
+    labels whose thing points never carry an instance are refused as semantic ones.
     """
     archive, dataset = Path(archive), Path(dataset)
     check = SubmissionCheck(path=archive, partial=allow_partial)
@@ -262,6 +289,10 @@ def validate_submission(
     check.sequences = present
     check.problems += dataset_problems
     valid = _valid_id_table(labels)
+    counts = [0, 0]
+    thing_ids = np.zeros(1 << 16, dtype=bool)
+    for raw, cls in labels.raw_to_class.items():
+        thing_ids[raw] = things is not None and cls in things
     try:
         zf = zipfile.ZipFile(archive)
     except (zipfile.BadZipFile, OSError) as exc:
@@ -319,7 +350,12 @@ def validate_submission(
             problem = _label_problem(data, f"{archive}: {name}", num_points, valid)
             if problem:
                 check.problems.append(problem)
+            elif things is not None:
+                _count_objects(data, thing_ids, counts)
             check.scans += 1
+    refusal = None if things is None else instance_problem(archive, counts)
+    if refusal is not None:
+        check.problems.append(refusal)
     return check
 
 

@@ -21,6 +21,7 @@ from typing import Any
 
 from rangeret.dataset.layout import ScanEntry
 from rangeret.dataset.profiles import DatasetProfile
+from rangeret.evaluation.panoptic import PanopticRules
 from rangeret.io.atomic import atomic_path
 from rangeret.io.zipfiles import ReproducibleZip
 from rangeret.sim.raycast import SensorConfig
@@ -102,6 +103,9 @@ class Benchmark:
     #: Whether it writes and checks submission archives (the base, for profiles without a
     #: benchmark, does not).
     writes_archives: bool = False
+    #: How a panoptic benchmark scores objects (`rangeret.evaluation.panoptic`); None: a
+    #: semantic benchmark, scored by the profile's `benchmark.scoring`.
+    panoptic_rules: PanopticRules | None = None
 
     def check_profile(self, profile: DatasetProfile) -> str | None:
         """Why the benchmark cannot take the profile's data (its layout), or None."""

@@ -18,12 +18,18 @@ from rangeret.dataset.profiles import DatasetProfile, ProfileError
 from rangeret.plugins import load_plugins
 from rangeret.submission.benchmark import Benchmark
 from rangeret.submission.kitti_benchmark import SEMANTICKITTI
-from rangeret.submission.nuscenes_benchmark import NUSCENES_LIDARSEG
+from rangeret.submission.kitti_panoptic_benchmark import SEMANTICKITTI_PANOPTIC
+from rangeret.submission.nuscenes_benchmark import NUSCENES_LIDARSEG, NUSCENES_PANOPTIC
 
 log = logging.getLogger(__name__)
 
 BENCHMARKS_GROUP = "rangeret.benchmarks"
-BUILTIN_BENCHMARKS: tuple[Benchmark, ...] = (SEMANTICKITTI, NUSCENES_LIDARSEG)
+BUILTIN_BENCHMARKS: tuple[Benchmark, ...] = (
+    SEMANTICKITTI,
+    NUSCENES_LIDARSEG,
+    SEMANTICKITTI_PANOPTIC,
+    NUSCENES_PANOPTIC,
+)
 #: The entry of a profile that names no benchmark: no archive, the plain job zip and demo.
 NO_BENCHMARK = Benchmark()
 
@@ -54,10 +60,11 @@ def benchmark_named(name: str) -> Benchmark:
     return found
 
 
-def benchmark_of(profile: DatasetProfile) -> Benchmark:
-    """The benchmark the profile names (`NO_BENCHMARK` where it names none); a `ProfileError`
-    when it is unknown or cannot take the profile's layout."""
-    name = profile.benchmark.name
+def benchmark_of(profile: DatasetProfile, *, panoptic: bool = False) -> Benchmark:
+    """The benchmark the profile names (`benchmark.name`, or with `panoptic` its
+    `benchmark.panoptic`; `NO_BENCHMARK` where it names none); a `ProfileError` when it is
+    unknown or cannot take the profile's layout."""
+    name = profile.benchmark.panoptic if panoptic else profile.benchmark.name
     if name is None:
         return NO_BENCHMARK
     benchmark = benchmark_named(name)
@@ -67,12 +74,14 @@ def benchmark_of(profile: DatasetProfile) -> Benchmark:
     return benchmark
 
 
-def no_archive_reason(profile: DatasetProfile) -> str | None:
-    """Why the profile has no benchmark archive, or None where it has one."""
-    if benchmark_of(profile).writes_archives:
+def no_archive_reason(profile: DatasetProfile, *, panoptic: bool = False) -> str | None:
+    """Why the profile has no benchmark archive (with `panoptic`, no panoptic one), or None
+    where it has one."""
+    if benchmark_of(profile, panoptic=panoptic).writes_archives:
         return None
     titles = " and ".join(b.title for b in registered().values() if b.writes_archives)
+    task = "panoptic " if panoptic else ""
     return (
         f"submission archives are the {titles} benchmarks' formats; the {profile.name} profile "
-        "has no such archive (use `rangeret evaluate` on its predictions instead)"
+        f"has no such {task}archive (use `rangeret evaluate` on its predictions instead)"
     )

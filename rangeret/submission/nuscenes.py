@@ -1,4 +1,5 @@
-"""nuScenes-lidarseg submission archives, written and checked as the challenge's server takes them.
+"""nuScenes-lidarseg and nuScenes-panoptic submission archives, written and checked as the
+challenges' servers take them.
 
 The archive holds the devkit's results folder at its top:
 
@@ -9,6 +10,10 @@ The archive holds the devkit's results folder at its top:
                                                         "use_external": ...}} (five booleans),
                                                         and the method under "method"
     description.txt                                     the method's name, links and checkpoint
+
+nuScenes-panoptic's (`PANOPTIC_RESULTS`) is the same with `panoptic/<split>/<token>_panoptic.npz`
+files (one uint16 array `data`: 1000 x class 1-16 + instance) and a meta that also names its
+`task`, "segmentation". Each `ResultsFormat` says what differs.
 
 `write_nuscenes_results` zips the same folder for any keyframes (a gateway job's), each in the
 split folder its prediction lies in, with the same writer.
@@ -26,12 +31,10 @@ from __future__ import annotations
 import json
 import threading
 import zipfile
-from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import cast
 
-import numpy as np
 from tqdm import tqdm
 
 from rangeret.dataset.layout import DatasetLayoutError, ScanEntry, discover
@@ -45,43 +48,36 @@ from rangeret.submission.archives import (
     SubmissionCheck,
     SubmissionError,
     description_warnings,
+    instance_problem,
     unsafe_entry,
 )
-from rangeret.submission.leaderboard import LeaderboardEntry
+from rangeret.submission.nuscenes_format import (
+    LIDARSEG_RESULTS,
+    META_KEYS,
+    PANOPTIC_RESULTS,
+    ResultsFormat,
+    SubmissionMeta,
+    meta_problems,
+    required_directories,
+    submission_json,
+    values_problem,
+)
+
+__all__ = [
+    "LIDARSEG_RESULTS",
+    "META_KEYS",
+    "PANOPTIC_RESULTS",
+    "ResultsFormat",
+    "SubmissionMeta",
+    "submission_json",
+    "validate_nuscenes_submission",
+    "write_nuscenes_results",
+    "write_nuscenes_submission",
+]
 
 #: The official nuScenes-lidarseg test split: scenes and keyframes.
 TEST_SCENES = 150
 TEST_SAMPLES = 6008
-#: The keys of submission.json's "meta", each a boolean.
-META_KEYS = ("use_camera", "use_lidar", "use_radar", "use_map", "use_external")
-
-
-@dataclass(frozen=True)
-class SubmissionMeta:
-    """The modalities and data a method used, as submission.json declares them."""
-
-    use_camera: bool = False
-    use_lidar: bool = True
-    use_radar: bool = False
-    use_map: bool = False
-    use_external: bool = False
-
-    def to_dict(self) -> dict[str, bool]:
-        """The "meta" object."""
-        return {key: bool(getattr(self, key)) for key in META_KEYS}
-
-
-def submission_json(
-    meta: SubmissionMeta, entry: LeaderboardEntry, checkpoint_sha256: str | None
-) -> str:
-    """The text of `<split>/submission.json`: the meta flags, and the method beside them."""
-    method = {
-        "name": entry.name,
-        "pdf_url": entry.pdf_url,
-        "code_url": entry.code_url,
-        "checkpoint_sha256": checkpoint_sha256 or "unknown",
-    }
-    return json.dumps({"meta": meta.to_dict(), "method": method}, indent=2) + "\n"
 
 
 def _tables_layout(profile: DatasetProfile) -> TableLayout:
@@ -97,6 +93,7 @@ def _split_scans(
     profile: DatasetProfile,
     version: str | None,
     allow_partial: bool,
+    results: ResultsFormat,
 ) -> tuple[list[ScanEntry], list[str], list[str], bool]:
     """The keyframes of the split that the tables hold, its scenes present, problems with
     completeness, and whether the version has ground truth (which then gives the counts)."""
@@ -106,14 +103,16 @@ def _split_scans(
         tables = layout.open(dataset, version)
     except (DatasetLayoutError, ValueError) as exc:
         return [], [], [str(exc)], False
+    labelled = tables.has_panoptic if results.panoptic else tables.has_lidarseg
     found = discover(
         dataset,
         scenes,
-        with_labels=tables.has_lidarseg,
+        with_labels=labelled,
         missing_ok=True,
         layout=layout,
         version=tables.version,
         split=split,
+        panoptic=results.panoptic,
     )
     problems = list(found.problems)
     missing = [s for s in scenes if s not in tables.scenes]
@@ -133,7 +132,7 @@ def _split_scans(
             f"of {TEST_SCENES}: the local copy is incomplete, so the server would refuse the "
             "archive (--allow-partial is for testing only)"
         )
-    return found.scans, found.sequences, problems, tables.has_lidarseg
+    return found.scans, found.sequences, problems, labelled
 
 
 def _expected_points(entry: ScanEntry, profile: DatasetProfile) -> int:
@@ -142,31 +141,6 @@ def _expected_points(entry: ScanEntry, profile: DatasetProfile) -> int:
     if entry.label_path is not None:
         return entry.label_file.count(entry.label_path)
     return scan_num_points(entry.scan_path, record=profile.points)
-
-
-def _values_problem(data: bytes, name: str, num_points: int, num_classes: int) -> str | None:
-    """Why a prediction's bytes are not what the devkit takes, or None."""
-    if len(data) != num_points:
-        return f"{name} holds {len(data)} predictions but its point cloud has {num_points} points"
-    values = np.frombuffer(data, dtype=np.uint8)
-    bad = np.flatnonzero((values < 1) | (values >= num_classes))
-    if bad.size:
-        return (
-            f"{name} holds {bad.size} value(s) outside 1..{num_classes - 1}, the first "
-            f"{int(values[bad[0]])} at point {int(bad[0])} (0 is ignore, which is not predicted)"
-        )
-    return None
-
-
-def _entry_name(split: str, entry: ScanEntry) -> str:
-    return f"lidarseg/{split}/{entry.name}_lidarseg.bin"
-
-
-def required_directories(split: str) -> Iterator[str]:
-    """The folders of the results folder, in order."""
-    yield "lidarseg/"
-    yield f"lidarseg/{split}/"
-    yield f"{split}/"
 
 
 def write_nuscenes_submission(
@@ -183,8 +157,10 @@ def write_nuscenes_submission(
     allow_partial: bool = False,
     progress: bool = False,
     workers: int | None = None,
+    results: ResultsFormat = LIDARSEG_RESULTS,
 ) -> SubmissionCheck:
-    """Build the zip of the predictions of every keyframe of `split` (`PRED/lidarseg/<split>/`),
+    """Build the zip of the predictions of every keyframe of `split` (`PRED/lidarseg/<split>/`,
+    or the `results` format's folder),
     with `submission` as `<split>/submission.json` and `description` as `description.txt`.
 
     Raises `SubmissionError` listing every missing or wrong prediction (and an incomplete local
@@ -194,7 +170,7 @@ def write_nuscenes_submission(
     predictions, dataset, out = Path(predictions), Path(dataset), Path(out)
     if out.suffix != ".zip":
         raise SubmissionError([f"{out}: the archive's name must end with .zip"])
-    scans, _, problems, _ = _split_scans(dataset, split, profile, version, allow_partial)
+    scans, _, problems, _ = _split_scans(dataset, split, profile, version, allow_partial, results)
     if not scans and not problems:
         problems.append(f"{dataset} holds no sample of the {split} split")
     with atomic_path(out, suffix=".zip") as tmp:
@@ -208,9 +184,16 @@ def write_nuscenes_submission(
             problems=problems,
             workers=workers,
             progress=progress,
+            results=results,
         )
         check = validate_nuscenes_submission(
-            tmp, dataset, split, profile=profile, version=version, allow_partial=allow_partial
+            tmp,
+            dataset,
+            split,
+            profile=profile,
+            version=version,
+            allow_partial=allow_partial,
+            results=results,
         )
         check.path = out
         check.raise_for_problems()
@@ -226,9 +209,11 @@ def write_nuscenes_results(
     submission: str,
     description: str,
     workers: int | None = None,
+    results: ResultsFormat = LIDARSEG_RESULTS,
 ) -> None:
     """Zip the results folder of the keyframes `scans` (of any scenes) at `out`: each split
-    folder their predictions lie in (`PRED/lidarseg/<split>/`) with its `submission.json`.
+    folder their predictions lie in (`PRED/lidarseg/<split>/`, or the `results` format's) with
+    its `submission.json`.
 
     Raises `SubmissionError` listing every missing or wrong prediction, writing nothing; unlike
     `write_nuscenes_submission`, a split's other keyframes are not asked for.
@@ -247,6 +232,7 @@ def write_nuscenes_results(
             profile=profile,
             problems=problems,
             workers=workers,
+            results=results,
         )
 
 
@@ -261,6 +247,7 @@ def _write_results(
     problems: list[str],
     workers: int | None,
     progress: bool = False,
+    results: ResultsFormat = LIDARSEG_RESULTS,
 ) -> None:
     """Write the zip at `path`: the folders of each split, every keyframe's prediction, then
     each split's submission.json and description.txt; `SubmissionError` with `problems` and
@@ -281,13 +268,13 @@ def _write_results(
         if not pred.is_file():
             return f"{pred} is missing (no prediction for sample_data {entry.key})", None
         data = pred.read_bytes()
-        problem = _values_problem(data, str(pred), num_points, num_classes)
+        problem = values_problem(data, str(pred), num_points, num_classes, results)
         if problem or failed.is_set():
             return problem, None
-        return None, deflate_file(_entry_name(split, entry), data)
+        return None, deflate_file(results.entry_name(split, entry), data)
 
     with ReproducibleZip(path) as zf:
-        folders = (name for split in splits for name in required_directories(split))
+        folders = (name for split in splits for name in required_directories(split, results))
         for name in dict.fromkeys(folders):
             zf.add_directory(name)
         for problem, file in tqdm(
@@ -310,31 +297,6 @@ def _write_results(
         raise SubmissionError(problems)
 
 
-def meta_problems(data: object, name: str) -> list[str]:
-    """What the devkit refuses in submission.json's content (`name` names the file)."""
-    if not isinstance(data, Mapping) or not isinstance(data.get("meta"), Mapping):
-        return [f'{name} must hold an object with a "meta" object']
-    meta = data["meta"]
-    keys = set(meta)
-    if keys != set(META_KEYS):
-        missing = [k for k in META_KEYS if k not in keys]
-        extra = sorted(str(k) for k in keys - set(META_KEYS))
-        said = "; ".join(
-            part
-            for part in (
-                f"missing {', '.join(missing)}" if missing else "",
-                f"unknown {', '.join(extra)}" if extra else "",
-            )
-            if part
-        )
-        return [f"{name}: meta must hold exactly {', '.join(META_KEYS)} ({said})"]
-    return [
-        f"{name}: meta.{key} must be true or false, got {json.dumps(meta[key])}"
-        for key in META_KEYS
-        if type(meta[key]) is not bool
-    ]
-
-
 def validate_nuscenes_submission(
     archive: Path | str,
     dataset: Path | str,
@@ -344,9 +306,11 @@ def validate_nuscenes_submission(
     version: str | None = None,
     allow_partial: bool = False,
     progress: bool = False,
+    results: ResultsFormat = LIDARSEG_RESULTS,
 ) -> SubmissionCheck:
-    """Check a nuScenes-lidarseg zip against the version's tables for `split`: every check of
-    the devkit's validator, each failure one line naming the file, and the project's own."""
+    """Check a nuScenes-lidarseg zip (or the `results` format's) against the version's tables
+    for `split`: every check of the devkit's validator, each failure one line naming the file,
+    and the project's own (a panoptic archive must hold objects)."""
     archive, dataset = Path(archive), Path(dataset)
     check = SubmissionCheck(path=archive, partial=allow_partial)
     if archive.suffix != ".zip":
@@ -355,7 +319,7 @@ def validate_nuscenes_submission(
         check.problems.append(f"{archive} does not exist")
         return check
     scans, present, dataset_problems, _ = _split_scans(
-        dataset, split, profile, version, allow_partial
+        dataset, split, profile, version, allow_partial, results
     )
     check.sequences = present
     check.problems += dataset_problems
@@ -375,7 +339,7 @@ def validate_nuscenes_submission(
             entries[info.filename] = info
         names = set(entries)
         meta_name = f"{split}/submission.json"
-        bins = f"lidarseg/{split}/"
+        bins = f"{results.folder}/{split}/"
         if not any(n.startswith(f"{split}/") for n in names):
             check.problems.append(
                 f"{archive}: the folder {split}/ (which holds submission.json) does not exist"
@@ -390,14 +354,16 @@ def validate_nuscenes_submission(
             except (zipfile.BadZipFile, OSError, ValueError) as exc:
                 check.problems.append(f"{archive}: {meta_name} is not JSON ({exc})")
             else:
-                check.problems += meta_problems(data, f"{archive}: {meta_name}")
+                check.problems += meta_problems(data, f"{archive}: {meta_name}", results)
         if not any(n.startswith(bins) for n in names):
+            kind = results.suffix.rsplit(".", 1)[-1]
             check.problems.append(
-                f"{archive}: the folder {bins} (which holds the .bin files) does not exist"
+                f"{archive}: the folder {bins} (which holds the .{kind} files) does not exist"
             )
+        counts = [0, 0]
         check.warnings += description_warnings(zf, entries.get(DESCRIPTION_NAME), archive)
         for entry in tqdm(scans, desc="validate", unit="scan", disable=not progress):
-            name = _entry_name(split, entry)
+            name = results.entry_name(split, entry)
             info = entries.get(name)
             if info is None:
                 check.problems.append(
@@ -413,8 +379,19 @@ def validate_nuscenes_submission(
             except (zipfile.BadZipFile, OSError, ValueError) as exc:
                 check.problems.append(f"{archive}: {name} cannot be read ({exc})")
                 continue
-            problem = _values_problem(data, f"{archive}: {name}", num_points, profile.num_classes)
+            problem = values_problem(
+                data,
+                f"{archive}: {name}",
+                num_points,
+                profile.num_classes,
+                results,
+                profile.things,
+                counts,
+            )
             if problem:
                 check.problems.append(problem)
             check.scans += 1
+    refusal = instance_problem(archive, counts) if results.panoptic else None
+    if refusal is not None:
+        check.problems.append(refusal)
     return check

@@ -1,10 +1,13 @@
-"""nuScenes-lidarseg: the registry's `nuscenes-lidarseg` entry.
+"""nuScenes-lidarseg and nuScenes-panoptic: the registry's `nuscenes-lidarseg` and
+`nuscenes-panoptic` entries.
 
 Its archive is the devkit's results folder of one split (`rangeret.submission.nuscenes`); its own
 options choose the split (default test) and the version folder, and when writing, the five meta
 flags of `submission.json` (`--use-camera` ...). A gateway job's zip is the results folder of the
 splits its keyframes' predictions lie in; the demo simulates v1.0-mini's mini_val scenes and
-writes their whole results folder.
+writes their whole results folder. nuScenes-panoptic's archive is the same with `panoptic/`
+`.npz` files and `"task": "segmentation"` in submission.json's meta, scored as the devkit's
+`NuScenesPanopticEval` scores (`rangeret.evaluation.panoptic`).
 """
 
 from __future__ import annotations
@@ -12,11 +15,15 @@ from __future__ import annotations
 import argparse
 
 from rangeret.dataset.profiles import DatasetProfile
+from rangeret.evaluation.panoptic import DEVKIT_PANOPTIC, PanopticRules
 from rangeret.submission.archives import SubmissionCheck
 from rangeret.submission.benchmark import ArchiveRequest, Benchmark, DemoPlan, JobPredictions
 from rangeret.submission.leaderboard import LeaderboardEntry
 from rangeret.submission.nuscenes import (
+    LIDARSEG_RESULTS,
     META_KEYS,
+    PANOPTIC_RESULTS,
+    ResultsFormat,
     SubmissionMeta,
     submission_json,
     validate_nuscenes_submission,
@@ -37,6 +44,8 @@ class NuScenesLidarsegBenchmark(Benchmark):
     name = "nuscenes-lidarseg"
     title = "nuScenes-lidarseg"
     writes_archives = True
+    #: What its results folder holds.
+    results: ResultsFormat = LIDARSEG_RESULTS
 
     def check_profile(self, profile: DatasetProfile) -> str | None:
         """Its archives are made of a version's tables."""
@@ -46,7 +55,7 @@ class NuScenesLidarsegBenchmark(Benchmark):
 
     def add_arguments(self, parser: argparse.ArgumentParser, *, writing: bool) -> None:
         """--split and --version, and when writing submission.json's meta flags."""
-        group = parser.add_argument_group(f"{self.title} (--profile nuscenes)")
+        group = parser.add_argument_group("nuScenes-lidarseg and -panoptic (--profile nuscenes)")
         group.add_argument(
             "--split",
             metavar="SPLIT",
@@ -87,12 +96,15 @@ class NuScenesLidarsegBenchmark(Benchmark):
             options.get("split") or DEFAULT_SPLIT,
             profile=request.profile,
             meta=meta,
-            submission=submission_json(meta, request.leaderboard, request.checkpoint_sha256),
+            submission=submission_json(
+                meta, request.leaderboard, request.checkpoint_sha256, self.results
+            ),
             description=request.description,
             version=options.get("version"),
             allow_partial=request.allow_partial,
             progress=request.progress,
             workers=request.workers,
+            results=self.results,
         )
 
     def validate_archive(self, request: ArchiveRequest) -> SubmissionCheck:
@@ -105,6 +117,7 @@ class NuScenesLidarsegBenchmark(Benchmark):
             version=request.options.get("version"),
             allow_partial=request.allow_partial,
             progress=request.progress,
+            results=self.results,
         )
 
     def write_job_zip(self, job: JobPredictions) -> None:
@@ -115,9 +128,12 @@ class NuScenesLidarsegBenchmark(Benchmark):
             job.entries,
             job.path,
             profile=job.profile,
-            submission=submission_json(_FLAG_DEFAULTS, LeaderboardEntry(), job.sha256),
+            submission=submission_json(
+                _FLAG_DEFAULTS, LeaderboardEntry(), job.sha256, self.results
+            ),
             description=job.description,
             workers=job.workers,
+            results=self.results,
         )
 
     def demo_plan(self, profile: DatasetProfile, valid_scans: int, test_scans: int) -> DemoPlan:
@@ -141,3 +157,16 @@ class NuScenesLidarsegBenchmark(Benchmark):
 
 
 NUSCENES_LIDARSEG = NuScenesLidarsegBenchmark()
+
+
+class NuScenesPanopticBenchmark(NuScenesLidarsegBenchmark):
+    """The nuScenes-panoptic challenge's results folder, validator, job zip and demo: the
+    lidarseg ones with panoptic files, sharing their options."""
+
+    name = "nuscenes-panoptic"
+    title = "nuScenes-panoptic"
+    results = PANOPTIC_RESULTS
+    panoptic_rules: PanopticRules | None = DEVKIT_PANOPTIC
+
+
+NUSCENES_PANOPTIC = NuScenesPanopticBenchmark()

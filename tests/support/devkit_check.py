@@ -8,7 +8,19 @@ Run BY the devkit venv's python, so it imports only the devkit, numpy and the st
     validate --dataroot ROOT --version VERSION --results FOLDER --eval-set SPLIT
         {"ok": true} or {"ok": false, "error": "AssertionError: ..."} (exit 0 both ways)
     load --dataroot ROOT --version VERSION
-        {"scenes": [names], "samples": n, "lidarseg": n, "categories": {index: name}}
+        {"scenes": [names], "samples": n, "lidarseg": n, "categories": {index: name},
+         "panoptic": n, "first_panoptic": null or {"filename", "dtype", "points",
+         "semantic_is_lidarseg", "sha256"} (its values as `load_bin_file` reads them)}
+    panoptic-arrays --input FILE.npz
+        the devkit's PanopticEval (its nuScenes settings) over the scans of FILE.npz: `scans`,
+        `pred_class_K`, `pred_instance_K`, `gt_class_K`, `gt_instance_K` for K < scans, and
+        optionally `min_points` (15 otherwise); {"tp", "fp", "fn", "iou_sum", "confusion",
+        "pq", "sq", "rq", "iou" (per class), "mean_pq", "mean_sq", "mean_rq", "mean_iou",
+        "results" (the dict NuScenesPanopticEval wraps those in)}
+    panoptic-evaluate --dataroot ROOT --version VERSION --results FOLDER --eval-set SPLIT
+                      [--min-inst-points N]
+        NuScenesPanopticEval's segmentation results as it writes them: {"all": {"PQ", "SQ",
+        "RQ", "mIoU", "PQ_dagger"}, class name: {"PQ", "SQ", "RQ", "IoU"}, ...}, NaN as null
 
 Any other failure (a tree the devkit cannot load, a crash) exits 1 with the traceback and a last
 line `devkit_check.py: error: TYPE: MESSAGE` on stderr.
@@ -87,15 +99,127 @@ def cmd_validate(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def cmd_load(args: argparse.Namespace) -> dict[str, Any]:
-    """What the devkit loads from the tree: scene names and table sizes."""
+    """What the devkit loads from the tree: scene names, table sizes, and the first panoptic
+    file as the devkit's own loader reads it."""
+    import hashlib
+
+    from nuscenes.utils.data_io import load_bin_file, panoptic_to_lidarseg
+
     nusc = load_nusc(args)
     categories = getattr(nusc, "lidarseg_idx2name_mapping", {})
+    panoptic = getattr(nusc, "panoptic", [])
+    first = None
+    if panoptic:
+        record = panoptic[0]
+        values = load_bin_file(os.path.join(nusc.dataroot, record["filename"]), type="panoptic")
+        lidarseg = nusc.get("lidarseg", record["token"])["filename"]
+        labels = load_bin_file(os.path.join(nusc.dataroot, lidarseg), type="lidarseg")
+        first = {
+            "filename": record["filename"],
+            "dtype": str(values.dtype),
+            "points": len(values),
+            "semantic_is_lidarseg": bool((panoptic_to_lidarseg(values) == labels).all()),
+            "sha256": hashlib.sha256(values.astype("<u2").tobytes()).hexdigest(),
+        }
     return {
         "scenes": [scene["name"] for scene in nusc.scene],
         "samples": len(nusc.sample),
         "lidarseg": len(getattr(nusc, "lidarseg", [])),
         "categories": {str(k): v for k, v in sorted(categories.items())},
+        "panoptic": len(panoptic),
+        "first_panoptic": first,
     }
+
+
+def nan_free(value: Any) -> Any:
+    """A JSON value with every NaN float replaced by None, through dicts and lists."""
+    if isinstance(value, dict):
+        return {k: nan_free(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [nan_free(v) for v in value]
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    return value
+
+
+def cmd_panoptic_arrays(args: argparse.Namespace) -> dict[str, Any]:
+    """The devkit's PanopticEval, set up as NuScenesPanopticEval sets it up, over saved scans."""
+    from types import SimpleNamespace
+
+    import numpy as np
+    from nuscenes.eval.panoptic.evaluate import NuScenesPanopticEval
+    from nuscenes.eval.panoptic.panoptic_seg_evaluator import PanopticEval
+    from nuscenes.eval.panoptic.utils import PanopticClassMapper
+
+    # The class mapper's coarse classes, things and stuff need no NuScenes tables.
+    mapper = PanopticClassMapper.__new__(PanopticClassMapper)
+    mapper.ignore_class = mapper.get_ignore_class()
+    coarse = mapper.get_coarse2idx()
+    with np.load(args.input) as data:
+        arrays = {k: data[k] for k in data.files}
+    min_points = int(arrays["min_points"]) if "min_points" in arrays else 15
+    evaluator = PanopticEval(
+        n_classes=len(coarse), ignore=[mapper.ignore_class["index"]], min_points=min_points
+    )
+    for k in range(int(arrays["scans"])):
+        evaluator.addBatch(
+            arrays[f"pred_class_{k}"],
+            arrays[f"pred_instance_{k}"],
+            arrays[f"gt_class_{k}"],
+            arrays[f"gt_instance_{k}"],
+        )
+    mean_pq, mean_sq, mean_rq, pq, sq, rq = evaluator.getPQ()
+    mean_iou, iou = evaluator.getSemIoU()
+    view = SimpleNamespace(
+        id2name={idx: name for name, idx in coarse.items()},
+        things=mapper.get_things().keys(),
+        stuff=mapper.get_stuff().keys(),
+    )
+    results = NuScenesPanopticEval.wrap_result_segmentation(
+        view, mean_pq, mean_sq, mean_rq, mean_iou, pq, sq, rq, iou
+    )
+    return nan_free(
+        {
+            "min_points": min_points,
+            "tp": evaluator.pan_tp.tolist(),
+            "fp": evaluator.pan_fp.tolist(),
+            "fn": evaluator.pan_fn.tolist(),
+            "iou_sum": evaluator.pan_iou.tolist(),
+            "confusion": evaluator.px_iou_conf_matrix.tolist(),
+            "pq": pq.tolist(),
+            "sq": sq.tolist(),
+            "rq": rq.tolist(),
+            "iou": iou.tolist(),
+            "mean_pq": float(mean_pq),
+            "mean_sq": float(mean_sq),
+            "mean_rq": float(mean_rq),
+            "mean_iou": float(mean_iou),
+            "results": json.loads(json.dumps(results)),
+        }
+    )
+
+
+def cmd_panoptic_evaluate(args: argparse.Namespace) -> dict[str, Any]:
+    """NuScenesPanopticEval (task segmentation) of `--results` on `--eval-set`, read back from the
+    result file it writes."""
+    import tempfile
+
+    from nuscenes.eval.panoptic.evaluate import NuScenesPanopticEval
+
+    nusc = load_nusc(args)
+    with tempfile.TemporaryDirectory() as out_dir:
+        NuScenesPanopticEval(
+            nusc,
+            results_folder=args.results,
+            eval_set=args.eval_set,
+            task="segmentation",
+            min_inst_points=args.min_inst_points,
+            out_dir=out_dir,
+            verbose=False,
+        ).evaluate()
+        with open(os.path.join(out_dir, "segmentation-result.json")) as f:
+            written = json.load(f)
+    return nan_free(written["segmentation"])
 
 
 def parser() -> argparse.ArgumentParser:
@@ -106,6 +230,7 @@ def parser() -> argparse.ArgumentParser:
         "evaluate": (cmd_evaluate, True),
         "validate": (cmd_validate, True),
         "load": (cmd_load, False),
+        "panoptic-evaluate": (cmd_panoptic_evaluate, True),
     }
     for name, (func, needs_results) in commands.items():
         p = sub.add_parser(name, help=(func.__doc__ or "").strip())
@@ -115,6 +240,10 @@ def parser() -> argparse.ArgumentParser:
             p.add_argument("--results", required=True)
             p.add_argument("--eval-set", required=True)
         p.set_defaults(func=func)
+    sub.choices["panoptic-evaluate"].add_argument("--min-inst-points", type=int, default=15)
+    arrays = sub.add_parser("panoptic-arrays", help=(cmd_panoptic_arrays.__doc__ or "").strip())
+    arrays.add_argument("--input", required=True)
+    arrays.set_defaults(func=cmd_panoptic_arrays)
     return top
 
 

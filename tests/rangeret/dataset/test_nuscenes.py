@@ -8,7 +8,11 @@ them, the split sizes), independently of the profile file they check.
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
+import tracemalloc
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -19,9 +23,13 @@ from rangeret.dataset.layout import discover
 from rangeret.dataset.nuscenes_tables import TableError, find_version, read_tables
 from rangeret.dataset.profiles import DatasetProfile, ProfileError, load_profile
 from rangeret.dataset.projection import project_with
+from rangeret.io.panoptic_labels import read_panoptic_npz, write_panoptic_npz
+from rangeret.io.scans import ScanFormatError
 from rangeret.sim import SensorConfig, simulate_scan
-from rangeret.sim.nuscenes_tree import VERSION, simulate_nuscenes
+from rangeret.sim.dataset import sequence_scans
+from rangeret.sim.nuscenes_tree import KEYFRAME_PERIOD, VERSION, simulate_nuscenes
 from rangeret.sim.street import make_scene
+from tests.support.devkit import run_devkit
 
 GENERAL = [
     "noise",
@@ -98,7 +106,22 @@ TO_CHALLENGE = {
     "static.manmade": "manmade",
     "static.vegetation": "vegetation",
 }
+#: nuScenes-panoptic's thing classes, and the general classes standing for them.
+THINGS = {
+    "barrier",
+    "bicycle",
+    "bus",
+    "car",
+    "construction_vehicle",
+    "motorcycle",
+    "pedestrian",
+    "traffic_cone",
+    "trailer",
+    "truck",
+}
+THING_INDICES = [i for i, name in enumerate(GENERAL) if TO_CHALLENGE.get(name) in THINGS]
 SCENES = {"scene-0061": 2, "scene-0103": 2, "scene-0916": 1}
+SEED = 4
 
 
 @pytest.fixture(scope="module")
@@ -110,7 +133,7 @@ def profile() -> DatasetProfile:
 def tree(tmp_path_factory: pytest.TempPathFactory, profile: DatasetProfile) -> Path:
     root = tmp_path_factory.mktemp("nuscenes")
     sensor = SensorConfig.for_profile(profile, azimuth_steps=256)
-    simulate_nuscenes(root, SCENES, sensor=sensor, seed=4, profile=profile)
+    simulate_nuscenes(root, SCENES, sensor=sensor, seed=SEED, profile=profile)
     return root
 
 
@@ -212,6 +235,7 @@ def test_the_simulated_tree_is_nuscenes_layout(tree: Path, profile: DatasetProfi
             "sample_annotation",
             "map",
             "lidarseg",
+            "panoptic",
         ]
     )
     assert len(list((tree / "maps").glob("*.png"))) == 1
@@ -298,3 +322,177 @@ def test_a_missing_sweep_or_label_is_a_problem(tmp_path: Path, profile: DatasetP
     assert len(found.problems) == 2
     assert "is missing (the sweep of sample" in found.problems[0]
     assert "has no ground truth" in found.problems[1]
+
+
+def test_every_labelled_keyframe_has_panoptic_ground_truth(
+    tree: Path, profile: DatasetProfile
+) -> None:
+    """Semantic parts are the lidarseg labels; thing points carry their object's number, one
+    number per simulated object throughout its scene, numbered from 1; stuff points carry 0."""
+    tables = read_tables(tree, VERSION)
+    assert tables.has_panoptic
+    records = json.loads((tree / VERSION / "panoptic.json").read_text())
+    frames = [f for fs in tables.scenes.values() for f in fs]
+    assert sorted(r["token"] for r in records) == sorted(f.token for f in frames)
+    assert all(r["sample_data_token"] == r["token"] for r in records)
+    assert len(list((tree / "panoptic" / VERSION).iterdir())) == len(frames)
+    sensor = SensorConfig.for_profile(profile, azimuth_steps=256)
+    for name, keyframes in tables.scenes.items():
+        scans = sequence_scans(
+            name, len(keyframes), sensor, SEED, profile=profile, period=KEYFRAME_PERIOD
+        )
+        numbers: dict[int, int] = {}
+        for frame, (_, raw, _) in zip(keyframes, scans, strict=True):
+            assert frame.panoptic_filename == f"panoptic/{VERSION}/{frame.token}_panoptic.npz"
+            labels = np.fromfile(tree / frame.label_filename, np.uint8)
+            assert ((raw & 0xFFFF) == labels).all()
+            with np.load(tree / frame.panoptic_filename) as npz:
+                assert npz.files == ["data"] and npz["data"].dtype == np.uint16
+            values = read_panoptic_npz(tree / frame.panoptic_filename, len(labels))
+            assert (values // 1000 == labels).all()
+            instance = values % 1000
+            thing = np.isin(labels, THING_INDICES)
+            assert thing.any() and (instance[thing] > 0).all() and (instance[~thing] == 0).all()
+            pairs = zip((raw[thing] >> 16).tolist(), instance[thing].tolist(), strict=True)
+            for obj, number in set(pairs):
+                assert numbers.setdefault(obj, number) == number, (name, obj)
+            assert sorted(set(numbers.values())) == list(range(1, len(numbers) + 1))
+
+
+def test_panoptic_files_go_with_the_labels(tmp_path: Path, profile: DatasetProfile) -> None:
+    sensor = SensorConfig.for_profile(profile, azimuth_steps=64)
+    some = tmp_path / "some"
+    scenes = {"scene-0061": 1, "scene-0103": 2}
+    simulate_nuscenes(some, scenes, labelled=["scene-0103"], sensor=sensor, profile=profile)
+    tables = read_tables(some, VERSION)
+    assert [f.panoptic_filename for f in tables.scenes["scene-0061"]] == [None]
+    assert all(f.panoptic_filename for f in tables.scenes["scene-0103"])
+    assert len(list((some / "panoptic" / VERSION).iterdir())) == 2
+    for option in ("labelled", "panoptic"):
+        root = tmp_path / option
+        simulate_nuscenes(
+            root, {"scene-0916": 1}, sensor=sensor, profile=profile, **{option: False}
+        )
+        tables = read_tables(root, VERSION)
+        assert tables.has_lidarseg == (option == "panoptic") and not tables.has_panoptic
+        assert not (root / VERSION / "panoptic.json").exists()
+        assert not (root / "panoptic").exists()
+        assert tables.scenes["scene-0916"][0].panoptic_filename is None
+
+
+def test_a_broken_panoptic_record_is_named(tmp_path: Path, profile: DatasetProfile) -> None:
+    sensor = SensorConfig.for_profile(profile, azimuth_steps=64)
+    simulate_nuscenes(tmp_path, {"scene-0103": 2}, sensor=sensor, profile=profile)
+    table = tmp_path / VERSION / "panoptic.json"
+    records = json.loads(table.read_text())
+    first = records[0]["token"]
+    del records[1]["filename"]
+    table.write_text(json.dumps(records))
+    with pytest.raises(TableError, match=r"panoptic.json: record 1 has no str 'filename'"):
+        read_tables(tmp_path, VERSION)
+    records[1] = {**records[0], "token": first}
+    table.write_text(json.dumps(records, indent=1))
+    with pytest.raises(TableError, match=rf"record 1: sample_data {first} has a second panoptic"):
+        read_tables(tmp_path, VERSION)
+    table.write_text(json.dumps([*records, 7]))
+    with pytest.raises(TableError, match=r"panoptic.json must hold a list of records"):
+        read_tables(tmp_path, VERSION)
+
+
+def _npz(path: Path, members: dict[str, bytes]) -> Path:
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name, data in members.items():
+            zf.writestr(name, data)
+    return path
+
+
+def _npy_header(shape: tuple[int, ...]) -> bytes:
+    buf = io.BytesIO()
+    header = {"descr": "<u2", "fortran_order": False, "shape": shape}
+    np.lib.format.write_array_header_1_0(buf, header)
+    return buf.getvalue()
+
+
+def test_a_panoptic_file_is_read_as_the_devkit_writes_it(tmp_path: Path) -> None:
+    values = (np.arange(10, dtype=np.uint16) % 4) * 1000 + np.arange(10, dtype=np.uint16)
+    np.savez_compressed(tmp_path / "devkit.npz", data=values)
+    assert (read_panoptic_npz(tmp_path / "devkit.npz", 10) == values).all()
+    write_panoptic_npz(tmp_path / "ours.npz", values)
+    read = read_panoptic_npz(tmp_path / "ours.npz", 10)
+    assert read.dtype == np.uint16 and (read == values).all()
+    first = (tmp_path / "ours.npz").read_bytes()
+    write_panoptic_npz(tmp_path / "ours.npz", values)
+    assert (tmp_path / "ours.npz").read_bytes() == first
+    with pytest.raises(ValueError, match=r"do not fit in uint16"):
+        write_panoptic_npz(tmp_path / "big.npz", np.array([70_000]))
+
+
+@pytest.mark.parametrize(
+    ("case", "problem"),
+    [
+        ("no data", r"holds no array 'data' \(it holds labels\)"),
+        ("int32", r"holds int32 values in 'data', not uint16"),
+        ("object", r"holds object values in 'data', not uint16"),
+        ("shape", r"holds an array 'data' of shape \(2, 5\), not one value per point"),
+        ("length", r"holds 9 panoptic values but the sweep has 10 points"),
+        ("cut", r"ends after 10 of the 20 bytes its header declares"),
+        ("not zip", r"is not a panoptic npz file \(File is not a zip file\)"),
+        ("large", r"is [0-9,]+ bytes, more than a panoptic file of 10 points takes"),
+    ],
+)
+def test_a_panoptic_file_of_other_values_is_refused(
+    tmp_path: Path, case: str, problem: str
+) -> None:
+    values = np.arange(10, dtype=np.uint16)
+    path = tmp_path / "p.npz"
+    if case == "no data":
+        np.savez(path, labels=values)
+    elif case == "int32":
+        np.savez(path, data=values.astype(np.int32))
+    elif case == "object":
+        np.savez(path, data=np.array([1, None], dtype=object))
+    elif case == "shape":
+        np.savez(path, data=values.reshape(2, 5))
+    elif case == "length":
+        np.savez(path, data=values[:9])
+    elif case == "cut":
+        _npz(path, {"data.npy": _npy_header((10,)) + values[:5].tobytes()})
+    elif case == "not zip":
+        path.write_bytes(values.tobytes())
+    else:
+        np.savez(path, data=values, padding=np.zeros(70_000, np.uint8))
+    with pytest.raises(ScanFormatError, match=problem) as refused:
+        read_panoptic_npz(path, 10)
+    message = str(refused.value)
+    assert message.startswith(f"{path}: ") and "\n" not in message
+    with pytest.raises(FileNotFoundError):
+        read_panoptic_npz(tmp_path / "missing.npz", 10)
+
+
+def test_a_panoptic_file_is_inflated_no_further_than_its_values(tmp_path: Path) -> None:
+    """A member that inflates to 32 MB after a header of 10 values is read for those 10 alone."""
+    member = _npy_header((10,)) + bytes(32 << 20)
+    path = _npz(tmp_path / "bomb.npz", {"data.npy": member})
+    assert path.stat().st_size < 64 << 10
+    del member
+    tracemalloc.start()
+    try:
+        values = read_panoptic_npz(path, 10)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert (values == 0).all() and peak < 1 << 20
+
+
+@pytest.mark.slow
+def test_the_devkit_reads_the_panoptic_ground_truth(tree: Path) -> None:
+    loaded = run_devkit("load", "--dataroot", str(tree), "--version", VERSION)
+    assert loaded["panoptic"] == loaded["lidarseg"] == sum(SCENES.values())
+    first = loaded["first_panoptic"]
+    assert first["dtype"] == "uint16" and first["semantic_is_lidarseg"] is True
+    frames = [f for fs in read_tables(tree, VERSION).scenes.values() for f in fs]
+    frame = next(f for f in frames if f.panoptic_filename == first["filename"])
+    num_points = len(np.fromfile(tree / frame.label_filename, np.uint8))
+    ours = read_panoptic_npz(tree / frame.panoptic_filename, num_points)
+    assert first["points"] == num_points
+    assert hashlib.sha256(ours.astype("<u2").tobytes()).hexdigest() == first["sha256"]

@@ -36,6 +36,9 @@ NETWORK_FLAGS = {
     "--onnx",
     "--tta-flip",
     "--tta-shifts",
+    "--panoptic",
+    "--cluster-angle",
+    "--min-cluster-points",
 }
 
 
@@ -78,6 +81,9 @@ def test_a_spec_goes_through_json_and_back():
         precision="bf16",
         tta_flip=True,
         tta_shifts=2,
+        panoptic=True,
+        cluster_angle=12.5,
+        min_cluster_points=20,
     )
     text = json.dumps(spec.to_mapping())
     assert InferenceSpec.from_mapping(json.loads(text)) == spec
