@@ -15,6 +15,7 @@ import numpy as np
 
 from rangeret.dataset.labels import LabelConfig
 from rangeret.dataset.projection import ProjectionError
+from rangeret.exceptions import InputError
 from rangeret.inference.results import ScanPrediction
 from rangeret.io.point_fields import PointFieldsError, RecordPoints
 
@@ -45,16 +46,22 @@ def spread_labels(
     confidence: np.ndarray | None,
     *,
     config: LabelConfig,
+    instances: np.ndarray | None = None,
 ) -> ScanPrediction:
     """The labels and confidences of a cloud's valid points as one per point of the cloud (raw
     ids and confidences both set): the invalid ones get the unlabelled raw id and confidence 0
-    (0 for all without confidences)."""
+    (0 for all without confidences), and with panoptic segmentation's `instances`, no object
+    (instance 0, which is also their panoptic label's instance)."""
     every = np.full(len(valid), unlabelled_raw_id(config), dtype=np.uint32)
     every[valid] = labels
     scores = np.zeros(len(valid), dtype=np.float32)
     if confidence is not None:
         scores[valid] = confidence
-    return ScanPrediction(labels=every, confidence=scores)
+    objects = None
+    if instances is not None:
+        objects = np.zeros(len(valid), dtype=np.uint32)
+        objects[valid] = instances
+    return ScanPrediction(labels=every, confidence=scores, instances=objects)
 
 
 def label_cloud(
@@ -66,10 +73,22 @@ def label_cloud(
     `ProjectionError` it is, for the caller to report against its source.
     """
     valid = cloud.valid
+    panoptic = predictor.clustering is not None
     if not np.any(valid):
-        return spread_labels(valid, np.empty(0, np.uint32), None, config=predictor.label_config)
+        none = np.empty(0, np.uint32)
+        return spread_labels(
+            valid, none, None, config=predictor.label_config, instances=none if panoptic else None
+        )
     points = cloud.points if cloud.num_invalid == 0 else cloud.points[valid]
     (result,) = predictor.label_projections(
         [predictor.project(points, times)], times, with_confidence=True
     )
-    return spread_labels(valid, result.labels, result.confidence, config=predictor.label_config)
+    if isinstance(result, str):  # more objects than the benchmark's panoptic label holds
+        raise InputError(result)
+    return spread_labels(
+        valid,
+        result.labels,
+        result.confidence,
+        config=predictor.label_config,
+        instances=result.instances,
+    )
