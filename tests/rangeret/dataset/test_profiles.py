@@ -416,3 +416,58 @@ def test_a_wrong_optional_sensor_field_is_named(
     message = str(caught.value)
     assert message.startswith(f"{path}: sensor.{field}: ") and problem in message
     assert "\n" not in message
+
+
+def test_thing_classes_and_the_panoptic_benchmark_of_each_builtin() -> None:
+    kitti, nuscenes, pandaset = (load_profile(n) for n in ("semantickitti", "nuscenes", "pandaset"))
+    assert kitti.thing_names == [
+        "car",
+        "bicycle",
+        "motorcycle",
+        "truck",
+        "other-vehicle",
+        "person",
+        "bicyclist",
+        "motorcyclist",
+    ]
+    assert len(nuscenes.things) == 10 and "traffic_cone" in nuscenes.thing_names
+    assert (kitti.benchmark.panoptic, nuscenes.benchmark.panoptic) == (
+        "semantickitti-panoptic",
+        "nuscenes-panoptic",
+    )
+    assert pandaset.things == () and pandaset.benchmark.panoptic is None
+    assert "names no thing classes" in str(pandaset.panoptic_refusal())
+    assert kitti.panoptic_refusal() is None
+
+
+@pytest.mark.parametrize(
+    ("things", "problem"),
+    [
+        (["car", "dragon"], "'dragon' is not a class of the profile's labels"),
+        (["car", "unlabeled"], "'unlabeled' is an ignored class"),
+        (["car", "car"], "names a class twice"),
+        ("car", "must be a list"),
+    ],
+)
+def test_a_wrong_thing_class_is_named(things: Any, problem: str, tmp_path: Path) -> None:
+    data = load_profile("semantickitti").to_dict()
+    data["things"] = things
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(ProfileError, match=re.escape(f"{path}: things: ")) as caught:
+        load_profile(path)
+    assert problem in str(caught.value)
+
+
+def test_a_profile_names_its_panoptic_benchmark_or_none(tmp_path: Path) -> None:
+    data = load_profile("semantickitti").to_dict()
+    data["benchmark"]["panoptic"] = None
+    path = tmp_path / "mine.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    assert load_profile(path).benchmark.panoptic is None
+    del data["benchmark"]["panoptic"]
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    assert load_profile(path).benchmark.panoptic == "semantickitti-panoptic"
+    del data["things"]
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    assert load_profile(path).things == ()
