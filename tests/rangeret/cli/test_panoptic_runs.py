@@ -233,3 +233,43 @@ def test_a_profile_without_thing_classes_refuses_panoptic_in_one_sentence(
     assert main([*args, "--sequences", "08", "--profile", "pandaset", "--panoptic"]) == 1
     err = capsys.readouterr().err
     assert "names no thing classes" in err and "Traceback" not in err
+
+
+def test_a_panoptic_label_file_of_the_wrong_length_is_named(
+    dataset: Path, panoptic: Path, tmp_path: Path, capsys
+) -> None:
+    out = tmp_path / "pred"
+    shutil.copytree(panoptic, out)
+    entry = next(e for e in _scans(dataset) if e.sequence == "08")
+    path = out / entry.prediction
+    path.write_bytes(path.read_bytes()[:-4])
+    args = ["evaluate", "-q", "--dataset", str(dataset), "--predictions", str(out)]
+    assert main([*args, "--sequences", "08", "--panoptic"]) == 1
+    err = capsys.readouterr().err
+    assert f"{path}: holds" in err and "but the scan has" in err and "Traceback" not in err
+
+
+def test_a_scan_with_more_objects_than_its_label_holds_is_a_named_failure(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    profile = load_profile("nuscenes")
+    network = build_model("rangeret-cir", 32, 256, num_classes=17, layers=1).eval()
+    profile = dataclasses.replace(
+        profile, projection=dataclasses.replace(profile.projection, width=256)
+    )
+    predictor = Predictor.from_network(network, profile, InferenceSpec(panoptic=True))
+    car = profile.labels.class_names.index("car")
+
+    def every_point_an_object(projection, classes):
+        return np.arange(1, classes.size + 1, dtype=np.uint32)
+
+    monkeypatch.setattr(predictor, "instances", every_point_an_object)
+    rng = np.random.default_rng(0)
+    points = np.c_[rng.uniform(-20, 20, (1500, 3)), rng.uniform(0, 255, 1500), np.zeros(1500)]
+    projection = predictor.project(points.astype(np.float32))
+    classes = np.full(projection.num_points, car)
+    outcome = predictor.scan_prediction(projection, classes)
+    assert outcome == (
+        f"the scan has 1500 objects of class {car}; a nuScenes-panoptic label holds at most "
+        "999 per class"
+    )
