@@ -43,17 +43,6 @@ from rangeret.io.scans import read_labels, read_scan
 from rangeret.sim import simulate_dataset
 
 TARGET_MS = 10.0
-#: SemanticKITTI's thing classes, as its panoptic benchmark names them.
-KITTI_THINGS = (
-    "car",
-    "bicycle",
-    "motorcycle",
-    "truck",
-    "other-vehicle",
-    "person",
-    "bicyclist",
-    "motorcyclist",
-)
 
 
 def main() -> None:
@@ -76,7 +65,7 @@ def clustering_time(rounds: int) -> None:
     labels = read_labels(REAL_LABELS, len(points))
     config = semantickitti()
     classes = config.to_class(labels & 0xFFFF)
-    things = np.isin(config.class_names, KITTI_THINGS)
+    things = np.isin(np.arange(config.num_classes), load_profile("semantickitti").things)
     projection = project(points, 64, 1024)
     gaps = row_gaps(load_profile("semantickitti"))
     everything = np.ones(config.num_classes, dtype=bool)

@@ -18,7 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from rangeret.dataset.distance import scan_bands
-from rangeret.dataset.layout import ScanEntry
+from rangeret.dataset.layout import Discovery, ScanEntry
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.selection import DatasetSelection
 from rangeret.evaluation.calibration import Calibration
@@ -69,6 +69,30 @@ def count_scan(
         calibration.add(values[evaluated], correct[evaluated])
 
 
+def labelled_predictions(
+    selection: DatasetSelection, predictions: Path | str, what: str = ""
+) -> tuple[Discovery, list[tuple[ScanEntry, Path]]]:
+    """The selection's scans and each labelled one's prediction file in the tree `predictions`;
+    an `EvaluationError` listing every missing label or prediction file (`what` names the kind
+    of prediction, "panoptic " say), or saying that no scan is labelled."""
+    found = selection.discover(with_labels=True)
+    problems = list(found.problems)
+    pairs = []
+    for entry in found.scans:
+        pred = entry.prediction_in(predictions)
+        if not pred.is_file():
+            problems.append(f"{pred} is missing (no {what}prediction for scan {entry.key})")
+        elif entry.label_path is not None:
+            pairs.append((entry, pred))
+    if problems:
+        raise EvaluationError(problems)
+    if not pairs:
+        raise EvaluationError(
+            [f"no labelled scan found in sequences {', '.join(selection.sequences)}"]
+        )
+    return found, pairs
+
+
 def evaluate_predictions(
     selection: DatasetSelection,
     predictions: Path | str,
@@ -85,21 +109,8 @@ def evaluate_predictions(
     `EvaluationError` listing every missing label or prediction file, every file whose length
     does not match its scan and every prediction the benchmark would refuse.
     """
-    found = selection.discover(with_labels=True)
-    problems = list(found.problems)
-    pairs = []
-    for entry in found.scans:
-        pred = entry.prediction_in(predictions)
-        if not pred.is_file():
-            problems.append(f"{pred} is missing (no prediction for scan {entry.key})")
-        elif entry.label_path is not None:
-            pairs.append((entry, pred))
-    if problems:
-        raise EvaluationError(problems)
-    if not pairs:
-        raise EvaluationError(
-            [f"no labelled scan found in sequences {', '.join(selection.sequences)}"]
-        )
+    found, pairs = labelled_predictions(selection, predictions)
+    problems: list[str] = []
 
     evaluator = RawLabelEvaluator.for_profile(profile)
     confidences = [e.confidence_in(predictions) for e, _ in pairs]

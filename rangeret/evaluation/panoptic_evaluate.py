@@ -24,7 +24,7 @@ from tqdm import tqdm
 from rangeret.dataset.distance import NUM_BANDS, band_limits, band_name, scan_bands
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.selection import DatasetSelection
-from rangeret.evaluation.evaluate import EvaluationError
+from rangeret.evaluation.evaluate import EvaluationError, labelled_predictions
 from rangeret.evaluation.panoptic import PanopticCounts, PanopticRules
 from rangeret.io.scans import ScanFormatError, read_scan
 
@@ -178,21 +178,8 @@ def evaluate_panoptic(
     if profile.panoptic_refusal() is not None:
         raise EvaluationError([str(profile.panoptic_refusal())])
     selection = selection.for_task(True)
-    found = selection.discover(with_labels=True)
-    problems = list(found.problems)
-    pairs = []
-    for entry in found.scans:
-        pred = entry.prediction_in(predictions)
-        if not pred.is_file():
-            problems.append(f"{pred} is missing (no panoptic prediction for scan {entry.key})")
-        elif entry.label_path is not None:
-            pairs.append((entry, pred))
-    if problems:
-        raise EvaluationError(problems)
-    if not pairs:
-        raise EvaluationError(
-            [f"no scan with panoptic ground truth in sequences {', '.join(selection.sequences)}"]
-        )
+    found, pairs = labelled_predictions(selection, predictions, "panoptic ")
+    problems: list[str] = []
     encoding = profile.layout.panoptic_encoding
     report = PanopticReport(
         overall=panoptic_counter(profile, rules, min_points),

@@ -9,7 +9,7 @@ checked here before laspy parses the rest: its size, the offset to the points, t
 declares (each needs its 54 or 60 bytes in the file, so a forged count cannot have laspy read
 a million of them) and the points times the record length, so a file can be refused before
 anything is decompressed or allocated. Labelled output adds the extra-bytes dimensions `label`
-(uint32) and `confidence` (float32).
+(uint32) and `confidence` (float32), with panoptic segmentation `instance` (uint32) too.
 """
 
 from __future__ import annotations
@@ -238,21 +238,29 @@ def check_chunk_table(data: bytes | memoryview, start: int, points: int, source:
         )
 
 
-def labelled_las_bytes(cloud: LasCloud, labels: np.ndarray, confidence: np.ndarray) -> bytes:
+def labelled_las_bytes(
+    cloud: LasCloud,
+    labels: np.ndarray,
+    confidence: np.ndarray,
+    instances: np.ndarray | None = None,
+) -> bytes:
     """The file again (LAZ stays compressed) with extra-bytes dimensions `label` (uint32) and
-    `confidence` (float32) (a dimension of either name already there takes the values)."""
+    `confidence` (float32), and given `instances`, `instance` (uint32); a dimension of one of
+    those names already there is replaced, so a narrower one cannot cut the values."""
     laspy = _laspy()
     las = cloud.data
-    present = set(las.point_format.dimension_names)
-    new = [
-        laspy.ExtraBytesParams(name=name, type=kind)
-        for name, kind in (("label", np.uint32), ("confidence", np.float32))
-        if name not in present
-    ]
-    if new:
-        las.add_extra_dims(new)
-    las["label"] = labels
-    las["confidence"] = confidence
+    added = {"label": (np.uint32, labels), "confidence": (np.float32, confidence)}
+    if instances is not None:
+        added["instance"] = (np.uint32, instances)
+    present = set(las.point_format.extra_dimension_names)
+    replaced = [name for name in added if name in present]
+    if replaced:
+        las.remove_extra_dims(replaced)
+    las.add_extra_dims(
+        [laspy.ExtraBytesParams(name=name, type=kind) for name, (kind, _) in added.items()]
+    )
+    for name, (_, values) in added.items():
+        las[name] = values
     out = io.BytesIO()
     backend = laspy.LazBackend.Lazrs if cloud.header.compressed else None
     las.write(out, do_compress=cloud.header.compressed, laz_backend=backend)

@@ -320,16 +320,25 @@ def _pypcd4_header(header: PcdHeader, encoding: str | None = None, extra: tuple 
     return "\n".join(lines) + "\n"
 
 
-def labelled_pcd_bytes(cloud: PcdCloud, labels: np.ndarray, confidence: np.ndarray) -> bytes:
+def labelled_pcd_bytes(
+    cloud: PcdCloud,
+    labels: np.ndarray,
+    confidence: np.ndarray,
+    instances: np.ndarray | None = None,
+) -> bytes:
     """The PCD again, in its own encoding, with `label` (uint32) and `confidence` (float32) fields
-    added (replacing fields of those names)."""
+    added, and given `instances`, `instance` (uint32) (replacing fields of those names)."""
     require_extra("writing PCD files", "files")
     from pypcd4 import Encoding, MetaData, PointCloud
 
-    kept = [i for i, f in enumerate(cloud.header.fields) if f not in ("label", "confidence")]
+    added = {"label": ("U", labels), "confidence": ("F", confidence)}
+    if instances is not None:
+        added["instance"] = ("U", instances)
+    kept = [i for i, f in enumerate(cloud.header.fields) if f not in added]
     header = _subset(cloud.header, kept)
     flat = header.flat_dtype()
-    dtype = np.dtype([*flat.descr, ("label", "<u4"), ("confidence", "<f4")])
+    kinds = {"U": "<u4", "F": "<f4"}
+    dtype = np.dtype([*flat.descr, *((name, kinds[t]) for name, (t, _) in added.items())])
     array = np.empty(len(labels), dtype=dtype)
     column = 0
     for i in kept:
@@ -337,8 +346,9 @@ def labelled_pcd_bytes(cloud: PcdCloud, labels: np.ndarray, confidence: np.ndarr
         for c in range(values.shape[1]):
             array[f"v{column}"] = values[:, c]
             column += 1
-    array["label"], array["confidence"] = labels, confidence
-    text = _pypcd4_header(header, extra=(("label", "U", 4), ("confidence", "F", 4)))
+    for name, (_, values) in added.items():
+        array[name] = values
+    text = _pypcd4_header(header, extra=tuple((name, t, 4) for name, (t, _) in added.items()))
     if header.encoding == "ascii":
         return text.encode("ascii") + _ascii_rows(array)
     metadata = MetaData.parse_header(text.splitlines())

@@ -6,8 +6,9 @@ The writer of `rangeret view` gives one vertex per point with `x`, `y`, `z` (flo
 CloudCompare, MeshLab and Open3D read. The reader takes the `ascii`, `binary_little_endian` and
 `binary_big_endian` formats; the first element must be `vertex` with scalar properties (a list
 property there is an error naming it), and later elements (faces, ...) are skipped. The labelled
-writer keeps every vertex property, adds `label` (uint) and `confidence` (float) and keeps the
-file's format; later elements are not written back.
+writer keeps every vertex property, adds `label` (uint) and `confidence` (float), with panoptic
+segmentation `instance` (uint) too, and keeps the file's format; later elements are not written
+back.
 """
 
 from __future__ import annotations
@@ -227,16 +228,26 @@ def read_ply(path: str | os.PathLike[str]) -> np.ndarray:
     return read_ply_cloud(Path(path).read_bytes(), path).array
 
 
-def labelled_ply_bytes(cloud: PlyCloud, labels: np.ndarray, confidence: np.ndarray) -> bytes:
+def labelled_ply_bytes(
+    cloud: PlyCloud,
+    labels: np.ndarray,
+    confidence: np.ndarray,
+    instances: np.ndarray | None = None,
+) -> bytes:
     """The PLY again, in its own format, with every vertex property plus `label` (uint) and
-    `confidence` (float); properties of those names are replaced."""
-    kept = [(n, k) for n, k in cloud.header.properties if n not in ("label", "confidence")]
-    properties = (*kept, ("label", "uint"), ("confidence", "float"))
+    `confidence` (float), and given `instances`, `instance` (uint); properties of those names
+    are replaced."""
+    added = {"label": ("uint", labels), "confidence": ("float", confidence)}
+    if instances is not None:
+        added["instance"] = ("uint", instances)
+    kept = [(n, k) for n, k in cloud.header.properties if n not in added]
+    properties = (*kept, *((name, kind) for name, (kind, _) in added.items()))
     header = PlyHeader(cloud.header.format, len(labels), properties, cloud.header.comments, 0)
     array = np.empty(len(labels), dtype=header.dtype)
     for name, _ in kept:
         array[name] = cloud.array[name]
-    array["label"], array["confidence"] = labels, confidence
+    for name, (_, values) in added.items():
+        array[name] = values
     lines = ["ply", f"format {header.format} 1.0", *header.comments, f"element vertex {len(array)}"]
     lines += [f"property {kind} {name}" for name, kind in properties]
     text = ("\n".join([*lines, "end_header"]) + "\n").encode("ascii")

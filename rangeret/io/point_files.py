@@ -190,22 +190,32 @@ def decode_point_file(
     return PointFile(source, "bin", record.describe(), columns)
 
 
-def labelled_bytes(point_file: PointFile, labels: np.ndarray, confidence: np.ndarray) -> bytes:
+def labelled_bytes(
+    point_file: PointFile,
+    labels: np.ndarray,
+    confidence: np.ndarray,
+    instances: np.ndarray | None = None,
+) -> bytes:
     """The file again in its own format and encoding, with `label` (uint32 raw ids) and
-    `confidence` (float32) per point added."""
+    `confidence` (float32) per point added, and given `instances` (panoptic segmentation's
+    objects, 0 for stuff), `instance` (uint32)."""
     labels = np.asarray(labels, dtype=np.uint32)
     confidence = np.asarray(confidence, dtype=np.float32)
-    if len(labels) != point_file.num_points or len(confidence) != point_file.num_points:
+    if instances is not None:
+        instances = np.asarray(instances, dtype=np.uint32)
+    counts = [len(labels), len(confidence)] + ([] if instances is None else [len(instances)])
+    if any(count != point_file.num_points for count in counts):
+        objects = "" if instances is None else f" and {len(instances)} instances"
         raise ValueError(
-            f"{point_file.source}: {len(labels)} labels and {len(confidence)} confidences for "
-            f"{point_file.num_points} points"
+            f"{point_file.source}: {len(labels)} labels, {len(confidence)} confidences"
+            f"{objects} for {point_file.num_points} points"
         )
     if point_file.format == "pcd":
-        return pcd.labelled_pcd_bytes(point_file.decoded, labels, confidence)
+        return pcd.labelled_pcd_bytes(point_file.decoded, labels, confidence, instances)
     if point_file.format == "ply":
-        return ply.labelled_ply_bytes(point_file.decoded, labels, confidence)
+        return ply.labelled_ply_bytes(point_file.decoded, labels, confidence, instances)
     if point_file.format in ("las", "laz"):
-        return las.labelled_las_bytes(point_file.decoded, labels, confidence)
+        return las.labelled_las_bytes(point_file.decoded, labels, confidence, instances)
     raise PointFileError(
         point_file.source,
         "a .bin scan has no room for added fields (its .label file is the labels)",
@@ -213,8 +223,12 @@ def labelled_bytes(point_file: PointFile, labels: np.ndarray, confidence: np.nda
 
 
 def write_labelled(
-    path: str | os.PathLike[str], point_file: PointFile, labels: np.ndarray, confidence: np.ndarray
+    path: str | os.PathLike[str],
+    point_file: PointFile,
+    labels: np.ndarray,
+    confidence: np.ndarray,
+    instances: np.ndarray | None = None,
 ) -> Path:
     """Write `labelled_bytes` atomically to `path`."""
-    atomic_write_bytes(path, labelled_bytes(point_file, labels, confidence))
+    atomic_write_bytes(path, labelled_bytes(point_file, labels, confidence, instances))
     return Path(path)

@@ -9,6 +9,8 @@ test sequences 11 to 21 and writes a partial archive.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.sim.raycast import SensorConfig
 from rangeret.submission.archives import (
@@ -44,6 +46,11 @@ class SemanticKittiBenchmark(Benchmark):
             return f"the {self.title} benchmark takes folders of sequences, not a version's tables"
         return None
 
+    def things(self, profile: DatasetProfile) -> Sequence[int] | None:
+        """The thing classes whose points a panoptic archive's labels must give objects; None:
+        the semantic benchmark's archive, whose labels need none."""
+        return None
+
     def write_archive(self, request: ArchiveRequest) -> SubmissionCheck:
         """The test split's zip, validated before it is moved into place."""
         return write_submission(
@@ -55,6 +62,7 @@ class SemanticKittiBenchmark(Benchmark):
             labels=request.profile.labels,
             progress=request.progress,
             workers=request.workers,
+            things=self.things(request.profile),
         )
 
     def validate_archive(self, request: ArchiveRequest) -> SubmissionCheck:
@@ -65,6 +73,7 @@ class SemanticKittiBenchmark(Benchmark):
             allow_partial=request.allow_partial,
             labels=request.profile.labels,
             progress=request.progress,
+            things=self.things(request.profile),
         )
 
     def write_job_zip(self, job: JobPredictions) -> None:

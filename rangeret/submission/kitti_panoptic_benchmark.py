@@ -11,9 +11,10 @@ left out of the false positives and negatives).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
+from rangeret.dataset.profiles import DatasetProfile
 from rangeret.evaluation.panoptic import KITTI_PANOPTIC, PanopticRules
-from rangeret.submission.archives import SubmissionCheck, validate_submission, write_submission
-from rangeret.submission.benchmark import ArchiveRequest
 from rangeret.submission.kitti_benchmark import SemanticKittiBenchmark
 
 
@@ -24,30 +25,9 @@ class SemanticKittiPanopticBenchmark(SemanticKittiBenchmark):
     title = "SemanticKITTI panoptic"
     panoptic_rules: PanopticRules | None = KITTI_PANOPTIC
 
-    def write_archive(self, request: ArchiveRequest) -> SubmissionCheck:
-        """The test split's zip of panoptic labels, validated before it is moved into place."""
-        return write_submission(
-            request.predictions_tree(),
-            request.dataset,
-            request.archive,
-            allow_partial=request.allow_partial,
-            description=request.description,
-            labels=request.profile.labels,
-            progress=request.progress,
-            workers=request.workers,
-            things=request.profile.things,
-        )
-
-    def validate_archive(self, request: ArchiveRequest) -> SubmissionCheck:
-        """The semantic archive's checks, and instances in the thing points."""
-        return validate_submission(
-            request.archive,
-            request.dataset,
-            allow_partial=request.allow_partial,
-            labels=request.profile.labels,
-            progress=request.progress,
-            things=request.profile.things,
-        )
+    def things(self, profile: DatasetProfile) -> Sequence[int] | None:
+        """The profile's thing classes: each archive's labels must carry objects in them."""
+        return profile.things
 
 
 SEMANTICKITTI_PANOPTIC = SemanticKittiPanopticBenchmark()

@@ -26,17 +26,6 @@ from tests.support.paths import data_path
 
 CAR, PERSON, ROAD = 1, 6, 9
 THINGS = {CAR, PERSON}
-#: SemanticKITTI's thing classes, as its panoptic benchmark names them.
-KITTI_THINGS = (
-    "car",
-    "bicycle",
-    "motorcycle",
-    "truck",
-    "other-vehicle",
-    "person",
-    "bicyclist",
-    "motorcyclist",
-)
 #: Angle between two rows of the constructed images (radians).
 ROW_GAP = math.radians(0.4)
 
@@ -318,7 +307,7 @@ def test_the_real_scan_gets_about_as_many_cars_as_its_ground_truth():
     config = semantickitti()
     classes = config.to_class(labels & 0xFFFF)
     truth = labels >> 16
-    things = np.isin(config.class_names, KITTI_THINGS)
+    things = np.isin(np.arange(config.num_classes), load_profile("semantickitti").things)
     projection = project(points)
     ids = scan_instances(
         projection, points, classes, things, row_gaps(load_profile("semantickitti"))
