@@ -2,8 +2,9 @@
 
 The record is read with `rangeret.io.pointcloud2.read_cloud` (any datatype, byte order, point
 step, padding or row step); the answer keeps the input's header, points, order and every field,
-and adds `label` (UINT32 raw id) and `confidence` (FLOAT32), and with colours a packed `rgb`
-(FLOAT32), after them (`append_labels`), as a labelled bag's clouds do.
+and adds `label` (UINT32 raw id) and `confidence` (FLOAT32), with panoptic segmentation
+`instance` (UINT32), and with colours a packed `rgb` (FLOAT32), after them (`append_labels`), as
+a labelled bag's clouds do.
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ from typing import Any
 import numpy as np
 from sensor_msgs.msg import PointCloud2, PointField
 
-from rangeret.dataset.labels import SEMANTIC_MASK, LabelConfig
+from rangeret.dataset.labels import SEMANTIC_MASK
+from rangeret.dataset.profiles import DatasetProfile
 from rangeret.inference.results import ScanPrediction
 from rangeret.io.point_fields import RecordPoints
 from rangeret.io.pointcloud2 import CloudLayout, append_labels, pack_rgb, read_cloud
@@ -44,21 +46,31 @@ def cloud_record(msg: Any, source: str, mapping: FieldMapping) -> tuple[CloudLay
     )
 
 
-def palette_of(config: LabelConfig) -> np.ndarray:
-    """The packed `rgb` value (float32, see `pack_rgb`) of every 16-bit raw id in the label
-    configuration's palette, made once so each message needs one look-up per point."""
+def palette_of(profile: DatasetProfile) -> np.ndarray:
+    """The packed `rgb` value (float32, see `pack_rgb`) of every 16-bit value the `label` field
+    holds, made once so each message needs one look-up per point: a raw id's palette colour, or
+    a class's where the profile's benchmark takes classes (nuScenes)."""
     from rangeret.evaluation.view import raw_palette
 
-    return pack_rgb(raw_palette(config))
+    config = profile.labels
+    if profile.benchmark.predictions != "class":
+        return pack_rgb(raw_palette(config))
+    colours = np.zeros((SEMANTIC_MASK + 1, 3), dtype=np.uint8)
+    classes = config.class_rgb()
+    colours[: len(classes)] = classes
+    return pack_rgb(colours)
 
 
 def labelled_message(
     msg: Any, layout: CloudLayout, labels: ScanPrediction, palette: np.ndarray | None = None
 ) -> PointCloud2:
-    """The answer to `msg`: its header and points with `label`, `confidence` (and, given a
-    `palette_of` table, `rgb`) added."""
+    """The answer to `msg`: its header and points with `label` (`labels.labels`, the raw ids),
+    `confidence`, given panoptic segmentation's `labels.instances` `instance`, and given a
+    `palette_of` table `rgb` added."""
     rgb = None if palette is None else palette[labels.labels & SEMANTIC_MASK]
-    fields, step, data = append_labels(layout, msg.data, labels.labels, labels.confidence, rgb)
+    fields, step, data = append_labels(
+        layout, msg.data, labels.labels, labels.confidence, rgb, labels.instances
+    )
     out = PointCloud2()
     out.header = msg.header
     out.height = layout.height

@@ -1,14 +1,16 @@
 """The labelling node: subscription -> one-slot mailbox -> labelling thread -> publisher.
 
 The subscription callback (on the executor's thread) only leaves each message in the mailbox;
-a thread of its own labels the newest one with `rangeret.inference.clouds.label_cloud` and
-publishes the answer, so the executor keeps taking messages (and counting the ones it drops)
-while the network runs. A timer publishes the report on `/diagnostics` and logs it; another one
+a thread of its own labels the newest one with `rangeret.inference.clouds.label_cloud` (with
+panoptic segmentation, each point's object in an `instance` field too) and publishes the
+answer, so the executor keeps taking messages (and counting the ones it drops) while the
+network runs. A timer publishes the report on `/diagnostics` and logs it; another one
 warns once when a matched publisher has sent nothing that arrived for `SILENCE_S` seconds.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from functools import cached_property
@@ -20,6 +22,7 @@ from sensor_msgs.msg import PointCloud2
 
 from rangeret.exceptions import InputError
 from rangeret.inference.clouds import label_cloud, problem_kind
+from rangeret.inference.files_runner import field_labels
 from rangeret.inference.predictor import Predictor
 from ros2node.clouds import FieldMapping, cloud_record, labelled_message, palette_of
 from ros2node.diagnostics import diagnostic_array
@@ -55,6 +58,21 @@ def input_qos_profile(choice: str) -> QoSProfile:
     )
 
 
+def skip_kind(exc: Exception) -> str:
+    """The kind a skipped message is counted under: its input's problem (`problem_kind`), or
+    `network` where the network itself failed on it (out of device memory, say)."""
+    return problem_kind(exc) if isinstance(exc, InputError) else "network"
+
+
+def panoptic_fact(predictor: Predictor) -> str:
+    """How the log and the diagnostics name the run's panoptic segmentation: `off`, or `on` with
+    its clustering settings."""
+    clustering = predictor.clustering
+    if clustering is None:
+        return "off"
+    return f"on (cluster angle {clustering.angle:g} deg, min {clustering.min_points} points)"
+
+
 class LabellingNode(Node):
     """Labels every PointCloud2 of the input topic (the newest one when busy) and publishes it."""
 
@@ -70,7 +88,7 @@ class LabellingNode(Node):
         self.transport = transport or Transport(None, "not configured by the node")
         self.settings = settings
         self.mapping = mapping
-        self.palette = palette_of(predictor.label_config) if settings.rgb else None
+        self.palette = palette_of(predictor.profile) if settings.rgb else None
         self.mailbox = Mailbox()
         self.stats = NodeStats()
         #: An unexpected error of the labelling thread (a bug), which stops the node.
@@ -112,6 +130,7 @@ class LabellingNode(Node):
             "device": str(self.predictor.device),
             "precision": str(self.predictor.precision),
             "knn": "off" if self.predictor.knn is None else "on",
+            "panoptic": panoptic_fact(self.predictor),
             "fields": ", ".join(f"{k}={v}" for k, v in self.mapping.overrides.items())
             or "by name or alias",
         }
@@ -123,7 +142,8 @@ class LabellingNode(Node):
             f"labelling {f['input_topic']} ({f['input_qos']}) into {f['output_topic']} "
             f"({f['output_qos']}{', with rgb' if self.settings.rgb else ''}) with {f['model']} "
             f"from {f['checkpoint']} (sha256 {f['checkpoint_sha256']}), {f['profile']} profile, "
-            f"{f['resolution']} on {f['device']} ({f['precision']}, kNN {f['knn']}); "
+            f"{f['resolution']} on {f['device']} ({f['precision']}, kNN {f['knn']}, panoptic "
+            f"{f['panoptic']}); "
             f"reporting on /diagnostics every {self.settings.report_every:g} s; "
             f"DDS transport: {f['transport']}"
         )
@@ -187,7 +207,8 @@ class LabellingNode(Node):
             self._skip(exc)
             return
         labelled = time.perf_counter()
-        self.publisher.publish(labelled_message(item.message, layout, labels, self.palette))
+        fields = dataclasses.replace(labels, labels=field_labels(self.predictor, labels))
+        self.publisher.publish(labelled_message(item.message, layout, fields, self.palette))
         published = time.perf_counter()
         self.stats.labelled(
             latency_s=published - item.received,
@@ -195,7 +216,7 @@ class LabellingNode(Node):
         )
 
     def _skip(self, exc: Exception) -> None:
-        kind = problem_kind(exc)
+        kind = skip_kind(exc)
         reason = str(exc) if isinstance(exc, InputError) else f"the network failed: {exc}"
         if self.stats.bad(kind):
             self.get_logger().warning(

@@ -1,5 +1,6 @@
 """`rangeret predict --bag IN --topic T --out OUT`: a copy of a bag whose PointCloud2 messages on
-one topic carry `label` and `confidence` fields (see `rangeret.inference.bag_runner`)."""
+one topic carry `label` and `confidence` fields, and with --panoptic `instance` (see
+`rangeret.inference.bag_runner`)."""
 
 from __future__ import annotations
 

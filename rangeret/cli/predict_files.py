@@ -3,16 +3,18 @@
 Each PATH is a file, or a folder whose files with a known extension (`.pcd`, `.ply`, `.las`,
 `.laz`, `.bin`) are read, not its subfolders. A file named on the command line may have any
 extension: its format is then told from its first bytes (`rangeret.io.point_files`). For each
-input, DIR gets `<stem>.label` (uint32 raw ids, one per point in the file's order), with
-`--save-confidence` `<stem>.npy` (float16 confidences) and with `--write-labelled`
-`<stem>.labelled.<ext>`: the file again in its own format and encoding with `label` and
-`confidence` added (a `.bin` has no room for them: its `.label` is its labelled form). Files are
+input, DIR gets `<stem>.label` (uint32 raw ids, one per point in the file's order; with
+--panoptic the benchmark's panoptic labels), with `--save-confidence` `<stem>.npy` (float16
+confidences) and with `--write-labelled` `<stem>.labelled.<ext>`: the file again in its own
+format and encoding with `label` (the raw ids) and `confidence` added, and with --panoptic
+`instance` (a `.bin` has no room for them: its `.label` is its labelled form). Files are
 labelled one at a time, each within --max-decoded-bytes (what its header declares it decodes to,
 checked before it is read whole). A file that cannot be read or labelled is reported and the
 others still run; the command then exits 1 naming every failure. DIR/run.json records the network
 and, for each file, its format, points, invalid points and which field (or fill value) gave each
-value; its `runs` lists every run into DIR. Labelling into a DIR of another checkpoint's labels
-is refused before any file is read unless --overwrite.
+value; its `runs` lists every run into DIR. Labelling into a DIR of another checkpoint's labels,
+or of the other task's (panoptic or semantic), is refused before any file is read unless
+--overwrite.
 """
 
 from __future__ import annotations
@@ -75,7 +77,8 @@ def run_files(args: argparse.Namespace) -> int:
     profile = predictor.profile
     overrides = parse_field_overrides(args.field, record=profile.points)
     out: Path = args.out
-    check_weights(out, predictor.checkpoint_sha256, overwrite=args.overwrite)
+    panoptic = predictor.clustering is not None
+    check_weights(out, predictor.checkpoint_sha256, overwrite=args.overwrite, panoptic=panoptic)
     summary, inputs = label_files(
         predictor,
         files,

@@ -1,13 +1,14 @@
-"""Labelling a bag: every PointCloud2 message of one topic gets `label` and `confidence` fields,
-everything else in the bag is copied as it was.
+"""Labelling a bag: every PointCloud2 message of one topic gets `label` and `confidence` fields
+(and with panoptic segmentation `instance`), everything else in the bag is copied as it was.
 
 Each message of the topic is read into the profile's point record
 (`rangeret.io.pointcloud2.read_cloud`), labelled (`label_cloud`, the path every runner shares) and
-written back with the two fields after its own (`append_labels`: every field and point kept in
+written back with the new fields after its own (`append_labels`: every field and point kept in
 order; header and timestamp unchanged). A message that cannot be labelled (a bad layout, a missing
-field, a laser id outside the sensor's rows) is written through unchanged and listed in the run
-record, so no message is lost; the run then ends as failed. The new bag appears at its name only
-once complete (`rangeret.io.bags.atomic_bag`), its run record at `OUT.run.json` beside it.
+field, a laser id outside the sensor's rows, more objects than the benchmark's panoptic label
+holds) is written through unchanged and listed in the run record, so no message is lost; the run
+then ends as failed. The new bag appears at its name only once complete
+(`rangeret.io.bags.atomic_bag`), its run record at `OUT.run.json` beside it.
 """
 
 from __future__ import annotations
@@ -21,13 +22,13 @@ from typing import Any
 
 from tqdm import tqdm
 
-from rangeret.dataset.projection import ProjectionError
+from rangeret.exceptions import InputError
 from rangeret.inference.clouds import label_cloud, problem_kind
+from rangeret.inference.files_runner import field_labels
 from rangeret.inference.predictor import Predictor
 from rangeret.io.bags import SourceBag, atomic_bag, bag_format, check_target, open_bag
 from rangeret.io.bags import run_record_path as record_path
-from rangeret.io.point_fields import PointFieldsError
-from rangeret.io.pointcloud2 import CloudMessageError, append_labels, read_cloud
+from rangeret.io.pointcloud2 import append_labels, read_cloud
 from rangeret.io.run_info import started_now, write_run_record
 
 log = logging.getLogger(__name__)
@@ -49,6 +50,8 @@ class BagSummary:
     points: int = 0
     invalid_points: int = 0
     other_messages: int = 0
+    #: With panoptic segmentation, the objects found, summed over the labelled messages.
+    instances: int | None = None
     #: Each message written through unlabelled: its index on the topic, timestamp, kind, reason.
     failed: list[dict[str, Any]] = field(default_factory=list)
     #: The distinct ways the point record was filled ({record value: source field or `fill V`}).
@@ -75,6 +78,7 @@ class BagSummary:
             "other_messages": self.other_messages,
             "points": self.points,
             "invalid_points": self.invalid_points,
+            **({} if self.instances is None else {"instances": self.instances}),
             "field_sources": self.field_sources,
             "reflectance_fill": reflectance_fill,
             "seconds": round(self.seconds, 3),
@@ -101,9 +105,9 @@ def label_bag(
     progress: bool = True,
 ) -> BagSummary:
     """Write `target`, a copy of bag `source` (in `target_format`, default the source's) whose
-    `topic` messages carry `label` (UINT32 raw ids) and `confidence` (FLOAT32) fields, and its
-    run record beside it; see the module docstring. A bad bag, topic or target is a BagError and
-    leaves nothing at `target`."""
+    `topic` messages carry `label` (UINT32 raw ids) and `confidence` (FLOAT32) fields (with
+    panoptic segmentation `instance`, UINT32, too), and its run record beside it; see the module
+    docstring. A bad bag, topic or target is a BagError and leaves nothing at `target`."""
     started = started_now()
     start = time.perf_counter()
     fmt_in = bag_format(source)
@@ -112,6 +116,8 @@ def label_bag(
     with open_bag(source) as bag:
         cloud_topic = bag.cloud_topic(topic)
         summary = BagSummary(source, target, topic, fmt_in, fmt_out)
+        if predictor.clustering is not None:
+            summary.instances = 0
         bar = tqdm(total=cloud_topic.count, desc="label", unit="msg", disable=not progress)
         with (
             atomic_bag(target, fmt_out, overwrite=overwrite) as path,
@@ -162,7 +168,7 @@ def _labelled(
             overrides=overrides,
         )
         labels = label_cloud(predictor, cloud)
-    except (CloudMessageError, PointFieldsError, ProjectionError) as exc:
+    except InputError as exc:
         kind = problem_kind(exc)
         if all(f["kind"] != kind for f in summary.failed):
             log.warning(
@@ -174,8 +180,16 @@ def _labelled(
             {"index": index, "timestamp": timestamp, "kind": kind, "reason": str(exc)}
         )
         return raw
-    fields, step, data = append_labels(layout, msg.data, labels.labels, labels.confidence)
+    fields, step, data = append_labels(
+        layout,
+        msg.data,
+        field_labels(predictor, labels),
+        labels.confidence,
+        instances=labels.instances,
+    )
     summary.labelled += 1
+    if summary.instances is not None:
+        summary.instances += labels.num_instances
     summary.points += cloud.num_points
     summary.invalid_points += cloud.num_invalid
     if cloud.sources not in summary.field_sources:

@@ -4,7 +4,9 @@
 Each file is read by its format (`rangeret.io.point_files`), filled into the profile's point
 record (`to_record`), labelled (`label_cloud`, the path every runner shares) and written as
 `OUT/<stem>.label`, with `<stem>.npy` confidences and a labelled copy in its own format when
-asked. A file that cannot be read or labelled is a named failure; the others still run.
+asked. With panoptic segmentation the `.label` file holds the benchmark's panoptic labels, and a
+labelled copy's `label` the raw ids (`field_labels`) with each point's object in `instance`. A
+file that cannot be read or labelled is a named failure; the others still run.
 """
 
 from __future__ import annotations
@@ -14,17 +16,27 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from tqdm import tqdm
 
 from rangeret.exceptions import MissingExtraError, RangeRetError
 from rangeret.inference.clouds import label_cloud
 from rangeret.inference.predictor import Predictor
-from rangeret.inference.results import RunSummary
+from rangeret.inference.results import RunSummary, ScanPrediction
 from rangeret.inference.timing import StageTimes
 from rangeret.io.decode_limits import DEFAULT_LIMITS, DecodeLimits
 from rangeret.io.point_fields import to_record
 from rangeret.io.point_files import read_point_file, write_labelled
 from rangeret.io.scans import write_confidence, write_labels
+
+
+def field_labels(predictor: Predictor, found: ScanPrediction) -> np.ndarray:
+    """What a `label` field beside the points holds (a labelled copy's, a labelled bag's, the
+    ROS 2 node's): the raw ids a run without panoptic segmentation writes, which with it are
+    the semantic part of the panoptic labels (the objects go in an `instance` field)."""
+    if found.instances is None:
+        return found.labels
+    return predictor.profile.layout.panoptic_encoding.semantic(found.labels)
 
 
 def output_paths(out: Path, path: Path) -> dict[str, Path]:
@@ -70,10 +82,12 @@ def predict_file(
             written["confidence"] = str(targets["confidence"])
         if labelled and point_file.can_write_labelled:
             target = targets["labelled"].with_name(targets["labelled"].name + point_file.extension)
-            write_labelled(target, point_file, found.labels, found.confidence)
+            labels = field_labels(predictor, found)
+            write_labelled(target, point_file, labels, found.confidence, found.instances)
             written["labelled"] = str(target)
     info = point_file.describe()
-    return {"file": str(path), **info, **cloud.describe(), "outputs": written}
+    objects = {} if found.instances is None else {"instances": found.num_instances}
+    return {"file": str(path), **info, **cloud.describe(), **objects, "outputs": written}
 
 
 def _problem(exc: Exception, path: Path) -> str:

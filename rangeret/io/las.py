@@ -14,6 +14,7 @@ anything is decompressed or allocated. Labelled output adds the extra-bytes dime
 
 from __future__ import annotations
 
+import copy
 import io
 import struct
 from dataclasses import dataclass
@@ -246,9 +247,10 @@ def labelled_las_bytes(
 ) -> bytes:
     """The file again (LAZ stays compressed) with extra-bytes dimensions `label` (uint32) and
     `confidence` (float32), and given `instances`, `instance` (uint32); a dimension of one of
-    those names already there is replaced, so a narrower one cannot cut the values."""
+    those names already there is replaced, so a narrower one cannot cut the values. `cloud`
+    itself is not changed."""
     laspy = _laspy()
-    las = cloud.data
+    las = laspy.LasData(copy.deepcopy(cloud.data.header), cloud.data.points.copy())
     added = {"label": (np.uint32, labels), "confidence": (np.float32, confidence)}
     if instances is not None:
         added["instance"] = (np.uint32, instances)

@@ -205,11 +205,11 @@ def labelled_bytes(
         instances = np.asarray(instances, dtype=np.uint32)
     counts = [len(labels), len(confidence)] + ([] if instances is None else [len(instances)])
     if any(count != point_file.num_points for count in counts):
-        objects = "" if instances is None else f" and {len(instances)} instances"
-        raise ValueError(
-            f"{point_file.source}: {len(labels)} labels, {len(confidence)} confidences"
-            f"{objects} for {point_file.num_points} points"
-        )
+        given = f"{len(labels)} labels and {len(confidence)} confidences"
+        if instances is not None:
+            given = f"{len(labels)} labels, {len(confidence)} confidences and {len(instances)} "
+            given += "instances"
+        raise ValueError(f"{point_file.source}: {given} for {point_file.num_points} points")
     if point_file.format == "pcd":
         return pcd.labelled_pcd_bytes(point_file.decoded, labels, confidence, instances)
     if point_file.format == "ply":

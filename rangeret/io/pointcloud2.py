@@ -221,13 +221,17 @@ def append_labels(
     labels: np.ndarray,
     confidence: np.ndarray,
     rgb: np.ndarray | None = None,
+    instances: np.ndarray | None = None,
 ) -> tuple[list[CloudField], int, bytes]:
-    """The message's points with `label` (UINT32 raw id), `confidence` (FLOAT32) and, given
-    packed colours, `rgb` (FLOAT32) after its own fields (see `append_fields`)."""
+    """The message's points with `label` (UINT32 raw id), `confidence` (FLOAT32), given
+    panoptic segmentation's `instances` `instance` (UINT32, 0 for stuff), and given packed
+    colours `rgb` (FLOAT32), in that order after its own fields (see `append_fields`)."""
     new: dict[str, tuple[int, np.ndarray]] = {
         "label": (UINT32, labels),
         "confidence": (FLOAT32, confidence),
     }
+    if instances is not None:
+        new["instance"] = (UINT32, instances)
     if rgb is not None:
         new["rgb"] = (FLOAT32, rgb)
     return append_fields(layout, data, new)

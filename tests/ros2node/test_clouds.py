@@ -1,4 +1,5 @@
-"""A PointCloud2 of any datatype and layout as the record, and the answer built from it."""
+"""A PointCloud2 of any datatype and layout as the record, and the answer built from it (with
+panoptic segmentation's `instance` field; colours by what the `label` field holds)."""
 
 from __future__ import annotations
 
@@ -7,12 +8,13 @@ import pytest
 
 from rangeret.dataset.profiles import load_profile
 from rangeret.evaluation.view import label_colours
+from rangeret.exceptions import InputError
 from rangeret.inference.results import ScanPrediction
 from rangeret.io.point_fields import PointFieldsError
 from rangeret.io.pointcloud2 import FLOAT32, FLOAT64, UINT16, UINT32, CloudMessageError, decode
 from rangeret.io.scans import KITTI_RECORD, read_scan
 from ros2node.clouds import FieldMapping, cloud_record, labelled_message, palette_of
-from ros2node.node import problem_kind
+from ros2node.node import problem_kind, skip_kind
 from tests.support.ros import make_cloud
 from tests.support.ros_driver import to_message
 
@@ -97,7 +99,7 @@ def test_the_rgb_field_is_the_palette_colour_of_each_label(points):
     layout, _ = cloud_record(msg, "cloud", MAPPING)
     raw = np.array([0, 10, 40, 44, 48, 70, 252], dtype=np.uint32)
     labels = ScanPrediction(np.resize(raw, len(points)), np.zeros(len(points), np.float32))
-    answer = labelled_message(msg, layout, labels, palette_of(PROFILE.labels))
+    answer = labelled_message(msg, layout, labels, palette_of(PROFILE))
     _, got = decode(answer, "answer")
     packed = got["rgb"].view(np.uint32)
     rgb = np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], axis=1)
@@ -118,3 +120,42 @@ def test_a_bad_message_names_its_source_and_kind(points, cloud, error, kind):
     with pytest.raises(error, match=r"^/points: ") as raised:
         cloud_record(to_message(cloud(points)), "/points", MAPPING)
     assert problem_kind(raised.value) == kind
+
+
+def test_the_answer_takes_an_instance_field_after_confidence_and_before_rgb(points):
+    msg = to_message(float32_cloud(points))
+    layout, _ = cloud_record(msg, "cloud", MAPPING)
+    n = len(points)
+    labels = ScanPrediction(
+        np.resize(np.array([10, 40, 30], np.uint32), n),
+        np.full(n, 0.5, np.float32),
+        instances=np.resize(np.array([1, 0, 2], np.uint32), n),
+    )
+    answer = labelled_message(msg, layout, labels, palette_of(PROFILE))
+    assert [(f.name, f.offset, f.datatype) for f in answer.fields[4:]] == [
+        ("label", 16, UINT32),
+        ("confidence", 20, FLOAT32),
+        ("instance", 24, UINT32),
+        ("rgb", 28, FLOAT32),
+    ]
+    _, got = decode(answer, "answer")
+    np.testing.assert_array_equal(got["instance"], labels.instances)
+    np.testing.assert_array_equal(got["label"], labels.labels)
+
+
+def test_nuscenes_labels_are_classes_and_take_their_class_colour():
+    """nuScenes labels are training classes, not raw ids: a car (class 4) is the car's orange,
+    not the colour of raw id 4 (a pedestrian's)."""
+    nuscenes = load_profile("nuscenes")
+    config = nuscenes.labels
+    classes = np.arange(config.num_classes, dtype=np.uint32)
+    packed = palette_of(nuscenes)[classes].view(np.uint32)
+    rgb = np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], axis=1)
+    np.testing.assert_array_equal(rgb, config.class_rgb()[classes])
+    assert rgb[config.class_names.index("car")].tolist() == [255, 158, 0]
+
+
+def test_a_message_the_network_fails_on_is_counted_as_network_and_bad_input_as_its_kind():
+    assert skip_kind(RuntimeError("CUDA out of memory")) == "network"
+    assert skip_kind(InputError("the scan has 1000 objects of class 4")) == "input"
+    assert skip_kind(PointFieldsError("/points: has no z field")) == "fields"

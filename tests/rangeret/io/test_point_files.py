@@ -1,12 +1,13 @@
 """`rangeret.io.point_files` and its format modules: formats told by extension and signature,
 header-only point counts, padded and odd PCD fields, PLY list properties, truncated files named
-in one line, and labelled copies in every format."""
+in one line, and labelled copies in every format, with panoptic segmentation's `instance` too."""
 
 from __future__ import annotations
 
 import io
 import struct
 
+import laspy
 import numpy as np
 import pytest
 from pypcd4 import Encoding, PointCloud
@@ -186,3 +187,67 @@ def test_bin_files_use_the_record_and_a_missing_file_is_named(tmp_path):
     with pytest.raises(PointFileError, match="no room for added fields"):
         labelled_bytes(decode_point_file(POINTS.tobytes(), "bin", record=KITTI_RECORD, source="s"),
                        np.zeros(257), np.zeros(257))  # fmt: skip
+
+
+INSTANCES = (np.arange(257) % 7 * 70_000).astype(np.uint32)
+
+
+@pytest.mark.parametrize(
+    ("fmt", "data"),
+    [
+        ("pcd", lambda: pcd_bytes(POINTS, "ascii", ("x", "y", "z", "instance"))),
+        ("pcd", lambda: pcd_bytes(POINTS, "binary_compressed")),
+        ("ply", lambda: ply_bytes(POINTS, "ascii", ("x", "y", "z", "instance"))),
+        ("ply", lambda: ply_bytes(POINTS, "binary_big_endian")),
+        ("las", lambda: las_bytes(np.abs(POINTS) % 1, True)),
+    ],
+    ids=["pcd-ascii", "pcd-compressed", "ply-ascii", "ply-be", "laz"],
+)
+def test_labelled_copies_take_an_instance_field_after_label_and_confidence(fmt, data):
+    f = decode_point_file(data(), fmt, record=KITTI_RECORD, source=f"a.{fmt}")
+    labels = np.arange(257, dtype=np.uint32) + 65_000
+    copy = labelled_bytes(f, labels, np.full(257, 0.25), INSTANCES)
+    back = decode_point_file(copy, fmt, record=KITTI_RECORD, source=f"copy.{fmt}")
+    assert list(back.columns)[-3:] == ["label", "confidence", "instance"]
+    assert back.columns["instance"].dtype == np.uint32
+    assert np.array_equal(back.columns["instance"], INSTANCES)  # an old `instance` replaced
+    assert np.array_equal(back.columns["label"], labels)
+    assert np.array_equal(back.columns["x"], f.columns["x"])
+    plain = decode_point_file(
+        labelled_bytes(f, labels, np.full(257, 0.25)), fmt, record=KITTI_RECORD, source="p"
+    )
+    # without instances an input's own `instance` stays, and none is added (nor left behind by
+    # the copy before: a LAS file's decoded points are not changed by writing one)
+    assert ("instance" in plain.columns) == ("instance" in f.columns)
+
+
+def test_a_las_dimension_of_a_label_field_name_is_replaced_not_cut_to_its_type():
+    """An input whose extra-bytes `label`, `confidence` or `instance` is narrower (uint8, as other
+    labelling tools write) must not wrap the written values."""
+    data = las_bytes(np.abs(POINTS) % 1, False)
+    old = laspy.read(io.BytesIO(data))
+    old.add_extra_dims(
+        [laspy.ExtraBytesParams(name=n, type=np.uint8) for n in ("label", "confidence", "instance")]
+    )
+    for name in ("label", "confidence", "instance"):
+        old[name] = np.full(257, 3, np.uint8)
+    out = io.BytesIO()
+    old.write(out)
+    f = decode_point_file(out.getvalue(), "las", record=KITTI_RECORD, source="old.las")
+    labels = np.resize(np.array([259, 252, 10, 40], np.uint32), 257)
+    back = decode_point_file(
+        labelled_bytes(f, labels, np.full(257, 0.75), INSTANCES),
+        "las",
+        record=KITTI_RECORD,
+        source="copy.las",
+    )
+    assert np.array_equal(back.columns["label"], labels)
+    assert (back.columns["confidence"] == np.float32(0.75)).all()
+    assert np.array_equal(back.columns["instance"], INSTANCES)
+    assert back.columns["label"].dtype == back.columns["instance"].dtype == np.uint32
+
+
+def test_instances_of_another_count_are_refused():
+    f = decode_point_file(ply_bytes(POINTS, "ascii"), "ply", record=KITTI_RECORD, source="a.ply")
+    with pytest.raises(ValueError, match=r"a.ply: 257 labels, 257 confidences and 3 instances"):
+        labelled_bytes(f, np.zeros(257), np.zeros(257), np.zeros(3))

@@ -18,6 +18,7 @@ from rangeret.io.pointcloud2 import (
     UINT32,
     CloudMessageError,
     append_fields,
+    append_labels,
     decode,
     layout_of,
     pack_rgb,
@@ -208,3 +209,27 @@ def test_pack_rgb_is_pcl_packed_float():
     packed = pack_rgb(rgb)
     assert packed.dtype == np.float32
     assert packed.view(np.uint32).tolist() == [0xFF0000, 0x00FF00, 0x010203]
+
+
+def test_append_labels_puts_instance_after_confidence_and_before_rgb():
+    msg = message(XYZI, _xyzi(4))
+    labels = np.array([10, 40, 30, 10], dtype=np.uint32)
+    conf = np.full(4, 0.5, np.float32)
+    instances = np.array([1, 0, 2, 70000], dtype=np.uint32)
+    rgb = pack_rgb(np.zeros((4, 3), np.uint8))
+    fields, step, data = append_labels(layout_of(msg), msg.data, labels, conf, rgb, instances)
+    assert [(f.name, f.offset, f.datatype) for f in fields[4:]] == [
+        ("label", 16, UINT32),
+        ("confidence", 20, FLOAT32),
+        ("instance", 24, UINT32),
+        ("rgb", 28, FLOAT32),
+    ]
+    again = SimpleNamespace(
+        fields=fields, height=1, width=4, point_step=step, row_step=4 * step,
+        is_bigendian=False, data=data,
+    )  # fmt: skip
+    _, columns = decode(again, "s")
+    np.testing.assert_array_equal(columns["instance"], instances)
+    np.testing.assert_array_equal(columns["label"], labels)
+    plain, _, _ = append_labels(layout_of(msg), msg.data, labels, conf)
+    assert [f.name for f in plain[4:]] == ["label", "confidence"]
