@@ -41,6 +41,12 @@ def _demo_arguments(parser: argparse.ArgumentParser) -> None:
         help="run into an --out whose predictions are another checkpoint's (the demo predicts "
         "every scan again; predictions/run.json lists both runs)",
     )
+    parser.add_argument(
+        "--panoptic",
+        action="store_true",
+        help="find the objects too: panoptic labels predicted on Ray, scored as the profile's "
+        "panoptic benchmark scores them (PQ beside mIoU) and archived for it",
+    )
     add_profile_option(parser)
     add_precision_option(parser)
     add_leaderboard_options(
@@ -60,6 +66,7 @@ def _run_demo(args: argparse.Namespace) -> int:
         precision=args.precision,
         leaderboard=leaderboard,
         overwrite=args.overwrite,
+        panoptic=args.panoptic,
     )
     return 0
 

@@ -7,7 +7,11 @@ PNGs), writes and validates a partial submission archive, and renders one range 
 ground truth and prediction. The predictions tree gets its `run.json` like every other runner's.
 With `--profile nuscenes` the dataset is a simulated v1.0-mini tree (both mini_val scenes, with
 labels), evaluated as the devkit scores it, and the archive is the mini_val results folder,
-whole and validated. The demo weights were trained on simulated scenes only.
+whole and validated. With `--panoptic` the same path finds objects too: the pipeline writes the
+panoptic labels `rangeret predict --panoptic` writes, the report is the panoptic benchmark's
+(`rangeret evaluate --panoptic`: PQ, SQ, RQ, PQ-dagger and IoU), printed with PQ beside mIoU,
+and the archive is the panoptic benchmark's. The demo weights were trained on simulated scenes
+only.
 """
 
 from __future__ import annotations
@@ -28,14 +32,17 @@ from rangeret.dataset.profiles import DatasetProfile
 from rangeret.dataset.projection import project_with
 from rangeret.dataset.selection import DatasetSelection
 from rangeret.evaluation.evaluate import evaluate_predictions
+from rangeret.evaluation.metrics import EvaluationReport
+from rangeret.evaluation.panoptic_evaluate import PanopticReport, evaluate_panoptic
 from rangeret.evaluation.plots import plot_range_image, write_plots
+from rangeret.exceptions import InputError
 from rangeret.inference.loaded_weights import load_weights
 from rangeret.inference.spec import InferenceSpec
 from rangeret.io.run_info import check_weights, write_run_info
 from rangeret.io.scans import read_scan
 from rangeret.models.weights.demo import DEMO_WARNING, demo_checkpoint, is_demo_path
 from rangeret.sim.trees import simulate_tree
-from rangeret.submission.benchmark import ArchiveRequest
+from rangeret.submission.benchmark import ArchiveRequest, Benchmark
 from rangeret.submission.benchmarks import benchmark_of
 from rangeret.submission.leaderboard import LeaderboardEntry, description_text
 from workers.cluster import start_local
@@ -43,6 +50,12 @@ from workers.pipeline import describe_spec, run_pipeline
 from workers.sizing import PipelineOptions
 
 log = logging.getLogger(__name__)
+
+#: What the panoptic demo adds to its benchmark's lines on running the same on real data.
+PANOPTIC_HINT = (
+    "For panoptic segmentation add --panoptic to predict, evaluate and the Ray job, and "
+    "--task panoptic to submission and validate-submission."
+)
 
 
 def run_demo(
@@ -55,6 +68,7 @@ def run_demo(
     precision: str = "auto",
     leaderboard: LeaderboardEntry | None = None,
     overwrite: bool = False,
+    panoptic: bool = False,
 ) -> Path:
     """Run the demo into `out` (default: a new timestamped folder) and return the folder.
 
@@ -66,6 +80,10 @@ def run_demo(
     record, labels), the checkpoint must be a network for it (only SemanticKITTI and nuScenes
     have bundled demo weights), and only nuScenes has a submission archive besides
     SemanticKITTI.
+
+    With `panoptic` the scans' objects are found and scored as well, and the archive is the
+    profile's panoptic benchmark's; a profile without thing classes, or without a panoptic
+    benchmark to score by, is refused before anything is written.
     """
     import ray
 
@@ -73,16 +91,20 @@ def run_demo(
         demo_checkpoint(profile.name)  # refuses a profile without bundled weights before any work
     started = time.perf_counter()
     out = Path(out) if out else Path(f"rangeret-demo-{time.strftime('%Y%m%d-%H%M%S')}")
-    out.mkdir(parents=True, exist_ok=True)
     dataset, preds = out / "dataset", out / "predictions"
     spec = InferenceSpec(
-        checkpoint=None if checkpoint is None else str(checkpoint), precision=precision
+        checkpoint=None if checkpoint is None else str(checkpoint),
+        precision=precision,
+        panoptic=panoptic,
     )
     loaded = load_weights(spec, profile=profile)
     info, profile = loaded.info, loaded.profile
+    benchmark = benchmark_of(profile, panoptic=panoptic)
+    if panoptic:
+        _check_panoptic(profile, benchmark)
     weights = Path(info.path)
-    check_weights(preds, info.sha256, overwrite=overwrite)
-    benchmark = benchmark_of(profile)
+    check_weights(preds, info.sha256, overwrite=overwrite, panoptic=panoptic)
+    out.mkdir(parents=True, exist_ok=True)
     plan = benchmark.demo_plan(profile, valid_scans, test_scans)
     demo_weights = is_demo_path(weights)
     n = simulate_tree(
@@ -95,7 +117,9 @@ def run_demo(
         profile=profile,
     )
     log.info("simulated %d scans into %s", n, dataset)
-    selection = DatasetSelection(dataset, tuple(plan.sequences), profile.layout, plan.split)
+    selection = DatasetSelection(
+        dataset, tuple(plan.sequences), profile.layout, plan.split, panoptic=panoptic
+    )
 
     options = PipelineOptions(read_cpus=0.25, write_cpus=0.1)
     write_run_info(
@@ -115,11 +139,26 @@ def run_demo(
         raise RuntimeError(f"the demo could not predict {sorted(run.summary.failed)}")
 
     evaluated = selection.only(plan.labelled)
-    report = evaluate_predictions(evaluated, preds, checkpoint_sha256=info.sha256, profile=profile)
-    if demo_weights:
-        report.notes.append(DEMO_WARNING)
+    report: EvaluationReport | PanopticReport
+    if panoptic:
+        assert benchmark.panoptic_rules is not None  # _check_panoptic refused it otherwise
+        report = evaluate_panoptic(
+            evaluated,
+            preds,
+            profile=profile,
+            rules=benchmark.panoptic_rules,
+            benchmark=benchmark.name,
+            checkpoint_sha256=info.sha256,
+        )
+        plots: list[Path] = []
+    else:
+        report = evaluate_predictions(
+            evaluated, preds, checkpoint_sha256=info.sha256, profile=profile
+        )
+        if demo_weights:
+            report.notes.append(DEMO_WARNING)
+        plots = write_plots(report, out / "plots", config=profile.labels)
     report.write_json(out / "report.json")
-    plots = write_plots(report, out / "plots", config=profile.labels)
     plots.append(
         _range_image_png(
             selection.only(plan.labelled[:1]), preds, profile, out / "plots" / "range-image.png"
@@ -153,6 +192,12 @@ def run_demo(
         check.raise_for_problems()
 
     print(report.table())
+    if isinstance(report, PanopticReport):
+        head, scans = report.headline(), report.num_scans
+        print(
+            f"\nPQ {100 * head['pq']:.2f} %, mIoU {100 * head['miou']:.2f} % "
+            f"({report.benchmark} rules, {scans} scan{'s' if scans != 1 else ''})"
+        )
     print(
         f"\nDone in {time.perf_counter() - started:.0f} s with {info.name} at "
         f"{profile.projection.height}x{profile.projection.width} on {run.actors_text()}. Results in "
@@ -160,14 +205,16 @@ def run_demo(
     )
     print(f"  dataset (simulated, {profile.name} layout):".ljust(42) + f" {dataset}")
     print(f"  predictions tree:                         {preds}")
-    print(f"  evaluation report:                        {out / 'report.json'}")
+    kind = "panoptic evaluation report:" if panoptic else "evaluation report:"
+    print(f"  {kind}".ljust(44) + f"{out / 'report.json'}")
     for p in plots:
         print(f"  plot:                                     {p}")
     if benchmark.writes_archives and plan.partial_archive:
         print(f"  submission archive (partial, for tests):  {archive}")
         print(
             f"    (it holds the demo's few scans: rangeret validate-submission {archive} "
-            f"--dataset {dataset} --allow-partial checks it)"
+            f"--dataset {dataset} --allow-partial{' --task panoptic' if panoptic else ''} "
+            "checks it)"
         )
     elif benchmark.writes_archives:
         print(f"  submission archive ({plan.split}):".ljust(43) + f" {archive}")
@@ -177,7 +224,22 @@ def run_demo(
         print(f"\nNote: {DEMO_WARNING}.")
     if plan.hints:
         print("\n" + "\n".join(plan.hints))
+        if panoptic:
+            print(PANOPTIC_HINT)
     return out
+
+
+def _check_panoptic(profile: DatasetProfile, benchmark: Benchmark) -> None:
+    """Refuse a panoptic demo the profile cannot run: no thing classes, or no panoptic
+    benchmark to score by."""
+    refusal = profile.panoptic_refusal()
+    if refusal is not None:
+        raise InputError(refusal)
+    if benchmark.panoptic_rules is None:
+        raise InputError(
+            f"the {profile.name} profile has no panoptic benchmark to score by (its "
+            "`benchmark.panoptic` names none)"
+        )
 
 
 def _range_image_png(
@@ -188,9 +250,13 @@ def _range_image_png(
     config = profile.labels
     entry = selection.discover(with_labels=True).scans[0]
     proj = project_with(read_scan(entry.scan_path, profile.points), profile.projection)
-    gt = config.to_class(entry.label_file.read(entry.label_path)).astype(np.int64)
-    pred = profile.prediction_classes(entry.label_file.read(entry.prediction_in(preds)))
-    pred = pred.astype(np.int64)
+    truth = entry.label_file.read(entry.label_path)
+    predicted = entry.label_file.read(entry.prediction_in(preds))
+    if selection.panoptic:
+        semantic = profile.layout.panoptic_encoding.semantic
+        truth, predicted = semantic(truth), semantic(predicted)
+    gt = config.to_class(truth).astype(np.int64)
+    pred = profile.prediction_classes(predicted).astype(np.int64)
     return plot_range_image(
         proj.proj_range,
         proj.to_image(gt),

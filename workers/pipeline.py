@@ -6,9 +6,13 @@ Scans are grouped into batches on the driver, in the same order and with the sam
 - `stages.Reader` (`read_and_project`; small CPU actors, a fraction of a core each): reads the
   scans and projects them; a scan that cannot be read travels on as a named failure.
 - `stages.ModelWorker` (an actor pool: one GPU each when the cluster has GPUs, CPU actors
-  otherwise): the network on the batch, then kNN refinement and raw ids on the actor's device.
+  otherwise): the network on the batch, then kNN refinement and raw ids on the actor's device,
+  and with the spec's `panoptic` the objects, clustered by the actor's `Predictor` as
+  `rangeret predict --panoptic` clusters them.
 - `stages.Writer` (`write_results`; small CPU actors like the readers): atomic writes of the label
-  files and, for labelled scans, per-scan confusion matrices, summed per batch.
+  files (with `panoptic`, the layout's panoptic files at the places the entries of a panoptic
+  selection name) and, for labelled scans, per-scan confusion matrices of the semantic labels,
+  summed per batch.
 
 How many actors each stage gets is `workers.sizing.plan_layout`'s (see `PipelineOptions`), for
 the resources `workers.cluster` reads. The CPU stages are long-lived actors rather than tasks
@@ -36,6 +40,7 @@ from typing import TYPE_CHECKING
 from rangeret.dataset.layout import ScanEntry
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.evaluation.counting import RawLabelEvaluator
+from rangeret.exceptions import InputError
 from rangeret.inference.description import describe_network
 from rangeret.inference.loading import batches
 from rangeret.inference.results import RunSummary
@@ -130,13 +135,18 @@ def run_pipeline(
 
     `profile` must be the one `spec`'s weights run with (`rangeret.inference.loaded_weights.load_weights`
     settled it): the readers take its point record and projection, the model actors load the
-    weights for it, the writers take its labels. The run's summary counts `entries` only.
+    weights for it, the writers take its labels. With `spec.panoptic`, `entries` are those of a
+    panoptic selection (`DatasetSelection.for_task(True)`) and a profile without thing classes is
+    an `InputError` before any actor starts. The run's summary counts `entries` only.
     `progress(done, failed, total)` is called after every batch; setting `cancel` stops the run
     after the batch in flight (files already written stay complete).
     """
     import ray
     import ray.data
 
+    refusal = profile.panoptic_refusal() if spec.panoptic else None
+    if refusal is not None:
+        raise InputError(refusal)
     out = str(out)
     summary = RunSummary(total=len(entries))
     run = PipelineRun(summary, RawLabelEvaluator.for_profile(profile))
@@ -186,7 +196,7 @@ def run_pipeline(
     )
     ds = ds.map(
         Writer,
-        fn_constructor_kwargs={"out": out, "profile": profile},
+        fn_constructor_kwargs={"out": out, "profile": profile, "panoptic": spec.panoptic},
         compute=ray.data.ActorPoolStrategy(min_size=1, max_size=layout.writers),
         num_cpus=options.write_cpus,
     )

@@ -10,10 +10,13 @@ Connects to the cluster in RAY_ADDRESS (set by `ray job submit`), or starts a lo
 none is set. On a multi-node cluster ROOT and PRED must be on storage every node mounts. The job
 writes the predictions tree; for labelled scans the evaluation report (JSON and PNGs); with
 `--submission` the validated archive. Scans already predicted are skipped (resume); the job
-exits non-zero when any scan could not be predicted, naming each one. The run is added to
-PRED/run.json; a tree holding predictions from other weights is refused unless `--overwrite`. It keeps its progress in
-PRED/progress.json (`workers.progress`): a record at the start, after batches, and a final one at
-the very end, also when scans failed or bad input stopped it.
+exits non-zero when any scan could not be predicted, naming each one. With `--panoptic` (or
+`"panoptic": true` in `--inference-spec`) it writes the files `rangeret predict --panoptic` writes,
+at the panoptic places of the layout, scores the labelled scans as `rangeret evaluate --panoptic`
+does, and archives for the profile's panoptic benchmark. The run is added to PRED/run.json; a tree
+holding predictions from other weights, or of the other task, is refused unless `--overwrite`. It
+keeps its progress in PRED/progress.json (`workers.progress`): a record at the start, after
+batches, and a final one at the very end, also when scans failed or bad input stopped it.
 """
 
 from __future__ import annotations
@@ -27,7 +30,9 @@ from dataclasses import replace
 from pathlib import Path
 
 from rangeret.commands import CommandError, run_command
-from rangeret.dataset.layout import is_complete
+from rangeret.dataset.layout import ScanEntry, is_complete
+from rangeret.dataset.profiles import DatasetProfile
+from rangeret.dataset.selection import DatasetSelection
 from rangeret.exceptions import RangeRetError
 from rangeret.inference.loaded_weights import load_weights
 from rangeret.inference.spec import InferenceSpec
@@ -81,7 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--report",
         type=Path,
         metavar="FILE.json",
-        help="evaluation report of the labelled scans (PNGs beside it)",
+        help="evaluation report of the labelled scans (PNGs beside it; with --panoptic the "
+        "panoptic report, as `rangeret evaluate --panoptic --json` writes it, without PNGs)",
     )
     p.add_argument(
         "--actors",
@@ -170,8 +176,12 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
     if spec.backend == "onnxruntime" and spec.onnx is None:
         weights.export_onnx()  # once here, so that the model actors load it from the cache
     info, profile = weights.info, weights.profile
+    if spec.panoptic and profile.panoptic_refusal() is not None:
+        raise CommandError(str(profile.panoptic_refusal()))
     label_config = profile.labels
-    selection = selected_dataset(args, profile, args.dataset, doing="predicting")
+    selection = selected_dataset(args, profile, args.dataset, doing="predicting").for_task(
+        spec.panoptic
+    )
     sequences = list(selection.sequences)
     entries = selection.scans()
     complete = [
@@ -213,33 +223,40 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
     summary = replace(run.summary, total=len(entries), skipped=len(done))
     print(summary.text())
 
-    evaluator = run.evaluator
-    evaluator.merge(count_labels(done, args.out, profile))
-    if evaluator.num_scans and summary.ok:
-        report = evaluator.report(sequences, info.sha256)
-        report.profile = profile.name
-        report.precision = precision
-        report.backend = spec.backend
-        if demo:
-            report.notes.append(DEMO_WARNING)
-        print(report.table())
-        if args.report:
-            from rangeret.evaluation.plots import write_plots
+    if spec.panoptic:
+        if summary.ok:
+            _panoptic_report(args, selection, entries, profile, info.sha256, demo)
+    else:
+        evaluator = run.evaluator
+        evaluator.merge(count_labels(done, args.out, profile))
+        if evaluator.num_scans and summary.ok:
+            report = evaluator.report(sequences, info.sha256)
+            report.profile = profile.name
+            report.precision = precision
+            report.backend = spec.backend
+            if demo:
+                report.notes.append(DEMO_WARNING)
+            print(report.table())
+            if args.report:
+                from rangeret.evaluation.plots import write_plots
 
-            report.write_json(args.report)
-            plots = write_plots(
-                report, args.report.with_name(args.report.stem + "-plots"), config=label_config
+                report.write_json(args.report)
+                plots = write_plots(
+                    report, args.report.with_name(args.report.stem + "-plots"), config=label_config
+                )
+                print(f"report: {args.report}; plots: {', '.join(map(str, plots))}")
+        elif args.report and not evaluator.num_scans:
+            log.warning(
+                "no scan of %s has ground truth: no evaluation report", ", ".join(sequences)
             )
-            print(f"report: {args.report}; plots: {', '.join(map(str, plots))}")
-    elif args.report and not evaluator.num_scans:
-        log.warning("no scan of %s has ground truth: no evaluation report", ", ".join(sequences))
 
     if not summary.ok:
         recorder.finish(failures=summary.failed, precision=precision)
         summary.raise_failures(args.out)
-    if args.submission and no_archive_reason(profile) is not None:
-        raise CommandError(f"{no_archive_reason(profile)}; every prediction was written")
     if args.submission:
+        reason = no_archive_reason(profile, panoptic=spec.panoptic)
+        if reason is not None:
+            raise CommandError(f"{reason}; every prediction was written")
         request = ArchiveRequest(
             args.submission,
             args.dataset,
@@ -259,10 +276,63 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
             leaderboard=leaderboard,
             checkpoint_sha256=info.sha256,
         )
-        check = benchmark_of(profile).write_archive(request)
+        check = benchmark_of(profile, panoptic=spec.panoptic).write_archive(request)
         print(check.summary())
     recorder.finish(precision=precision)
     return 0
+
+
+def _panoptic_report(
+    args: argparse.Namespace,
+    selection: DatasetSelection,
+    entries: Sequence[ScanEntry],
+    profile: DatasetProfile,
+    sha256: str,
+    demo: bool,
+) -> None:
+    """The panoptic scores of the sequences whose scans all have panoptic ground truth, read
+    back from the tree as `rangeret evaluate --panoptic` reads it, under the profile's panoptic
+    benchmark's rules: printed, and written to --report."""
+    from rangeret.evaluation.panoptic_evaluate import evaluate_panoptic
+
+    truth: dict[str, list[bool]] = {}
+    for entry in entries:
+        truth.setdefault(entry.sequence, []).append(entry.label_path is not None)
+    labelled = [seq for seq, found in truth.items() if all(found)]
+    partly = [seq for seq, found in truth.items() if any(found) and not all(found)]
+    if partly:
+        log.warning(
+            "sequences %s have panoptic ground truth for some scans only: left out of the report",
+            ", ".join(partly),
+        )
+    if not labelled:
+        if args.report:
+            log.warning(
+                "no sequence of %s has panoptic ground truth: no evaluation report",
+                ", ".join(selection.sequences),
+            )
+        return
+    benchmark = benchmark_of(profile, panoptic=True)
+    if benchmark.panoptic_rules is None:
+        log.warning(
+            "the %s profile names no panoptic benchmark to score by: no evaluation report",
+            profile.name,
+        )
+        return
+    report = evaluate_panoptic(
+        selection.only(labelled),
+        args.out,
+        profile=profile,
+        rules=benchmark.panoptic_rules,
+        benchmark=benchmark.name,
+        checkpoint_sha256=sha256,
+    )
+    print(report.table())
+    if demo:
+        print(f"Note: {DEMO_WARNING}.")
+    if args.report:
+        report.write_json(args.report)
+        print(f"report: {args.report}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -10,7 +10,10 @@ first use and unloading the least recently used one (`@serve.multiplexed`), and 
 request to a replica that has its model loaded. A replica holds no network of its own beyond
 Serve's: its batches name their model by a weak reference (Serve's batcher keeps its last batch
 until the next one), so an unloaded model's network is freed once its last request is answered,
-and its memory handed back to the system before the next network is built. Each replica gathers concurrent requests into
+and its memory handed back to the system before the next network is built. A loaded model answers
+panoptic requests (`panoptic=true`) with the same network, its objects clustered as its spec's
+`cluster_angle` and `min_cluster_points` say; other requests get classes only, whatever its
+`panoptic`. Each replica gathers concurrent requests into
 batches of up to `batch_size` scans of one model (`@serve.batch`) and answers in the exchange of
 `workers.scan_wire` through a FastAPI app (`@serve.ingress`). `batch_size` and `batch_wait_ms`
 reach the replicas as the deployment's `user_config`, so a Serve config that changes them there
@@ -41,6 +44,7 @@ from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import ScanOutcome
 from rangeret.inference.runtime.memory import release_freed_memory
 from rangeret.inference.scan_worker import ScanRequest, ScanWorker, use_cpus
+from rangeret.inference.settings import ClusterSettings
 from rangeret.inference.spec import InferenceSpec
 from rangeret.io.scans import ScanFormatError, parse_scan
 from workers.cluster import read_resources
@@ -71,13 +75,36 @@ async def _no_such_operation(request: Request, exc: Exception) -> JSONResponse:
 
 
 class ReplicaModel:
-    """One model loaded on a replica: its name and scan worker. Serve calls `__del__` when it
-    unloads the model, and `on_unload` tells the replica."""
+    """One model loaded on a replica: its name and scan workers, one for classes only and one
+    that also finds objects (built on the first panoptic request, sharing the network). Serve
+    calls `__del__` when it unloads the model, and `on_unload` tells the replica."""
 
-    def __init__(self, name: str, worker: ScanWorker, on_unload: Callable[[Any], None]) -> None:
+    def __init__(
+        self,
+        name: str,
+        predictor: Predictor,
+        on_unload: Callable[[Any], None],
+        clustering: ClusterSettings | None = None,
+    ) -> None:
         self.name = name
-        self.worker = worker
+        self.worker = ScanWorker(predictor.with_clustering(None))
+        self.clustering = clustering or ClusterSettings()
+        self._panoptic: ScanWorker | None = None
         self.on_unload = on_unload
+
+    @property
+    def panoptic_refusal(self) -> str | None:
+        """Why the model cannot find objects (its profile names no thing class), or None."""
+        return self.worker.profile.panoptic_refusal()
+
+    def worker_for(self, panoptic: bool) -> ScanWorker:
+        """The scan worker of a request: with `panoptic`, the one whose labels are the
+        benchmark's panoptic labels and whose answers carry the objects."""
+        if not panoptic:
+            return self.worker
+        if self._panoptic is None:
+            self._panoptic = ScanWorker(self.worker.predictor.with_clustering(self.clustering))
+        return self._panoptic
 
     def __del__(self) -> None:
         self.on_unload(self)
@@ -128,11 +155,13 @@ class ScanModel:
         built with."""
         started = time.perf_counter()
         release_freed_memory()  # what the networks Serve unloaded held
-        predictor = Predictor.from_spec(self.models.spec(name))
+        spec = self.models.spec(name)
+        predictor = Predictor.from_spec(spec)
         predictor.weights.identity.check_same(
             self.built[name], name, "the application was built", "deploy it again"
         )
-        model = ReplicaModel(name, ScanWorker(predictor), self._unloaded)
+        clustering = ClusterSettings(spec.cluster_angle, spec.min_cluster_points)
+        model = ReplicaModel(name, predictor, self._unloaded, clustering)
         self._loaded[name] = id(model)
         log.info("model %s loaded in %.2f s", name, time.perf_counter() - started)
         return model
@@ -153,22 +182,32 @@ class ScanModel:
 
     @serve.batch(max_batch_size=1, batch_wait_timeout_s=DEFAULT_BATCH_WAIT_MS / 1000)
     async def label_one(
-        self, models: list[weakref.ref[ReplicaModel]], requests: list[ScanRequest]
+        self,
+        models: list[weakref.ref[ReplicaModel]],
+        requests: list[ScanRequest],
+        panoptic: list[bool],
     ) -> list[ScanOutcome]:
-        """A batch of requests labelled, one network pass per model and set of equal options
-        (Serve gathers the requests of one model into a batch); each request names its model by
-        a weak reference, alive while the request holds the model."""
-        return await asyncio.to_thread(self._label, [ref() for ref in models], requests)
+        """A batch of requests labelled, one network pass per model, task and set of equal
+        options (Serve gathers the requests of one model into a batch); each request names its
+        model by a weak reference, alive while the request holds the model."""
+        return await asyncio.to_thread(self._label, [ref() for ref in models], requests, panoptic)
 
     def _label(
-        self, models: list[ReplicaModel | None], requests: list[ScanRequest]
+        self,
+        models: list[ReplicaModel | None],
+        requests: list[ScanRequest],
+        panoptic: list[bool],
     ) -> list[ScanOutcome]:
         results: list[ScanOutcome] = [""] * len(requests)
+        groups: dict[tuple[int, bool], list[int]] = {}
+        for i, (model, task) in enumerate(zip(models, panoptic, strict=True)):
+            groups.setdefault((id(model), task), []).append(i)
         try:
-            for model in {id(m): m for m in models}.values():
+            for (_, task), indices in groups.items():
+                model = models[indices[0]]
                 assert model is not None  # its request holds it until answered
-                indices = [i for i, m in enumerate(models) if m is model]
-                labelled = model.worker.label_requests([requests[i] for i in indices])
+                worker = model.worker_for(task)
+                labelled = worker.label_requests([requests[i] for i in indices])
                 for i, result in zip(indices, labelled, strict=True):
                     results[i] = result
         except Exception as exc:
@@ -206,6 +245,7 @@ class ScanModel:
         try:
             knn = query_flag(request.query_params.get("knn"), True, "knn")
             confidence = query_flag(request.query_params.get("confidence"), False, "confidence")
+            panoptic = query_flag(request.query_params.get("panoptic"), False, "panoptic")
             body = await request.body()
         except ValueError as exc:
             return JSONResponse({"detail": f"{str(exc).capitalize()}."}, 400)
@@ -214,11 +254,17 @@ class ScanModel:
             model = await self._load_model(name)
         except (RangeRetError, RuntimeError, OSError) as exc:
             return JSONResponse({"detail": f"Model {name} cannot be loaded: {exc}."}, 500)
+        if panoptic and model.panoptic_refusal is not None:
+            return JSONResponse(
+                {"detail": f"Model {name} finds no objects: {model.panoptic_refusal}."}, 400
+            )
         try:
             points = parse_scan(body, "the scan", record=model.worker.profile.points)
         except ScanFormatError as exc:
             return JSONResponse({"detail": f"The scan is malformed: {exc.problem}."}, 400)
-        result = await self.label_one(weakref.ref(model), ScanRequest(points, knn, confidence))
+        result = await self.label_one(
+            weakref.ref(model), ScanRequest(points, knn, confidence), panoptic
+        )
         if isinstance(result, str):
             return JSONResponse({"detail": f"The scan cannot be projected: {result}."}, 422)
         body, headers = encode_labels(result)

@@ -1,4 +1,5 @@
-"""The pipeline's stages: read + project, the network + kNN (`ModelWorker`), write + count.
+"""The pipeline's stages: read + project, the network + kNN (+ objects with panoptic
+segmentation; `ModelWorker`), write + count.
 
 The CPU stages run in small Ray Data actor pools beside the model actors. This module imports only
 numpy and the torch-free parts of the library (the model stage imports torch when its actor is
@@ -46,9 +47,10 @@ class BatchRecord:
 
     The reader fills `loaded` (a projection or a failure per scan) and, for each labelled scan
     it projected, `bands` (each point's distance band, from the projection's ranges; None for the
-    other scans); the model actor replaces `loaded` by `results` (raw labels or a failure per
-    scan) and names itself in `worker`; the writer clears `results` and `bands` once the files
-    are written and fills `failures`, `points` and `counts`.
+    other scans); the model actor replaces `loaded` by `results` (what each scan's prediction
+    file holds, raw ids or panoptic labels, or a failure per scan) and names itself in `worker`;
+    the writer clears `results` and `bands` once the files are written and fills `failures`,
+    `points` and `counts`.
     """
 
     index: int
@@ -98,10 +100,14 @@ def read_and_project(
     return record
 
 
-def write_results(record: BatchRecord, out: str, profile: DatasetProfile) -> BatchRecord:
+def write_results(
+    record: BatchRecord, out: str, profile: DatasetProfile, panoptic: bool = False
+) -> BatchRecord:
     """Stage 3: atomic label writes, and the confusion counts of the batch's labelled scans (by
-    sequence and by the distance bands the reader found)."""
+    sequence and by the distance bands the reader found). With `panoptic` the labels and the
+    ground truth are the layout's panoptic labels, and their semantic parts are counted."""
     evaluator = RawLabelEvaluator.for_profile(profile)
+    encoding = profile.layout.panoptic_encoding if panoptic else None
     failures: list[str | None] = []
     rows = zip(record.entries, record.results, record.bands, strict=True)
     for entry, (labels, error), bands in rows:
@@ -113,7 +119,11 @@ def write_results(record: BatchRecord, out: str, profile: DatasetProfile) -> Bat
                 write_prediction(entry, out, labels)
             if entry.label_path is not None:
                 gt = entry.label_file.read(entry.label_path, num_points=labels.size)
-                evaluator.add(labels, gt, entry.sequence, bands)
+                if encoding is None:
+                    evaluator.add(labels, gt, entry.sequence, bands)
+                else:
+                    semantic = encoding.semantic
+                    evaluator.add(semantic(labels), semantic(gt), entry.sequence, bands)
         except (OSError, ScanFormatError) as exc:
             failures.append(str(exc))
             continue
@@ -125,8 +135,9 @@ def write_results(record: BatchRecord, out: str, profile: DatasetProfile) -> Bat
 
 def label_batch(predictor: Predictor, encoded: bytes) -> bytes:
     """Stage 2 on one encoded `BatchRecord`: the network, kNN refinement and raw ids of its
-    scans (`predict_loaded`: labels or a named failure per scan); the record names the device and
-    process that ran it."""
+    scans, and their objects when the predictor clusters them (`predict_loaded`: what each
+    scan's file holds, or a named failure); the record names the device and process that ran
+    it."""
     record = BatchRecord.decode({ROW_COLUMN: encoded})
     record.results = [
         (None, found) if isinstance(found, str) else (found.labels, None)
@@ -160,18 +171,21 @@ class Reader:
 class Writer:
     """`write_results` as a long-lived Ray Data actor."""
 
-    def __init__(self, out: str, profile: DatasetProfile) -> None:
+    def __init__(self, out: str, profile: DatasetProfile, panoptic: bool = False) -> None:
         self.out = out
         self.profile = profile
+        self.panoptic = panoptic
 
     def __call__(self, row: dict) -> dict:
-        return write_results(BatchRecord.decode(row), self.out, self.profile).encode()
+        record = BatchRecord.decode(row)
+        return write_results(record, self.out, self.profile, self.panoptic).encode()
 
 
 class ModelWorker:
-    """Stage 2 (an actor): the network on a batch, then kNN refinement and raw ids. It loads the
-    spec's weights once, for the profile the driver settled, and warms the network up before it
-    takes a batch, so the first batch's times are those of any other."""
+    """Stage 2 (an actor): the network on a batch, then kNN refinement, raw ids and, when the
+    spec asks for panoptic segmentation, objects. It loads the spec's weights once, for the
+    profile the driver settled, and warms the network up before it takes a batch, so the first
+    batch's times are those of any other."""
 
     def __init__(self, spec: InferenceSpec, profile: DatasetProfile, cpus: float) -> None:
         from rangeret.inference.loaded_weights import load_weights
@@ -189,8 +203,8 @@ class ModelWorker:
 def count_labels(
     entries: Iterable[ScanEntry], out: Path | str, profile: DatasetProfile
 ) -> RawLabelEvaluator:
-    """Confusion counts of scans predicted earlier (skipped on resume), read from their files as
-    `rangeret evaluate` reads them (the scan for its points' distance bands)."""
+    """Confusion counts of semantic predictions made earlier (skipped on resume), read from
+    their files as `rangeret evaluate` reads them (the scan for its points' distance bands)."""
     evaluator = RawLabelEvaluator.for_profile(profile)
     for entry in entries:
         if entry.label_path is not None:

@@ -168,3 +168,55 @@ def test_demo_on_nuscenes_with_its_demo_weights(tmp_path, capsys):
     )
     assert "submission archive (mini_val):" in printed
     assert (out / "plots" / "range-image.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_demo_panoptic_end_to_end(tmp_path, capsys):
+    """`rangeret demo --panoptic`: objects through the pipeline, the panoptic benchmark's report
+    printed with PQ beside mIoU, its archive validated, and the task in run.json."""
+    pytest.importorskip("ray")
+    import numpy as np
+
+    from rangeret.cli.main import main as rangeret_main
+    from workers.demo import run_demo
+
+    out = run_demo(tmp_path / "demo", valid_scans=1, test_scans=1, progress=False, panoptic=True)
+    printed = capsys.readouterr().out
+    report = json.loads((out / "report.json").read_text())
+    assert report["benchmark"] == "semantickitti-panoptic" and report["num_scans"] == 1
+    assert len(report["checkpoint_sha256"]) == 64
+    headline = re.search(r"PQ (\d+\.\d\d) %, mIoU (\d+\.\d\d) % \(semantickitti-panoptic", printed)
+    assert headline is not None, printed
+    assert float(headline.group(1)) == pytest.approx(100 * report["pq_mean"], abs=0.006)
+    assert float(headline.group(2)) == pytest.approx(100 * report["iou_mean"], abs=0.006)
+    assert "panoptic evaluation report:" in printed and "PQ-dagger" in printed
+    assert "--task panoptic" in printed
+    labels = np.fromfile(
+        out / "predictions" / "sequences" / "08" / "predictions" / "000000.label", "<u4"
+    )
+    assert (labels >> 16).any(), "the scan's objects"
+    assert (out / "plots" / "range-image.png").read_bytes()[:4] == b"\x89PNG"
+    assert not (out / "plots" / "iou.png").exists()
+    validate = ["validate-submission", "-q", str(out / "submission.zip")]
+    validate += ["--dataset", str(out / "dataset"), "--allow-partial", "--task", "panoptic"]
+    assert rangeret_main(validate) == 0
+    run = json.loads((out / "predictions" / "run.json").read_text())
+    assert run["runner"] == "rangeret demo" and run["panoptic"]["min_points"] == 10
+
+
+def test_demo_panoptic_needs_thing_classes(tmp_path, capsys):
+    """`rangeret demo --panoptic` on a profile without thing classes: one line, nothing
+    written."""
+    import torch
+
+    from rangeret.cli.main import main
+    from rangeret.models import build_model
+
+    torch.manual_seed(0)
+    torch.save(
+        build_model("rangeret-cir", 64, 128, num_classes=15, layers=1).state_dict(),
+        tmp_path / "w.pt",
+    )
+    args = ["demo", "-q", "--out", str(tmp_path / "d"), "--panoptic", "--profile", "pandaset"]
+    assert main([*args, "--checkpoint", str(tmp_path / "w.pt")]) == 1
+    assert "the pandaset profile names no thing classes" in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()
