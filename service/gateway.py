@@ -45,9 +45,16 @@ class ScanLabeller(Protocol):
         ...
 
     async def label_points(
-        self, points: np.ndarray, knn: bool = True, confidence: bool = False, *, model: str
+        self,
+        points: np.ndarray,
+        knn: bool = True,
+        confidence: bool = False,
+        panoptic: bool = False,
+        *,
+        model: str,
     ) -> ScanPrediction:
-        """One scan labelled by the model `model`: its points, in that model's point record."""
+        """One scan labelled by the model `model`: its points, in that model's point record;
+        with `panoptic`, its panoptic labels and its objects (`instances`)."""
         ...
 
     def depth(self) -> int:

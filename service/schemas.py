@@ -58,6 +58,14 @@ class ErrorResponse(BaseModel):
     )
 
 
+class ScanObject(BaseModel):
+    """One object of a panoptic answer: its instance id, its class and its points."""
+
+    instance: int = Field(ge=1, description="the object's id in `instances`, unique in the scan")
+    class_name: str = Field(description="the object's class, a thing class of the profile")
+    points: int = Field(ge=1, description="the object's points")
+
+
 class ScanLabels(BaseModel):
     """The JSON form of a labelled scan (asked for with `format=json` or `Accept: application/json`)."""
 
@@ -69,7 +77,15 @@ class ScanLabels(BaseModel):
                     "num_points": 4,
                     "labels": [40, 40, 10, 70],
                     "class_counts": {"car": 1, "road": 2, "vegetation": 1},
-                }
+                },
+                {
+                    "model": "default",
+                    "num_points": 4,
+                    "labels": [40, 40, 65546, 70],
+                    "class_counts": {"car": 1, "road": 2, "vegetation": 1},
+                    "instances": [0, 0, 1, 0],
+                    "objects": [{"instance": 1, "class_name": "car", "points": 1}],
+                },
             ]
         }
     )
@@ -79,7 +95,9 @@ class ScanLabels(BaseModel):
     labels: list[int] = Field(
         description="every point's label as the model's profile's prediction files hold it, in "
         "the scan's point order: the raw id of its label configuration (SemanticKITTI), or the "
-        "class index itself (nuScenes' challenge classes 1-16)"
+        "class index itself (nuScenes' challenge classes 1-16); with `panoptic=true`, the "
+        "panoptic label of its benchmark (SemanticKITTI: `instance << 16 | raw id`; nuScenes: "
+        "`1000 * class + instance`, the instance numbered within its class)"
     )
     class_counts: dict[str, int] = Field(
         description="points per class name of the model's profile, for the classes present"
@@ -89,6 +107,15 @@ class ScanLabels(BaseModel):
         description="with `confidence=true`: each point's confidence in its label (the softmax "
         "probability of its class at its pixel, 0 to 1; 0 for a point without a pixel), in the "
         "scan's point order",
+    )
+    instances: list[int] | None = Field(
+        default=None,
+        description="with `panoptic=true`: each point's object, an id unique in the scan (0 for "
+        "a point of a stuff class, or of no object), in the scan's point order",
+    )
+    objects: list[ScanObject] | None = Field(
+        default=None,
+        description="with `panoptic=true`: every object, by instance id, with its class and points",
     )
 
 
@@ -109,6 +136,7 @@ class DatasetJobRequest(BaseModel):
                     "version": "v1.0-trainval",
                     "model": "nu",
                 },
+                {"dataset": "/data/semantickitti", "split": "valid", "panoptic": True},
             ]
         },
     )
@@ -153,6 +181,13 @@ class DatasetJobRequest(BaseModel):
         min_length=1,
         max_length=63,
         description="the served model to run (`GET /v1/models`); without it, the default model",
+    )
+    panoptic: bool = Field(
+        default=False,
+        description="panoptic segmentation: also find the objects of the thing classes, the "
+        "predictions written as `rangeret predict --panoptic` writes them, zipped as the "
+        "profile's panoptic benchmark wants them and evaluated as it scores them; refused for a "
+        "model whose profile names no thing classes",
     )
 
     @model_validator(mode="after")
@@ -212,6 +247,25 @@ class JobMetrics(BaseModel):
         "where nuScenes' scoring leaves a class out (absent from both ground truth and "
         "predictions)"
     )
+    pq: float | None = Field(
+        default=None,
+        ge=0,
+        le=1,
+        description="a panoptic job's panoptic quality, the mean over the evaluated classes "
+        "(null for other jobs)",
+    )
+    sq: float | None = Field(
+        default=None, ge=0, le=1, description="a panoptic job's segmentation quality"
+    )
+    rq: float | None = Field(
+        default=None, ge=0, le=1, description="a panoptic job's recognition quality"
+    )
+    pq_dagger: float | None = Field(
+        default=None,
+        ge=0,
+        le=1,
+        description="a panoptic job's PQ-dagger: PQ of the thing classes, IoU of the stuff ones",
+    )
 
 
 class JobStatus(BaseModel):
@@ -255,6 +309,12 @@ class JobStatus(BaseModel):
         description="the split a dataset job named; a tables profile's predictions are in its "
         "folder (lidarseg/<split>/)",
     )
+    panoptic: bool = Field(
+        default=False,
+        description="whether the job finds objects too (panoptic segmentation): its predictions "
+        "are the benchmark's panoptic labels, its zip the panoptic benchmark's and its report "
+        "the panoptic scores",
+    )
     total: int = Field(ge=0, description="scans in the job")
     done: int = Field(ge=0, description="scans whose prediction is written")
     failed: int = Field(ge=0, description="scans that could not be predicted (named in `errors`)")
@@ -282,203 +342,3 @@ class JobList(BaseModel):
     """Every job the gateway knows, newest first."""
 
     jobs: list[JobStatus]
-
-
-class HealthSummary(BaseModel):
-    """What `/healthz` tells a caller without the token: up or not, and what is served."""
-
-    model_config = ConfigDict(
-        json_schema_extra={
-            "examples": [
-                {
-                    "status": "ok",
-                    "model": "rangeret-cir",
-                    "profile": "semantickitti",
-                    "version": "0.1.0",
-                }
-            ]
-        }
-    )
-
-    status: Literal["ok", "unavailable"]
-    model: str | None = Field(description="the default model's network")
-    profile: str = Field(description="the default model's dataset profile")
-    models: dict[str, str] = Field(
-        default_factory=dict, description="every model the gateway serves, with its profile"
-    )
-    version: str = Field(description="the gateway's software version")
-
-
-class Health(HealthSummary):
-    """The gateway's and its worker backend's state, for callers the token rule lets in."""
-
-    model_config = ConfigDict(
-        json_schema_extra={
-            "examples": [
-                {
-                    "status": "ok",
-                    "model": "rangeret-cir",
-                    "profile": "semantickitti",
-                    "version": "0.1.0",
-                    "backend": "local",
-                    "workers": [{"pid": 4242, "model": "rangeret-cir", "device": "cpu"}],
-                    "precision": "fp32",
-                    "queue_depth": 0,
-                    "batch_size": 4,
-                    "batch_wait_ms": 10.0,
-                    "checkpoint_sha256": "9b1d...",
-                    "point_fields": ["x", "y", "z", "remission"],
-                }
-            ]
-        }
-    )
-
-    backend: Literal["local", "serve"] = Field(
-        description="where single scans are labelled: in the gateway's process, or on the Serve "
-        "application (RANGERET_SERVE_URL)"
-    )
-    point_fields: list[str] = Field(
-        description="the float32 values of one point of a scan, in order (the profile's record)"
-    )
-    workers: list[dict[str, Any]] = Field(description="one description per model worker")
-    precision: str | None = Field(
-        None, description="the forward pass precision of the workers (fp32, fp16 or bf16)"
-    )
-    queue_depth: int = Field(ge=0, description="single-scan requests waiting or in the network")
-    batch_size: int
-    batch_wait_ms: float
-    checkpoint_sha256: str | None = None
-    error: str | None = None
-
-
-class ProfileClass(BaseModel):
-    """One training class of the served profile, as the web page draws it."""
-
-    index: int = Field(ge=0, description="the class's index (0 .. classes - 1)")
-    name: str
-    raw_id: int = Field(ge=0, description="the raw id predictions carry for this class")
-    color: str = Field(
-        pattern=r"^#[0-9a-f]{6}$",
-        description="the class's colour in the profile's palette, as RGB hex (#rrggbb)",
-    )
-    ignored: bool = Field(description="whether the class is left out of IoU and mIoU")
-
-
-class ServedProfile(BaseModel):
-    """What a client needs to read scans and labels of the served profile and score them."""
-
-    model_config = ConfigDict(
-        json_schema_extra={
-            "examples": [
-                {
-                    "profile": "semantickitti",
-                    "point_fields": ["x", "y", "z", "remission"],
-                    "point_bytes": 16,
-                    "label_bytes": 4,
-                    "predictions": "raw",
-                    "classes": [
-                        {
-                            "index": 0,
-                            "name": "unlabeled",
-                            "raw_id": 0,
-                            "color": "#000000",
-                            "ignored": True,
-                        },
-                        {
-                            "index": 1,
-                            "name": "car",
-                            "raw_id": 10,
-                            "color": "#6496f5",
-                            "ignored": False,
-                        },
-                    ],
-                    "raw_to_class": {"0": 0, "1": 0, "10": 1},
-                    "unlabeled_class": 0,
-                }
-            ]
-        }
-    )
-
-    profile: str = Field(description="the served dataset profile's name")
-    point_fields: list[str] = Field(description="the float32 values of one point, in order")
-    point_bytes: int = Field(gt=0, description="bytes per point of a scan")
-    label_bytes: int = Field(
-        default=4,
-        gt=0,
-        description="bytes per label (little-endian unsigned) of the profile's label and "
-        "prediction files, and of a scan's raw answer: 4 for a `.label` file, 1 for nuScenes' "
-        "`_lidarseg.bin`",
-    )
-    predictions: Literal["raw", "class"] = Field(
-        default="raw",
-        description="what a prediction's labels are: `raw` ids of the label configuration "
-        "(`raw_to_class` maps them), or the `class` indices themselves (nuScenes' challenge "
-        "classes; its ground truth files hold raw ids)",
-    )
-    classes: list[ProfileClass] = Field(description="the training classes, by index")
-    raw_to_class: dict[str, int] = Field(
-        description="the class index of every raw id of the label configuration (its learning "
-        "map); a raw id not listed, after masking it to its low 16 bits, is the unlabeled class"
-    )
-    unlabeled_class: int = Field(ge=0, description="the class of raw ids the map does not list")
-
-
-class ServedModel(BaseModel):
-    """The network the gateway serves: its name, its checkpoint and whether it is the demo's."""
-
-    model_config = ConfigDict(
-        json_schema_extra={
-            "examples": [
-                {
-                    "id": "default",
-                    "name": "rangeret-cir",
-                    "checkpoint_sha256": "9b1d...",
-                    "profile": "semantickitti",
-                    "demo_weights": False,
-                    "note": None,
-                },
-                {
-                    "id": "kitti",
-                    "name": "rangeret-thesis",
-                    "checkpoint_sha256": "4c07...",
-                    "profile": "semantickitti",
-                    "demo_weights": True,
-                    "note": "Demo weights: trained on simulated scenes only, so their labels of "
-                    "real scans are not meaningful. Serve a published model with rangeret serve "
-                    "--checkpoint rangeret-kitti-657 (see rangeret weights list).",
-                },
-            ]
-        }
-    )
-
-    id: str = Field(description="the model's name in this gateway (`?model=`, a job's `model`)")
-    name: str | None = Field(description="the served network (rangeret-cir, rangeret-thesis)")
-    checkpoint_sha256: str | None = Field(
-        description="SHA-256 of the checkpoint file the gateway loaded"
-    )
-    profile: str = Field(description="the dataset profile the model runs with")
-    demo_weights: bool = Field(
-        description="whether the checkpoint is the bundled demo weights, trained on simulated "
-        "scenes only: their labels of real scans are not meaningful"
-    )
-    note: str | None = Field(
-        default=None,
-        description="with the demo weights: what they are and how to serve a published model "
-        "instead (one or two sentences, for a page to show beside the model's name)",
-    )
-
-
-class ListedModel(ServedModel):
-    """One model of `GET /v1/models`: what `GET /v1/model` says of it, and whether its network
-    is loaded in the gateway's process now."""
-
-    loaded: bool = Field(
-        description="whether the network is loaded now (on a Serve application: always true)"
-    )
-
-
-class ModelList(BaseModel):
-    """The models a gateway serves, in its models file's order, and the default one."""
-
-    default: str = Field(description="the model a request that names none gets")
-    models: list[ListedModel]

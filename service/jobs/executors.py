@@ -85,9 +85,11 @@ class JobExecutor(Protocol):
         progress: Progress,
         cancel: JobControl,
         model: str | None = None,
+        panoptic: bool = False,
     ) -> dict[str, str]:
         """Write the predictions of the scans not done yet with the served model `model` (None:
-        the default); return failures by scan key.
+        the default), with `panoptic` the benchmark's panoptic labels of their objects; return
+        failures by scan key.
 
         Returns early once `cancel` is set; `JobError` when the job cannot go on.
         """
@@ -125,23 +127,26 @@ class LocalExecutor:
         progress: Progress,
         cancel: threading.Event,
         model: str | None = None,
+        panoptic: bool = False,
     ) -> dict[str, str]:
         """Predict the job's scans `entries` (of the dataset's sequences) into `out` with `model`
-        (None: the default), skipping scans already done; a cancel or a gateway stop both stop it
-        after the batch in flight. `JobError` when the model cannot be loaded because running
-        jobs hold every slot."""
+        (None: the default; with `panoptic`, its objects clustered as the model's clustering
+        options say), skipping scans already done; a cancel or a gateway stop both stop it after
+        the batch in flight. `JobError` when the model cannot be loaded because running jobs
+        hold every slot."""
         name = model or self.default
         try:
             runtime = self.pool.acquire(name)
         except PoolFull as exc:
             raise JobError(str(exc)) from exc
         try:
-            predictor = runtime.predictor
-            assert predictor is not None  # a job's runtime always has its network
+            assert runtime.predictor is not None  # a job's runtime always has its network
+            predictor = runtime.predictor.with_clustering(runtime.clustering if panoptic else None)
             self.precision, self.inference_backend = predictor.precision, predictor.backend
+            layout = predictor.profile.layout
             summary = predict_tree(
                 predictor,
-                DatasetSelection(dataset, tuple(sequences), predictor.profile.layout),
+                DatasetSelection(dataset, tuple(sequences), layout, panoptic=panoptic),
                 out,
                 batch_size=self.batch_size,
                 progress=False,

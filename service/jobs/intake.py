@@ -7,7 +7,9 @@ job folder, checked and extracted there (`service.archives.extraction`) by the r
 layout gives, and the folder is removed again whatever stops it on the way. A dataset job names a
 folder under the data roots (`OutsideDataRoots`, `NoSuchDataset`) in its model's profile, with a
 split of that profile and, for a tables layout, a version (`service.jobs.selection`), and its
-scans must stay under the roots once links are resolved. Either is queued with the output its
+scans must stay under the roots once links are resolved. A panoptic job (objects too) reads the
+panoptic ground truth and writes panoptic predictions; its model's profile must name thing
+classes. Either is queued with the output its
 scans are expected to write (`service.jobs.capacity`). Every refusal is one of
 `service.jobs.errors` (an `ArchiveError` for an archive its rules refuse), a sentence the routes
 answer with its status; the blocking steps run in worker threads, never on the event loop.
@@ -34,6 +36,7 @@ from service.jobs.errors import (
 from service.jobs.manager import JobManager
 from service.jobs.selection import check_selection, dataset_version, incomplete_split
 from service.jobs.store import JobRecord
+from service.labelling.panoptic import panoptic_refusal
 from service.models.catalog import ModelCatalog, ModelEntry
 from service.paths import escaping_scans, outside_roots_sentence
 from service.schemas import DatasetJobRequest
@@ -68,6 +71,14 @@ class JobInput:
     @property
     def split(self) -> str | None:
         return self.selection.split
+
+
+def check_panoptic(model: ModelEntry) -> None:
+    """`BadJobRequest` when a panoptic job is asked of a model whose profile names no thing
+    classes."""
+    refusal = panoptic_refusal(model.profile, model.name)
+    if refusal is not None:
+        raise BadJobRequest(refusal)
 
 
 def resolve_dataset(text: str, roots: Sequence[Path]) -> Path:
@@ -129,9 +140,12 @@ class JobIntake:
             settings.max_extracted_bytes,
         )
 
-    def extract_upload(self, upload: Path, folder: Path, model: ModelEntry) -> JobInput:
+    def extract_upload(
+        self, upload: Path, folder: Path, model: ModelEntry, panoptic: bool = False
+    ) -> JobInput:
         """Check and extract the archive at `upload` into the job `folder` in the model's profile
-        (an `ArchiveError` when it is not one the gateway takes), removing the upload; its input."""
+        (an `ArchiveError` when it is not one the gateway takes), removing the upload; its input
+        (for a `panoptic` job, with the panoptic ground truth and prediction paths)."""
         profile = model.profile
         try:
             rules = profile.layout.upload_rules(profile.points)
@@ -139,22 +153,32 @@ class JobIntake:
         finally:
             upload.unlink(missing_ok=True)
         selection = DatasetSelection(
-            found.root, tuple(found.sequences), profile.layout, version=found.version
+            found.root,
+            tuple(found.sequences),
+            profile.layout,
+            version=found.version,
+            panoptic=panoptic,
         )
         return JobInput(selection, selection.scans())
 
     async def archive_job(
-        self, receive: Callable[[Path], Awaitable[object]], model: ModelEntry
+        self,
+        receive: Callable[[Path], Awaitable[object]],
+        model: ModelEntry,
+        panoptic: bool = False,
     ) -> JobRecord:
-        """A new job of `model` from an upload: `receive(path)` writes the upload into the new
-        job's folder, which is then extracted and queued; the folder is removed when any step
-        fails, and a full disk is `NoRoom` naming the jobs folder."""
+        """A new job of `model` from an upload (a `panoptic` one: objects too): `receive(path)`
+        writes the upload into the new job's folder, which is then extracted and queued; the
+        folder is removed when any step fails, and a full disk is `NoRoom` naming the jobs
+        folder."""
+        if panoptic:
+            check_panoptic(model)
         jobs = self.jobs
         job_id, folder = await asyncio.to_thread(jobs.new_job)
         try:
             upload = folder / UPLOAD_FILE
             await receive(upload)
-            found = await asyncio.to_thread(self.extract_upload, upload, folder, model)
+            found = await asyncio.to_thread(self.extract_upload, upload, folder, model, panoptic)
             return await self.submit(job_id, "archive", found, model)
         except OSError as exc:
             await asyncio.to_thread(jobs.remove_files, job_id)
@@ -182,6 +206,8 @@ class JobIntake:
                 f"{model.name} runs with the {profile.name!r} profile.",
             )
         check_selection(request, model)
+        if request.panoptic:
+            check_panoptic(model)
         roots = self.settings.data_roots
         root = resolve_dataset(request.dataset, roots)
         version = dataset_version(root, request.version, model)
@@ -193,7 +219,7 @@ class JobIntake:
                 split=request.split,
                 sequences=request.sequences,
                 version=version,
-            )
+            ).for_task(request.panoptic)
             if request.split is not None:
                 missing = selection.missing()
                 if missing:

@@ -163,7 +163,8 @@ class JobManager:
         model: str | None = None,
     ) -> JobRecord:
         """Queue a job over the `selection` of the served model `model` (None: the default)
-        whose folder is ready, noting the profile it is accepted for, and wake a runner;
+        whose folder is ready (a panoptic one where the selection is for panoptic segmentation),
+        noting the profile it is accepted for, and wake a runner;
         `QueueFull` when the queue is full, `NoRoom` when its `expected_bytes` of output do not
         fit in the disk the jobs may use."""
         entry = self.models.entries[model or self.models.default]
@@ -185,6 +186,7 @@ class JobManager:
                 entry.name,
                 version=selection.version,
                 split=selection.split,
+                panoptic=selection.panoptic,
             )
             self._expected[job_id] = expected_bytes
         self._wake.set()

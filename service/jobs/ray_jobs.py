@@ -129,8 +129,9 @@ class RayJobExecutor:
     def entrypoint(self, selection: DatasetSelection, out: Path, model: str | None = None) -> str:
         """The shell command of a job's Ray job: `python -m workers.predict_job` on the
         selection's sequences (a tables layout's whole split of its version, where the job names
-        one) into `out`, with the spec of the model `model` (None: the default)."""
-        spec = self.specs[self.models.get(model).name]
+        one) into `out`, with the spec of the model `model` (None: the default), which finds
+        objects where the selection is for panoptic segmentation."""
+        spec = self.specs[self.models.get(model).name].replace(panoptic=selection.panoptic)
         root = str(Path(selection.root).absolute())
         argv = ["python", "-m", "workers.predict_job", "--dataset", root]
         split, version = selection.split, selection.version
@@ -151,10 +152,11 @@ class RayJobExecutor:
         progress: Progress,
         cancel: JobControl,
         model: str | None = None,
+        panoptic: bool = False,
     ) -> dict[str, str]:
-        """Submit the job with its model `model` (None: the default), or re-attach to its stored
-        submission, and follow it until its final record, submitting it again when it dies;
-        failures by scan key, as in-process.
+        """Submit the job with its model `model` (None: the default; with `panoptic`, finding
+        objects too), or re-attach to its stored submission, and follow it until its final
+        record, submitting it again when it dies; failures by scan key, as in-process.
 
         Returns early when `cancel` is set: a cancelled job's Ray job is stopped first, one
         paused by a gateway stop is left running. `JobError` when it cannot go on.
@@ -163,7 +165,7 @@ class RayJobExecutor:
         self.inference_backend = entry.spec.backend
         before = sum(is_complete(e, out, record=entry.profile.points) for e in entries)
         follow = _Follow(
-            self, entry.name, entries, dataset, sequences, out, progress, cancel, before
+            self, entry.name, entries, dataset, sequences, out, progress, cancel, before, panoptic
         )
         return follow.run()
 
@@ -195,8 +197,10 @@ class _Follow:
         progress: Progress,
         control: JobControl,
         before: int,
+        panoptic: bool = False,
     ) -> None:
         self.executor = executor
+        self.panoptic = panoptic
         self.model = model
         self.api = executor.api
         self.entries = entries
@@ -314,6 +318,7 @@ class _Follow:
             self.executor.models.get(self.model).profile.layout,
             None if job is None else job.split,
             None if job is None else job.version,
+            self.panoptic,
         )
         entrypoint = self.executor.entrypoint(selection, self.out, self.model)
         metadata = {"rangeret_job": self.control.job_id}

@@ -9,7 +9,8 @@ Versions: 1, the jobs table; 2, its `submission` column (the number of the job's
 submission to a Ray cluster, stored before the job is submitted); 3, its `model` column (the
 served model the job runs with; NULL in older rows, which ran with the gateway's one model and
 are the default model's); 4, its `version` and `split` columns (a tables layout's version and the
-split its predictions go to; NULL in older rows, which were all of folder layouts).
+split its predictions go to; NULL in older rows, which were all of folder layouts); 5, its
+`panoptic` column (1 for a job that finds objects too; 0 in older rows, which did not).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from service.schemas import JobState
 #: Failed scans kept in a job's record (the count is always exact).
 MAX_ERRORS = 1000
 #: The schema this code reads and writes, stored in the database's `PRAGMA user_version`.
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 
 #: The statements that take a file from the version before each one to that version.
 _MIGRATIONS: dict[int, tuple[str, ...]] = {
@@ -47,6 +48,7 @@ _MIGRATIONS: dict[int, tuple[str, ...]] = {
     2: ("ALTER TABLE jobs ADD COLUMN submission INTEGER NOT NULL DEFAULT 0",),
     3: ("ALTER TABLE jobs ADD COLUMN model TEXT",),
     4: ("ALTER TABLE jobs ADD COLUMN version TEXT", "ALTER TABLE jobs ADD COLUMN split TEXT"),
+    5: ("ALTER TABLE jobs ADD COLUMN panoptic INTEGER NOT NULL DEFAULT 0",),
 }
 
 
@@ -156,11 +158,19 @@ class JobRecord:
     version: str | None = None
     #: The split a tables layout's predictions go to (None: each scene's own, or a folder layout).
     split: str | None = None
+    #: Whether the job finds objects too: panoptic predictions, archive and report.
+    panoptic: bool = False
 
     def selection(self, layout: DatasetLayout) -> DatasetSelection:
-        """What the job reads of its dataset, in its profile's `layout`."""
+        """What the job reads of its dataset, in its profile's `layout` (its panoptic ground
+        truth and prediction paths for a panoptic job)."""
         return DatasetSelection(
-            Path(self.dataset), tuple(self.sequences), layout, self.split, self.version
+            Path(self.dataset),
+            tuple(self.sequences),
+            layout,
+            self.split,
+            self.version,
+            self.panoptic,
         )
 
 
@@ -173,7 +183,7 @@ _START = (
 _COLUMNS = (
     "id", "kind", "state", "dataset", "sequences", "created", "total", "done", "failed", "errors",
     "reason", "metrics", "predictions", "report", "started", "finished", "attempts",
-    "submission", "model", "version", "split",
+    "submission", "model", "version", "split", "panoptic",
 )  # fmt: skip
 
 
@@ -253,13 +263,14 @@ class JobStore:
         model: str | None = None,
         version: str | None = None,
         split: str | None = None,
+        panoptic: bool = False,
     ) -> JobRecord:
         """Store a new queued job of the served model `model` (with a tables layout's `version`
-        and `split`, where given)."""
+        and `split`, where given; `panoptic` for one that finds objects too)."""
         now = time.time()
         self._execute(
             "INSERT INTO jobs (id, kind, state, dataset, sequences, created, model, version, "
-            "split) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            "split, panoptic) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
             (
                 job_id,
                 kind,
@@ -270,6 +281,7 @@ class JobStore:
                 model,
                 version,
                 split,
+                int(panoptic),
             ),
         )
         return JobRecord(
@@ -282,6 +294,7 @@ class JobStore:
             model=model,
             version=version,
             split=split,
+            panoptic=panoptic,
         )
 
     def get(self, job_id: str) -> JobRecord | None:
@@ -438,4 +451,5 @@ def _record(row: Sequence) -> JobRecord:
     values["sequences"] = json.loads(values["sequences"])
     values["errors"] = json.loads(values["errors"])
     values["metrics"] = json.loads(values["metrics"]) if values["metrics"] else None
+    values["panoptic"] = bool(values["panoptic"])
     return JobRecord(**values)

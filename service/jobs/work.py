@@ -6,9 +6,10 @@ records, scans that stay under the read roots), predicts every scan not yet writ
 zip and, for the sequences with ground truth, the evaluation report and its plots, then stores
 the job's final record. Everything is read with the dataset profile of the job's model (layout,
 point record, labels) and, for a tables layout, the job's version and split; a job whose model
-the gateway no longer serves fails, naming it. When the runner stops the job first (a cancel, or
-the gateway stopping), it returns without a final record and the scheduler decides what becomes
-of the job.
+the gateway no longer serves fails, naming it. A panoptic job predicts objects too, into the
+panoptic prediction paths, and its zip and report are its profile's panoptic benchmark's. When
+the runner stops the job first (a cancel, or the gateway stopping), it returns without a final
+record and the scheduler decides what becomes of the job.
 """
 
 from __future__ import annotations
@@ -24,10 +25,12 @@ from service.jobs.results import (
     PREDICTIONS_ZIP,
     labelled_sequences,
     predictions_description,
+    write_panoptic_report,
     write_predictions_zip,
     write_report,
 )
 from service.jobs.store import JobRecord, JobStore
+from service.labelling.panoptic import panoptic_refusal
 from service.models.catalog import ModelCatalog, ModelEntry
 from service.paths import escaping_scans, outside_roots_sentence
 from service.schemas import JobState
@@ -82,6 +85,8 @@ class JobWork:
             return True
         profile = model.profile
         refusal = self._profile_refusal(folder, profile)
+        if refusal is None and job.panoptic:
+            refusal = panoptic_refusal(profile, model.name)
         if refusal is not None:
             self.store.finish(job.id, JobState.failed, reason=refusal)
             return True
@@ -148,8 +153,17 @@ class JobWork:
                 self.on_scans(written - counted[0], model.name)
                 counted[0] = written
 
+        # An executor is asked for objects only by a panoptic job.
+        objects = {"panoptic": True} if job.panoptic else {}
         return self.executor.predict(
-            entries, Path(job.dataset), job.sequences, out, progress, control, model=model.name
+            entries,
+            Path(job.dataset),
+            job.sequences,
+            out,
+            progress,
+            control,
+            model=model.name,
+            **objects,
         )
 
     def _missing(
@@ -184,12 +198,19 @@ class JobWork:
         sha = model.checkpoint_sha256
         description = predictions_description(sha, profile)
         write_predictions_zip(
-            out, entries, job.sequences, zip_path, description, profile=profile, sha256=sha
+            out,
+            entries,
+            job.sequences,
+            zip_path,
+            description,
+            profile=profile,
+            sha256=sha,
+            panoptic=job.panoptic,
         )
         metrics = report_path = None
         labelled = labelled_sequences(selection)
         if labelled:
-            report_path, metrics = write_report(
+            scored = (write_panoptic_report if job.panoptic else write_report)(
                 selection.only(labelled),
                 out,
                 folder,
@@ -198,6 +219,8 @@ class JobWork:
                 precision=self.executor.precision,
                 backend=self.executor.inference_backend,
             )
+            if scored is not None:
+                report_path, metrics = scored
         self.store.finish(
             job.id, JobState.succeeded, metrics=metrics, predictions=zip_path, report=report_path
         )

@@ -1,7 +1,9 @@
 """Single scans of several models labelled in the gateway's own process.
 
 Each loaded model is a `ModelRuntime`: its predictor (shared with the gateway's in-process jobs)
-behind its own `ScanBatcher`, so batches stay per model. `PooledLabeller` takes a request's
+behind its own `ScanBatcher`, so batches stay per model; its panoptic requests (`panoptic=true`)
+gather behind a second batcher, made on the first one, whose worker shares the network and
+clusters the scans' thing points into objects. `PooledLabeller` takes a request's
 model from the `ModelPool`, which keeps at most `--max-loaded` of them: the model is held while
 its scan is labelled, loaded first where it is not (in a worker thread), and a model that cannot
 be loaded because every slot is held by running jobs is a `BackendError` (503, Retry-After). The
@@ -12,25 +14,44 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import ScanPrediction
 from rangeret.inference.scan_worker import ScanRequest
+from rangeret.inference.settings import ClusterSettings
 from service.labelling.batching import ScanBatcher
 from service.labelling.errors import BackendError
+from service.labelling.panoptic import clustered_worker
 from service.models.pool import ModelPool, PoolFull
 
 
 @dataclass
 class ModelRuntime:
-    """One loaded model: the batcher of its single scans, and its predictor (None in tests whose
-    worker needs no network)."""
+    """One loaded model: the batcher of its single scans, its predictor (None in tests whose
+    worker needs no network), how it finds objects, and the batcher of its panoptic scans once
+    one was asked for."""
 
     batcher: ScanBatcher
     predictor: Predictor | None = None
+    clustering: ClusterSettings = field(default_factory=ClusterSettings)
+    objects: ScanBatcher | None = None
+
+    def batcher_for(self, panoptic: bool) -> ScanBatcher:
+        """The batcher of plain scans, or of panoptic ones (made on first use, with the same
+        batch size and wait as the plain one)."""
+        if not panoptic:
+            return self.batcher
+        if self.objects is None:
+            worker = clustered_worker(self.batcher.worker, self.clustering)
+            self.objects = ScanBatcher(worker, self.batcher.batch_size, self.batcher.max_wait)
+        return self.objects
+
+    def batchers(self) -> list[ScanBatcher]:
+        """Every batcher of the model."""
+        return [self.batcher] if self.objects is None else [self.batcher, self.objects]
 
 
 class PooledLabeller:
@@ -53,12 +74,20 @@ class PooledLabeller:
         """Stop every loaded model's batcher; requests still waiting fail."""
         self._serving = False
         for _, runtime in self.pool.items():
-            await runtime.batcher.stop()
+            for batcher in runtime.batchers():
+                await batcher.stop()
 
     async def label_points(
-        self, points: np.ndarray, knn: bool = True, confidence: bool = False, *, model: str
+        self,
+        points: np.ndarray,
+        knn: bool = True,
+        confidence: bool = False,
+        panoptic: bool = False,
+        *,
+        model: str,
     ) -> ScanPrediction:
-        """One scan labelled by `model` within a batch of that model's scans."""
+        """One scan labelled by `model` within a batch of that model's scans (with `panoptic`,
+        of its panoptic scans: with the scan's objects)."""
         if not self._serving:
             raise BackendError("the gateway is not taking scans now (starting or shutting down)")
         try:
@@ -66,15 +95,18 @@ class PooledLabeller:
         except PoolFull as exc:
             raise BackendError(str(exc)) from exc
         try:
-            if not runtime.batcher.accepting:  # loaded since the labeller started
-                await runtime.batcher.start(self._on_batch)
-            return await runtime.batcher.label_request(ScanRequest(points, knn, confidence))
+            batcher = runtime.batcher_for(panoptic)
+            if not batcher.accepting:  # loaded (or asked for objects) since the labeller started
+                await batcher.start(self._on_batch)
+            return await batcher.label_request(ScanRequest(points, knn, confidence))
         finally:
             self.pool.release(model)
 
     def depth(self) -> int:
         """Requests waiting plus batches in the networks, over the loaded models."""
-        return sum(runtime.batcher.depth() for _, runtime in self.pool.items())
+        return sum(
+            batcher.depth() for _, runtime in self.pool.items() for batcher in runtime.batchers()
+        )
 
     def loaded(self) -> list[str]:
         """The models loaded now."""

@@ -64,10 +64,16 @@ class ServeLabeller:
             self._client = None
 
     async def label_points(
-        self, points: np.ndarray, knn: bool = True, confidence: bool = False, *, model: str
+        self,
+        points: np.ndarray,
+        knn: bool = True,
+        confidence: bool = False,
+        panoptic: bool = False,
+        *,
+        model: str,
     ) -> ScanPrediction:
         """One scan labelled by the application's model `model`, sent as its point records'
-        bytes."""
+        bytes (with `panoptic`, with its objects)."""
         if self._client is None:
             raise BackendError("the gateway is starting; try again in a moment")
         self._in_flight += 1
@@ -75,7 +81,7 @@ class ServeLabeller:
             response = await asyncio.wait_for(
                 self._client.post(
                     self.url + SCANS_PATH,
-                    params=options_query(knn, confidence),
+                    params=options_query(knn, confidence, panoptic),
                     content=np.ascontiguousarray(points, dtype="<f4").tobytes(),
                     headers={"Content-Type": OCTET, MODEL_ID_HEADER: model},
                 ),
@@ -92,7 +98,13 @@ class ServeLabeller:
             ) from exc
         finally:
             self._in_flight -= 1
-        return self._answer(response, len(points))
+        labelled = self._answer(response, len(points))
+        if panoptic and labelled.instances is None:
+            raise BackendError(
+                f"the Serve application at {self.url} answered a panoptic request without the "
+                "scan's objects: deploy an application that finds them"
+            )
+        return labelled
 
     def _answer(self, response: httpx.Response, points: int) -> ScanPrediction:
         """The labels of a 200, or the error its status means."""

@@ -17,6 +17,7 @@ from rangeret.inference.predictor import Predictor
 from rangeret.inference.runtime.memory import release_freed_memory
 from rangeret.inference.scan_worker import ScanWorker
 from service.labelling.batching import ScanBatcher
+from service.labelling.panoptic import model_clustering
 from service.labelling.pooled import ModelRuntime
 from service.models.pool import ModelPool
 
@@ -34,7 +35,8 @@ class ModelLoader:
 
     def __call__(self, name: str) -> ModelRuntime:
         """The model `name` loaded: its checkpoint read, checked against what it was at start,
-        its network built, moved to its device and warmed up."""
+        its network built, moved to its device and warmed up. Its predictor finds no objects:
+        a panoptic request or job asks for them, as the spec's clustering options say."""
         release_freed_memory()  # what the networks evicted for this load held
         spec = self.models.spec(name)
         weights = load_weights(spec)
@@ -42,9 +44,9 @@ class ModelLoader:
         weights.identity.check_same(
             checked.describe(), name, "the gateway started", "restart the gateway to serve it"
         )
-        predictor = Predictor(weights, spec)
+        predictor = Predictor(weights, spec.replace(panoptic=False))
         batcher = ScanBatcher(ScanWorker(predictor), self.batch_size, self.max_wait)
-        return ModelRuntime(batcher, predictor)
+        return ModelRuntime(batcher, predictor, model_clustering(spec))
 
     def identify(self, name: str) -> WeightsIdentity:
         """The identity of the model `name`, its network not built, except where an onnxruntime

@@ -18,7 +18,7 @@ from fastapi.security import HTTPAuthorizationCredentials
 
 from service.http.dependencies import BEARER, GatewayDep, token_matches
 from service.http.errors import error_responses
-from service.schemas import Health, HealthSummary
+from service.served_schemas import Health, HealthSummary
 
 router = APIRouter(tags=["service"])
 

@@ -16,7 +16,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Annotated
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import FileResponse, JSONResponse
 from pydantic import ValidationError
 
@@ -31,8 +31,8 @@ from service.http.bodies import (
 from service.http.dependencies import GatewayDep, JobsDep
 from service.http.errors import ApiError, error_responses, validation_sentence
 from service.jobs import JobManager, JobRecord
-from service.jobs.errors import JobRefused
-from service.jobs.intake import JobIntake
+from service.jobs.errors import JobInputError, JobRefused
+from service.jobs.intake import JobIntake, check_panoptic
 from service.jobs.results import plot_path, report_plots
 from service.models.catalog import MODEL_QUERY, ModelEntry
 from service.routes.job_errors import answered, job_error_answer
@@ -86,6 +86,7 @@ def job_status(record: JobRecord, default_model: str) -> JobStatus:
         sequences=record.sequences,
         version=record.version,
         split=record.split,
+        panoptic=record.panoptic,
         total=record.total,
         done=record.done,
         failed=record.failed,
@@ -110,8 +111,10 @@ def job_status(record: JobRecord, default_model: str) -> JobStatus:
         "(`model` in the body, the default model without it), and the split (by the profile's "
         "names) or sequences to run, with a tables profile's `version` (nuScenes) where the "
         "dataset holds several. The job predicts every scan with that model, writing its "
-        "predictions where `rangeret predict` does; with labels it also evaluates them. (An "
-        "archive upload is `POST /v1/jobs/uploads`.)"
+        "predictions where `rangeret predict` does; with labels it also evaluates them. With "
+        "`panoptic: true` it finds the objects too, as `rangeret predict --panoptic` does: "
+        "its zip is the profile's panoptic benchmark's archive and its report the panoptic "
+        "scores. (An archive upload is `POST /v1/jobs/uploads`.)"
     ),
     operation_id="create_job",
     status_code=202,
@@ -157,7 +160,9 @@ async def create_job(
         "(v1.0-mini/*.json), samples/LIDAR_TOP/*.pcd.bin and optional "
         "lidarseg/<version>/*_lidarseg.bin. The scans hold the point records of the profile of "
         "the model `model` (the default model without it). The job predicts every scan with "
-        "that model; with labels it also evaluates them."
+        "that model; with labels it also evaluates them. With `panoptic=true` it finds the "
+        "objects too (an archive's labels are then its panoptic ground truth: SemanticKITTI's "
+        "`.label` files with their instances, nuScenes-panoptic's `.npz` files)."
     ),
     operation_id="upload_job",
     status_code=202,
@@ -172,6 +177,11 @@ async def upload_job(
     gw: GatewayDep,
     jobs: JobsDep,
     model: Annotated[str | None, MODEL_QUERY] = None,
+    panoptic: bool = Query(
+        default=False,
+        description="panoptic segmentation: also find the objects of the thing classes (refused "
+        "for a model whose profile names none)",
+    ),
 ) -> JSONResponse:
     intake = JobIntake(jobs, gw.settings, gw.models)
     await _check_queue(request, gw, intake)
@@ -180,7 +190,7 @@ async def upload_job(
         raise await _wrong_media(
             request, gw, "Upload the archive as multipart/form-data, in a file field 'archive'."
         )
-    return _created(await _archive_job(request, gw, intake, entry))
+    return _created(await _archive_job(request, gw, intake, entry, panoptic))
 
 
 async def _query_model(request: Request, gw: Gateway, name: str | None) -> ModelEntry:
@@ -243,7 +253,9 @@ async def get_job(job_id: str, gw: GatewayDep, jobs: JobsDep) -> JobStatus:
     summary="A succeeded job's predictions (zip)",
     description="A zip of sequences/XX/predictions/*.label with directory entries for the job's "
     "sequences; for a nuScenes model, the results folder lidarseg/<split>/*_lidarseg.bin with "
-    "<split>/submission.json.",
+    "<split>/submission.json. A panoptic job's zip is the panoptic benchmark's: the same "
+    "`.label` tree of panoptic labels, or nuScenes-panoptic's panoptic/<split>/*_panoptic.npz "
+    "with <split>/submission.json.",
     operation_id="get_job_predictions",
     response_class=FileResponse,
     responses={
@@ -263,7 +275,9 @@ async def get_predictions(job_id: str, jobs: JobsDep) -> FileResponse:
 @router.get(
     "/jobs/{job_id}/report",
     summary="A succeeded labelled job's evaluation report",
-    description="The evaluation JSON of `rangeret evaluate`: miou, accuracy, iou by class, confusion[pred][gt].",
+    description="The evaluation JSON of `rangeret evaluate`: miou, accuracy, iou by class, "
+    "confusion[pred][gt]; for a panoptic job, that of `rangeret evaluate --panoptic` (its "
+    "benchmark's keys) with `task`, `headline`, `precision` and `backend`.",
     response_class=FileResponse,
     responses={
         200: {
@@ -344,14 +358,16 @@ async def _succeeded_or_409(jobs: JobManager, job_id: str) -> JobRecord:
 
 
 async def _archive_job(
-    request: Request, gw: Gateway, intake: JobIntake, model: ModelEntry
+    request: Request, gw: Gateway, intake: JobIntake, model: ModelEntry, panoptic: bool = False
 ) -> JobRecord:
-    """Refuse an upload that cannot fit before it is read, else receive it into a new job of
-    `model`."""
+    """Refuse an upload that cannot fit, or a `panoptic` one of a model without thing classes,
+    before it is read, else receive it into a new job of `model`."""
     settings = gw.settings
     try:
+        if panoptic:
+            check_panoptic(model)
         await asyncio.to_thread(intake.check_upload, declared_length(request))
-    except (ApiError, JobRefused) as exc:
+    except (ApiError, JobInputError) as exc:
         answer = exc if isinstance(exc, ApiError) else job_error_answer(exc)
         raise await refused_body(request, settings, answer, upload=True) from exc
 
@@ -359,7 +375,7 @@ async def _archive_job(
         await receive_archive(request, path, settings.max_archive_bytes, settings.upload_timeout_s)
 
     with answered():
-        return await intake.archive_job(receive, model)
+        return await intake.archive_job(receive, model, panoptic)
 
 
 async def _dataset_request(request: Request, gw: Gateway) -> DatasetJobRequest:

@@ -17,7 +17,7 @@ from service.gateway import Gateway
 from service.http.dependencies import GatewayDep
 from service.http.errors import error_responses
 from service.models.catalog import MODEL_QUERY, ModelEntry
-from service.schemas import ListedModel, ModelList, ServedModel
+from service.served_schemas import ListedModel, ModelList, ServedModel
 
 router = APIRouter(prefix="/v1", tags=["service"])
 

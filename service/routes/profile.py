@@ -13,8 +13,9 @@ from fastapi import APIRouter
 from rangeret.dataset.profiles import DatasetProfile
 from service.http.dependencies import GatewayDep
 from service.http.errors import error_responses
+from service.labelling.panoptic import panoptic_dtype
 from service.models.catalog import MODEL_QUERY
-from service.schemas import ProfileClass, ServedProfile
+from service.served_schemas import PanopticLabels, ProfileClass, ServedProfile
 
 router = APIRouter(prefix="/v1", tags=["service"])
 
@@ -42,6 +43,21 @@ def served_profile(profile: DatasetProfile) -> ServedProfile:
         classes=classes,
         raw_to_class={str(raw): cls for raw, cls in sorted(labels.raw_to_class.items())},
         unlabeled_class=labels.unlabeled_class,
+        panoptic=panoptic_labels(profile),
+    )
+
+
+def panoptic_labels(profile: DatasetProfile) -> PanopticLabels | None:
+    """How the profile's panoptic answers pack objects into labels; None without thing classes."""
+    if profile.panoptic_refusal() is not None:
+        return None
+    encoding = profile.layout.panoptic_encoding
+    return PanopticLabels(
+        benchmark=profile.benchmark.panoptic,
+        things=profile.thing_names,
+        label_bytes=panoptic_dtype(profile).itemsize,
+        multiplier=encoding.multiplier,
+        instance_high=encoding.instance_high,
     )
 
 
@@ -53,7 +69,8 @@ def served_profile(profile: DatasetProfile) -> ServedProfile:
         "how wide its labels are and what a prediction holds, its training classes (name, raw "
         "id, colour as #rrggbb, ignored or not) and the map from raw ids to classes, as the "
         "evaluation uses them: enough to colour a scan's labels and to score a prediction "
-        "against ground truth the way the benchmark does."
+        "against ground truth the way the benchmark does; and, where it names thing classes, "
+        "how its panoptic labels pack a point's object."
     ),
     operation_id="get_profile",
     response_model=ServedProfile,

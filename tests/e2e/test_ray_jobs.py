@@ -689,6 +689,48 @@ def test_a_dataset_job_is_one_ray_job_with_the_labels_and_report_of_the_cli(
 
 
 @pytest.mark.slow
+def test_a_panoptic_dataset_job_is_a_ray_job_with_the_panoptic_labels_and_report_of_the_cli(
+    cluster, gateways, tmp_path
+):
+    """`"panoptic": true` reaches the Ray job: its labels are those of `rangeret predict
+    --panoptic` and the gateway's report that of `rangeret evaluate --panoptic`."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        argv = ["predict", "-q", "--dataset", str(cluster.roots / "data"), "--sequences", "08"]
+        net = ["--checkpoint", str(cluster.weights), "--height", "32", "--width", "256"]
+        out = ["--out", str(tmp_path / "ref"), "--device", "cpu", "--panoptic"]
+        assert rangeret_main([*argv, *net, *out]) == 0
+    finally:
+        torch.set_num_threads(threads)
+    with gateways.current.client() as client:
+        created = client.post(
+            "/v1/jobs", json={"dataset": "data", "sequences": ["08"], "panoptic": True}
+        )
+        assert created.status_code == 202, created.text
+        job_id = created.json()["id"]
+        status = wait_job(client, job_id, 180)
+        archive = client.get(f"/v1/jobs/{job_id}/predictions")
+        served = client.get(f"/v1/jobs/{job_id}/report").json()
+    assert status["state"] == "succeeded" and status["panoptic"] is True, status
+    labels = _zip_labels(archive.content, tmp_path / "pred")
+    assert labels == tree_bytes(tmp_path / "ref") and len(labels) == 3
+    info = cluster.jobs.get_job_info(f"{job_id}-1")
+    argv = shlex.split(info.entrypoint)
+    assert json.loads(argv[argv.index("--inference-spec") + 1])["panoptic"] is True
+    argv = ["evaluate", "-q", "--dataset", str(cluster.roots / "data"), "--predictions"]
+    argv += [str(tmp_path / "ref"), "--sequences", "08", "--panoptic"]
+    assert rangeret_main([*argv, "--json", str(tmp_path / "eval.json")]) == 0
+    reference = json.loads((tmp_path / "eval.json").read_text())
+    assert served["task"] == "panoptic"
+    for key in ("pq_mean", "iou_mean", "classes", "per_sequence", "per_distance"):
+        assert served[key] == reference[key], key
+    assert status["metrics"]["pq"] == pytest.approx(reference["pq_mean"])
+
+
+@pytest.mark.slow
 def test_cancelling_a_job_stops_its_ray_job_and_removes_its_files(cluster, gateways):
     job_id = _start(gateways, "data", ["08", "11"])
     sid, folder = f"{job_id}-1", gateways.state / "jobs" / job_id
@@ -800,3 +842,31 @@ def test_a_refused_ray_token_is_one_sentence_naming_the_address(cluster, tmp_pat
     assert line.startswith("JobsApiError the Ray Jobs API at "), run.stdout + run.stderr
     assert cluster.head.dashboard in line and "refused the gateway's Ray token" in line
     assert "\n" not in line
+
+
+def test_a_panoptic_jobs_ray_job_finds_objects_and_a_plain_one_does_not(tmp_path):
+    """A panoptic job's Ray job gets its model's spec with `panoptic` (and the model's clustering
+    options); a plain job's spec has no `panoptic`, whatever the model's own."""
+
+    def run(api, sid, n):
+        _finish(setup.out)
+        api.statuses[sid] = "SUCCEEDED"
+
+    api = ScriptedApi(run)
+    setup = _setup(tmp_path, api)
+    clustering = {"panoptic": True, "cluster_angle": 20.0, "min_cluster_points": 4}
+    spec = InferenceSpec(checkpoint="weights.pt", height=32, width=256, **clustering)
+    setup.executor = RayJobExecutor(ADDRESS, _models(spec), api=api, poll_s=0.01)
+    args = (setup.entries, setup.data, ["08", "11"], setup.out, lambda *c: None, setup.control)
+    assert setup.executor.predict(*args, panoptic=True) == {}
+
+    def spec_of(command: str) -> dict:
+        argv = shlex.split(command)
+        return json.loads(argv[argv.index("--inference-spec") + 1])
+
+    found = spec_of(api.submitted[0][1])
+    assert {k: found.get(k) for k in clustering} == clustering
+    plain = setup.executor.entrypoint(
+        DatasetSelection(setup.data, ("08",), KITTI_LAYOUT), setup.out
+    )
+    assert "panoptic" not in spec_of(plain) and spec_of(plain)["cluster_angle"] == 20.0

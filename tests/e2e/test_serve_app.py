@@ -305,6 +305,41 @@ def test_scans_through_serve_get_rangeret_predicts_labels(deployed, gateway, tmp
 
 
 @pytest.mark.slow
+def test_panoptic_scans_through_serve_get_rangeret_predict_panoptic_labels(
+    deployed, gateway, tmp_path
+):
+    """`panoptic=true` reaches the replica, whose answer carries the objects: the gateway
+    answers the `.label` of `rangeret predict --panoptic`, each point's object in JSON and the
+    object count in `X-RangeRet-Instances`."""
+    data = build_tree(tmp_path / "data", labelled=1, unlabelled=1)
+    argv = ["predict", "-q", "--dataset", str(data), "--out", str(tmp_path / "pred")]
+    net = ["--checkpoint", str(deployed["weights"]), "--height", "32", "--width", "256"]
+    assert (
+        rangeret_main([*argv, "--sequences", "08", "11", *net, "--device", "cpu", "--panoptic"])
+        == 0
+    )
+    with gateway.client() as client:
+        for scan in sorted(data.rglob("*.bin")):
+            seq = scan.parent.parent.name
+            expected = tmp_path / "pred" / "sequences" / seq / "predictions" / f"{scan.stem}.label"
+            raw = client.post(
+                "/v1/scans", params={"panoptic": "true"}, content=scan.read_bytes(), headers=OCTET
+            )
+            as_json = client.post(
+                "/v1/scans",
+                params={"panoptic": "true", "format": "json"},
+                content=scan.read_bytes(),
+                headers=OCTET,
+            )
+            assert raw.status_code == as_json.status_code == 200, (raw.text, as_json.text)
+            assert raw.content == expected.read_bytes()
+            labels = read_labels(expected)
+            objects = np.unique(labels >> 16)
+            assert raw.headers["x-rangeret-instances"] == str(np.count_nonzero(objects))
+            assert as_json.json()["instances"] == (labels >> 16).tolist()
+
+
+@pytest.mark.slow
 def test_a_gateway_with_other_weights_than_serves_refuses_to_start(deployed, tmp_path):
     other = _other(deployed["weights"], tmp_path / "other.pt")
     env = gateway_env(tmp_path / "state", [tmp_path], RANGERET_SERVE_URL=deployed["url"])

@@ -5,7 +5,8 @@ The real scan is dropped and drawn with the gateway's labels, counts and scores;
 shows the palette; an uploaded archive is followed to its report, the status line to the job's
 end; the colour modes wrap inside their panel; the demo weights are named beside the model; the
 token rule holds; the page works behind a reverse proxy's path prefix; the policy header is sent
-and the console stays clean.
+and the console stays clean. With "find its objects", a scan is coloured by object and its objects
+listed as the gateway found them, and a panoptic archive job shows its panoptic report.
 The screenshots are kept in runs/page/ for a person to look at.
 """
 
@@ -424,7 +425,7 @@ def test_the_colour_modes_wrap_inside_the_side_panel(setup, page):
     side, modes = boxes["side"], boxes["modes"]
     assert side["scroll"] <= side["client"]
     assert side["left"] <= modes["left"] and modes["right"] <= side["right"]
-    assert len(boxes["labels"]) == 3
+    assert len(boxes["labels"]) == 4  # prediction, objects, ground truth, error
     for label in boxes["labels"]:
         assert label["lines"] == 1, boxes["labels"]
         assert modes["left"] <= label["left"] and label["right"] <= modes["right"], label
@@ -655,3 +656,142 @@ def test_the_page_labels_a_scan_with_the_model_chosen_in_its_selector(
         assert shown["classCounts"] == answers["nu"]["class_counts"]
     finally:
         gw.stop()
+
+
+# Panoptic: objects ---------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def panoptic(setup, tmp_path_factory) -> Iterator[dict]:
+    """A gateway of random weights that find dozens of objects in the real scan, and its own
+    JSON answer with `panoptic=true` for the small scan."""
+    from tests.service.panoptic_weights import panoptic_weights
+
+    base = tmp_path_factory.mktemp("page-panoptic")
+    env = gateway_env(base / "state", [base])
+    gw = start_gateway(panoptic_weights(base), env, base / "gateway.log")
+    try:
+        with gw.client() as client:
+            answer = client.post(
+                "/v1/scans",
+                params={"panoptic": "true", "format": "json"},
+                content=setup["small"].read_bytes(),
+                headers={"Content-Type": "application/octet-stream"},
+            )
+        assert answer.status_code == 200, answer.text
+        yield {"gateway": gw, "answer": answer.json()}
+    finally:
+        gw.stop()
+
+
+def _rgb(css: str) -> tuple[int, int, int]:
+    """An `rgb(r, g, b)` colour of the computed style."""
+    return tuple(int(v) for v in re.findall(r"\d+", css)[:3])
+
+
+def test_a_panoptic_scan_is_coloured_by_object_and_its_objects_are_listed(
+    setup, panoptic, page, capsys
+):
+    tab, log = page
+    answer = panoptic["answer"]
+    objects = answer["objects"]
+    assert len(objects) > 5
+    tab.goto(panoptic["gateway"].url + "/")
+    sign_in(tab)
+    tab.wait_for_selector("#panoptic-choice:not([hidden])")
+    tab.check("#panoptic")
+    tab.set_input_files("#scan-files", [str(setup["small"])])
+    tab.wait_for_function("() => window.rangeretPage.state.scan.rendered", timeout=180_000)
+    shown = state(tab, ".scan")
+    assert shown["objects"] == objects and shown["mode"] == "objects"
+    assert shown["classCounts"] == answer["class_counts"]
+    assert tab.is_checked("#color-modes input[value=objects]")
+    assert tab.inner_text("#objects-title") == f"Objects ({len(objects)})"
+    assert tab.locator("#object-list tbody tr").count() == len(objects)
+    largest = max(objects, key=lambda o: o["points"])
+    row = tab.locator(f"#object-list tr[data-object='{largest['instance']}']")
+    assert row.inner_text().split() == [
+        str(largest["instance"]),
+        largest["class_name"],
+        f"{largest['points']:,}",
+    ]
+    color = _rgb(
+        row.locator(".swatch").evaluate("(node) => getComputedStyle(node).backgroundColor")
+    )
+    shoot(tab, "panoptic-scan.png", capsys)
+
+    # Thing points take their object's colour, the others their class's.
+    profile = state(tab, ".profile")
+    palette = {cls["name"]: hex_rgb(cls["color"]) for cls in profile["classes"]}
+    stuff = [n for n in answer["class_counts"] if n not in profile["panoptic"]["things"]]
+    by_object = viewer_pixels(tab)
+    assert pixels_of(by_object, color) >= 10
+    common = max(stuff, key=answer["class_counts"].get)
+    assert pixels_of(by_object, palette[common]) >= 50
+    swatches = tab.locator("#object-list .swatch").evaluate_all(
+        "(nodes) => nodes.map((node) => getComputedStyle(node).backgroundColor)"
+    )
+    assert len({_rgb(c) for c in swatches}) >= len(objects) - 1  # a colour per object, nearly
+    tab.check("#color-modes input[value=prediction]")
+    assert pixels_of(viewer_pixels(tab), color) < pixels_of(by_object, color)
+    assert log.errors == [] and log.failed == []
+
+
+def test_a_panoptic_archive_job_shows_its_panoptic_report(setup, panoptic, page, capsys):
+    tab, log = page
+    gw: Gateway = panoptic["gateway"]
+    tab.goto(gw.url + "/")
+    sign_in(tab)
+    tab.wait_for_selector("#tabs:not([hidden])")
+    tab.click("nav button[data-tab=jobs]")
+    tab.set_input_files("#archive-file", str(setup["archive"]))
+    tab.check("#archive-form input[name=panoptic]")
+    tab.click("#archive-form button[type=submit]")
+    tab.wait_for_function("() => window.rangeretPage.state.jobs.some((job) => job.panoptic)")
+    job_id = next(j["id"] for j in state(tab, ".jobs") if j["panoptic"])
+    row = f"#jobs-table tr[data-job='{job_id}']"
+    tab.wait_for_selector(f"{row}[data-state=succeeded]", timeout=180_000)
+    assert "archive, panoptic" in tab.inner_text(row)
+    status = tab.inner_text("#jobs-status")
+    pattern = rf"Job {job_id[:8]} succeeded: 2 / 2 scans, mIoU \d+\.\d %, PQ \d+\.\d %\."
+    assert re.fullmatch(pattern, status), status
+    tab.click(f"{row} button:text-is('Report')")
+    tab.wait_for_selector("#report-distance tbody tr")
+    with gw.client() as client:
+        report = client.get(f"/v1/jobs/{job_id}/report").json()
+    shown = state(tab, ".report")
+    assert shown["panoptic"] is True and shown["job"] == job_id
+    assert shown["pq"] == report["pq_mean"] == report["headline"]["pq"]
+    assert shown["miou"] == report["iou_mean"] and shown["sequences"] == ["08"]
+    assert shown["bands"] == 6 and shown["plots"] == []
+    assert tab.locator("#report-classes tbody tr").count() == len(report["classes"])
+    things = set(state(tab, ".profile.panoptic.things"))
+    marked = tab.locator("#report-classes tr[data-thing=true]").count()
+    assert marked == len(things & set(report["classes"])) > 0
+    overall = tab.inner_text("#report-overall")
+    assert f"{100 * report['pq_mean']:.1f}" in overall and "semantickitti-panoptic" in overall
+    shoot(tab, "panoptic-report.png", capsys)
+    # A nuScenes-panoptic report's parts (`all`, then a key per class) read the same way.
+    devkit = {
+        "min_m": 0,
+        "max_m": 10,
+        "all": {"PQ": 0.5, "SQ": 0.6, "RQ": 0.7, "mIoU": 0.4, "PQ_dagger": 0.45},
+        "car": {"PQ": 0.9, "SQ": 0.95, "RQ": 0.92, "IoU": 0.8},
+    }
+    read = tab.evaluate(
+        """async (part) => {
+          const app = document.querySelector('script[type=module]').src;
+          const { panopticScores } = await import(app.replace(/app\\.js$/, 'report.js'));
+          return panopticScores(part);
+        }""",
+        devkit,
+    )
+    assert read == {
+        "pq": 0.5,
+        "sq": 0.6,
+        "rq": 0.7,
+        "pq_dagger": 0.45,
+        "miou": 0.4,
+        "classes": {"car": {"pq": 0.9, "sq": 0.95, "rq": 0.92, "iou": 0.8}},
+    }
+    assert log.errors == [] and log.failed == []

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from rangeret.dataset.layout import prediction_path
+from rangeret.dataset.layout import KITTI_LAYOUT, prediction_path
 from rangeret.dataset.profiles import load_profile
 from rangeret.inference.results import ScanPrediction
 from rangeret.io.scans import write_labels
@@ -63,7 +63,7 @@ _VERSION_1_TABLE = """CREATE TABLE jobs (
 
 
 def _old_database(path: Path, version: int, job_id: str) -> None:
-    """A file of schema version 1, 2 or 3 (stamped `version`: 0 is a file from before the
+    """A file of schema version 1, 2, 3 or 4 (stamped `version`: 0 is a file from before the
     version was kept) holding one running job with counts, started twice."""
     db = sqlite3.connect(path)
     try:
@@ -73,6 +73,9 @@ def _old_database(path: Path, version: int, job_id: str) -> None:
             db.execute("ALTER TABLE jobs ADD COLUMN submission INTEGER NOT NULL DEFAULT 0")
         if version >= 3:
             db.execute("ALTER TABLE jobs ADD COLUMN model TEXT")
+        if version >= 4:
+            db.execute("ALTER TABLE jobs ADD COLUMN version TEXT")
+            db.execute("ALTER TABLE jobs ADD COLUMN split TEXT")
         db.execute(
             "INSERT INTO jobs (id, kind, state, dataset, sequences, created, total, done, "
             "attempts, started) VALUES (?, 'archive', 'running', '/data', '[\"11\"]', 1.0, 5, 3, "
@@ -98,23 +101,36 @@ def test_a_new_database_is_stamped_with_the_schema_version(tmp_path):
     store = JobStore(path)
     store.create("a" * 32, "dataset", tmp_path, ["08"], model="panda")
     store.create("d" * 32, "dataset", tmp_path, ["scene-0103"], "nu", "v1.0-mini", "mini_val")
+    store.create("e" * 32, "archive", tmp_path, ["08"], panoptic=True)
     store.close()
-    assert _user_version(path) == SCHEMA_VERSION == 4
-    assert _columns(path)[-5:] == ["attempts", "submission", "model", "version", "split"]
+    assert _user_version(path) == SCHEMA_VERSION == 5
+    assert _columns(path)[-6:] == [
+        "attempts",
+        "submission",
+        "model",
+        "version",
+        "split",
+        "panoptic",
+    ]
     again = JobStore(path)
     try:
         record = again.get("a" * 32)
         assert record.state is JobState.queued and record.submission == 0
         assert (record.model, record.version, record.split) == ("panda", None, None)
+        assert record.panoptic is False and record.selection(KITTI_LAYOUT).panoptic is False
         nuscenes = again.get("d" * 32)
         assert (nuscenes.model, nuscenes.version, nuscenes.split) == ("nu", "v1.0-mini", "mini_val")
+        panoptic = again.get("e" * 32)
+        assert panoptic.panoptic is True and panoptic.selection(KITTI_LAYOUT).panoptic is True
     finally:
         again.close()
     assert _user_version(path) == SCHEMA_VERSION
 
 
 @pytest.mark.parametrize(
-    "version", [0, 1, 2, 3], ids=["before-versions", "version-1", "version-2", "version-3"]
+    "version",
+    [0, 1, 2, 3, 4],
+    ids=["before-versions", "version-1", "version-2", "version-3", "version-4"],
 )
 def test_an_older_database_is_migrated_and_keeps_its_jobs(tmp_path, version):
     path = tmp_path / "jobs.sqlite"
@@ -127,11 +143,12 @@ def test_an_older_database_is_migrated_and_keeps_its_jobs(tmp_path, version):
         assert record.submission == 0
         assert record.model is None  # from before models: the default model's
         assert (record.version, record.split) == (None, None)  # from before tables layouts
+        assert record.panoptic is False  # from before panoptic jobs
         assert reopened.next_submission("b" * 32) == 1
     finally:
         reopened.close()
     assert _user_version(path) == SCHEMA_VERSION
-    assert _columns(path)[-4:] == ["submission", "model", "version", "split"]
+    assert _columns(path)[-5:] == ["submission", "model", "version", "split", "panoptic"]
     again = JobStore(path)  # a migrated file opens as it is
     try:
         assert again.get("b" * 32).submission == 1
@@ -203,7 +220,7 @@ class FakeLabeller:
     async def stop(self):
         return None
 
-    async def label_points(self, points, knn=True, confidence=False, *, model):
+    async def label_points(self, points, knn=True, confidence=False, panoptic=False, *, model):
         return ScanPrediction(np.full(len(points), 40, dtype=np.uint32))
 
     def depth(self):

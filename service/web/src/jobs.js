@@ -1,11 +1,12 @@
 /**
  * "Jobs": every job with its state and live progress (`GET v1/jobs`, polled), a job's report,
  * downloads of its predictions archive and report, cancelling and removing jobs, and starting
- * jobs from an uploaded archive or from a dataset on the server.
+ * jobs from an uploaded archive or from a dataset on the server, panoptic ones (objects too)
+ * where the model's profile names thing classes.
  */
 
 import { count, el, fillBody, percent, saveBlob } from './dom.js';
-import { reportView } from './report.js';
+import { panopticReportView, panopticScores, reportView } from './report.js';
 
 const ACTIVE = new Set(['queued', 'running']);
 const POLL_ACTIVE_MS = 1000;
@@ -44,11 +45,12 @@ export class JobsPanel {
     const scans = `${count(job.done)} / ${count(job.total)} scans`;
     const failed = job.failed ? `, ${count(job.failed)} failed` : '';
     const miou = job.metrics ? `, mIoU ${percent(job.metrics.miou)} %` : '';
+    const pq = job.metrics && job.metrics.pq != null ? `, PQ ${percent(job.metrics.pq)} %` : '';
     const reason = job.reason ? `: ${job.reason.replace(/\.$/, '')}` : '';
     const text = {
       queued: `${name} is queued.`,
       running: `${name} is running: ${scans}${failed}.`,
-      succeeded: `${name} succeeded: ${scans}${failed}${miou}.`,
+      succeeded: `${name} succeeded: ${scans}${failed}${miou}${pq}.`,
       failed: `${name} failed${reason}.`,
       cancelled: `${name} was cancelled${reason}.`,
     }[job.state];
@@ -60,6 +62,10 @@ export class JobsPanel {
   setModel(modelId, profile) {
     this.modelId = modelId;
     this.profile = profile;
+    for (const choice of document.querySelectorAll('.panoptic-job')) {
+      choice.hidden = !profile.panoptic;
+      if (!profile.panoptic) choice.querySelector('input').checked = false;
+    }
   }
 
   start() {
@@ -128,7 +134,7 @@ export class JobsPanel {
           'tr',
           { 'data-job': job.id, 'data-state': job.state },
           el('td', { class: 'mono', title: job.id, text: job.id.slice(0, 8) }),
-          el('td', { text: job.kind }),
+          el('td', { text: job.panoptic ? `${job.kind}, panoptic` : job.kind }),
           el('td', { text: job.sequences.join(' ') }),
           el('td', { class: `state ${job.state}`, text: job.state, title: job.reason || '' }),
           el(
@@ -169,7 +175,9 @@ export class JobsPanel {
     try {
       const report = await this.api.json(`v1/jobs/${job.id}/report`);
       const profile = await this.profileOf(job.model);
-      this.report.replaceChildren(...reportView(report, job, profile));
+      const panoptic = report.task === 'panoptic';
+      const view = panoptic ? panopticReportView : reportView;
+      this.report.replaceChildren(...view(report, job, profile));
       this.report.hidden = false;
       this.state.report = {
         job: job.id,
@@ -178,6 +186,15 @@ export class JobsPanel {
         bands: (report.per_distance || []).length,
         plots: [],
       };
+      if (panoptic) {
+        const overall = panopticScores(report);
+        Object.assign(this.state.report, {
+          panoptic: true,
+          miou: overall.miou,
+          pq: overall.pq,
+          classes: Object.keys(overall.classes),
+        });
+      }
       this.report.scrollIntoView({ block: 'start' });
       await this.showPlots(job);
     } catch (error) {
@@ -227,7 +244,9 @@ export class JobsPanel {
     const body = new FormData();
     body.append('archive', file, file.name);
     this.say(`Uploading ${file.name}…`);
-    await this.create(body, {}, `v1/jobs/uploads?model=${encodeURIComponent(this.modelId)}`);
+    const panoptic = form.elements.panoptic.checked ? '&panoptic=true' : '';
+    const path = `v1/jobs/uploads?model=${encodeURIComponent(this.modelId)}${panoptic}`;
+    await this.create(body, {}, path);
     form.reset();
   }
 
@@ -241,6 +260,7 @@ export class JobsPanel {
     }
     const request = split ? { dataset, split } : { dataset, sequences };
     request.model = this.modelId;
+    if (form.elements.panoptic.checked) request.panoptic = true;
     await this.create(JSON.stringify(request), { 'Content-Type': 'application/json' });
   }
 

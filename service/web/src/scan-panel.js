@@ -2,10 +2,13 @@
  * "Label a scan": a dropped `.bin` goes to `POST v1/scans` (JSON answer); the scan is drawn in 3D
  * coloured by its predicted class, by its ground truth (an optional `.label`) or by error, in the
  * served profile's palette, with a legend that hides and shows classes, the points per class and,
- * with ground truth, the IoU table.
+ * with ground truth, the IoU table. With "find its objects" (a profile with thing classes) the
+ * scan is labelled with `panoptic=true`: each object's points take a colour of their own, stuff
+ * keeps its class's, and the objects are listed with their class and points.
  */
 
 import { ScanView } from './scan-view.js';
+import { objectColor, semanticLabels } from './objects.js';
 import { classCounts, classLookup, histogram, scores, toClasses } from './scores.js';
 import { count, el, fillBody, percent, saveBlob, swatch } from './dom.js';
 
@@ -30,10 +33,11 @@ export class ScanPanel {
     this.view = null;
     this.mode = 'prediction';
     this.hidden = new Set();
-    this.scan = null; // { name, predicted, truth } of the scan shown
+    this.scan = null; // { name, predicted, truth, instances, objects } of the scan shown
     this.status = document.getElementById('scan-status');
     this.legend = document.getElementById('legend');
     this.modes = document.getElementById('color-modes');
+    this.panoptic = document.getElementById('panoptic');
 
     const zone = document.getElementById('drop-zone');
     const input = document.getElementById('scan-files');
@@ -73,6 +77,9 @@ export class ScanPanel {
     this.modelId = modelId;
     this.lookup = classLookup(profile);
     this.palette = profile.classes.map((cls) => rgb(cls.color));
+    // Objects are offered only where the profile names thing classes.
+    document.getElementById('panoptic-choice').hidden = !profile.panoptic;
+    if (!profile.panoptic) this.panoptic.checked = false;
   }
 
   say(text, isError = false) {
@@ -119,7 +126,10 @@ export class ScanPanel {
     this.say(`Labelling ${scanFile.name} (${count(points)} points)…`);
     let answer;
     try {
-      const query = this.modelId ? `?model=${encodeURIComponent(this.modelId)}` : '';
+      const params = new URLSearchParams();
+      if (this.modelId) params.set('model', this.modelId);
+      if (this.panoptic.checked && this.profile.panoptic) params.set('panoptic', 'true');
+      const query = params.toString() ? `?${params}` : '';
       answer = await this.api.json(`v1/scans${query}`, {
         method: 'POST',
         headers: { 'Content-Type': 'application/octet-stream' },
@@ -130,16 +140,19 @@ export class ScanPanel {
       return;
     }
     if (!this.view) this.view = new ScanView(document.getElementById('viewer'));
+    // A panoptic answer's labels pack each point's object beside its label.
+    const withObjects = Array.isArray(answer.instances);
+    const labels = withObjects ? semanticLabels(answer.labels, this.profile.panoptic) : answer.labels;
     // A profile whose predictions are class indices (nuScenes) answers them as they are.
     const predicted =
-      this.profile.predictions === 'class'
-        ? Uint8Array.from(answer.labels)
-        : toClasses(answer.labels, this.lookup);
+      this.profile.predictions === 'class' ? Uint8Array.from(labels) : toClasses(labels, this.lookup);
     const truth = truthRaw ? toClasses(truthRaw, this.lookup) : null;
-    this.scan = { name: scanFile.name, predicted, truth };
+    const instances = withObjects ? Uint32Array.from(answer.instances) : null;
+    const objects = withObjects ? answer.objects : [];
+    this.scan = { name: scanFile.name, predicted, truth, instances, objects };
     this.hidden.clear();
-    this.mode = 'prediction';
-    this.modes.querySelector('input[value="prediction"]').checked = true;
+    this.mode = withObjects ? 'objects' : 'prediction';
+    this.modes.querySelector(`input[value="${this.mode}"]`).checked = true;
     this.view.show(new Float32Array(bytes), pointBytes / 4);
     this.recolor();
     await this.view.drawn();
@@ -152,6 +165,7 @@ export class ScanPanel {
       drawnPoints: this.view.points.geometry.getAttribute('position').count,
       classCounts: classCounts(predicted, this.profile),
       truthCounts: truth ? classCounts(truth, this.profile) : null,
+      objects: withObjects ? objects.map((o) => ({ ...o })) : null,
       scores: scored,
       mode: this.mode,
       hidden: [],
@@ -162,14 +176,17 @@ export class ScanPanel {
     for (const value of ['truth', 'error']) {
       this.modes.querySelector(`input[value="${value}"]`).disabled = !truth;
     }
+    this.modes.querySelector('input[value="objects"]').disabled = !withObjects;
     document.getElementById('show-all').disabled = false;
     document.getElementById('save-image').disabled = false;
     this.drawCounts();
+    this.drawObjects(withObjects);
     this.drawScores(scored);
     this.drawLegend();
+    const found = withObjects ? ` ${count(objects.length)} objects.` : '';
     this.say(
       `${scanFile.name}: ${count(answer.num_points)} points, labelled and drawn in ` +
-        `${Math.round(firstRenderMs)} ms.${truth ? ` mIoU ${percent(scored.miou)} %.` : ''}`,
+        `${Math.round(firstRenderMs)} ms.${found}${truth ? ` mIoU ${percent(scored.miou)} %.` : ''}`,
     );
   }
 
@@ -186,12 +203,18 @@ export class ScanPanel {
     const hidden = new Uint8Array(this.profile.classes.length);
     for (const index of this.hidden) hidden[index] = 1;
     const ignored = this.profile.classes.map((cls) => cls.ignored);
+    const instances = this.mode === 'objects' ? this.scan.instances : null;
+    const objectColors = new Map();
     for (let i = 0, o = 0; i < shown.length; i++, o += 4) {
       const c = shown[i];
       let color;
       if (this.mode === 'error') {
         if (ignored[truth[i]]) color = IGNORED;
         else color = predicted[i] === truth[i] ? RIGHT : WRONG;
+      } else if (instances && instances[i]) {
+        const id = instances[i];
+        if (!objectColors.has(id)) objectColors.set(id, objectColor(id));
+        color = objectColors.get(id);
       } else {
         color = this.palette[c];
       }
@@ -221,6 +244,13 @@ export class ScanPanel {
           ' ignored ground truth',
         ),
         el('p', { class: 'hint', text: 'Hide points by their predicted class:' }),
+      );
+    } else if (this.mode === 'objects') {
+      items.push(
+        el('p', {
+          class: 'hint',
+          text: "Each object's points take its own colour; the other points their class's.",
+        }),
       );
     }
     this.profile.classes.forEach((cls, index) => {
@@ -263,6 +293,27 @@ export class ScanPanel {
         ),
       );
     fillBody(document.getElementById('class-counts'), rows);
+  }
+
+  /** The objects of a panoptic answer: each with its colour, id, class and points. */
+  drawObjects(withObjects) {
+    const box = document.getElementById('objects');
+    box.hidden = !withObjects;
+    if (!withObjects) return;
+    const { objects } = this.scan;
+    document.getElementById('objects-title').textContent = `Objects (${count(objects.length)})`;
+    fillBody(
+      document.getElementById('object-list'),
+      objects.map((object) =>
+        el(
+          'tr',
+          { 'data-object': object.instance, 'data-class': object.class_name },
+          el('td', {}, swatch(cssColor(objectColor(object.instance))), ` ${object.instance}`),
+          el('td', { text: object.class_name }),
+          el('td', { text: count(object.points) }),
+        ),
+      ),
+    );
   }
 
   drawScores(scored) {
