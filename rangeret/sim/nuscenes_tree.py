@@ -54,6 +54,8 @@ LIDAR_TRANSLATION = (0.985793, 0.0, 1.84019)
 AZIMUTH_STEPS = 1086
 #: Scenes written when none are asked for: two of mini_train and both of mini_val.
 DEFAULT_SCENES = {"scene-0061": 3, "scene-0553": 2, "scene-0103": 3, "scene-0916": 2}
+
+
 def _token(*parts: object) -> str:
     """A 32-hex-digit token, like nuScenes', from the seed and names."""
     return hashlib.sha256("/".join(map(str, parts)).encode()).hexdigest()[:32]
