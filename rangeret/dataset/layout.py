@@ -85,6 +85,11 @@ class SequenceLayout:
         return SHIFTED
 
     @property
+    def panoptic_file(self) -> LabelFile:
+        """Its panoptic label files: `.label` files of uint32, as the semantic ones."""
+        return KITTI_LABELS
+
+    @property
     def folders(self) -> SequenceLayout:
         """The layout as folders of sequences: itself."""
         return self
@@ -234,6 +239,11 @@ class DatasetLayout(Protocol):
     @property
     def panoptic_encoding(self) -> PanopticEncoding:
         """How its panoptic labels pack a point's semantic label and its object."""
+        ...
+
+    @property
+    def panoptic_file(self) -> LabelFile | NpzLabelFile:
+        """How its panoptic label and prediction files hold one label per point."""
         ...
 
     @property

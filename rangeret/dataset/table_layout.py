@@ -32,7 +32,7 @@ from rangeret.dataset.nuscenes_tables import (
 )
 from rangeret.dataset.table_upload_rules import NuScenesRules
 from rangeret.dataset.upload_rules import ArchiveRules
-from rangeret.io.panoptic_labels import PANOPTIC_NPZ, THOUSANDS, PanopticEncoding
+from rangeret.io.panoptic_labels import PANOPTIC_NPZ, THOUSANDS, NpzLabelFile, PanopticEncoding
 from rangeret.io.scans import LabelFile, PointRecord
 
 #: nuScenes-lidarseg's label and prediction files: one uint8 per point.
@@ -81,6 +81,11 @@ class TableLayout:
     def panoptic_encoding(self) -> PanopticEncoding:
         """nuScenes-panoptic's labels: 1000 x class + instance, in `_panoptic.npz` files."""
         return THOUSANDS
+
+    @property
+    def panoptic_file(self) -> NpzLabelFile:
+        """nuScenes-panoptic's `_panoptic.npz` files: one uint16 array `data`."""
+        return PANOPTIC_NPZ
 
     def normalise(self, name: str | int) -> str:
         """Scene names are kept as written (`scene-0103`)."""
@@ -182,7 +187,7 @@ class TableLayout:
                         label,
                         prediction,
                         f"confidence/{folder}/{frame.token}.npy",
-                        PANOPTIC_NPZ if panoptic else self.label_file,
+                        self.panoptic_file if panoptic else self.label_file,
                     )
                 )
         return result

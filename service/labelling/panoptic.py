@@ -18,7 +18,6 @@ import numpy as np
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.inference.settings import ClusterSettings
 from rangeret.inference.spec import InferenceSpec
-from rangeret.io.panoptic_labels import PANOPTIC_NPZ
 
 if TYPE_CHECKING:
     from rangeret.inference.scan_worker import ScanWorker
@@ -56,11 +55,9 @@ def clustered_worker(worker: ScanWorker, clustering: ClusterSettings) -> ScanWor
 
 def panoptic_dtype(profile: DatasetProfile) -> np.dtype:
     """The little-endian width of the profile's panoptic labels, as its benchmark's panoptic
-    files hold them: uint32 `.label` files where the instance is the high part (SemanticKITTI),
-    else the uint16 of nuScenes-panoptic's `.npz` files."""
-    if profile.layout.panoptic_encoding.instance_high:
-        return np.dtype("<u4")
-    return PANOPTIC_NPZ.dtype
+    files hold them: uint32 in SemanticKITTI's `.label` files, uint16 in nuScenes-panoptic's
+    `.npz` files."""
+    return profile.layout.panoptic_file.dtype
 
 
 def label_classes(profile: DatasetProfile, labels: np.ndarray, panoptic: bool) -> np.ndarray:
