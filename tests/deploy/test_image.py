@@ -32,6 +32,7 @@ INSTALLED = [
     "pyyaml",
     "tqdm",
     "matplotlib",
+    "scipy",
     "ray[default,data,serve]",
     "fastapi",
     "starlette",
