@@ -47,6 +47,8 @@ class Health(HealthSummary):
                     "backend": "local",
                     "workers": [{"pid": 4242, "model": "rangeret-cir", "device": "cpu"}],
                     "precision": "fp32",
+                    "precision_reason": "asked for (fp32 is the default); auto would pick bf16 "
+                    "here: this CPU has AMX bf16 (amx_bf16)",
                     "queue_depth": 0,
                     "batch_size": 4,
                     "batch_wait_ms": 10.0,
@@ -67,6 +69,12 @@ class Health(HealthSummary):
     workers: list[dict[str, Any]] = Field(description="one description per model worker")
     precision: str | None = Field(
         None, description="the forward pass precision of the workers (fp32, fp16 or bf16)"
+    )
+    precision_reason: str | None = Field(
+        None,
+        description="why the workers run at that precision: what `--precision auto` picks on "
+        "this machine and why, or that another was asked for (one clause per precision, "
+        "`fp32: ...; bf16: ...`, where the workers run at several)",
     )
     queue_depth: int = Field(ge=0, description="single-scan requests waiting or in the network")
     batch_size: int
@@ -187,6 +195,8 @@ class ServedModel(BaseModel):
                     "profile": "semantickitti",
                     "demo_weights": False,
                     "note": None,
+                    "precision": "bf16",
+                    "precision_reason": "auto's pick here: this CPU has AMX bf16 (amx_bf16)",
                 },
                 {
                     "id": "kitti",
@@ -197,6 +207,9 @@ class ServedModel(BaseModel):
                     "note": "Demo weights: trained on simulated scenes only, so their labels of "
                     "real scans are not meaningful. Serve a published model with rangeret serve "
                     "--checkpoint rangeret-kitti-657 (see rangeret weights list).",
+                    "precision": "fp32",
+                    "precision_reason": "asked for (fp32 is the default); auto would pick bf16 "
+                    "here: NVIDIA H200 runs bf16 natively",
                 },
             ]
         }
@@ -216,6 +229,16 @@ class ServedModel(BaseModel):
         default=None,
         description="with the demo weights: what they are and how to serve a published model "
         "instead (one or two sentences, for a page to show beside the model's name)",
+    )
+    precision: str | None = Field(
+        default=None,
+        description="the precision of the model's forward pass (fp32, fp16 or bf16), its "
+        "--precision resolved on this machine; null where the Serve application runs it",
+    )
+    precision_reason: str | None = Field(
+        default=None,
+        description="why: what `--precision auto` picks on this machine and why, or that "
+        "another was asked for",
     )
 
 

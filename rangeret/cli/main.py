@@ -1,5 +1,5 @@
 """The `rangeret` command: predict, evaluate, compare reports, submission archives, training,
-simulation and adapting a dataset to another sensor.
+simulation, adapting a dataset to another sensor and a speed card of this machine.
 
 This module builds the parser and dispatches; each library subcommand lives in its own module of
 `rangeret.cli` (its options and body), and `serve`, `demo` and `train --ray` come from the layers
@@ -17,6 +17,7 @@ from collections.abc import Sequence
 
 from rangeret.cli import (
     adapt,
+    bench,
     compare,
     evaluate,
     export,
@@ -68,6 +69,7 @@ BUILTIN_COMMANDS = (
     profile.COMMAND,
     weights.COMMAND,
     export.COMMAND,
+    bench.COMMAND,
 )
 
 

@@ -1,6 +1,7 @@
 """The fields a network run (`InferenceSpec`) and a training run (`TrainConfig`) share, each
 declared once: the dataset profile, the network, the range image's rows, columns and vertical
-field of view, and how the network's passes run (scans per pass, device, precision).
+field of view, and how the network's passes run (scans per pass, device, precision: fp32 unless
+asked for in a network run, auto in a training run).
 
 A `FieldSchema` holds a field's name, kind, default, allowed values (choices, or the least and the
 most integer) and help. `rangeret.inference.spec` declares every field of `InferenceSpec` with
@@ -139,10 +140,17 @@ BATCH_SIZE = FieldSchema(
     "batch_size", int, "scans per network pass", default=1, metavar="N", minimum=1
 )
 DEVICE = FieldSchema("device", str, "auto picks CUDA when present", default="auto", choices=DEVICES)
+#: What `--precision auto` picks (`rangeret.inference.runtime.precision.auto_choice`).
+AUTO_RULE = (
+    "auto is bf16 where the CPU (AMX or AVX-512 bf16) or the CUDA device runs bf16 natively, "
+    "fp32 elsewhere"
+)
 PRECISION = FieldSchema(
     "precision",
     str,
-    "precision of the network's passes; auto is fp16 on CUDA and fp32 on the CPU",
-    default="auto",
+    f"precision of the network's passes; {AUTO_RULE}",
+    default="fp32",
     choices=PRECISIONS,
 )
+#: A training run's precision: mixed precision by the auto rule unless another is asked for.
+TRAINING_PRECISION = dataclasses.replace(PRECISION, default="auto")

@@ -1,9 +1,10 @@
 """`run.json`: how a predictions tree was made, written beside it by every runner the same way.
 
 It records the network (model, checkpoint and its SHA-256, whether these are the demo weights,
-the checkpoint they were fine-tuned from, projection, kNN, test-time augmentation, device), the
-data (dataset, sequences), the batch size, the runner and the start time, so that any tree can
-be traced back to what produced it. Its top-level keys describe the latest run into the tree;
+the checkpoint they were fine-tuned from, projection, kNN, test-time augmentation, device,
+precision, and why that precision where the network ran in the writing process), the data
+(dataset, sequences), the batch size, the runner and the start time, so that any tree can be
+traced back to what produced it. Its top-level keys describe the latest run into the tree;
 `runs` lists every run that wrote into it, oldest first (a record written before runs were
 listed becomes the first entry). A run with other weights than those whose predictions the tree
 holds is refused unless it overwrites. An output that is not a tree (a labelled bag) gets one
@@ -39,6 +40,7 @@ RUN_KEYS = (
     "network_profile",
     "label_map",
     "precision",
+    "precision_reason",
     "backend",
     "device",
     "batch_size",
@@ -180,14 +182,29 @@ def run_record(
     details: Mapping[str, Any],
     started: str | None = None,
 ) -> dict[str, Any]:
-    """One run's record: the network, `details` (what the run read and wrote), the runner and
-    its start time (`started`, else now)."""
+    """One run's record: the network (with why it ran at its precision, where this process
+    chose it), `details` (what the run read and wrote), the runner and its start time
+    (`started`, else now)."""
     return {
         **network,
+        **precision_reason(network),
         **details,
         "runner": runner,
         "started": started or started_now(),
     }
+
+
+def precision_reason(network: Mapping[str, Any]) -> dict[str, str]:
+    """`{"precision_reason": why}` for a network whose precision this process resolved as it
+    loaded it (`rangeret.inference.runtime.precision.resolved_reason`), else {}: a record written
+    where the network runs elsewhere says only what was asked for."""
+    from rangeret.inference.runtime.precision import resolved_reason
+
+    precision, device = network.get("precision"), network.get("device")
+    if "precision_reason" in network or not precision or not device:
+        return {}
+    reason = resolved_reason(str(precision), str(device), str(network.get("backend", "torch")))
+    return {} if reason is None else {"precision_reason": reason}
 
 
 def started_now() -> str:

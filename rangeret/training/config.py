@@ -11,8 +11,8 @@ resume state, and a resumed run must agree with it on every field that changes t
 (`RUNTIME_FIELDS` are the ones that may differ). The dataset profile is held by name (a built-in)
 or by absolute file path; `dataset_profile()` resolves it with the explicit options in its place.
 `precision` is one of `rangeret.inference.runtime.precision.PRECISIONS`; the trainer records the
-one it resolves to (`auto` is fp16 on CUDA, fp32 on the CPU), so a resumed run keeps the
-arithmetic it started with.
+one it resolves to (`auto` as `rangeret.inference.runtime.precision.auto_choice` picks), so a
+resumed run keeps the arithmetic it started with.
 """
 
 from __future__ import annotations
@@ -39,8 +39,8 @@ from rangeret.inference.network_fields import (
     FOV_UP,
     HEIGHT,
     MODEL,
-    PRECISION,
     PROFILE,
+    TRAINING_PRECISION,
     WIDTH,
 )
 from rangeret.models.configs import OVERRIDES
@@ -282,7 +282,7 @@ class TrainConfig:
         group="optimisation",
         metavar="NORM",
     )
-    precision: str = PRECISION.field(group="optimisation")
+    precision: str = TRAINING_PRECISION.field(group="optimisation")
     seed: int = setting(
         0,
         help="seed of initialisation, order and augmentation",

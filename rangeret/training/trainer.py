@@ -16,12 +16,12 @@ With `init_from` the run starts from a checkpoint's weights (`init_from.py`, `pa
 metadata); the metadata's `label_set` names the classes trained for.
 
 Every epoch ends with validation (`validation.py`). The training step and the validation forward
-run at the config's `precision` (`rangeret.inference.runtime.precision`; auto is fp16 on CUDA,
-fp32 on the CPU), with a gradient scaler for fp16 only. The precision used is logged at the
-start, recorded in the checkpoints and the resume state, and a resume at another precision is
-refused. A step reads back from the device once: its losses, as one list (`Trainer.train_step`);
-confusion counts stay on the device until the epoch ends, and the fused AdamW takes the fp16
-scaler's overflow check on the device.
+run at the config's `precision` (`rangeret.inference.runtime.precision`; auto is bf16 where the
+CPU or the CUDA device runs bf16 natively, fp32 elsewhere), with a gradient scaler for fp16 only.
+The precision used is logged at the start, recorded in the checkpoints and the resume state, and
+a resume at another precision is refused. A step reads back from the device once: its losses,
+as one list (`Trainer.train_step`); confusion counts stay on the device until the epoch ends, and
+the fused AdamW takes the fp16 scaler's overflow check on the device.
 """
 
 from __future__ import annotations

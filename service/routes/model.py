@@ -1,5 +1,5 @@
-"""GET /v1/model and /v1/models: which networks the gateway serves, from which checkpoints, and
-whether those are the bundled demo weights.
+"""GET /v1/model and /v1/models: which networks the gateway serves, from which checkpoints,
+whether those are the bundled demo weights, and the precision each runs at and why.
 
 The gateway knows its checkpoint from loading it at start (also when the network itself runs on
 the Serve application, which is checked to serve the same file), so the answer comes from it and
@@ -12,6 +12,9 @@ from typing import Annotated
 
 from fastapi import APIRouter
 
+from rangeret.exceptions import RangeRetError
+from rangeret.inference.runtime.device import select_device
+from rangeret.inference.runtime.precision import PrecisionChoice, choose_precision
 from rangeret.models.weights.demo import is_demo_checkpoint
 from service.gateway import Gateway
 from service.http.dependencies import GatewayDep
@@ -30,8 +33,10 @@ DEMO_NOTE = (
 
 
 def served_model(gw: Gateway, entry: ModelEntry, network: str | None) -> ServedModel:
-    """What the gateway says of one model: its network, checkpoint, profile and demo note."""
+    """What the gateway says of one model: its network, checkpoint, profile, demo note and the
+    precision it runs at, with why."""
     demo = is_demo_checkpoint(entry.checkpoint_sha256)
+    precision = served_precision(gw, entry)
     return ServedModel(
         id=entry.name,
         name=network,
@@ -39,7 +44,22 @@ def served_model(gw: Gateway, entry: ModelEntry, network: str | None) -> ServedM
         profile=entry.profile.name,
         demo_weights=demo,
         note=DEMO_NOTE if demo else None,
+        precision=None if precision is None else precision.precision,
+        precision_reason=None if precision is None else precision.reason,
     )
+
+
+def served_precision(gw: Gateway, entry: ModelEntry) -> PrecisionChoice | None:
+    """The precision the model's network runs at in this process and why: its --precision
+    resolved on the device it runs on here, as its predictor resolves it when loaded. None where
+    the Serve application runs it (with its own options, on its own machine)."""
+    if gw.labeller.backend != "local":
+        return None
+    spec = entry.spec
+    try:
+        return choose_precision(spec.precision, select_device(spec.device), spec.backend)
+    except RangeRetError:  # a device or backend this machine lacks: the model cannot load here
+        return None
 
 
 async def network_name(gw: Gateway, entry: ModelEntry) -> str | None:
@@ -56,7 +76,8 @@ async def network_name(gw: Gateway, entry: ModelEntry) -> str | None:
     description=(
         "The network of the model `model` (the default without it): its name, its checkpoint's "
         "SHA-256, its profile and whether these are the bundled demo weights (trained on "
-        "simulated scenes only), with a note saying how to serve a published model instead."
+        "simulated scenes only), with a note saying how to serve a published model instead, and "
+        "the precision its forward pass runs at on this machine, with why."
     ),
     operation_id="get_model",
     response_model=ServedModel,

@@ -3,7 +3,8 @@
 Two SemanticKITTI checkpoints of different weights and a PandaSet one: `?model=` gives each its
 own `rangeret predict` labels byte for byte (in its profile's record and raw ids), no name gives
 the default, an unknown name is a 404 naming the models, `/v1/models`, `/v1/model`,
-`/v1/profile` and `/healthz` describe each model, a dataset or archive job with each model
+`/v1/profile` and `/healthz` describe each model (with the precision it runs at and why, and
+what `--precision auto` picks on this machine), a dataset or archive job with each model
 gives that model's labels; with `--max-loaded 1` requests alternating
 between two models stay right while one network is loaded at a time; and a models file beside
 `--checkpoint`, or a wrong one, stops `rangeret serve` with one line.
@@ -25,6 +26,7 @@ import yaml
 from rangeret.cli.main import main as rangeret_main
 from rangeret.dataset.layout import prediction_path
 from rangeret.dataset.profiles import load_profile
+from rangeret.inference.runtime.precision import auto_choice, precision_reason
 from rangeret.models import build_model
 from rangeret.sim import simulate_dataset
 from tests.support.gateway import (
@@ -189,6 +191,33 @@ def test_the_models_are_described_each_with_its_profile(gateway):
     assert profile["profile"] == "pandaset" and profile["point_bytes"] == 20
     assert health["models"] == {"one": "semantickitti", "two": "semantickitti", "panda": "pandaset"}
     assert health["profile"] == "semantickitti"
+    # fp32, the default, on this machine's CPU: the gateway says why, as this process works it out
+    why = precision_reason("fp32", "cpu")
+    for described in (*listing["models"], default, panda):
+        assert (described["precision"], described["precision_reason"]) == ("fp32", why)
+    assert (health["precision"], health["precision_reason"]) == ("fp32", why)
+    assert [w["precision_reason"] for w in health["workers"]] == [why] * 3
+
+
+def test_precision_auto_is_resolved_on_this_machine_and_said_with_why(setup):
+    weights = setup["base"] / "one.pt"
+    env = gateway_env(setup["base"] / "state-auto", [setup["roots"]])
+    gw = start_gateway(weights, env, setup["base"] / "auto.log", "--precision", "auto")
+    try:
+        with gw.client() as client:
+            model = client.get("/v1/model").json()
+            health = client.get("/healthz").json()
+            answer = client.post(
+                "/v1/scans", content=_kitti_scan(setup, *KITTI_SCANS[0]), headers=OCTET
+            )
+    finally:
+        gw.stop()
+    picked = auto_choice("cpu")
+    why = f"auto's pick here: {picked.reason}"
+    assert (model["precision"], model["precision_reason"]) == (picked.precision, why)
+    assert (health["precision"], health["precision_reason"]) == (picked.precision, why)
+    assert [w["precision"] for w in health["workers"]] == [picked.precision]
+    assert answer.status_code == 200, answer.text
 
 
 def test_one_loaded_network_serves_two_models_in_turn(setup):

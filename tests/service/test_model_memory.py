@@ -68,8 +68,8 @@ def _start(checkpoints: dict[str, Path], max_loaded: int):
 
 def test_an_evicted_network_is_freed_and_the_pool_counts_what_the_process_holds(checkpoints):
     points = np.random.default_rng(0).normal(0, 10, (2000, 4)).astype(np.float32)
-    alone = {
-        name: Predictor.from_checkpoint(path, device="cpu").predict(points).labels
+    alone = {  # at the served precision, the default fp32
+        name: Predictor.from_checkpoint(path, device="cpu", precision="fp32").predict(points).labels
         for name, path in checkpoints.items()
     }
     assert _held(checkpoints) == []  # the references are gone with their predictors

@@ -92,7 +92,7 @@ def test_job_equals_rangeret_predict_and_evaluate(ray_local, setup, tmp_path, ba
     eval_report = json.loads((tmp_path / "eval.json").read_text())
     assert job_report["confusion"] == eval_report["confusion"]
     assert job_report["miou"] == eval_report["miou"]
-    assert job_report["precision"] == "fp32", "auto, as the CPU model actor resolved it"
+    assert job_report["precision"] == "fp32", "the default, as the CPU model actor ran it"
     assert job_report["backend"] == "torch"
     assert list(job_report["per_sequence"]) == ["08"]
     for key in ("per_sequence", "per_distance"):

@@ -45,8 +45,10 @@ def test_the_nine_shared_fields_are_declared_once_for_both_classes():
         ours, theirs = spec[name], train[name]
         same = dataclasses.replace(theirs, default=ours.default, default_text=ours.default_text)
         assert same == ours and split_optional(hints[name])[0] is ours.kind
-    # Only where a training run means another default does it say so.
-    assert {n for n in SHARED if spec[n] != train[n]} == {"profile", "model"}
+    # Only where a training run means another default does it say so; a network run is fp32
+    # unless asked, a training run mixed precision by the auto rule.
+    assert {n for n in SHARED if spec[n] != train[n]} == {"profile", "model", "precision"}
+    assert (spec["precision"].default, train["precision"].default) == ("fp32", "auto")
 
 
 def test_the_networks_named_are_those_the_models_build():

@@ -40,7 +40,7 @@ from rangeret.inference.runtime.onnx_export import (
     read_metadata,
 )
 from rangeret.inference.runtime.onnx_session import make_session, providers_for
-from rangeret.inference.runtime.precision import resolve_precision
+from rangeret.inference.runtime.precision import auto_choice, resolve_precision
 from rangeret.inference.spec import InferenceSpec
 from rangeret.io.scans import KITTI_RECORD, read_labels, read_scan, write_scan
 from rangeret.models import build_model
@@ -304,6 +304,7 @@ def test_the_gateway_labels_with_onnxruntime_as_torch_does(setup, predictions):
     assert labels.size == expected.size and np.mean(labels == expected) >= 0.9999
     assert [w["backend"] for w in health["workers"]] == ["onnxruntime"]
     assert health["precision"] == "fp32"
+    assert health["precision_reason"] == "auto's pick here: onnxruntime runs fp32 only"
     # the gateway's check of the weights and its worker found the export `rangeret predict` made
     assert len(list((setup["cache"] / "onnx").glob("*.onnx"))) == 1
 
@@ -334,7 +335,7 @@ def test_onnxruntime_refuses_half_precision_in_one_sentence(tmp_path, capsys, pr
 def test_onnxruntime_resolves_auto_to_fp32_on_every_device():
     for device in ("cpu", "cuda"):
         assert resolve_precision("auto", torch.device(device), "onnxruntime") == "fp32"
-    assert resolve_precision("auto", torch.device("cuda"), "torch") == "fp16"
+    assert resolve_precision("auto", torch.device("cpu"), "torch") == auto_choice("cpu").precision
     with pytest.raises(ValueError, match="--backend onnxruntime"):
         resolve_precision("bf16", torch.device("cpu"), "onnxruntime")
 
