@@ -65,7 +65,7 @@ def run_demo(
     checkpoint: Path | str | None = None,
     progress: bool = True,
     profile: DatasetProfile | None = None,
-    precision: str = "auto",
+    precision: str = "fp32",
     leaderboard: LeaderboardEntry | None = None,
     overwrite: bool = False,
     panoptic: bool = False,

@@ -102,7 +102,7 @@ class Predictor:
         device: str = "auto",
         knn: KnnSettings | None = DEFAULT_KNN,
         tta: TtaSettings | None = None,
-        precision: str = "auto",
+        precision: str = "fp32",
         backend: str = "torch",
     ) -> Predictor:
         """A predictor for a checkpoint file, the project's own (self-describing) or a published
