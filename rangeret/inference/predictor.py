@@ -30,6 +30,7 @@ from rangeret.inference.loaded_weights import LoadedWeights, load_weights
 from rangeret.inference.point_labels import point_classes_batch, point_confidences
 from rangeret.inference.results import ScanOutcome, ScanPrediction
 from rangeret.inference.runtime.device import select_device
+from rangeret.inference.runtime.fast_graph import FastGraph, inference_graph
 from rangeret.inference.runtime.onnx_backend import OnnxForward
 from rangeret.inference.runtime.precision import forward_precision, resolve_precision
 from rangeret.inference.settings import DEFAULT_KNN, ClusterSettings, KnnSettings, TtaSettings
@@ -72,6 +73,10 @@ class Predictor:
             )
         else:
             self.network = weights.network.to(self.device).eval()
+        #: The network's inference graph for this run (None: the network runs as it is).
+        self.graph: FastGraph | None = (
+            None if self.onnx else inference_graph(self.network, self.precision, self.device)
+        )
         #: Raw ids of the network's profile -> the data's, for a run on another sensor's data.
         self.output_map: LabelMap | None = None
         self._lock = threading.Lock()  # one network pass at a time, copies (`with_knn`) included
@@ -337,6 +342,9 @@ class Predictor:
     def _forward(self, batch: torch.Tensor) -> torch.Tensor:
         if self.onnx is not None:
             return self.onnx(batch)
+        if self.graph is not None:  # its dtype is its own; fp32 keeps TF32 off on CUDA
+            with forward_precision("fp32", self.device):
+                return self.graph(batch)
         with forward_precision(self.precision, self.device):
             return self.network(batch).float()
 

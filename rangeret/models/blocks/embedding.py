@@ -25,11 +25,14 @@ class PatchEmbedding(nn.Module):
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int]]:
         """(B, C, H, W) features -> (B, Hp*Wp, C) tokens in row-major grid order, and (Hp, Wp)."""
-        h, w = x.shape[-2:]
-        if h < self.patch_size[0] or w < self.patch_size[1]:
-            raise ValueError(
-                f"a {h}x{w} image holds no {self.patch_size[0]}x{self.patch_size[1]} patch"
-            )
+        require_patch(x, self.patch_size)
         patches = self.proj(x)
         grid = (patches.shape[-2], patches.shape[-1])
         return self.norm(patches.flatten(2).transpose(1, 2)), grid
+
+
+def require_patch(x: torch.Tensor, patch_size: tuple[int, int]) -> None:
+    """ValueError unless the (..., H, W) feature map `x` holds at least one patch."""
+    h, w = x.shape[-2:]
+    if h < patch_size[0] or w < patch_size[1]:
+        raise ValueError(f"a {h}x{w} image holds no {patch_size[0]}x{patch_size[1]} patch")

@@ -73,19 +73,8 @@ class MultiScaleRetention(_HeadProjections):
     def forward(self, x: torch.Tensor, grid: tuple[int, int], cache: GridCache) -> torch.Tensor:
         """(B, N, dim) -> (B, N, dim), parallel form."""
         q, k, v = self.project(x, grid, cache)
-        device, dtype = q.device, q.dtype
-
-        def full() -> torch.Tensor:
-            decay = cache.get("decay_full", grid, device, dtype)
-            return token_mixing.retention_full(q, k, v, decay)
-
-        def tiled() -> torch.Tensor:
-            table = cache.get("decay_table", grid, device, dtype)
-            norm = cache.get("decay_norm", grid, device, dtype)
-            return token_mixing.retention_tiled(q, k, v, table, norm, grid)
-
-        default = "full" if device.type == "cuda" else "tiled"
-        forms = {"full": full, "tiled": tiled}
+        default = "full" if q.device.type == "cuda" else "tiled"
+        forms = retention_forms(q, k, v, grid, cache)
         return self._output(x, kernels.run("retention", forms, default, q, v))
 
     def forward_recurrent(
@@ -155,24 +144,59 @@ class CircularRetention(_HeadProjections):
         cache: GridCache,
     ) -> dict[str, Callable[[], torch.Tensor]]:
         """The exact forms of softmax with the decay bias, FlexAttention where it compiles."""
-        device, dtype = q.device, q.dtype
-        decay = cache.decay
-        if decay is None:
-            raise ValueError("a decayed mixer needs a cache with a decay")
+        return decayed_softmax_forms(q, k, v, grid, cache, self.heads)
 
-        def fused() -> torch.Tensor:
-            bias = cache.get("bias_full", grid, device, dtype)
-            return token_mixing.softmax_fused(q, k, v, bias)
 
-        def tiled() -> torch.Tensor:
-            table = cache.get("bias_table", grid, device, dtype)
-            return token_mixing.softmax_tiled(q, k, v, table, grid)
+def retention_forms(
+    q: torch.Tensor,
+    k: torch.Tensor,
+    v: torch.Tensor,
+    grid: tuple[int, int],
+    cache: GridCache,
+) -> dict[str, Callable[[], torch.Tensor]]:
+    """The exact forms of retention with the decay of `cache`: the whole decay matrix, or tiles of
+    its per-grid table."""
+    device, dtype = q.device, q.dtype
 
-        def flex() -> torch.Tensor:
-            score_mod = token_mixing.decay_score_mod(decay, grid, self.heads, device)
-            return token_mixing.softmax_flex(q, k, v, score_mod)
+    def full() -> torch.Tensor:
+        decay = cache.get("decay_full", grid, device, dtype)
+        return token_mixing.retention_full(q, k, v, decay)
 
-        forms = {"fused": fused, "tiled": tiled}
-        if token_mixing.flex_available(device):
-            forms["flex"] = flex
-        return forms
+    def tiled() -> torch.Tensor:
+        table = cache.get("decay_table", grid, device, dtype)
+        norm = cache.get("decay_norm", grid, device, dtype)
+        return token_mixing.retention_tiled(q, k, v, table, norm, grid)
+
+    return {"full": full, "tiled": tiled}
+
+
+def decayed_softmax_forms(
+    q: torch.Tensor,
+    k: torch.Tensor,
+    v: torch.Tensor,
+    grid: tuple[int, int],
+    cache: GridCache,
+    heads: int,
+) -> dict[str, Callable[[], torch.Tensor]]:
+    """The exact forms of softmax with the decay bias of `cache`, FlexAttention where it compiles."""
+    device, dtype = q.device, q.dtype
+    decay = cache.decay
+    if decay is None:
+        raise ValueError("a decayed mixer needs a cache with a decay")
+
+    def fused() -> torch.Tensor:
+        bias = cache.get("bias_full", grid, device, dtype)
+        return token_mixing.softmax_fused(q, k, v, bias)
+
+    def tiled() -> torch.Tensor:
+        table = cache.get("bias_table", grid, device, dtype)
+        return token_mixing.softmax_tiled(q, k, v, table, grid)
+
+    def flex() -> torch.Tensor:
+        score_mod = token_mixing.decay_score_mod(decay, grid, heads, device)
+        return token_mixing.softmax_flex(q, k, v, score_mod)
+
+    forms = {"fused": fused, "tiled": tiled}
+    if token_mixing.flex_available(device):
+        forms["flex"] = flex
+    return forms

@@ -10,6 +10,8 @@ of `decay.py`, never an N x N matrix), its normalisation and its product with V 
 the block is still in cache (`benchmarks/bench_models.py` compares the forms on the CPU). The recurrent form is RetNet's O(1)-per-token recurrence, which equals the parallel form
 under the unidirectional decay. `softmax_flex` is the softmax form through FlexAttention, with the
 decay bias computed from token positions inside the kernel instead of read from a matrix.
+`softmax_rows` is the softmax form through torch's fused attention kernel, one grid row of queries
+at a time with the bias read from the row-offset table.
 """
 
 from __future__ import annotations
@@ -170,6 +172,41 @@ def softmax_tiled(
         weights = logits.exp_()
         blocks.append((weights @ v).div_(weights.sum(-1, keepdim=True)))
     return torch.cat(blocks, dim=2).transpose(1, 2)
+
+
+def softmax_rows(
+    q: torch.Tensor,
+    k: torch.Tensor,
+    v: torch.Tensor,
+    bias_table: torch.Tensor,
+    grid: tuple[int, int],
+) -> torch.Tensor:
+    """`softmax_plain` one grid row of queries at a time through torch's fused attention kernel,
+    the bias of each row a view of the (heads, Wp, 2 Hp - 1, Wp) table (never an N x N matrix).
+
+    The fused CPU kernel computes the logits, the softmax and the product with V tile by tile in
+    cache (with float32 sums for half-precision inputs), where the tiled form makes seven passes
+    over each block of scores. It takes queries and keys as wide as the values only: narrower
+    ones are padded with zeros, which leaves q k^T unchanged (`pad_heads` does it once).
+    """
+    b, h, n, dv = v.shape
+    hp, wp = grid
+    q, k = pad_heads(q, dv), pad_heads(k, dv)
+    out = v.new_empty(b, n, h, dv)
+    for r in range(hp):
+        bias = bias_table[:, :, hp - 1 - r : 2 * hp - 1 - r].flatten(2)
+        rows = slice(r * wp, (r + 1) * wp)
+        out[:, rows] = F.scaled_dot_product_attention(
+            q[:, :, rows], k, v, attn_mask=bias[None], scale=1.0
+        ).transpose(1, 2)
+    return out
+
+
+def pad_heads(x: torch.Tensor, width: int) -> torch.Tensor:
+    """(B, heads, N, d) zero-padded to (B, heads, N, width); `x` itself when already that wide."""
+    if x.shape[-1] == width:
+        return x
+    return F.pad(x, (0, width - x.shape[-1]))
 
 
 def flex_available(device: torch.device) -> bool:

@@ -16,6 +16,7 @@ from rangeret.dataset.selection import DatasetSelection
 from rangeret.inference.loading import batches, load_batch, predict_loaded, project_scans
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import RunSummary
+from rangeret.inference.runtime.fast_graph import FastGraph
 from rangeret.inference.settings import KnnSettings, TtaSettings
 from rangeret.inference.timing import StageTimes
 from rangeret.inference.tta import transformed_view
@@ -55,9 +56,11 @@ def tree(tmp_path, scan):
 
 @pytest.mark.slow
 def test_predictor_on_the_real_scan_with_release_shaped_weights(tmp_path, scan):
+    torch.manual_seed(0)  # the weights of benchmarks/bench_precision.py
     release = build_model("rangeret-cir", 64, 1024).state_dict()  # the release's 8-block shape
     torch.save(release, tmp_path / "kitti.pt")
-    predictor = Predictor.from_checkpoint(tmp_path / "kitti.pt", device="cpu")
+    predictor = Predictor.from_checkpoint(tmp_path / "kitti.pt", device="cpu", precision="fp32")
+    assert predictor.graph is None  # fp32 runs the network itself: the published labels exactly
     times = StageTimes()
     (first,) = predictor.label_projections([predictor.project(scan, times)], times)
     assert set(times.per_scan_ms()) == {"project", "network", "refine"}
@@ -65,6 +68,28 @@ def test_predictor_on_the_real_scan_with_release_shaped_weights(tmp_path, scan):
     assert first.labels.shape == (len(scan),) and first.labels.dtype == np.uint32
     assert np.isin(first.labels, VALID_RAW).all()
     np.testing.assert_array_equal(first.labels, second.labels)
+    # bf16 runs the inference graph, which labels nearly every point as fp32 does
+    bf16 = Predictor.from_checkpoint(tmp_path / "kitti.pt", device="cpu", precision="bf16")
+    assert bf16.graph.dtype == torch.bfloat16
+    agree = np.mean(bf16.predict(scan).labels == first.labels)
+    assert agree >= 0.999, agree
+
+
+def test_bf16_on_the_cpu_runs_the_inference_graph(small_weights, scan):
+    predictor = Predictor.from_checkpoint(
+        small_weights, height=32, width=256, device="cpu", precision="bf16"
+    )
+    assert isinstance(predictor.graph, FastGraph) and predictor.graph.dtype == torch.bfloat16
+    proj = predictor.project(scan[::5])
+    logits = predictor.logits([proj])
+    assert logits.dtype == torch.float32
+    plain = Predictor.from_checkpoint(
+        small_weights, height=32, width=256, device="cpu", precision="fp32"
+    )
+    assert plain.graph is None
+    expected = plain.logits([proj])
+    assert (logits.argmax(1) == expected.argmax(1)).float().mean().item() >= 0.97
+    assert predictor.with_knn(None).graph is predictor.graph
 
 
 def test_stages_compose_to_predict(small_weights, scan):
