@@ -13,11 +13,11 @@ Each point keeps its (u, v), so per-pixel predictions go back to every point los
 
 from __future__ import annotations
 
+import threading
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from rangeret.dataset.distance import point_ranges
 from rangeret.exceptions import InputError
 
 #: Normalisation of the five input channels (range, x, y, z, remission) on SemanticKITTI.
@@ -163,7 +163,7 @@ def check_pixels(
             raise ProjectionError("proj_x must be -1 (not projected) or a column in [0, W)")
         if high >= width:
             raise ProjectionError(f"proj_x must be below the image width {width}, got {high}")
-        rows = proj_y[proj_x >= 0]
+        rows = proj_y if low >= 0 else proj_y[proj_x >= 0]
         if rows.size and (int(rows.min()) < 0 or int(rows.max()) >= height):
             raise ProjectionError(
                 f"proj_y must be in [0, {height}) for projected points, "
@@ -217,71 +217,106 @@ def project_with(points: np.ndarray, config: ProjectionConfig) -> Projection:
     if pts.ndim != 2 or pts.shape[1] < columns:
         raise ProjectionError(f"points must have shape (N, {columns}), got {pts.shape}")
     lasers = pts[:, 4] if config.row in BEAM_ROWS else None
-    pts = pts[:, :4].astype(np.float32, copy=False)
     h, w = config.height, config.width
     n = pts.shape[0]
+    work = _Scratch(n, h * w)
 
     # Channel-major copy: contiguous columns make every later gather and ufunc cheaper.
-    cols = np.ascontiguousarray(pts.T)
+    cols = work.take("cols", (4, n), np.float32)
+    np.copyto(cols, pts[:, :4].T, casting="unsafe")
+    # The depth as `point_ranges` computes it: sqrt((x x + y y) + z z) in float32.
+    depth = work.take("depth", n, np.float32)
+    square = work.take("square", n, np.float32)
     with np.errstate(invalid="ignore", over="ignore"):
-        depth = point_ranges(cols[0], cols[1], cols[2])
-    valid = np.isfinite(depth) & (depth > 0) & np.isfinite(cols[3])
+        np.multiply(cols[0], cols[0], out=depth)
+        depth += np.multiply(cols[1], cols[1], out=square)
+        depth += np.multiply(cols[2], cols[2], out=square)
+        np.sqrt(depth, out=depth)
+    valid = work.take("valid", n, np.bool_)
+    check = work.take("check", n, np.bool_)
+    np.isfinite(depth, out=valid)
+    valid &= np.greater(depth, 0, out=check)
+    valid &= np.isfinite(cols[3], out=check)
     if valid.all():
-        idx = np.arange(n)
+        idx = None
         d = depth
     else:
         idx = np.flatnonzero(valid)
         cols, d = cols[:, idx], depth[idx]
     x, y, z = cols[0], cols[1], cols[2]
+    m = d.size
 
     fov_up = abs(config.fov_up) / 180.0 * np.pi
     fov_down = abs(config.fov_down) / 180.0 * np.pi
     fov = np.float32(fov_down + fov_up)
-    yaw = -np.arctan2(y, x)
-    pitch = np.arcsin(np.clip(z / d, np.float32(-1), np.float32(1)))
-    u = np.float32(0.5) * (yaw / np.float32(np.pi) + np.float32(1.0)) * np.float32(w)
-    v = (np.float32(1.0) - (pitch + np.float32(fov_down)) / fov) * np.float32(h)
-    u = np.clip(np.floor(u), 0, w - 1).astype(np.int64)
-    v = np.clip(np.floor(v), 0, h - 1).astype(np.int64)
+    # u = floor(0.5 (yaw / pi + 1) W), yaw = -atan2(y, x); v = floor((1 - (pitch + fov_down) /
+    # fov) H), pitch = asin(clip(z / depth)): each step in float32, in place.
+    u = np.arctan2(y, x, out=work.take("u", m, np.float32))
+    np.negative(u, out=u)
+    u /= np.float32(np.pi)
+    u += np.float32(1.0)
+    u *= np.float32(0.5)
+    u *= np.float32(w)
+    v = np.divide(z, d, out=work.take("v", m, np.float32))
+    np.clip(v, np.float32(-1), np.float32(1), out=v)
+    np.arcsin(v, out=v)
+    v += np.float32(fov_down)
+    v /= fov
+    np.subtract(np.float32(1.0), v, out=v)
+    v *= np.float32(h)
+    np.clip(np.floor(u, out=u), 0, w - 1, out=u)
+    np.clip(np.floor(v, out=v), 0, h - 1, out=v)
+    column = work.take("column", m, np.int32)
+    np.copyto(column, u, casting="unsafe")
     if lasers is not None:
-        v = _laser_rows(lasers, idx, h, config.row)
+        row = _laser_rows(lasers, np.arange(n) if idx is None else idx, h, config.row)
+    else:
+        row = work.take("row", m, np.int32)
+        np.copyto(row, v, casting="unsafe")
 
     # Closest point wins, among equal depths the lower index: two scatter-minimum passes, first
     # over depths, then over the indices of the points that reach their pixel's minimum.
-    pixel = v * w + u
-    nearest = np.full(h * w, np.inf, dtype=np.float32)
+    pixel = np.multiply(row, w, out=work.take("pixel", m, np.int32), casting="unsafe")
+    pixel += column
+    nearest = work.take("nearest", h * w, np.float32)
+    nearest.fill(np.inf)
     np.minimum.at(nearest, pixel, d)
-    candidates = np.flatnonzero(d == nearest[pixel])
-    first = np.full(h * w, idx.size, dtype=np.int64)
-    np.minimum.at(first, pixel[candidates], candidates)
-    win_pixel = np.flatnonzero(first < idx.size)
-    winners = first[win_pixel]
+    reached = np.equal(d, np.take(nearest, pixel, out=work.take("reach", m, np.float32)))
+    candidates = np.flatnonzero(reached)
+    first = work.take("first", h * w, np.int64)
+    first.fill(m)
+    np.minimum.at(first, np.take(pixel, candidates), candidates)
+    win_pixel = np.flatnonzero(first < m)
+    winners = np.take(first, win_pixel)
 
     proj_idx = np.full(h * w, -1, dtype=np.int64)
-    proj_idx[win_pixel] = idx[winners]
+    proj_idx[win_pixel] = winners if idx is None else np.take(idx, winners)
     proj_range = np.full(h * w, -1.0, dtype=np.float32)
-    proj_range[win_pixel] = d[winners]
+    proj_range[win_pixel] = np.take(d, winners)
 
-    # Pixel-major while scattering (one 20-byte row per pixel), channel-major in the result.
-    means = np.asarray(config.means, dtype=np.float32)
-    stds = np.asarray(config.stds, dtype=np.float32)
-    channels = np.empty((winners.size, 5), dtype=np.float32)
-    channels[:, 0] = d[winners]
-    channels[:, 1:] = cols[:, winners].T
-    channels -= means
-    channels /= stds
-    image = np.zeros((h * w, 5), dtype=np.float32)
-    image[win_pixel] = channels
+    # Each channel normalised as (value - mean) / std in float32 and scattered to its pixels.
+    image = np.zeros((5, h * w), dtype=np.float32)
+    channel = work.take("channel", winners.size, np.float32)
+    for c, values in enumerate((d, x, y, z, cols[3])):
+        np.take(values, winners, out=channel)
+        channel -= np.float32(config.means[c])
+        channel /= np.float32(config.stds[c])
+        image[c, win_pixel] = channel
 
-    proj_x = np.full(n, -1, dtype=np.int64)
-    proj_y = np.full(n, -1, dtype=np.int64)
-    proj_x[idx] = u
-    proj_y[idx] = v
-    unproj_range = np.zeros(n, dtype=np.float32)
-    unproj_range[idx] = d
+    if idx is None:
+        proj_x = column.astype(np.int64)
+        proj_y = row.astype(np.int64)
+        unproj_range = d.copy()
+    else:
+        proj_x = np.full(n, -1, dtype=np.int64)
+        proj_y = np.full(n, -1, dtype=np.int64)
+        proj_x[idx] = column
+        proj_y[idx] = row
+        unproj_range = np.zeros(n, dtype=np.float32)
+        unproj_range[idx] = d
 
     return Projection(
-        image=np.ascontiguousarray(image.T).reshape(5, h, w),
+        image=image.reshape(5, h, w),
         mask=(proj_idx >= 0).reshape(h, w),
         proj_range=proj_range.reshape(h, w),
         proj_idx=proj_idx.reshape(h, w),
@@ -289,3 +324,31 @@ def project_with(points: np.ndarray, config: ProjectionConfig) -> Projection:
         proj_y=proj_y,
         unproj_range=unproj_range,
     )
+
+
+class _Scratch:
+    """A thread's temporaries for one projection, kept between calls: fresh ones would cost a
+    page fault per 4 kB touched each time, most of a projection's time. Scans of more than
+    `_SCRATCH_POINTS` points or images of more than `_SCRATCH_PIXELS` pixels use fresh arrays."""
+
+    _kept = threading.local()
+
+    def __init__(self, points: int, pixels: int) -> None:
+        keep = points <= _SCRATCH_POINTS and pixels <= _SCRATCH_PIXELS
+        self.buffers: dict[str, np.ndarray] = (
+            self._kept.__dict__.setdefault("buffers", {}) if keep else {}
+        )
+
+    def take(self, name: str, shape: int | tuple[int, ...], dtype: type) -> np.ndarray:
+        """The buffer `name` as an array of `shape` and `dtype` (contents undefined)."""
+        size = int(np.prod(shape))
+        buffer = self.buffers.get(name)
+        if buffer is None or buffer.dtype != dtype or buffer.size < size:
+            buffer = self.buffers[name] = np.empty(size, dtype=dtype)
+        return buffer[:size].reshape(shape)
+
+
+#: The largest scan (about 55 bytes a point) and image (12 bytes a pixel) whose temporaries a
+#: thread keeps: about 30 MB at most.
+_SCRATCH_POINTS = 1 << 19
+_SCRATCH_PIXELS = 1 << 20

@@ -10,9 +10,11 @@ semantic id, the high 16 bits the instance id. Every reader checks what it reads
 from __future__ import annotations
 
 import os
+import stat
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -74,9 +76,10 @@ class ScanFormatError(InputError, ValueError):
 
 
 def parse_scan(
-    data: bytes | memoryview, source: str = "<scan>", *, record: PointRecord
+    data: bytes | memoryview | np.ndarray, source: str = "<scan>", *, record: PointRecord
 ) -> np.ndarray:
-    """Decode the bytes of a `.bin` scan into a float32 (N, fields) array, validating them."""
+    """Decode the bytes of a `.bin` scan (or a uint8 array holding them) into a float32
+    (N, fields) array, validating them; a view of `data` where it can be."""
     size = len(data)
     if size == 0:
         raise ScanFormatError(source, "the scan is empty (0 bytes)")
@@ -87,9 +90,9 @@ def parse_scan(
             f"({record.describe()}); the file is truncated or not a scan of this dataset",
         )
     points = np.frombuffer(data, dtype=SCAN_DTYPE).reshape(-1, record.num_fields)
-    finite = np.isfinite(points)
-    if not finite.all():
-        rows = np.flatnonzero(~finite.all(axis=1))
+    # min and max are NaN where any value is, and infinite where one is: two passes, no copy
+    if not (np.isfinite(points.min()) and np.isfinite(points.max())):
+        rows = np.flatnonzero(~np.isfinite(points).all(axis=1))
         raise ScanFormatError(
             source,
             f"{rows.size} point(s) hold non-finite values (NaN or infinity), "
@@ -113,21 +116,35 @@ def read_scan(
     """
     path = Path(path)
     try:
-        data = path.read_bytes() if within is None else _read_within(path, within)
+        with open(path, "rb") as f:
+            if within is not None:
+                _check_within(f.fileno(), path, within)
+            data = _read_all(f)
     except FileNotFoundError as exc:
         raise InputFileMissing.of(exc) from exc
-    return parse_scan(data, str(path), record=record).copy()
+    return parse_scan(data, str(path), record=record)
 
 
-def _read_within(path: Path, within: Sequence[str | os.PathLike[str]]) -> bytes:
-    """The bytes of `path`, which must lie under one of the folders `within` (else
-    `ScanFormatError`), judged on the open file itself."""
-    with open(path, "rb") as f:
-        opened = _opened_path(f.fileno(), path)
-        roots = [os.path.realpath(r) for r in within]
-        if not any(opened == r or opened.startswith(r.rstrip(os.sep) + os.sep) for r in roots):
-            raise ScanFormatError(path, "it leads outside the folders this run may read")
-        return f.read()
+def _read_all(f: BinaryIO) -> np.ndarray:
+    """The whole of a file just opened, as a new uint8 array: a regular file is read into it in
+    one go (no bytes object to copy from)."""
+    info = os.fstat(f.fileno())
+    if not stat.S_ISREG(info.st_mode):
+        return np.frombuffer(bytearray(f.read()), dtype=np.uint8)
+    data = np.empty(info.st_size + 1, dtype=np.uint8)
+    got = f.readinto(data)
+    if got <= info.st_size:
+        return data[:got]
+    return np.concatenate([data[:got], np.frombuffer(f.read(), dtype=np.uint8)])
+
+
+def _check_within(fd: int, path: Path, within: Sequence[str | os.PathLike[str]]) -> None:
+    """`ScanFormatError` unless the file open as `fd` lies under one of the folders `within`,
+    judged on the open file itself."""
+    opened = _opened_path(fd, path)
+    roots = [os.path.realpath(r) for r in within]
+    if not any(opened == r or opened.startswith(r.rstrip(os.sep) + os.sep) for r in roots):
+        raise ScanFormatError(path, "it leads outside the folders this run may read")
 
 
 def _opened_path(fd: int, path: Path) -> str:
@@ -208,7 +225,7 @@ class LabelFile:
             raise ValueError(f"{path}: labels must be one-dimensional, got shape {labels.shape}")
         if labels.size and (labels.min() < 0 or labels.max() > np.iinfo(self.dtype).max):
             raise ValueError(f"{path}: labels do not fit in uint{self.bytes * 8}")
-        atomic_write_bytes(path, labels.astype(self.dtype, copy=False).tobytes())
+        atomic_write_bytes(path, _bytes_of(labels.astype(self.dtype, copy=False)))
 
 
 #: SemanticKITTI's `.label` files: one uint32 per point.
@@ -257,4 +274,9 @@ def write_scan(path: str | os.PathLike[str], points: np.ndarray, *, record: Poin
         raise ValueError(
             f"{path}: points must have shape (N, {record.num_fields}), got {points.shape}"
         )
-    atomic_write_bytes(path, points.astype(SCAN_DTYPE, copy=False).tobytes())
+    atomic_write_bytes(path, _bytes_of(points.astype(SCAN_DTYPE, copy=False)))
+
+
+def _bytes_of(values: np.ndarray) -> memoryview:
+    """The bytes of an array, without a copy when it is contiguous."""
+    return memoryview(np.ascontiguousarray(values)).cast("B")
