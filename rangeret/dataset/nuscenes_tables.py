@@ -13,12 +13,18 @@ sweep's token, and its panoptic labels the `panoptic` record with that token. A 
 is an npz of one array, `data`: a uint16 per point, 1000 x the point's general category index
 (its lidarseg label) + its object's instance (numbered from 1 within a scene; 0 for stuff and for
 points of no object). Every inconsistency is named by table, record and field. Torch-free.
+
+The tables are data, never instructions: each is read within the bounds of
+`rangeret.dataset.json_tables`; a sweep's token, which names its prediction files, must be 32
+lowercase hexadecimal digits as nuScenes writes them (`TOKEN`); a file a table names must be a
+relative path inside the tree (no `..`, not absolute); and a scene's chain of samples stops at a
+repeated sample or past the samples the tables hold, whatever its `nbr_samples` says.
 """
 
 from __future__ import annotations
 
-import json
 import os
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import lru_cache
@@ -26,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from rangeret.dataset.fields import is_int
-from rangeret.exceptions import DatasetError
+from rangeret.dataset.json_tables import TableError, read_table
 
 #: The tables every version folder holds (the devkit loads all of them).
 TABLES = (
@@ -46,12 +52,12 @@ TABLES = (
 )
 #: The tables this reader needs; `lidarseg` and `panoptic` too where the version has them.
 NEEDED = ("category", "sensor", "calibrated_sensor", "scene", "sample", "sample_data")
-#: The largest table read (v1.0-trainval's sample_data.json is about 1 GB).
-MAX_TABLE_BYTES = 4 << 30
+#: A token as nuScenes writes them: a UUID's 32 hexadecimal digits, lowercase, without dashes.
+TOKEN = re.compile(r"^[0-9a-f]{32}$")
+#: A scene's name: `scene-0103`, or any name of letters, digits, `.`, `_` and `-`.
+SCENE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 
-
-class TableError(DatasetError, ValueError):
-    """A nuScenes tree whose tables cannot be read or do not agree; the message names the file."""
+__all__ = ["TOKEN", "Keyframe", "NuScenesTables", "TableError", "find_version", "read_tables"]
 
 
 @dataclass(frozen=True)
@@ -137,10 +143,10 @@ def _read(
     root: Path, version: str, channel: str, stamps: tuple[tuple[int, int] | None, ...]
 ) -> NuScenesTables:
     table_dir = root / version
-    tables = {name: _load(table_dir, name) for name in NEEDED}
-    has_lidarseg = (table_dir / "lidarseg.json").is_file()
-    lidarseg = _index(table_dir, "lidarseg", _load(table_dir, "lidarseg")) if has_lidarseg else {}
-    has_panoptic = (table_dir / "panoptic.json").is_file()
+    tables = {name: _load(table_dir, name) for name in NEEDED if name != "sample_data"}
+    has_lidarseg = (table_dir / "lidarseg.json").exists()
+    lidarseg = _label_files(table_dir, "lidarseg") if has_lidarseg else {}
+    has_panoptic = (table_dir / "panoptic.json").exists()
     panoptic = _label_files(table_dir, "panoptic") if has_panoptic else {}
 
     categories: dict[int, str] = {}
@@ -158,73 +164,88 @@ def _read(
     calibrated = _index(table_dir, "calibrated_sensor", tables["calibrated_sensor"])
     samples = _index(table_dir, "sample", tables["sample"])
     sweeps: dict[str, dict[str, Any]] = {}
-    for i, record in enumerate(tables["sample_data"]):
-        where = f"{table_dir / 'sample_data.json'}: record {i}"
+    path = table_dir / "sample_data.json"
+
+    def keyframe(i: int, record: dict[str, Any]) -> None:
+        """Note record i of sample_data when it is a keyframe of `channel` (nothing is kept)."""
+        where = f"{path}: record {i}"
         if not _field(record, "is_key_frame", bool, where):
-            continue
+            return
         cs = calibrated.get(_field(record, "calibrated_sensor_token", str, where))
         sensor = sensors.get(cs.get("sensor_token", "")) if cs is not None else None
         if cs is None or sensor is None:
             raise TableError(f"{where} names a calibrated sensor or sensor the tables do not hold")
         if sensor.get("channel") == channel:
-            sweeps[_field(record, "sample_token", str, where)] = record
+            token = _token(record, where)
+            sweeps[_field(record, "sample_token", str, where)] = {
+                "token": token,
+                "filename": _file(record, "filename", where),
+            }
 
+    read_table(path, "sample_data", keyframe)
     scenes: dict[str, tuple[Keyframe, ...]] = {}
     for i, scene in enumerate(tables["scene"]):
         where = f"{table_dir / 'scene.json'}: record {i}"
         name = _field(scene, "name", str, where)
-        token = _field(scene, "first_sample_token", str, where)
-        expected = _field(scene, "nbr_samples", int, where)
-        frames: list[Keyframe] = []
-        while token:
-            sample = samples.get(token)
-            if sample is None or len(frames) > expected:
-                raise TableError(
-                    f"{where} ({name}): its chain of samples breaks at {token!r} after "
-                    f"{len(frames)} of its {expected} samples"
-                )
-            sweep = sweeps.get(token)
-            if sweep is None:
-                raise TableError(f"{where} ({name}): sample {token} has no {channel} keyframe")
-            sd = sweep["token"]
-            label = lidarseg.get(sd)
-            frames.append(
-                Keyframe(
-                    token,
-                    sd,
-                    _field(sweep, "filename", str, f"sample_data {sd}"),
-                    None if label is None else _field(label, "filename", str, f"lidarseg {sd}"),
-                    panoptic.get(sd),
-                )
-            )
-            token = sample.get("next", "")
-        if len(frames) != expected:
+        if not SCENE_NAME.match(name):
             raise TableError(
-                f"{where} ({name}) says {expected} samples but its chain holds {len(frames)}"
+                f"{where} has the name {name[:100]!r}: a scene's name is letters, digits, '.', "
+                "'_' and '-' (such as scene-0103)"
             )
         if name in scenes:
             raise TableError(f"{where}: scene {name} is listed twice")
-        scenes[name] = tuple(frames)
+        scenes[name] = _chain(scene, where, name, samples, sweeps, lidarseg, panoptic, channel)
     return NuScenesTables(root, version, scenes, categories, has_lidarseg, has_panoptic)
 
 
-def _load(table_dir: Path, name: str) -> list[dict[str, Any]]:
-    """A table: a JSON list of records (objects); anything else is a TableError naming it."""
-    path = table_dir / f"{name}.json"
-    try:
-        if path.stat().st_size > MAX_TABLE_BYTES:
-            raise TableError(f"{path} is larger than {MAX_TABLE_BYTES >> 30} GiB")
-        with open(path, "rb") as f:
-            data = json.load(f)
-    except FileNotFoundError:
+def _chain(
+    scene: Mapping[str, Any],
+    where: str,
+    name: str,
+    samples: Mapping[str, Mapping[str, Any]],
+    sweeps: Mapping[str, Mapping[str, str]],
+    lidarseg: Mapping[str, str],
+    panoptic: Mapping[str, str],
+    channel: str,
+) -> tuple[Keyframe, ...]:
+    """A scene's keyframes, from its first sample along each sample's `next`. The walk stops at
+    a sample it has seen (a cycle) and never takes more steps than the tables hold samples; a
+    chain of another length than `nbr_samples` is refused, after the walk."""
+    token = _field(scene, "first_sample_token", str, where)
+    expected = _field(scene, "nbr_samples", int, where)
+    seen: set[str] = set()
+    frames: list[Keyframe] = []
+    while token:
+        if token in seen:
+            raise TableError(
+                f"{where} ({name}): its chain of samples returns to sample {token[:64]!r} after "
+                f"{len(frames)} samples (a cycle in sample.json's next)"
+            )
+        sample = samples.get(token)
+        if sample is None:
+            raise TableError(
+                f"{where} ({name}): its chain of samples breaks at {token[:64]!r} after "
+                f"{len(frames)} of its {expected} samples"
+            )
+        seen.add(token)
+        sweep = sweeps.get(token)
+        if sweep is None:
+            raise TableError(f"{where} ({name}): sample {token} has no {channel} keyframe")
+        sd = sweep["token"]
+        frames.append(Keyframe(token, sd, sweep["filename"], lidarseg.get(sd), panoptic.get(sd)))
+        token = sample.get("next", "")
+        if not isinstance(token, str):
+            raise TableError(f"sample {frames[-1].sample} has no str 'next' (got {token!r})")
+    if len(frames) != expected:
         raise TableError(
-            f"{path} is missing (every nuScenes version holds a {name} table)"
-        ) from None
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise TableError(f"{path} is not a JSON table: {exc}") from exc
-    if not isinstance(data, list) or not all(isinstance(r, dict) for r in data):
-        raise TableError(f"{path} must hold a list of records")
-    return data
+            f"{where} ({name}) says {expected} samples but its chain holds {len(frames)}"
+        )
+    return tuple(frames)
+
+
+def _load(table_dir: Path, name: str) -> list[dict[str, Any]]:
+    """A table's records, read within bounds (`rangeret.dataset.json_tables`)."""
+    return read_table(table_dir / f"{name}.json", name)
 
 
 def _index(table_dir: Path, name: str, records: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -236,16 +257,44 @@ def _index(table_dir: Path, name: str, records: list[dict[str, Any]]) -> dict[st
 
 
 def _label_files(table_dir: Path, name: str) -> dict[str, str]:
-    """A label table's file names by token, every record checked; a record without a string
-    token or filename is a TableError naming the table, the record and the field."""
+    """A label table's file names by sweep token, every record checked; a record without a
+    sweep token or a file inside the tree is a TableError naming the table, record and field."""
     out: dict[str, str] = {}
-    for i, record in enumerate(_load(table_dir, name)):
-        where = f"{table_dir / (name + '.json')}: record {i}"
-        token = _field(record, "token", str, where)
+    path = table_dir / f"{name}.json"
+
+    def note(i: int, record: dict[str, Any]) -> None:
+        where = f"{path}: record {i}"
+        token = _token(record, where)
         if token in out:
             raise TableError(f"{where}: sample_data {token} has a second {name} record")
-        out[token] = _field(record, "filename", str, where)
+        out[token] = _file(record, "filename", where)
+
+    read_table(path, name, note)
     return out
+
+
+def _token(record: Mapping[str, Any], where: str) -> str:
+    """A record's `token`, which names files: 32 lowercase hexadecimal digits (`TOKEN`)."""
+    token = _field(record, "token", str, where)
+    if not TOKEN.match(token):
+        raise TableError(
+            f"{where} has the token {token[:100]!r}: a token is 32 lowercase hexadecimal "
+            "digits, as nuScenes writes them"
+        )
+    return token
+
+
+def _file(record: Mapping[str, Any], key: str, where: str) -> str:
+    """A file a record names, relative to the tree's root: a path without `..`, `.` or empty
+    parts, not absolute, so that it stays inside the tree."""
+    name = _field(record, key, str, where)
+    parts = name.split("/")
+    if not name or "\\" in name or "\0" in name or any(p in ("", ".", "..") for p in parts):
+        raise TableError(
+            f"{where} names the file {name[:200]!r} in {key!r}: a table's file must be a "
+            "relative path inside the tree (no '..', not absolute)"
+        )
+    return name
 
 
 def _field(record: Mapping[str, Any], key: str, kind: type, where: str) -> Any:
