@@ -83,6 +83,7 @@ def checkpoint_facts(value: str) -> list[tuple[str, str]]:
     published model's name), as (name, text) pairs; a file that is missing or not a checkpoint
     is a one-line error."""
 
+    from rangeret.io.regular_files import require_regular
     from rangeret.models.weights.hub import resolve_weights
     from rangeret.models.weights.run_profile import profile_for_checkpoint
 
@@ -91,8 +92,7 @@ def checkpoint_facts(value: str) -> list[tuple[str, str]]:
         raise InputFileMissing(
             errno.ENOENT, "no such checkpoint file or published model", str(resolved.path)
         )
-    if not resolved.path.is_file():
-        raise CommandError(f"{resolved.path} is not a checkpoint file but a folder")
+    require_regular(resolved.path, "a checkpoint")
     info = resolved.network().checkpoint_info
     config = info.config
     facts = [
@@ -142,6 +142,8 @@ def _parent_text(parent: Mapping[str, Any] | None) -> str:
         text += f"; {parent['model']} with {parent.get('num_classes')} classes"
     if parent.get("profile"):
         text += f" for the {parent['profile']} profile"
+    else:
+        text += " for a profile it does not record (a published file)"
     if "loaded" in parent:
         new = ", ".join(parent.get("new") or []) or "none"
         text += f"; {parent['loaded']} tensors loaded, new: {new}"

@@ -33,8 +33,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from rangeret.exceptions import InputFileMissing, ModelError
+from rangeret.exceptions import ModelError
 from rangeret.io.atomic import atomic_write_bytes
+from rangeret.io.regular_files import NotRegularFileError, read_regular
 from rangeret.models.configs import OVERRIDES, ModelConfig, list_models, resolve_config
 from rangeret.models.network import RangeRet
 from rangeret.models.weights.checkpoint_info import CheckpointInfo
@@ -96,11 +97,12 @@ def load_checkpoint(
 
 
 def read_checkpoint_bytes(path: str | os.PathLike[str]) -> bytes:
-    """The bytes of a checkpoint file, read once (`InputFileMissing` when it is not there)."""
+    """The bytes of a checkpoint file, read once (`InputFileMissing` when it is not there); a
+    folder, FIFO or device is a `CheckpointError` naming its kind, before a byte is read."""
     try:
-        return Path(path).read_bytes()
-    except FileNotFoundError as exc:
-        raise InputFileMissing.of(exc) from exc
+        return read_regular(path, "a checkpoint")
+    except NotRegularFileError as exc:
+        raise CheckpointError(str(exc)) from None
 
 
 def network_from_bytes(

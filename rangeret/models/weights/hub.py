@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.exceptions import ModelError
 from rangeret.extras import extra_installed, require_extra
+from rangeret.io.regular_files import open_regular
 from rangeret.models.weights.registry import PublishedModel, lookup, profile_for_published
 
 if TYPE_CHECKING:  # torch is imported when weights are read, not to resolve their name
@@ -59,7 +60,7 @@ def cached_weights(model: PublishedModel) -> Path | None:
 def file_sha256(path: Path) -> str:
     """The SHA-256 of a file, read in chunks."""
     digest = hashlib.sha256()
-    with open(path, "rb") as f:
+    with open_regular(path, "a weights file") as f:
         for chunk in iter(lambda: f.read(1 << 20), b""):
             digest.update(chunk)
     return digest.hexdigest()
