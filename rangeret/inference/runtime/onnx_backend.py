@@ -33,11 +33,15 @@ from rangeret.extras import require_extra
 from rangeret.inference.runtime.onnx_export import (
     INPUT_NAME,
     OUTPUT_NAME,
+    load_model,
+    metadata_of,
     onnx_metadata,
     read_metadata,
+    weights_digest_problem,
     write_export,
 )
 from rangeret.inference.runtime.onnx_session import make_session
+from rangeret.io.regular_files import read_regular
 
 log = logging.getLogger(__name__)
 
@@ -87,11 +91,13 @@ def export_path(network: torch.nn.Module, profile: DatasetProfile, sha: str) -> 
 CHECKED_FIELDS = ("checkpoint_sha256", "network", "network_config", "projection", "profile")
 
 
-def export_mismatch(path: Path, expected: dict) -> str | None:
-    """Why the export at `path` is not the one `expected` describes (its weights' SHA-256 named,
-    with the one asked for), or None when its metadata agrees on `CHECKED_FIELDS`."""
+def export_mismatch(source: Path | bytes, expected: dict) -> str | None:
+    """Why the export at `source` (its file or bytes) is not the one `expected` describes (its
+    weights' SHA-256 named, with the one asked for), or None when its metadata agrees on
+    `CHECKED_FIELDS` and its graph holds the weights its metadata records a digest of."""
     try:
-        found = read_metadata(path)
+        proto = load_model(source)
+        found = metadata_of(proto, "the model" if isinstance(source, bytes) else str(source))
     except ValueError as exc:
         return str(exc)
     if found.get("checkpoint_sha256") != expected["checkpoint_sha256"]:
@@ -102,7 +108,7 @@ def export_mismatch(path: Path, expected: dict) -> str | None:
     for field in CHECKED_FIELDS[1:]:
         if found.get(field) != expected[field]:
             return f"records another {field.replace('_', ' ')} than the one asked for"
-    return None
+    return weights_digest_problem(proto, found)
 
 
 def cached_export(
@@ -142,7 +148,7 @@ def given_export(
     projection and profile, and takes batches of `batch_size`; an `ExportFileError` naming what
     differs otherwise."""
     require_extra("--backend onnxruntime", "onnx")
-    if not path.is_file():
+    if not path.exists():
         raise ExportFileError(f"--onnx {path}: no such file")
     sha = checkpoint_sha256 or state_sha256(network)
     expected = onnx_metadata(network, profile, dynamic_batch=True, checkpoint_sha256=sha)
@@ -218,8 +224,15 @@ class OnnxForward:
             if export is None
             else given_export(export, network, profile, checkpoint_sha256, batch_size)
         )
+        # The bytes that run are the bytes checked: read once, checked again, then loaded.
+        data = read_regular(self.path, "an ONNX export")
+        sha = checkpoint_sha256 or state_sha256(network)
+        expected = onnx_metadata(network, profile, dynamic_batch=True, checkpoint_sha256=sha)
+        problem = export_mismatch(data, expected)
+        if problem is not None:
+            raise ExportFileError(f"the export {self.path} {problem}")
         try:
-            self.session = make_session(self.path, device)
+            self.session = make_session(data, device)
         except ValueError:
             raise
         except Exception as exc:  # onnxruntime's load errors have no common base class

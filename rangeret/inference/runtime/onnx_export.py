@@ -8,6 +8,11 @@ the projection, the network and its blocks, the input and output names and layou
 ((N, 5, H, W) -> (N, C, H, W)), the checkpoint's SHA-256 and this project's version, each value
 as JSON under a `rangeret.` key. `read_metadata` reads them back as plain data.
 
+The metadata also records the digest of the graph's own weights (`initializers_sha256`, over every
+initializer's name, type, shape and bytes). Metadata copied into another graph names the
+checkpoint it was copied from, but not that graph's weights: a consumer computes the digest of
+the initializers it loads (`weights_digest_problem`) and refuses a graph whose digest differs.
+
 `check_export` runs the export in onnxruntime and the network in torch (fp32) on the same inputs:
 a projected scan (a given one, else a simulated street scan of the profile's sensor) and
 fixed-seed noise, one at a time and, for a dynamic batch, together. `write_export` exports,
@@ -19,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import hashlib
 import json
 import logging
 import warnings
@@ -36,8 +42,10 @@ from rangeret.exceptions import ModelError
 from rangeret.extras import require_extra
 from rangeret.inference.settings import DEFAULT_KNN
 from rangeret.io.atomic import atomic_write_bytes
+from rangeret.io.regular_files import read_regular
 
 if TYPE_CHECKING:
+    import onnx
     import torch
 
 #: Names of the graph's input and output.
@@ -47,6 +55,8 @@ OUTPUT_NAME = "logits"
 #: Prefix of the metadata keys this project writes; each value is JSON.
 METADATA_PREFIX = "rangeret."
 METADATA_VERSION = 1
+#: The metadata key of the digest of the graph's own weights (`initializers_sha256`).
+INITIALIZERS_KEY = "initializers_sha256"
 
 #: Largest |logit difference| between onnxruntime and torch an export may show to be written.
 MAX_LOGIT_DIFFERENCE = 1e-3
@@ -173,6 +183,7 @@ def export_onnx(
     record = onnx_metadata(
         network, profile, dynamic_batch=dynamic_batch, checkpoint_sha256=checkpoint_sha256
     )
+    record[INITIALIZERS_KEY] = initializers_sha256(proto)
     for key, value in record.items():
         entry = proto.metadata_props.add()
         entry.key, entry.value = METADATA_PREFIX + key, json.dumps(value)
@@ -181,6 +192,62 @@ def export_onnx(
         f"range images -> (N, C, H, W) logits; see the {METADATA_PREFIX}* metadata"
     )
     return proto.SerializeToString()
+
+
+def initializers_sha256(proto: onnx.ModelProto) -> str:
+    """SHA-256 over a graph's initializers in name order: each one's name, element type, shape
+    and values (little-endian bytes, whatever their storage in the file)."""
+    from onnx import numpy_helper
+
+    digest = hashlib.sha256()
+    for tensor in sorted(proto.graph.initializer, key=lambda t: t.name):
+        values = np.ascontiguousarray(numpy_helper.to_array(tensor))
+        digest.update(json.dumps([tensor.name, tensor.data_type, list(tensor.dims)]).encode())
+        digest.update(values.astype(values.dtype.newbyteorder("<"), copy=False).tobytes())
+    return digest.hexdigest()
+
+
+def weights_digest_problem(proto: onnx.ModelProto, record: dict[str, Any]) -> str | None:
+    """Why a graph's weights are not the ones its metadata `record` vouches for (their digest
+    differs, or the record holds none), or None when they are."""
+    recorded = record.get(INITIALIZERS_KEY)
+    if not isinstance(recorded, str):
+        return "records no digest of its weights (it predates them, or was not made by rangeret export)"
+    found = initializers_sha256(proto)
+    if found != recorded:
+        return (
+            f"holds weights of digest {found[:16]}, not the {recorded[:16]} its metadata records: "
+            "its metadata was copied from another export"
+        )
+    return None
+
+
+def load_model(source: Path | bytes) -> onnx.ModelProto:
+    """An ONNX model, weights included, from its file or bytes; `ExportError` naming it when it
+    is not one (a file that is not a regular one is refused by its kind first)."""
+    import onnx
+
+    name = "the model" if isinstance(source, bytes) else str(source)
+    data = source if isinstance(source, bytes) else read_regular(source, "an ONNX export")
+    try:
+        return onnx.load_from_string(data)
+    except Exception as exc:  # onnx's parse errors have no common base class
+        raise ExportError(f"{name} is not an ONNX model: {exc}") from exc
+
+
+def metadata_of(proto: onnx.ModelProto, name: str) -> dict[str, Any]:
+    """The `rangeret.` metadata of a loaded model as plain data, keys without the prefix;
+    `ExportError` naming it when it has none."""
+    record = {
+        entry.key.removeprefix(METADATA_PREFIX): json.loads(entry.value)
+        for entry in proto.metadata_props
+        if entry.key.startswith(METADATA_PREFIX)
+    }
+    if not record:
+        raise ExportError(
+            f"{name} carries no {METADATA_PREFIX}* metadata: it is not a RangeRet export"
+        )
+    return record
 
 
 def read_metadata(source: str | Path | bytes) -> dict[str, Any]:
@@ -199,16 +266,7 @@ def read_metadata(source: str | Path | bytes) -> dict[str, Any]:
         raise
     except Exception as exc:
         raise ExportError(f"{name} is not an ONNX model: {exc}") from exc
-    record = {
-        entry.key.removeprefix(METADATA_PREFIX): json.loads(entry.value)
-        for entry in proto.metadata_props
-        if entry.key.startswith(METADATA_PREFIX)
-    }
-    if not record:
-        raise ExportError(
-            f"{name} carries no {METADATA_PREFIX}* metadata: it is not a RangeRet export"
-        )
-    return record
+    return metadata_of(proto, name)
 
 
 def check_images(profile: DatasetProfile, scan: np.ndarray | None = None) -> tuple[np.ndarray, str]:

@@ -478,3 +478,37 @@ def test_predict_runs_the_export_it_is_given_and_exports_nothing(
         assert words in err and err.count("\n") == 1, err
         assert "weights_only" not in err.replace("weights_only=True", "")
     assert not (tmp_path / "refused").exists()
+
+
+def test_an_export_whose_metadata_was_copied_from_another_is_refused(
+    setup, exports, tmp_path, capsys
+):
+    """Flipped weights exported, then given the real export's metadata: the metadata names the
+    right checkpoint, but the digest of the graph's own weights gives it away."""
+    import onnx
+
+    weights = setup["weights"]["rangeret-cir"]
+    state = torch.load(weights, weights_only=True)
+    flipped = {k: -v if v.is_floating_point() else v for k, v in state.items()}
+    torch.save(flipped, tmp_path / "flipped.pt")
+    made = tmp_path / "flipped.onnx"
+    args = ["export", "--checkpoint", str(tmp_path / "flipped.pt"), *SIZE, "--dynamic-batch"]
+    assert rangeret_main([*args, "--out", str(made)]) == 0
+    forged = onnx.load(str(made))
+    del forged.metadata_props[:]
+    forged.metadata_props.extend(onnx.load(str(exports["rangeret-cir"]["path"])).metadata_props)
+    onnx.save(forged, str(tmp_path / "forged.onnx"))
+    capsys.readouterr()
+    base = ["predict", "-q", "--dataset", str(setup["real"]), "--sequences", "08", *NET]
+    base += ["--out", str(tmp_path / "out"), "--backend", "onnxruntime"]
+    code = rangeret_main(
+        [*base, "--onnx", str(tmp_path / "forged.onnx"), "--checkpoint", str(weights)]
+    )
+    err = capsys.readouterr().err
+    assert code == 1 and "its metadata was copied from another export" in err, err
+    assert err.count("\n") == 1 and not (tmp_path / "out").exists()
+    # the genuine export of the same weights still runs
+    code = rangeret_main(
+        [*base, "--onnx", str(exports["rangeret-cir"]["path"]), "--checkpoint", str(weights)]
+    )
+    assert code == 0, capsys.readouterr().err
