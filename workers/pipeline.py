@@ -130,6 +130,7 @@ def run_pipeline(
     options: PipelineOptions = DEFAULT_OPTIONS,
     progress: Callable[[int, int, int], None] | None = None,
     cancel: threading.Event | None = None,
+    checkpoint_sha256: str | None = None,
 ) -> PipelineRun:
     """Predict `entries` into the tree at `out` on the connected Ray cluster.
 
@@ -139,7 +140,9 @@ def run_pipeline(
     panoptic selection (`DatasetSelection.for_task(True)`) and a profile without thing classes is
     an `InputError` before any actor starts. The run's summary counts `entries` only.
     `progress(done, failed, total)` is called after every batch; setting `cancel` stops the run
-    after the batch in flight (files already written stay complete).
+    after the batch in flight (files already written stay complete). With `checkpoint_sha256`
+    (what the driver read), a model actor that finds other bytes at the checkpoint's path fails
+    instead of labelling with them.
     """
     import ray
     import ray.data
@@ -186,7 +189,12 @@ def run_pipeline(
         worker_spec = spec.replace(device="cpu")
     ds = ds.map_batches(
         ModelWorker,
-        fn_constructor_kwargs={"spec": worker_spec, "profile": profile, "cpus": layout.actor_cpus},
+        fn_constructor_kwargs={
+            "spec": worker_spec,
+            "profile": profile,
+            "cpus": layout.actor_cpus,
+            "checkpoint_sha256": checkpoint_sha256,
+        },
         compute=ray.data.ActorPoolStrategy(
             size=layout.actors, max_tasks_in_flight_per_actor=layout.in_flight
         ),

@@ -37,7 +37,7 @@ from rangeret.exceptions import RangeRetError
 from rangeret.inference.loaded_weights import load_weights
 from rangeret.inference.spec import InferenceSpec
 from rangeret.io.run_info import write_run_info
-from rangeret.models.weights.demo import DEMO_WARNING, is_demo_checkpoint
+from rangeret.models.weights.demo import demo_warning, is_demo_checkpoint
 from rangeret.options import (
     add_leaderboard_options,
     add_network_options,
@@ -217,7 +217,15 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
         use_gpu=None if spec.device == "auto" else spec.device == "cuda",
         read_roots=tuple(str(r.resolve()) for r in args.read_roots) if args.read_roots else None,
     )
-    run = run_pipeline(spec, profile, pending, args.out, options, progress=recorder.batch)
+    run = run_pipeline(
+        spec,
+        profile,
+        pending,
+        args.out,
+        options,
+        progress=recorder.batch,
+        checkpoint_sha256=info.sha256,
+    )
     precision = run.precision(spec)
     log.info("model actors: %s", run.actors_text())
     summary = replace(run.summary, total=len(entries), skipped=len(done))
@@ -235,7 +243,7 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
             report.precision = precision
             report.backend = spec.backend
             if demo:
-                report.notes.append(DEMO_WARNING)
+                report.notes.append(demo_warning(profile.name))
             print(report.table())
             if args.report:
                 from rangeret.evaluation.plots import write_plots
@@ -329,7 +337,7 @@ def _panoptic_report(
     )
     print(report.table())
     if demo:
-        print(f"Note: {DEMO_WARNING}.")
+        print(f"Note: {demo_warning(profile.name)}.")
     if args.report:
         report.write_json(args.report)
         print(f"report: {args.report}")

@@ -38,7 +38,7 @@ from fastapi.responses import JSONResponse, Response
 from ray import serve
 
 from rangeret.exceptions import RangeRetError
-from rangeret.inference.loaded_weights import identify_weights
+from rangeret.inference.loaded_weights import WeightsChanged, identify_weights, load_weights
 from rangeret.inference.model_set import ModelSet
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import ScanOutcome
@@ -47,6 +47,7 @@ from rangeret.inference.scan_worker import ScanRequest, ScanWorker, use_cpus
 from rangeret.inference.settings import ClusterSettings
 from rangeret.inference.spec import InferenceSpec
 from rangeret.io.scans import ScanFormatError, parse_scan
+from rangeret.models.weights.hub import CheckpointChanged
 from workers.cluster import read_resources
 from workers.scan_wire import INFO_PATH, OCTET, SCANS_PATH, encode_labels, query_flag
 from workers.serve_arguments import (
@@ -130,6 +131,8 @@ class ScanModel:
         self.batch_size = 1
         self._loaded: dict[str, int] = {}
         self._failure: str | None = None
+        #: The last reason each model could not be loaded again, logged once.
+        self._refused: dict[str, str] = {}
         self._load_model = serve.multiplexed(max_num_models_per_replica=max_per_replica)(
             self._loader()
         )
@@ -156,7 +159,13 @@ class ScanModel:
         started = time.perf_counter()
         release_freed_memory()  # what the networks Serve unloaded held
         spec = self.models.spec(name)
-        predictor = Predictor.from_spec(spec)
+        built = self.built[name].get("checkpoint_sha256")
+        try:
+            predictor = Predictor(load_weights(spec, expected_sha256=built), spec)
+        except CheckpointChanged as exc:
+            raise WeightsChanged(
+                f"model {name}: {exc} when the application was built; deploy it again"
+            ) from exc
         predictor.weights.identity.check_same(
             self.built[name], name, "the application was built", "deploy it again"
         )
@@ -252,7 +261,13 @@ class ScanModel:
         start = time.perf_counter()
         try:
             model = await self._load_model(name)
-        except (RangeRetError, RuntimeError, OSError) as exc:
+        except RangeRetError as exc:  # its checkpoint changed or went since the build
+            reason = exc.summary()
+            if self._refused.get(name) != reason:
+                self._refused[name] = reason
+                log.error("model %s cannot be loaded again: %s", name, reason)
+            return JSONResponse({"detail": f"Model {name} cannot be loaded again: {reason}."}, 503)
+        except (RuntimeError, OSError) as exc:
             return JSONResponse({"detail": f"Model {name} cannot be loaded: {exc}."}, 500)
         if panoptic and model.panoptic_refusal is not None:
             return JSONResponse(

@@ -184,16 +184,30 @@ class Writer:
 class ModelWorker:
     """Stage 2 (an actor): the network on a batch, then kNN refinement, raw ids and, when the
     spec asks for panoptic segmentation, objects. It loads the spec's weights once, for the
-    profile the driver settled, and warms the network up before it takes a batch, so the first
-    batch's times are those of any other."""
+    profile the driver settled and from bytes of the SHA-256 the driver checked (when given), and
+    warms the network up before it takes a batch, so the first batch's times are those of any
+    other."""
 
-    def __init__(self, spec: InferenceSpec, profile: DatasetProfile, cpus: float) -> None:
-        from rangeret.inference.loaded_weights import load_weights
+    def __init__(
+        self,
+        spec: InferenceSpec,
+        profile: DatasetProfile,
+        cpus: float,
+        checkpoint_sha256: str | None = None,
+    ) -> None:
+        from rangeret.inference.loaded_weights import WeightsChanged, load_weights
         from rangeret.inference.predictor import Predictor
         from rangeret.inference.scan_worker import use_cpus, warm_up
+        from rangeret.models.weights.hub import CheckpointChanged
 
         use_cpus(cpus)
-        self.predictor = Predictor(load_weights(spec, profile=profile), spec)
+        try:
+            weights = load_weights(spec, profile=profile, expected_sha256=checkpoint_sha256)
+        except CheckpointChanged as exc:
+            raise WeightsChanged(
+                f"a model actor found {exc} by the job's driver; run the job again"
+            ) from exc
+        self.predictor = Predictor(weights, spec)
         self.warm_up_seconds = warm_up(self.predictor)
 
     def __call__(self, batch: dict) -> dict:

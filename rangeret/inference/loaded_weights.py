@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -107,11 +107,18 @@ class WeightsIdentity:
             )
 
 
-def load_weights(spec: InferenceSpec, *, profile: DatasetProfile | None = None) -> LoadedWeights:
+def load_weights(
+    spec: InferenceSpec,
+    *,
+    profile: DatasetProfile | None = None,
+    expected_sha256: str | None = None,
+) -> LoadedWeights:
     """The network and profile of `spec`'s weights fields, the checkpoint read once (see the
     module). `profile` stands for the profile `spec.profile` names, for callers that hold one
-    already (a label configuration of their own in it)."""
-    resolved = _resolved(spec, profile)
+    already (a label configuration of their own in it); with `expected_sha256`, bytes of another
+    SHA-256 are a `CheckpointChanged` before they are parsed (a server loading again what it
+    checked at start)."""
+    resolved = replace(_resolved(spec, profile), expected_sha256=expected_sha256)
     network = resolved.network(default_resolution=default_resolution(resolved.profile))
     info = network.checkpoint_info
     note_loaded(resolved.path, info.sha256)

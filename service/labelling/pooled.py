@@ -6,18 +6,21 @@ gather behind a second batcher, made on the first one, whose worker shares the n
 clusters the scans' thing points into objects. `PooledLabeller` takes a request's
 model from the `ModelPool`, which keeps at most `--max-loaded` of them: the model is held while
 its scan is labelled, loaded first where it is not (in a worker thread), and a model that cannot
-be loaded because every slot is held by running jobs is a `BackendError` (503, Retry-After). The
+be loaded because every slot is held by running jobs, or whose checkpoint changed since the
+gateway started (replaced, truncated, gone: logged once), is a `BackendError` (503). The
 labeller keeps no model of its own: what the pool evicts is gone once its last request ends.
 """
 
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from rangeret.exceptions import RangeRetError
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import ScanPrediction
 from rangeret.inference.scan_worker import ScanRequest
@@ -26,6 +29,8 @@ from service.labelling.batching import ScanBatcher
 from service.labelling.errors import BackendError
 from service.labelling.panoptic import clustered_worker
 from service.models.pool import ModelPool, PoolFull
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -63,6 +68,8 @@ class PooledLabeller:
         self.pool = pool
         self._on_batch: Callable[[int, float], None] | None = None
         self._serving = False
+        #: The last reason each model could not be loaded again, logged once.
+        self._refused: dict[str, str] = {}
 
     async def start(self, on_batch: Callable[[int, float], None] | None = None) -> None:
         """Take scans from now on; `on_batch(size, seconds)` is called after each batch of any
@@ -94,6 +101,12 @@ class PooledLabeller:
             runtime = await asyncio.to_thread(self.pool.acquire, model)
         except PoolFull as exc:
             raise BackendError(str(exc)) from exc
+        except RangeRetError as exc:  # its checkpoint changed or went since the start
+            reason = exc.summary()
+            if self._refused.get(model) != reason:
+                self._refused[model] = reason
+                log.error("model %s cannot be loaded again: %s", model, reason)
+            raise BackendError(f"model {model} cannot be loaded again: {reason}") from exc
         try:
             batcher = runtime.batcher_for(panoptic)
             if not batcher.accepting:  # loaded (or asked for objects) since the labeller started

@@ -3,7 +3,8 @@ its device and warmed up behind its own batcher.
 
 `ModelLoader` is the `ModelPool`'s `load`. It keeps what checking each model found (its
 `WeightsIdentity`, which the catalog describes) and refuses weights whose checkpoint has changed
-since, as a model evicted and used again reads its checkpoint again. At start `ModelLoader.check`
+since, as a model evicted and used again reads its checkpoint again: bytes of another SHA-256
+(replaced, truncated) are refused before they are parsed. At start `ModelLoader.check`
 checks every model once: one the pool has room for is loaded into it from that one read of its
 checkpoint, any other is identified without building its network, so a gateway builds only the
 networks its pool keeps.
@@ -11,11 +12,17 @@ networks its pool keeps.
 
 from __future__ import annotations
 
-from rangeret.inference.loaded_weights import WeightsIdentity, identify_weights, load_weights
+from rangeret.inference.loaded_weights import (
+    WeightsChanged,
+    WeightsIdentity,
+    identify_weights,
+    load_weights,
+)
 from rangeret.inference.model_set import ModelSet
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.runtime.memory import release_freed_memory
 from rangeret.inference.scan_worker import ScanWorker
+from rangeret.models.weights.hub import CheckpointChanged
 from service.labelling.batching import ScanBatcher
 from service.labelling.panoptic import model_clustering
 from service.labelling.pooled import ModelRuntime
@@ -39,7 +46,13 @@ class ModelLoader:
         a panoptic request or job asks for them, as the spec's clustering options say."""
         release_freed_memory()  # what the networks evicted for this load held
         spec = self.models.spec(name)
-        weights = load_weights(spec)
+        checked = self.identities.get(name)
+        try:
+            weights = load_weights(spec, expected_sha256=checked.sha256 if checked else None)
+        except CheckpointChanged as exc:
+            raise WeightsChanged(
+                f"model {name}: {exc} when the gateway started; restart the gateway to serve it"
+            ) from exc
         checked = self.identities.setdefault(name, weights.identity)
         weights.identity.check_same(
             checked.describe(), name, "the gateway started", "restart the gateway to serve it"

@@ -347,3 +347,51 @@ def test_a_job_with_each_model_gives_that_models_labels(setup, gateway):
     assert "'pandaset' profile" in detail and "model one" in detail and "'semantickitti'" in detail
     assert "'poss'" in assert_error(unknown, 404)
     assert "'poss'" in assert_error(unknown_upload, 404)
+
+
+def test_a_checkpoint_changed_after_eviction_is_a_503_never_other_labels(setup, tmp_path):
+    """`one` is checked at start, evicted, then its file is replaced by other weights, then
+    truncated: loading it again is a 503 naming the model and both digests (logged once per
+    reason), `/v1/model` keeps the start's SHA-256, and `two` still answers."""
+    one = tmp_path / "one.pt"
+    one.write_bytes((setup["base"] / "one.pt").read_bytes())
+    models = tmp_path / "models.yaml"
+    entries = {
+        "one": {"checkpoint": str(one)},
+        "two": {"checkpoint": str(setup["base"] / "two.pt")},
+    }
+    models.write_text(yaml.safe_dump({"default": "two", "models": entries}, sort_keys=False))
+    env = gateway_env(tmp_path / "state", [setup["roots"]])
+    gw = start_gateway(None, env, tmp_path / "gw.log", "--models", str(models), "--max-loaded", "1")
+    scan = _kitti_scan(setup, *KITTI_SCANS[0])
+    try:
+        with gw.client() as client:
+            started = client.get("/v1/model", params={"model": "one"}).json()["checkpoint_sha256"]
+
+            def label(model: str):
+                return client.post(
+                    "/v1/scans", params={"model": model}, content=scan, headers=OCTET
+                )
+
+            assert label("one").content == _expected(setup, "one", *KITTI_SCANS[0])
+            assert label("two").status_code == 200 and _loaded(client) == ["two"]
+            one.write_bytes((setup["base"] / "panda.pt").read_bytes())  # other weights
+            for _ in range(2):
+                detail = assert_error(label("one"), 503)
+                assert (
+                    detail.startswith("Model one cannot be loaded again: ")
+                    and started[:16] in detail
+                )
+            one.write_bytes((setup["base"] / "one.pt").read_bytes()[:1000])  # truncated
+            detail = assert_error(label("one"), 503)
+            assert "1,000 bytes" in detail and started[:16] in detail
+            assert (
+                client.get("/v1/model", params={"model": "one"}).json()["checkpoint_sha256"]
+                == started
+            )
+            assert label("two").content == _expected(setup, "two", *KITTI_SCANS[0])
+    finally:
+        gw.stop()
+    logged = (tmp_path / "gw.log").read_text()
+    assert logged.count("model one cannot be loaded again") == 2, logged
+    assert "Traceback" not in logged

@@ -115,7 +115,8 @@ def test_a_checkpoint_changed_since_the_start_is_refused_when_loaded_again(check
     network = build_model("rangeret-cir", 16, 128, 20, layers=1)
     save_checkpoint(changed["three"], network, profile=load_profile("semantickitti").to_dict())
     with pytest.raises(
-        WeightsChanged, match=r"model three: its checkpoint is sha256 \w+ .* now and was sha256 \w+"
+        WeightsChanged,
+        match=r"model three: .* of sha256 \w+, not the checkpoint of sha256 \w+ read when the gateway",
     ):
         pool.acquire("three")
     assert pool.loaded() == [] and pool.held() == []

@@ -421,3 +421,30 @@ def test_nuscenes_sweeps_go_through_the_ray_job(ray_local, tmp_path, capsys):
     assert "mini_val/submission.json" in names
     assert sorted(n for n in names if n.endswith(".bin")) == sorted(single)
     capsys.readouterr()
+
+
+def test_a_model_actor_refuses_a_checkpoint_other_than_the_drivers(setup, tmp_path):
+    """The driver reads the checkpoint and passes its SHA-256 on: an actor that finds other
+    bytes at the path (replaced after the driver read it) fails naming both, and the same
+    bytes load."""
+    from rangeret.inference.loaded_weights import WeightsChanged, load_weights
+    from rangeret.models.weights.hub import file_sha256
+    from workers.stages import ModelWorker
+
+    _, weights = setup
+    copy = tmp_path / "w.pt"
+    copy.write_bytes(weights.read_bytes())
+    spec = InferenceSpec(checkpoint=str(copy), height=32, width=256, device="cpu")
+    profile = load_weights(spec).profile
+    checked = file_sha256(copy)
+    threads = torch.get_num_threads()
+    try:
+        assert ModelWorker(spec, profile, 1.0, checked).predictor is not None
+        copy.write_bytes(weights.read_bytes()[:-1])
+        with pytest.raises(
+            WeightsChanged,
+            match=rf"not the checkpoint of sha256 {checked[:16]} read by the job's driver",
+        ):
+            ModelWorker(spec, profile, 1.0, checked)
+    finally:
+        torch.set_num_threads(threads)

@@ -192,6 +192,10 @@ def published_name(value: str | Path) -> PublishedModel | None:
     return lookup(text) or lookup(text.removesuffix(".pt"))
 
 
+class CheckpointChanged(ModelError, RuntimeError):
+    """A checkpoint file whose bytes are not those checked before (replaced, truncated)."""
+
+
 @dataclass(frozen=True)
 class ResolvedWeights:
     """Where a `--checkpoint` value leads, and the profile, network and resolution to load it
@@ -205,16 +209,23 @@ class ResolvedWeights:
     height: int | None
     width: int | None
     published: PublishedModel | None = None
+    #: The SHA-256 the bytes must have (a server reading again a file it checked at start).
+    expected_sha256: str | None = None
 
     def read(self) -> tuple[bytes, str]:
         """The file's bytes, read once, and their SHA-256, checked against a published model's
-        pin (`check_pin`) on those very bytes."""
+        pin (`check_pin`) and `expected_sha256` on those very bytes, before they are parsed."""
         from rangeret.models.weights.checkpoint import read_checkpoint_bytes
 
         data = read_checkpoint_bytes(self.path)
         sha256 = hashlib.sha256(data).hexdigest()
         if self.published is not None:
             check_pin(self.published, self.path, sha256)
+        if self.expected_sha256 is not None and sha256 != self.expected_sha256:
+            raise CheckpointChanged(
+                f"{self.path} is now {len(data):,} bytes of sha256 {sha256[:16]}, not the "
+                f"checkpoint of sha256 {self.expected_sha256[:16]} read"
+            )
         return data, sha256
 
     def checkpoint(
