@@ -139,6 +139,10 @@ def spec_of(args: argparse.Namespace) -> InferenceSpec:
         values = json.loads(args.inference_spec)
     except ValueError as exc:
         raise CommandError(f"--inference-spec is not JSON: {exc}") from exc
+    except RecursionError:
+        raise CommandError(
+            "--inference-spec nests deeper than a JSON reader goes: it is one object of options"
+        ) from None
     if not isinstance(values, dict):
         raise CommandError(f"--inference-spec must be a JSON object, got {type(values).__name__}")
     return InferenceSpec.from_mapping(values, where=" in --inference-spec")

@@ -59,6 +59,7 @@ def test_the_job_reads_its_checkpoint_once_in_the_driver_and_in_each_model_actor
         ("[1]", [], "--inference-spec must be a JSON object, got list"),
         ("{", [], "--inference-spec is not JSON"),
         ("{}", ["--batch-size", "4"], "--inference-spec holds every network option: give"),
+        ('{"a":' * 3000 + "1" + "}" * 3000, [], "--inference-spec nests deeper than"),
     ],
 )
 def test_a_bad_inference_spec_is_one_sentence_before_anything_starts(
