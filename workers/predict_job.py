@@ -36,6 +36,7 @@ from rangeret.dataset.selection import DatasetSelection
 from rangeret.exceptions import RangeRetError
 from rangeret.inference.loaded_weights import load_weights
 from rangeret.inference.spec import InferenceSpec
+from rangeret.inference.writing import check_outputs_apart
 from rangeret.io.run_info import write_run_info
 from rangeret.models.weights.demo import demo_warning, is_demo_checkpoint
 from rangeret.options import (
@@ -193,6 +194,7 @@ def _run(args: argparse.Namespace, recorder: ProgressWriter) -> int:
     ]
     done = [e for e, finished in zip(entries, complete, strict=True) if finished]
     pending = [e for e, finished in zip(entries, complete, strict=True) if not finished]
+    check_outputs_apart(pending, args.out)
     log.info(
         "%d scans in %s: %d to predict, %d already done",
         len(entries),

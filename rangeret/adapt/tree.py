@@ -42,6 +42,7 @@ from rangeret.dataset.layout import (
     velodyne_dir,
 )
 from rangeret.dataset.profiles import DatasetProfile
+from rangeret.io.output_paths import landing_inside
 from rangeret.io.run_info import read_record, started_now, write_run_record
 from rangeret.io.scans import ScanFormatError, read_scan, scan_num_points, write_scan
 
@@ -148,6 +149,13 @@ def plan_adaptation(
                 f"{out} holds adapted scans but no {ADAPT_INFO} saying how they were made; pass "
                 "--overwrite to adapt into it anyway, or choose another output folder"
             )
+    outputs = [out / ADAPT_INFO, *(path for j in jobs for path in (j.scan_out, j.label_out))]
+    landed = landing_inside(outputs, dataset)
+    if landed is not None:
+        raise AdaptError(
+            f"{landed[0]} leads to {landed[1]}, inside the dataset {dataset}; write the adapted "
+            "dataset elsewhere (inputs are never replaced, --overwrite or not)"
+        )
     if overwrite or differ:
         jobs = [ScanJob(j.entry, j.scan_out, j.label_out) for j in jobs]
     plan = AdaptPlan(dataset, out, list(sequences), settings, jobs, overwrite)

@@ -30,7 +30,7 @@ from rangeret.inference.loading import (
 )
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import RunSummary
-from rangeret.inference.writing import write_prediction
+from rangeret.inference.writing import check_outputs_apart, write_prediction
 from rangeret.io.run_info import write_run_info
 
 log = logging.getLogger(__name__)
@@ -74,6 +74,7 @@ def predict_tree(
         if overwrite
         or not is_complete(e, out, record=profile.points, with_confidence=save_confidence)
     ]
+    check_outputs_apart(pending, out)
     summary.skipped = len(entries) - len(pending)
     if summary.skipped:
         log.info(

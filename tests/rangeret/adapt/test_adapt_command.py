@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import pickle
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -102,6 +103,27 @@ def test_an_output_folder_tied_to_the_dataset_is_refused(
     assert code == 1 and len(err.splitlines()) == 1
     assert f"the output folder {out} is, holds or lies inside the dataset {source_tree}" in err
     assert sorted(str(p) for p in source_tree.rglob("*")) == before
+
+
+@pytest.mark.parametrize(
+    ("link", "into"), [("scans", "sequences"), ("scans/000/velodyne", "sequences/00/velodyne")]
+)
+def test_an_output_whose_folders_lead_into_the_dataset_is_refused(
+    source_tree, tmp_path, adapt, link, into
+):
+    """OUT lies outside the dataset, but a folder under it is a link into the dataset: every
+    output path is resolved first, so --overwrite replaces nothing."""
+    source = tmp_path / "source"
+    shutil.copytree(source_tree, source)
+    out = tmp_path / "out"
+    (out / link).parent.mkdir(parents=True)
+    (out / link).symlink_to(source / into)
+    before = {p: p.read_bytes() for p in source.rglob("*") if p.is_file()}
+    target = write_target(tmp_path / "t.yaml")
+    code, _, err = adapt(*options(source, out, target, "--overwrite"))
+    assert code == 1 and len(err.splitlines()) == 1, err
+    assert f"inside the dataset {source}" in err and "leads to" in err
+    assert {p: p.read_bytes() for p in source.rglob("*") if p.is_file()} == before
 
 
 def test_a_tables_profile_is_refused_as_coming_later(source_tree, tmp_path, adapt):
