@@ -11,6 +11,7 @@ from pathlib import Path
 import yaml
 
 from rangeret.exceptions import ConfigError
+from rangeret.io.regular_files import FileTooLargeError, NotRegularFileError, read_regular
 
 #: The largest YAML file read (the built-in profiles are a few KB).
 MAX_BYTES = 1 << 20
@@ -81,10 +82,11 @@ def load_yaml(path: Path | str) -> object:
     """The YAML file at `path`, within the bounds; `OSError` when it cannot be read,
     `YamlLimitError` when it is too large, too deep, too expanded or not YAML."""
     path = Path(path)
-    size = path.stat().st_size
-    if size > MAX_BYTES:
-        raise YamlLimitError(f"{path} is {size:,} bytes, larger than the {MAX_BYTES:,} allowed")
-    return load_yaml_text(path.read_text(), str(path))
+    try:
+        data = read_regular(path, "a YAML file", MAX_BYTES)
+    except (NotRegularFileError, FileTooLargeError) as exc:
+        raise YamlLimitError(str(exc)) from None
+    return load_yaml_text(data.decode("utf-8"), str(path))
 
 
 def read_yaml(path: Path | str, what: str, error: type[Exception]) -> object:

@@ -26,7 +26,12 @@ _KINDS = (
 
 
 class NotRegularFileError(InputError, ValueError):
-    """A path that names something other than a regular file where one is read."""
+    """A path that names something other than a regular file where one is read; `kind` says
+    what it is (`a folder`, `a FIFO (named pipe)`, ...)."""
+
+    def __init__(self, message: str, kind: str = "not a regular file") -> None:
+        super().__init__(message)
+        self.kind = kind
 
 
 def file_kind(mode: int) -> str:
@@ -50,7 +55,7 @@ def require_regular(path: Path | str, what: str) -> os.stat_result:
     except FileNotFoundError as exc:
         raise InputFileMissing.of(exc) from exc
     if not stat.S_ISREG(info.st_mode):
-        raise NotRegularFileError(refusal(path, info.st_mode, what))
+        raise NotRegularFileError(refusal(path, info.st_mode, what), file_kind(info.st_mode))
     return info
 
 
@@ -67,11 +72,11 @@ def open_regular(path: Path | str, what: str) -> BinaryIO:
             mode = os.stat(path).st_mode
         except OSError:
             raise exc from None
-        raise NotRegularFileError(refusal(path, mode, what)) from exc
+        raise NotRegularFileError(refusal(path, mode, what), file_kind(mode)) from exc
     try:
         mode = os.fstat(fd).st_mode
         if not stat.S_ISREG(mode):
-            raise NotRegularFileError(refusal(path, mode, what))
+            raise NotRegularFileError(refusal(path, mode, what), file_kind(mode))
         os.set_blocking(fd, True)
         return os.fdopen(fd, "rb")
     except BaseException:

@@ -10,7 +10,6 @@ semantic id, the high 16 bits the instance id. Every reader checks what it reads
 from __future__ import annotations
 
 import os
-import stat
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +19,7 @@ import numpy as np
 
 from rangeret.exceptions import InputError, InputFileMissing
 from rangeret.io.atomic import atomic_path, atomic_write_bytes
+from rangeret.io.regular_files import NotRegularFileError, open_regular
 
 POINT_BYTES = 16
 LABEL_BYTES = 4
@@ -116,21 +116,19 @@ def read_scan(
     """
     path = Path(path)
     try:
-        with open(path, "rb") as f:
+        with open_regular(path, "a scan") as f:
             if within is not None:
                 _check_within(f.fileno(), path, within)
             data = _read_all(f)
-    except FileNotFoundError as exc:
-        raise InputFileMissing.of(exc) from exc
+    except NotRegularFileError as exc:
+        raise ScanFormatError(path, f"it is {exc.kind}, not a scan file") from None
     return parse_scan(data, str(path), record=record)
 
 
 def _read_all(f: BinaryIO) -> np.ndarray:
-    """The whole of a file just opened, as a new uint8 array: a regular file is read into it in
-    one go (no bytes object to copy from)."""
+    """The whole of a regular file just opened, as a new uint8 array read into in one go (no
+    bytes object to copy from)."""
     info = os.fstat(f.fileno())
-    if not stat.S_ISREG(info.st_mode):
-        return np.frombuffer(bytearray(f.read()), dtype=np.uint8)
     data = np.empty(info.st_size + 1, dtype=np.uint8)
     got = f.readinto(data)
     if got <= info.st_size:

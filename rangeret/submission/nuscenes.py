@@ -53,6 +53,7 @@ from rangeret.submission.archives import (
 )
 from rangeret.submission.nuscenes_format import (
     LIDARSEG_RESULTS,
+    MAX_META_BYTES,
     META_KEYS,
     PANOPTIC_RESULTS,
     ResultsFormat,
@@ -346,6 +347,11 @@ def validate_nuscenes_submission(
             )
         elif meta_name not in names:
             check.problems.append(f"{archive}: {meta_name} does not exist")
+        elif entries[meta_name].file_size > MAX_META_BYTES:
+            check.problems.append(
+                f"{archive}: {meta_name} is {entries[meta_name].file_size:,} bytes, more than "
+                f"the {MAX_META_BYTES:,} a submission.json may have"
+            )
         else:
             try:
                 data = json.loads(zf.read(entries[meta_name]).decode("utf-8"))
@@ -372,6 +378,13 @@ def validate_nuscenes_submission(
                 continue
             try:
                 num_points = _expected_points(entry, profile)
+                if info.file_size > results.most_bytes(num_points):
+                    check.problems.append(
+                        f"{archive}: {name} is {info.file_size:,} bytes, more than the "
+                        f"{results.most_bytes(num_points):,} a prediction of {num_points:,} "
+                        "points may take"
+                    )
+                    continue
                 data = zf.read(info)
             except ScanFormatError as exc:
                 check.problems.append(str(exc))

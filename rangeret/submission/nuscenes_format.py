@@ -23,6 +23,12 @@ META_KEYS = ("use_camera", "use_lidar", "use_radar", "use_map", "use_external")
 PANOPTIC_TASK = "segmentation"
 
 
+#: Bytes an `.npz` of one array may add to the array's own (zip and npy headers).
+NPZ_HEADROOM = 64 << 10
+#: The most bytes `submission.json` may take (the devkit's is about 200).
+MAX_META_BYTES = 64 << 10
+
+
 @dataclass(frozen=True)
 class ResultsFormat:
     """What one nuScenes challenge's results folder holds per keyframe, and its meta's extras."""
@@ -45,6 +51,11 @@ class ResultsFormat:
     def meta_keys(self) -> tuple[str, ...]:
         """Every key "meta" must hold."""
         return (*(k for k, _ in self.meta_extra), *META_KEYS)
+
+    def most_bytes(self, num_points: int) -> int:
+        """The most bytes a prediction of `num_points` points may take: one byte a point in a
+        `.bin`; two a point, plus an npz's headers, in a panoptic `.npz` (compressed or not)."""
+        return 2 * num_points + NPZ_HEADROOM if self.panoptic else num_points
 
 
 LIDARSEG_RESULTS = ResultsFormat("lidarseg", "_lidarseg.bin", "nuScenes-lidarseg")

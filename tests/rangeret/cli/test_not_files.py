@@ -67,3 +67,26 @@ def test_serve_refuses_a_models_file_entry_that_is_not_a_file(kind, tmp_path):
     done = _run("-m", "service", "--models", str(models), *NET, "--port", "0", env=env)
     assert done.returncode != 0
     assert KINDS[kind] in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
+@pytest.mark.slow
+def test_a_scan_that_is_a_fifo_is_that_scans_named_failure(tmp_path):
+    from tests.support.workers import build_tree, small_weights
+
+    data = build_tree(tmp_path / "data", labelled=2, unlabelled=0)
+    fifo = data / "sequences" / "08" / "velodyne" / "000001.bin"
+    fifo.unlink()
+    os.mkfifo(fifo)
+    out = tmp_path / "out"
+    args = ["-m", "rangeret.cli.main", "predict", "--dataset", str(data), "--sequences", "08"]
+    done = _run(*args, "--out", str(out), "--checkpoint", str(small_weights(tmp_path)), *NET)
+    assert done.returncode == 1, done.stderr
+    assert f"{fifo}: it is a FIFO (named pipe), not a scan file" in done.stderr + done.stdout
+    assert (out / "sequences" / "08" / "predictions" / "000000.label").is_file()
+
+
+def test_a_profile_that_is_a_fifo_is_one_sentence(tmp_path):
+    os.mkfifo(tmp_path / "p.yaml")
+    done = _run("-m", "rangeret.cli.main", "profile", "show", str(tmp_path / "p.yaml"))
+    assert done.returncode == 1
+    assert "p.yaml is a FIFO (named pipe), not a file" in done.stderr, done.stderr
