@@ -30,6 +30,7 @@ from service.labelling.serve_client import ServeLabeller
 from service.models.catalog import ModelCatalog, ModelEntry
 from tests.support.gateway import AUTH, OCTET, assert_error, gateway_env, start_gateway
 from tests.support.open_audit import Audit
+from tests.support.paths import data_path
 from tests.support.workers import build_tree, free_ports, ray_node, small_weights
 from workers.scan_wire import (
     CONFIDENCE_HEADER,
@@ -511,6 +512,33 @@ def test_one_replica_with_room_for_one_network_serves_two_models_in_turn(deploye
             "with the gateway's models file"
         )
     ), run.stderr[-2000:]
+
+
+def test_a_replica_refuses_a_checkpoint_changed_since_the_build(deployed):
+    """The `multi` application's model `one`, evicted by `two`, finds its checkpoint truncated
+    when it is loaded again: a 503 naming the model and the digest it was built with, never
+    another network's labels; with its bytes back it serves again."""
+    url = deployed["multi_url"]
+    path = deployed["multi"]["one"]
+    built = {m["id"]: m for m in httpx.get(url + "/info", timeout=10).json()["models"]}
+    scan = data_path("semantickitti-scan", "000000.bin").read_bytes()
+
+    def label(name: str) -> httpx.Response:
+        headers = {**OCTET, "serve_multiplexed_model_id": name}
+        return httpx.post(url + "/scans", content=scan, headers=headers, timeout=120)
+
+    assert label("two").status_code == 200  # `one` is evicted: one network per replica
+    original = path.read_bytes()
+    try:
+        path.write_bytes(original[:1000])
+        refused = label("one")
+        assert refused.status_code == 503, refused.text
+        detail = refused.json()["detail"]
+        assert detail.startswith("Model one cannot be loaded again: ")
+        assert built["one"]["checkpoint_sha256"][:16] in detail and "deploy it again" in detail
+    finally:
+        path.write_bytes(original)
+    assert label("one").status_code == 200
 
 
 @pytest.mark.slow
