@@ -310,7 +310,18 @@ class DatasetProfile:
         """The profile as YAML text that `load_profile` reads back unchanged."""
         import yaml
 
-        return yaml.safe_dump(self.to_dict(), sort_keys=False, allow_unicode=True, width=100)
+        class Dumper(yaml.SafeDumper):
+            """Quotes every string of digits alike: YAML leaves `08` and `09`, which no integer
+            reads as, bare among quoted ids such as `'07'`."""
+
+        def digits(dumper: yaml.SafeDumper, value: str) -> yaml.ScalarNode:
+            style = "'" if value.isdigit() else None
+            return dumper.represent_scalar("tag:yaml.org,2002:str", value, style=style)
+
+        Dumper.add_representer(str, digits)
+        return yaml.dump(
+            self.to_dict(), Dumper=Dumper, sort_keys=False, allow_unicode=True, width=100
+        )
 
 
 _TOP_KEYS = ("name", "description", "sensor", "points", "layout", "knn", "labels", "splits")
@@ -386,7 +397,7 @@ def load_profile(name_or_path: str | Path | None = None) -> DatasetProfile:
     if text in BUILTIN_PROFILES:
         return _builtin(text)
     path = Path(text)
-    if not path.is_file():
+    if not path.exists():  # anything else there is read, and refused by its kind if not a file
         raise ProfileError(
             f"unknown profile {text!r}: not a built-in profile ({', '.join(BUILTIN_PROFILES)}) "
             "and no such file"

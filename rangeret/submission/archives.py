@@ -154,14 +154,18 @@ def _dataset_scans(
     problems = list(found.problems)
     if not allow_partial:
         counts = {s: len(v) for s, v in found.by_sequence().items()}
-        for seq, expected in TEST_SCAN_COUNTS.items():
-            have = counts.get(seq)
-            if have is not None and have != expected:
-                problems.append(
-                    f"{dataset}/sequences/{seq}/velodyne holds {have} scans but the official test "
-                    f"sequence {seq} has {expected}: the local copy of the test set is incomplete, "
-                    "so the server would refuse the archive (--allow-partial is for testing only)"
-                )
+        short = [
+            f"{seq} ({counts[seq]:,} of {expected:,})"
+            for seq, expected in TEST_SCAN_COUNTS.items()
+            if counts.get(seq) not in (None, expected)
+        ]
+        if short:
+            problems.append(
+                f"{dataset}/sequences holds other scan counts than the official test set in "
+                f"sequence{'s' if len(short) > 1 else ''} {', '.join(short)}: the local copy of "
+                "the test set is incomplete, so the server would refuse the archive "
+                "(--allow-partial is for testing only)"
+            )
     return found.scans, found.sequences, problems
 
 
@@ -359,6 +363,10 @@ def validate_submission(
     return check
 
 
+#: The most bytes of description.txt read (the leaderboard's four fields take a few hundred).
+MAX_DESCRIPTION_BYTES = 64 << 10
+
+
 def description_warnings(
     zf: zipfile.ZipFile, info: zipfile.ZipInfo | None, archive: Path
 ) -> list[str]:
@@ -368,6 +376,11 @@ def description_warnings(
             f"{archive} has no {DESCRIPTION_NAME}: the leaderboard shows the method as "
             f"{DEFAULT_NAME} with {DEFAULT_URL} links (rangeret submission --method-name, "
             "--pdf-url and --code-url write it)"
+        ]
+    if info.file_size > MAX_DESCRIPTION_BYTES:
+        return [
+            f"{archive}: {DESCRIPTION_NAME} is {info.file_size:,} bytes, more than the "
+            f"{MAX_DESCRIPTION_BYTES:,} read of it: the leaderboard shows none of it"
         ]
     try:
         text = zf.read(info).decode("utf-8")

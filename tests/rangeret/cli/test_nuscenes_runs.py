@@ -269,3 +269,64 @@ def test_a_root_of_two_versions_needs_version(
     )
     assert main([*args, "--version", "v1.0-mini"]) == 0
     assert len(list((tmp_path / "p" / "lidarseg" / "mini_val").iterdir())) == 2
+
+
+#: Bytes of the oversized members below: each compresses to about 0.6 MB.
+HUGE = 600 << 20
+#: Resident memory a refusal may take beyond the command's own (torch and the tables).
+MEMORY_ALLOWANCE = 200 << 20
+
+
+def _validate_memory(archive: Path, tree: Path) -> tuple[int, str, int]:
+    """`rangeret validate-submission` of `archive` in its own process: exit code, what it
+    printed and its peak resident bytes."""
+    import subprocess
+    import sys
+
+    from tests.support.paths import REPO
+
+    measured = (
+        "import resource, sys; from rangeret.cli.main import main; code = main(sys.argv[1:]); "
+        "print('PEAK', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr); "
+        "sys.exit(code)"
+    )
+    args = ["validate-submission", str(archive), "--profile", "nuscenes"]
+    args += ["--dataset", str(tree), "--split", "mini_val"]
+    done = subprocess.run(
+        [sys.executable, "-c", measured, *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    peak = int(done.stderr.rsplit("PEAK", 1)[1].split()[0]) * 1024
+    return done.returncode, done.stdout + done.stderr, peak
+
+
+@pytest.mark.slow
+def test_oversized_members_are_refused_by_their_declared_size(
+    tree: Path, predictions: Path, tmp_path: Path
+) -> None:
+    """A prediction file, submission.json or description.txt declaring far more bytes than it
+    may hold is refused (or, for the description, not read) before a byte of it is read."""
+    good = tmp_path / "good.zip"
+    assert submit(tree, predictions, good) == 0
+    code, _, baseline = _validate_memory(good, tree)
+    assert code == 0
+    with zipfile.ZipFile(good) as zf:
+        members = {i.filename: zf.read(i) for i in zf.infolist()}
+    label = next(n for n in members if n.endswith("_lidarseg.bin"))
+    cases = {
+        label: f"{label} is {HUGE:,} bytes, more than the",
+        "mini_val/submission.json": f"mini_val/submission.json is {HUGE:,} bytes, more than the",
+        "description.txt": f"description.txt is {HUGE:,} bytes, more than the 65,536 read of it",
+    }
+    for member, words in cases.items():
+        archive = tmp_path / "huge.zip"
+        with zipfile.ZipFile(archive, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+            for name, data in members.items():
+                zf.writestr(name, bytes(HUGE) if name == member else data)
+        code, err, peak = _validate_memory(archive, tree)
+        assert words in err, err
+        assert code == (0 if member == "description.txt" else 1), err
+        assert peak < baseline + MEMORY_ALLOWANCE, (member, peak, baseline)
