@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
 from rangeret.dataset.profiles import DatasetProfile
+from rangeret.models.weights.demo import demo_warning, is_demo_checkpoint
 from service.http.errors import ApiError
 from service.http.metrics import GatewayMetrics
 from service.jobs import JobExecutor, JobManager, JobStore
@@ -134,10 +135,18 @@ class Gateway:
         await asyncio.to_thread(self.jobs.start)
         await self.labeller.start(self.metrics.observe_batch)
         self.started = True
+        self._warn_demo_weights()
         try:
             await asyncio.to_thread(self.page.get)
         except PageNotBuilt as exc:
             log.warning("%s Until then / answers 503; the API is served.", exc)
+
+    def _warn_demo_weights(self) -> None:
+        """Log, once per model, that it serves the bundled demo weights where its checkpoint was
+        named (a models file, `--checkpoint`); the loader already says so when none was."""
+        for entry in self.models:
+            if entry.spec.checkpoint is not None and is_demo_checkpoint(entry.checkpoint_sha256):
+                log.warning("model %s is %s", entry.name, demo_warning(entry.profile.name))
 
     async def stop(self) -> None:
         """Stop the labeller and the job runner (a running job resumes at the next start)."""

@@ -205,8 +205,8 @@ class ServedModel(BaseModel):
                     "profile": "semantickitti",
                     "demo_weights": True,
                     "note": "Demo weights: trained on simulated scenes only, so their labels of "
-                    "real scans are not meaningful. Serve a published model with rangeret serve "
-                    "--checkpoint rangeret-kitti-657 (see rangeret weights list).",
+                    "real scans are not meaningful. Serve real weights with rangeret serve "
+                    "--checkpoint rangeret-kitti-657 (`rangeret weights list`).",
                     "precision": "fp32",
                     "precision_reason": "asked for (fp32 is the default); auto would pick bf16 "
                     "here: NVIDIA H200 runs bf16 natively",

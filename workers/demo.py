@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -40,13 +41,14 @@ from rangeret.inference.loaded_weights import load_weights
 from rangeret.inference.spec import InferenceSpec
 from rangeret.io.run_info import check_weights, write_run_info
 from rangeret.io.scans import read_scan
-from rangeret.models.weights.demo import DEMO_WARNING, demo_checkpoint, is_demo_path
+from rangeret.models.weights.demo import demo_checkpoint, demo_warning, is_demo_path
 from rangeret.sim.trees import simulate_tree
 from rangeret.submission.benchmark import ArchiveRequest, Benchmark
 from rangeret.submission.benchmarks import benchmark_of
 from rangeret.submission.leaderboard import LeaderboardEntry, description_text
-from workers.cluster import start_local
+from workers.cluster import session_folder, start_local
 from workers.pipeline import describe_spec, run_pipeline
+from workers.ray_files import TOKEN_FILE, keep_logs, run_token
 from workers.sizing import PipelineOptions
 
 log = logging.getLogger(__name__)
@@ -132,9 +134,11 @@ def run_demo(
         overwrite=overwrite,
     )
     with contextlib.ExitStack() as stack:
-        ray_logs = None if ray.is_initialized() else stack.enter_context(_local_ray())
+        ray_logs = (
+            None if ray.is_initialized() else stack.enter_context(_local_ray(out / RAY_FOLDER))
+        )
         entries = selection.discover().scans
-        run = run_pipeline(spec, profile, entries, preds, options)
+        run = run_pipeline(spec, profile, entries, preds, options, checkpoint_sha256=info.sha256)
     if not run.summary.ok:
         raise RuntimeError(f"the demo could not predict {sorted(run.summary.failed)}")
 
@@ -156,7 +160,7 @@ def run_demo(
             evaluated, preds, checkpoint_sha256=info.sha256, profile=profile
         )
         if demo_weights:
-            report.notes.append(DEMO_WARNING)
+            report.notes.append(demo_warning(profile.name))
         plots = write_plots(report, out / "plots", config=profile.labels)
     report.write_json(out / "report.json")
     plots.append(
@@ -220,8 +224,11 @@ def run_demo(
         print(f"  submission archive ({plan.split}):".ljust(43) + f" {archive}")
     if ray_logs is not None:
         print(f"  Ray's own logs:                           {ray_logs}")
+        token = ray_logs.parent / TOKEN_FILE
+        if token.is_file():
+            print(f"  Ray's token (this run's only):            {token}")
     if demo_weights:
-        print(f"\nNote: {DEMO_WARNING}.")
+        print(f"\nNote: {demo_warning(profile.name)}.")
     if plan.hints:
         print("\n" + "\n".join(plan.hints))
         if panoptic:
@@ -267,36 +274,46 @@ def _range_image_png(
     )
 
 
+#: The demo's Ray's folder in its results: the token and, once it stops, its logs.
+RAY_FOLDER = "ray"
 #: The file in a Ray session's log folder that takes what Ray writes to the demo's stderr.
 RAY_STDERR_LOG = "driver-stderr.log"
 
 
 @contextlib.contextmanager
-def _local_ray() -> Iterator[Path]:
+def _local_ray(folder: Path) -> Iterator[Path]:
     """A local Ray for the demo, shut down at the end, whose own output stays out of the demo's:
     what Ray writes to this process's stderr (its loggers, its core worker's C++ log lines) goes
     to `RAY_STDERR_LOG` in the session's log folder, beside the logs Ray keeps there, while the
-    demo's log lines still reach the terminal. Yields that folder."""
+    demo's log lines still reach the terminal. Its token is `folder/auth_token` (not one in the
+    home folder), and at the end its logs move to `folder/logs` and its session folder under /tmp
+    is removed. Yields where the logs will be."""
     import ray
 
-    redirect = _StderrRedirect()
-    try:
-        context = start_local(address="local", num_cpus=os.cpu_count() or 2, log_to_driver=False)
-    except BaseException:
-        redirect.stop(show=True)
-        raise
-    logs = Path(context.address_info["session_dir"]) / "logs"
-    redirect.move(logs / RAY_STDERR_LOG)
-    try:
-        yield logs
-    except BaseException:
-        log.warning("what Ray wrote to stderr in this run is in %s", logs / RAY_STDERR_LOG)
-        raise
-    finally:
+    kept = folder / "logs"
+    with run_token(folder):
+        redirect = _StderrRedirect()
         try:
-            ray.shutdown()
+            context = start_local(
+                address="local", num_cpus=os.cpu_count() or 2, log_to_driver=False
+            )
+        except BaseException:
+            redirect.stop(show=True)
+            shutil.rmtree(session_folder(), ignore_errors=True)
+            raise
+        logs = Path(context.address_info["session_dir"]) / "logs"
+        redirect.move(logs / RAY_STDERR_LOG)
+        try:
+            yield kept
+        except BaseException:
+            log.warning("what Ray wrote to stderr in this run is in %s", kept / RAY_STDERR_LOG)
+            raise
         finally:
-            redirect.stop(show=False)
+            try:
+                ray.shutdown()
+            finally:
+                redirect.stop(show=False)
+                keep_logs(Path(session_folder()), logs, kept)
 
 
 class _StderrRedirect:

@@ -21,7 +21,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from rangeret.exceptions import InputError
-from rangeret.models.weights.demo import DEMO_WARNING
+from rangeret.models.weights.demo import demo_warning
 
 DEFAULT_NAME = "Anonymous"
 DEFAULT_URL = "n/a"
@@ -104,7 +104,7 @@ def description_text(
         lines.append(f"profile: {profile}")
     lines.append(f"written by: {written_by}")
     if demo_weights:
-        lines.append(f"NOTE: {DEMO_WARNING}")
+        lines.append(f"NOTE: {demo_warning(profile)}")
     lines += [line for note in notes for line in note.strip().splitlines()]
     return "\n".join(lines) + "\n"
 

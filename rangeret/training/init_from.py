@@ -38,7 +38,7 @@ from rangeret.models.weights.checkpoint import (
     CheckpointContent,
     CheckpointError,
 )
-from rangeret.models.weights.hub import resolve_weights
+from rangeret.models.weights.hub import published_name, resolve_weights
 from rangeret.training.config import TrainConfig, TrainConfigError
 from rangeret.training.state import TrainingStateError
 
@@ -65,7 +65,8 @@ class Parent:
     def record(self) -> dict[str, Any]:
         """What checkpoints record of the parent: the name or path given, its file, the SHA-256
         of the file's bytes, its network and class count, and the profile it was trained for
-        (None for published files, which record none)."""
+        (a published model's from the registry; None for a published file named by its path,
+        which records none)."""
         info = self.content.info
         return {
             "source": self.source,
@@ -73,9 +74,16 @@ class Parent:
             "sha256": info.sha256,
             "model": info.name,
             "num_classes": self.config.num_classes,
-            "profile": (info.profile or {}).get("name"),
+            "profile": (info.profile or {}).get("name") or _published_profile(self.source),
             "published": info.published,
         }
+
+
+def _published_profile(source: str) -> str | None:
+    """The profile the registry gives a published model named by `source`; None for a file,
+    whose bytes record none."""
+    model = published_name(source)
+    return None if model is None else model.profile
 
 
 def read_parent(source: str, overrides: Mapping[str, Any] | None = None) -> Parent:

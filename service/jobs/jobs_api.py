@@ -4,6 +4,7 @@ trying again)."""
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -12,8 +13,10 @@ if TYPE_CHECKING:
 
 #: Longest one request to the Jobs API may take.
 REQUEST_TIMEOUT_S = 10.0
-#: Characters of a dead job's log kept in the failed job's reason.
-LOG_TAIL_CHARS = 300
+#: Most characters of a dead job's log kept in the failed job's reason.
+LOG_TAIL_CHARS = 2000
+#: A log line that states an error: a Python exception's last line, or a command's "error:".
+_ERROR_LINE = re.compile(r"^(?:[\w.]*(?:Error|Exception|Exit|Interrupt)\b.*|.*\berror: .+)$")
 
 
 class JobsApiError(Exception):
@@ -60,14 +63,13 @@ class JobsApi:
             return False
 
     def log_tail(self, sid: str, chars: int = LOG_TAIL_CHARS) -> str:
-        """The end of the Ray job's log on one line ("" when it cannot be read)."""
+        """Why the Ray job's log says it ended, on one line ("" when it cannot be read):
+        `log_reason` of its log."""
         try:
             text = self._call(lambda c: c.get_job_logs(sid))
         except JobsApiError:
             return ""
-        lines = [line.strip() for line in str(text).splitlines() if line.strip()]
-        tail = " | ".join(lines[-3:])
-        return tail[-chars:]
+        return log_reason(str(text), chars)
 
     def _connect(self) -> JobSubmissionClient:
         """The client, made on first use (it checks the cluster's Ray version, so it needs the
@@ -132,3 +134,15 @@ def first_line(text: str) -> str:
         if line.strip():
             return " ".join(line.split())[:300].rstrip(".")
     return "no details"
+
+
+def log_reason(text: str, chars: int = LOG_TAIL_CHARS) -> str:
+    """The reason a log gives for a failure, on one line: its last error line (a Python
+    exception's, a command's `error:`) whole, with what follows it, since Ray's and the
+    interpreter's closing lines come after the error; else its last three lines. At most `chars`
+    characters, cut at the end, never at the start where the error is."""
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    errors = [i for i, line in enumerate(lines) if _ERROR_LINE.match(line)]
+    kept = lines[errors[-1] :] if errors else lines[-3:]
+    reason = " | ".join(kept)
+    return reason if len(reason) <= chars else reason[: chars - 3].rstrip() + "..."

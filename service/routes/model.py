@@ -15,7 +15,7 @@ from fastapi import APIRouter
 from rangeret.exceptions import RangeRetError
 from rangeret.inference.runtime.device import select_device
 from rangeret.inference.runtime.precision import PrecisionChoice, choose_precision
-from rangeret.models.weights.demo import is_demo_checkpoint
+from rangeret.models.weights.demo import is_demo_checkpoint, real_weights_hint
 from service.gateway import Gateway
 from service.http.dependencies import GatewayDep
 from service.http.errors import error_responses
@@ -24,12 +24,14 @@ from service.served_schemas import ListedModel, ModelList, ServedModel
 
 router = APIRouter(prefix="/v1", tags=["service"])
 
-#: What the page shows beside the model's name when the demo weights are served.
-DEMO_NOTE = (
-    "Demo weights: trained on simulated scenes only, so their labels of real scans are not "
-    "meaningful. Serve a published model with rangeret serve --checkpoint rangeret-kitti-657 "
-    "(see rangeret weights list)."
-)
+
+def demo_note(profile: str) -> str:
+    """What the page shows beside the model's name when demo weights are served: real weights
+    for the model's own profile (a published one, or a network trained on it)."""
+    return (
+        "Demo weights: trained on simulated scenes only, so their labels of real scans are not "
+        f"meaningful. Serve real weights with rangeret serve {real_weights_hint(profile)}."
+    )
 
 
 def served_model(gw: Gateway, entry: ModelEntry, network: str | None) -> ServedModel:
@@ -43,7 +45,7 @@ def served_model(gw: Gateway, entry: ModelEntry, network: str | None) -> ServedM
         checkpoint_sha256=entry.checkpoint_sha256,
         profile=entry.profile.name,
         demo_weights=demo,
-        note=DEMO_NOTE if demo else None,
+        note=demo_note(entry.profile.name) if demo else None,
         precision=None if precision is None else precision.precision,
         precision_reason=None if precision is None else precision.reason,
     )

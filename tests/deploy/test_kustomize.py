@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -241,7 +243,7 @@ def test_the_deployment_guide_takes_the_operator_from_image_to_scan():
         "docker push",
         "deploy/kuberay/image/kustomization.yaml",
         "kubectl create secret generic rangeret-ray-token",
-        "kubectl apply -f deploy/kuberay/storage.yaml",
+        "kubectl kustomize deploy/kuberay | kubectl apply -l app.kubernetes.io/component=storage",
         "kubectl apply -k deploy/kuberay/fill-volumes",
         "kubectl apply -k deploy/kuberay\n",
         "kubectl apply -k deploy/kuberay/test-set",
@@ -253,3 +255,45 @@ def test_the_deployment_guide_takes_the_operator_from_image_to_scan():
     assert "kubectl apply -f deploy/kuberay/rayservice.yaml" not in text  # the image is set by -k
     (job,) = load_manifests(KUBERAY / "fill-volumes" / "job.yaml")
     assert find([job], "Job")["metadata"]["name"] in text
+
+
+def test_the_claims_storage_class_is_one_kustomize_knob_and_step_4_applies_it(tmp_path):
+    """docs/deploy.md: the KubeRay operator's install command (1.6 or newer); the claims take the
+    cluster's default class until the storage-class component is listed, then all three take
+    its class, and step 4's command (the rendered service, filtered by the claims' label) picks
+    exactly the three claims either way, so steps 4 and 5 apply the same claims."""
+    text = (REPO / "docs" / "deploy.md").read_text()
+    install = re.search(
+        r"helm install kuberay-operator kuberay/kuberay-operator --version (\S+)", text
+    )
+    assert install and tuple(map(int, install.group(1).split(".")[:2])) >= (1, 6)
+    step = re.search(r"kubectl kustomize deploy/kuberay \| kubectl apply -l (\S+)=(\S+) -f -", text)
+    assert step, "step 4 applies the claims through kustomize"
+    label, value = step.groups()
+    copy = tmp_path / "kuberay"
+    shutil.copytree(KUBERAY, copy)
+    root = copy / KUSTOMIZATION
+    knob = "  # - storage-class"
+    assert knob in root.read_text()
+    for enabled in (False, True):
+        if enabled:
+            root.write_text(root.read_text().replace(knob, "  - storage-class"))
+        docs = kustomize(copy)
+        picked = [d for d in docs if d["metadata"].get("labels", {}).get(label) == value]
+        claims = [d for d in docs if d["kind"] == "PersistentVolumeClaim"]
+        assert picked == claims and len(claims) == 3
+        classes = {d["spec"].get("storageClassName") for d in claims}
+        assert classes == ({"nfs-client"} if enabled else {None}), classes
+    # Step 6's scan: the command the guide gives for one writes the file it names.
+    simulate = re.search(r"`(rangeret simulate [^`]+)` writes\s+`([^`]+)`", text)
+    assert simulate, "step 6 says where its scan comes from"
+    done = subprocess.run(
+        [sys.executable, "-m", "rangeret.cli.main", *simulate.group(1).split()[1:]],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    scan = tmp_path / simulate.group(2)
+    assert scan.stat().st_size > 0 and scan.stat().st_size % 16 == 0

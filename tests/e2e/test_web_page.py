@@ -330,8 +330,14 @@ def test_an_archive_job_from_upload_to_report(setup, page, capsys):
     tab.wait_for_function(f"() => window.rangeretPage.state.report.plots.length === {len(plots)}")
     tab.wait_for_function(
         "() => [...document.querySelectorAll('#report-plots img')]"
-        ".every((img) => img.complete && img.naturalWidth > 0)"
+        ".every((img) => img.complete && img.naturalWidth > 0 && img.hasAttribute('width'))"
     )
+    # Every plot is drawn at one scale: shown width over its pixels' width alike.
+    scales = tab.evaluate(
+        "() => [...document.querySelectorAll('#report-plots img')]"
+        ".map((img) => img.getBoundingClientRect().width / img.naturalWidth)"
+    )
+    assert len(scales) == len(plots) and max(scales) - min(scales) < 0.01, scales
     assert state(tab, ".report") == {
         "job": job_id,
         "miou": report["miou"],

@@ -11,6 +11,7 @@ from pathlib import Path
 from rangeret import DATA_DIR
 from rangeret.exceptions import ModelError
 from rangeret.models.weights.hub import resolve_weights
+from rangeret.models.weights.registry import RegistryError, load_registry
 
 log = logging.getLogger(__name__)
 
@@ -21,11 +22,32 @@ DEMO_CHECKPOINTS = {
     "semantickitti": DEMO_CHECKPOINT,
     "nuscenes": DATA_DIR / "demo-weights-nuscenes.pt",
 }
-DEMO_WARNING = (
-    "using the bundled demo weights, trained on simulated street scenes only: their labels on "
-    "real scans are not meaningful; pass --checkpoint with real weights such as "
-    "rangeret-kitti-657 (`rangeret weights list`)"
-)
+
+
+def real_weights_hint(profile: str | None = None) -> str:
+    """Where real weights for `profile` (None: SemanticKITTI) come from: a published model of
+    that profile, or, where none is published, a network trained on it; never another
+    profile's model, which would be refused."""
+    name = profile or "semantickitti"
+    try:
+        published = [m.name for m in load_registry().values() if m.profile == name]
+    except RegistryError:
+        published = []
+    if published:
+        return f"--checkpoint {published[0]} (`rangeret weights list`)"
+    return (
+        f"--checkpoint with a network trained for the {name} profile (none is published: "
+        f"`rangeret train --profile {name}` makes one)"
+    )
+
+
+def demo_warning(profile: str | None = None) -> str:
+    """The note every run on bundled demo weights carries, with the real weights to use instead
+    for its profile."""
+    return (
+        "using the bundled demo weights, trained on simulated street scenes only: their labels "
+        f"on real scans are not meaningful; pass {real_weights_hint(profile)}"
+    )
 
 
 class DemoWeightsMissing(ModelError, FileNotFoundError):
@@ -55,7 +77,7 @@ def resolve_checkpoint(path: str | Path | None, profile: str | None = None) -> P
     if path is not None:
         return resolve_weights(path).path
     found = demo_checkpoint(profile)
-    log.warning(DEMO_WARNING)
+    log.warning(demo_warning(profile))
     return found
 
 

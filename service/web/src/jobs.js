@@ -11,6 +11,11 @@ import { panopticReportView, panopticScores, reportView } from './report.js';
 const ACTIVE = new Set(['queued', 'running']);
 const POLL_ACTIVE_MS = 1000;
 const POLL_IDLE_MS = 4000;
+/**
+ * Every report plot is shown at this share of its pixels (they are all saved at 120 dpi), so that
+ * all are drawn at one scale: a narrow plot is not shown larger than a wide one shrunk to fit.
+ */
+const PLOT_SCALE = 0.42;
 
 export class JobsPanel {
   constructor(api, state) {
@@ -215,6 +220,13 @@ export class JobsPanel {
       const url = URL.createObjectURL(await response.blob());
       this.plotUrls.push(url);
       const image = el('img', { src: url, alt: name, 'data-plot': name });
+      image.addEventListener(
+        'load',
+        () => {
+          image.width = Math.round(image.naturalWidth * PLOT_SCALE);
+        },
+        { once: true },
+      );
       box.append(el('figure', {}, image, el('figcaption', { text: name })));
       this.state.report.plots.push(name);
     }

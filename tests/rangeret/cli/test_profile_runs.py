@@ -327,3 +327,14 @@ def test_simulate_writes_a_profiles_layout_and_refuses_a_contradicting_sensor(tm
     assert scan.stat().st_size % 20 == 0
     assert main([*base, "--beams", "32", "--profile", "semantic-poss"]) == 1
     assert "contradicts the semantic-poss profile's 40 rows" in capsys.readouterr().err
+
+
+def test_profile_show_quotes_every_numeric_split_id_alike(capsys):
+    """`08` and `09` are quoted as `'07'` is (YAML would leave them bare), and read back the same."""
+    assert main(["profile", "show", "semantickitti"]) == 0
+    shown = capsys.readouterr().out
+    splits = shown[shown.index("\nsplits:") :]
+    items = [line.strip()[2:] for line in splits.splitlines() if line.strip().startswith("- ")]
+    ids = [i for i in items if i.strip("'").isdigit()]
+    assert len(ids) >= 22 and all(i.startswith("'") and i.endswith("'") for i in ids), ids
+    assert yaml.safe_load(shown)["splits"]["valid"] == ["08"]

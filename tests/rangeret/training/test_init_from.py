@@ -379,3 +379,31 @@ def test_ray_train_fine_tunes_on_two_workers_with_the_backbone_frozen(trees, par
     loaded = set(theirs) - set(NEW_HEAD)
     assert loaded and all(torch.equal(after[k], theirs[k]) for k in loaded)
     assert after["head.mlp2.weight"].shape == (15, 64)
+
+
+def test_weights_info_names_the_parents_profile_for_each_kind_of_parent(
+    trees, parent, tmp_path, monkeypatch, capsys
+):
+    """A published model named by the registry has its registry's profile on the parent line; a
+    published file given by path says it records none."""
+    bare = tmp_path / "tiny-cir.pt"
+    torch.save(load_checkpoint(parent).state_dict(), bare)
+    entry = {"repo": "test-org/tiny", "file": "tiny-cir.pt", "model": "rangeret-cir"}
+    entry |= {"blocks": 1, "height": 16, "width": 128, "profile": "semantic-poss"}
+    (tmp_path / "models.yaml").write_text(yaml.safe_dump({"tiny-cir": entry}))
+    monkeypatch.setenv("RANGERET_REGISTRY", str(tmp_path / "models.yaml"))
+    monkeypatch.setattr("rangeret.models.weights.hub.cached_weights", lambda model: bare)
+    lines = {}
+    for kind, source in (("named", "tiny-cir"), ("file", str(bare))):
+        out = tmp_path / kind
+        argv = ["train", "-q", "--dataset", str(trees["pandaset"]), "--profile", "pandaset"]
+        argv += ["--init-from", source, "--override", "heads=2", "--out", str(out)]
+        argv += ["--train-sequences", "1", "--val-sequences", "--height", "16", "--width", "128"]
+        argv += ["--epochs", "1", "--max-steps", "1", "--loader-workers", "0", "--device", "cpu"]
+        assert main(argv) == 0, capsys.readouterr().err
+        capsys.readouterr()
+        assert main(["weights", "info", str(out / "last.pt")]) == 0
+        facts = dict(line.split(":", 1) for line in capsys.readouterr().out.splitlines())
+        lines[kind] = facts["parent"]
+    assert "with 20 classes for the semantic-poss profile;" in lines["named"]
+    assert "with 20 classes for a profile it does not record (a published file);" in lines["file"]
