@@ -142,11 +142,12 @@ class SequenceLayout:
         _no_version(version)
         root = Path(root)
         result = Discovery(root=root, sequences=[])
+        missing = [s for s in sequences if not velodyne_dir(root, s, layout=self).is_dir()]
+        if missing and not missing_ok:
+            result.problems.append(_missing_problem(root, missing, self))
         for seq in sequences:
             vdir = velodyne_dir(root, seq, layout=self)
-            if not vdir.is_dir():
-                if not missing_ok:
-                    result.problems.append(f"{vdir} does not exist (sequence {seq} is missing)")
+            if seq in missing:
                 continue
             result.sequences.append(seq)
             scans = _stems(vdir, ".bin")
@@ -436,6 +437,18 @@ def list_scans(
     if absent:
         log.warning("sequences %s are not in %s: predicting the others", ", ".join(absent), dataset)
     return found.scans
+
+
+def _missing_problem(root: Path, missing: Sequence[str], layout: DatasetLayout) -> str:
+    """One problem naming every missing sequence: its scan folder for one, the list for more."""
+    first = velodyne_dir(root, missing[0], layout=layout)
+    if len(missing) == 1:
+        return f"{first} does not exist (sequence {missing[0]} is missing)"
+    shown = first.relative_to(root).as_posix().replace(str(missing[0]), "<sequence>", 1)
+    return (
+        f"{len(missing)} sequences are missing under {root} (no {shown} folder): "
+        f"{', '.join(missing)}"
+    )
 
 
 def _stems(folder: Path, suffix: str) -> dict[str, Path]:

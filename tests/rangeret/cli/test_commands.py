@@ -136,7 +136,8 @@ def test_submission_and_validation_commands(tmp_path, capsys):
     base = ["--predictions", str(preds), "--dataset", str(data), "--out", str(out)]
     assert main(["submission", "-q", *base]) == 1
     err = capsys.readouterr().err
-    assert "official test sequence 11 has 921" in err and not out.exists()
+    assert "than the official test set in sequence" in err and "of 921)" in err
+    assert err.count("sequences are missing") == 1 and not out.exists()
 
     assert main(["submission", "-q", *base, "--allow-partial", "--description", "x"]) == 0
     assert "valid partial archive" in capsys.readouterr().out
