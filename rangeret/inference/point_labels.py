@@ -72,9 +72,9 @@ def _on_host(value: ProjectionArray) -> np.ndarray:
 def single_thread_on_cpu(device: torch.device) -> Iterator[None]:
     """Run the body on one torch thread when on the CPU.
 
-    kNN refinement is many small operations: with several threads, each waits for a time slice
-    whenever the cores are shared (readers beside the model actor), which can make it far slower;
-    on one thread its time stays close to its best (`benchmarks/bench_knn.py` measures both).
+    kNN refinement on the CPU runs on as many threads as torch has (`refine_batch`); beside the
+    readers of a pipeline those would compete with them for the same cores, while one thread
+    leaves them the others (`benchmarks/bench_knn.py` measures both).
     """
     if device.type != "cpu":
         yield
