@@ -12,11 +12,8 @@ network, no loader workers, the CPU). `ray job submit` needs a cluster and is no
 from __future__ import annotations
 
 import json
-import os
 import re
 import shlex
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -25,28 +22,12 @@ import yaml
 from rangeret.cli.main import main
 from rangeret.dataset.profiles import load_profile
 from rangeret.sim import SensorConfig, simulate_dataset
+from tests.support.doc_commands import ONE_STEP, SMALL_NET, code_commands, run_rangeret
 from tests.support.paths import REPO
 
 pytestmark = pytest.mark.slow
 
 PAGE = REPO / "docs" / "custom-sensors.md"
-#: A one-block network of width 16: one training step takes a second on a CPU.
-SMALL_NET = ["--override", "layers=1", "--override", "heads=2", "--override", "dim=16"]
-#: What keeps a training run to one step on this machine.
-ONE_STEP = ["--epochs", "1", "--max-steps", "1", "--loader-workers", "0", "--device", "cpu"]
-
-
-def page_commands(text: str) -> list[str]:
-    """The `rangeret` commands of the page's code blocks, continuation lines joined, in order
-    (the error examples, written after a `$` prompt, are outputs, not steps)."""
-    commands = []
-    for block in re.findall(r"^ *```[a-z]*\n(.*?)^ *```", text, flags=re.M | re.S):
-        if re.search(r"^ *\$ ", block, flags=re.M):
-            continue
-        joined = re.sub(r"\\\n\s*", " ", block)
-        lines = [line.strip() for line in joined.splitlines()]
-        commands += [line for line in lines if line.startswith("rangeret ")]
-    return commands
 
 
 def page_profile(text: str, shown: str) -> dict:
@@ -62,31 +43,22 @@ def page_profile(text: str, shown: str) -> dict:
 def run(command: str, substitutions: dict[str, str]) -> str:
     """One page command in a `rangeret` process of its own, placeholders replaced, small-run
     options added; its standard output (written to the file a `>` names)."""
-    words = [substitutions.get(w, w) for w in shlex.split(command)]
-    target = None
+    words = [substitutions.get(w, w) for w in shlex.split(command)][1:]
     if ">" in words:
-        words, target = words[: words.index(">")], words[words.index(">") + 1]
-    args = words[1:]
-    if args[0] == "train":
-        args += ONE_STEP + ([] if "--init-from" in args else SMALL_NET)
-    elif args[0] in ("predict", "adapt", "simulate"):
-        args.insert(1, "-q")
-    done = subprocess.run(
-        [sys.executable, "-m", "rangeret.cli.main", *args],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env={**os.environ, "OMP_NUM_THREADS": "1"},
-    )
-    assert done.returncode == 0, f"{command}\n{done.stderr[-3000:]}"
-    if target is not None:
-        Path(target).write_text(done.stdout)
-    return done.stdout
+        cut = words.index(">")
+        words, redirect = words[:cut], words[cut:]
+    else:
+        redirect = []
+    if words[0] == "train":
+        words += ONE_STEP + ([] if "--init-from" in words else SMALL_NET)
+    elif words[0] in ("predict", "adapt", "simulate"):
+        words.insert(1, "-q")
+    return run_rangeret([*words, *redirect], command)
 
 
 def test_every_command_of_the_custom_sensors_page_runs_as_written(tmp_path, monkeypatch):
     text = PAGE.read_text()
-    commands = page_commands(text)
+    commands = code_commands(text)
     monkeypatch.chdir(tmp_path)
     kitti = load_profile("semantickitti")
     small = SensorConfig(beams=32, azimuth_steps=512)
