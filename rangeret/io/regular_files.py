@@ -34,6 +34,10 @@ class NotRegularFileError(InputError, ValueError):
         self.kind = kind
 
 
+class FileTooLargeError(InputError, ValueError):
+    """A file larger than what may be read of its kind."""
+
+
 def file_kind(mode: int) -> str:
     """What a file of `mode` (st_mode) is, in words: `a folder`, `a FIFO (named pipe)`, ..."""
     for test, name in _KINDS:
@@ -72,6 +76,8 @@ def open_regular(path: Path | str, what: str) -> BinaryIO:
             mode = os.stat(path).st_mode
         except OSError:
             raise exc from None
+        if stat.S_ISREG(mode):  # a file that may not be read (permissions): the error as it is
+            raise
         raise NotRegularFileError(refusal(path, mode, what), file_kind(mode)) from exc
     try:
         mode = os.fstat(fd).st_mode
@@ -94,7 +100,3 @@ def read_regular(path: Path | str, what: str, limit: int | None = None) -> bytes
                 f"{path} is {size:,} bytes, more than the {limit:,} that {what} may have"
             )
         return f.read()
-
-
-class FileTooLargeError(InputError, ValueError):
-    """A file larger than what may be read of its kind."""
