@@ -38,7 +38,7 @@ from fastapi.responses import JSONResponse, Response
 from ray import serve
 
 from rangeret.exceptions import RangeRetError
-from rangeret.inference.loaded_weights import WeightsChanged, identify_weights, load_weights
+from rangeret.inference.loaded_weights import RefusalLog, identify_weights, load_checked_weights
 from rangeret.inference.model_set import ModelSet
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import ScanOutcome
@@ -47,7 +47,6 @@ from rangeret.inference.scan_worker import ScanRequest, ScanWorker, use_cpus
 from rangeret.inference.settings import ClusterSettings
 from rangeret.inference.spec import InferenceSpec
 from rangeret.io.scans import ScanFormatError, parse_scan
-from rangeret.models.weights.hub import CheckpointChanged
 from workers.cluster import read_resources
 from workers.scan_wire import INFO_PATH, OCTET, SCANS_PATH, encode_labels, query_flag
 from workers.serve_arguments import (
@@ -131,8 +130,7 @@ class ScanModel:
         self.batch_size = 1
         self._loaded: dict[str, int] = {}
         self._failure: str | None = None
-        #: The last reason each model could not be loaded again, logged once.
-        self._refused: dict[str, str] = {}
+        self._refusals = RefusalLog(log)
         self._load_model = serve.multiplexed(max_num_models_per_replica=max_per_replica)(
             self._loader()
         )
@@ -159,16 +157,13 @@ class ScanModel:
         started = time.perf_counter()
         release_freed_memory()  # what the networks Serve unloaded held
         spec = self.models.spec(name)
-        built = self.built[name].get("checkpoint_sha256")
-        try:
-            predictor = Predictor(load_weights(spec, expected_sha256=built), spec)
-        except CheckpointChanged as exc:
-            raise WeightsChanged(
-                f"model {name}: {exc} when the application was built; deploy it again"
-            ) from exc
-        predictor.weights.identity.check_same(
-            self.built[name], name, "the application was built", "deploy it again"
+        built = self.built[name]
+        when, remedy = "the application was built", "deploy it again"
+        weights = load_checked_weights(
+            spec, built.get("checkpoint_sha256"), f"model {name}", f"when {when}", remedy
         )
+        predictor = Predictor(weights, spec)
+        predictor.weights.identity.check_same(built, name, when, remedy)
         clustering = ClusterSettings(spec.cluster_angle, spec.min_cluster_points)
         model = ReplicaModel(name, predictor, self._unloaded, clustering)
         self._loaded[name] = id(model)
@@ -262,10 +257,7 @@ class ScanModel:
         try:
             model = await self._load_model(name)
         except RangeRetError as exc:  # its checkpoint changed or went since the build
-            reason = exc.summary()
-            if self._refused.get(name) != reason:
-                self._refused[name] = reason
-                log.error("model %s cannot be loaded again: %s", name, reason)
+            reason = self._refusals.note(name, exc)
             return JSONResponse({"detail": f"Model {name} cannot be loaded again: {reason}."}, 503)
         except (RuntimeError, OSError) as exc:
             return JSONResponse({"detail": f"Model {name} cannot be loaded: {exc}."}, 500)

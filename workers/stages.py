@@ -195,18 +195,19 @@ class ModelWorker:
         cpus: float,
         checkpoint_sha256: str | None = None,
     ) -> None:
-        from rangeret.inference.loaded_weights import WeightsChanged, load_weights
+        from rangeret.inference.loaded_weights import load_checked_weights
         from rangeret.inference.predictor import Predictor
         from rangeret.inference.scan_worker import use_cpus, warm_up
-        from rangeret.models.weights.hub import CheckpointChanged
 
         use_cpus(cpus)
-        try:
-            weights = load_weights(spec, profile=profile, expected_sha256=checkpoint_sha256)
-        except CheckpointChanged as exc:
-            raise WeightsChanged(
-                f"a model actor found {exc} by the job's driver; run the job again"
-            ) from exc
+        weights = load_checked_weights(
+            spec,
+            checkpoint_sha256,
+            "a model actor",
+            "by the job's driver",
+            "run the job again",
+            profile=profile,
+        )
         self.predictor = Predictor(weights, spec)
         self.warm_up_seconds = warm_up(self.predictor)
 

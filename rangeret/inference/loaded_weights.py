@@ -17,11 +17,11 @@ from pathlib import Path
 import torch
 
 from rangeret.dataset.profiles import DatasetProfile, load_profile
-from rangeret.exceptions import ModelError
+from rangeret.exceptions import ModelError, RangeRetError
 from rangeret.inference.spec import InferenceSpec
 from rangeret.models.weights.checkpoint_info import CheckpointInfo
 from rangeret.models.weights.demo import note_loaded, resolve_checkpoint
-from rangeret.models.weights.hub import ResolvedWeights, resolve_weights
+from rangeret.models.weights.hub import CheckpointChanged, ResolvedWeights, resolve_weights
 from rangeret.models.weights.run_profile import (
     check_classes,
     default_resolution,
@@ -127,6 +127,42 @@ def load_weights(
     )
     log.debug("loaded %s (sha256 %s) for the %s profile", info.path, info.sha256[:12], settled.name)
     return LoadedWeights(network, settled, info)
+
+
+def load_checked_weights(
+    spec: InferenceSpec,
+    sha256: str | None,
+    who: str,
+    when: str,
+    remedy: str,
+    *,
+    profile: DatasetProfile | None = None,
+) -> LoadedWeights:
+    """`load_weights` of a checkpoint read before (by a server at its start, by a job's driver)
+    whose bytes must still have `sha256` (None: any): other bytes are a `WeightsChanged`,
+    "WHO: PATH is now ... not the checkpoint of sha256 ... read WHEN; REMEDY", before they are
+    parsed."""
+    try:
+        return load_weights(spec, profile=profile, expected_sha256=sha256)
+    except CheckpointChanged as exc:
+        raise WeightsChanged(f"{who}: {exc} {when}; {remedy}") from exc
+
+
+class RefusalLog:
+    """Why each served model could not be loaded again, each new reason logged once (a request
+    for it fails the same way until the server restarts)."""
+
+    def __init__(self, logger: logging.Logger) -> None:
+        self.logger = logger
+        self.reasons: dict[str, str] = {}
+
+    def note(self, name: str, exc: RangeRetError) -> str:
+        """The one-line reason of `exc`, logged when it is new for the model `name`."""
+        reason = exc.summary()
+        if self.reasons.get(name) != reason:
+            self.reasons[name] = reason
+            self.logger.error("model %s cannot be loaded again: %s", name, reason)
+        return reason
 
 
 def identify_weights(spec: InferenceSpec) -> WeightsIdentity:

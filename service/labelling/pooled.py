@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rangeret.exceptions import RangeRetError
+from rangeret.inference.loaded_weights import RefusalLog
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.results import ScanPrediction
 from rangeret.inference.scan_worker import ScanRequest
@@ -68,8 +69,7 @@ class PooledLabeller:
         self.pool = pool
         self._on_batch: Callable[[int, float], None] | None = None
         self._serving = False
-        #: The last reason each model could not be loaded again, logged once.
-        self._refused: dict[str, str] = {}
+        self._refusals = RefusalLog(log)
 
     async def start(self, on_batch: Callable[[int, float], None] | None = None) -> None:
         """Take scans from now on; `on_batch(size, seconds)` is called after each batch of any
@@ -102,10 +102,7 @@ class PooledLabeller:
         except PoolFull as exc:
             raise BackendError(str(exc)) from exc
         except RangeRetError as exc:  # its checkpoint changed or went since the start
-            reason = exc.summary()
-            if self._refused.get(model) != reason:
-                self._refused[model] = reason
-                log.error("model %s cannot be loaded again: %s", model, reason)
+            reason = self._refusals.note(model, exc)
             raise BackendError(f"model {model} cannot be loaded again: {reason}") from exc
         try:
             batcher = runtime.batcher_for(panoptic)

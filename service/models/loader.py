@@ -13,20 +13,23 @@ networks its pool keeps.
 from __future__ import annotations
 
 from rangeret.inference.loaded_weights import (
-    WeightsChanged,
     WeightsIdentity,
     identify_weights,
+    load_checked_weights,
     load_weights,
 )
 from rangeret.inference.model_set import ModelSet
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.runtime.memory import release_freed_memory
 from rangeret.inference.scan_worker import ScanWorker
-from rangeret.models.weights.hub import CheckpointChanged
 from service.labelling.batching import ScanBatcher
 from service.labelling.panoptic import model_clustering
 from service.labelling.pooled import ModelRuntime
 from service.models.pool import ModelPool
+
+#: When the gateway checked its models, and what serves a model whose checkpoint changed since.
+STARTED = "the gateway started"
+REMEDY = "restart the gateway to serve it"
 
 
 class ModelLoader:
@@ -47,16 +50,11 @@ class ModelLoader:
         release_freed_memory()  # what the networks evicted for this load held
         spec = self.models.spec(name)
         checked = self.identities.get(name)
-        try:
-            weights = load_weights(spec, expected_sha256=checked.sha256 if checked else None)
-        except CheckpointChanged as exc:
-            raise WeightsChanged(
-                f"model {name}: {exc} when the gateway started; restart the gateway to serve it"
-            ) from exc
-        checked = self.identities.setdefault(name, weights.identity)
-        weights.identity.check_same(
-            checked.describe(), name, "the gateway started", "restart the gateway to serve it"
+        weights = load_checked_weights(
+            spec, checked.sha256 if checked else None, f"model {name}", f"when {STARTED}", REMEDY
         )
+        checked = self.identities.setdefault(name, weights.identity)
+        weights.identity.check_same(checked.describe(), name, STARTED, REMEDY)
         predictor = Predictor(weights, spec.replace(panoptic=False))
         batcher = ScanBatcher(ScanWorker(predictor), self.batch_size, self.max_wait)
         return ModelRuntime(batcher, predictor, model_clustering(spec))

@@ -31,7 +31,7 @@ from service.models.catalog import ModelCatalog, ModelEntry
 from tests.support.gateway import AUTH, OCTET, assert_error, gateway_env, start_gateway
 from tests.support.open_audit import Audit
 from tests.support.paths import data_path
-from tests.support.workers import build_tree, free_ports, ray_node, small_weights
+from tests.support.workers import build_tree, free_ports, ray_node, serve_deploy, small_weights
 from workers.scan_wire import (
     CONFIDENCE_HEADER,
     POINTS_HEADER,
@@ -199,25 +199,8 @@ def deployed(tmp_path_factory) -> Iterator[dict]:
     path.write_text(yaml.safe_dump(config))
     audit = Audit(tmp / "audit.log", (weights.name,))
     with ray_node(tmp, num_cpus=3, base_env=audit.env()) as head:
-        serve = str(head.bindir / "serve")
-        subprocess.run([serve, "deploy", str(path), "-a", head.dashboard], env=head.env, check=True)
         url = f"http://127.0.0.1:{port}/rangeret"
-        deadline = time.monotonic() + 240
-        while time.monotonic() < deadline:
-            try:
-                if all(
-                    httpx.get(f"http://127.0.0.1:{port}{prefix}/info", timeout=5).status_code == 200
-                    for prefix in ("/rangeret", "/multi")
-                ):
-                    break
-            except httpx.TransportError:
-                pass
-            time.sleep(1)
-        else:
-            status = subprocess.run(
-                [serve, "status", "-a", head.dashboard], env=head.env, capture_output=True
-            )
-            pytest.fail(f"the Serve application did not start:\n{status.stdout.decode()}")
+        serve_deploy(head, path, [url, f"http://127.0.0.1:{port}/multi"])
         yield {
             "url": url,
             "multi_url": f"http://127.0.0.1:{port}/multi",

@@ -6,8 +6,6 @@ local file for the published model's name), its resolution, and a free port for 
 from __future__ import annotations
 
 import re
-import subprocess
-import time
 from pathlib import Path
 
 import httpx
@@ -18,7 +16,7 @@ import yaml
 from rangeret.cli.main import main as rangeret_main
 from rangeret.io.scans import read_labels
 from tests.support.paths import REPO
-from tests.support.workers import build_tree, free_ports, ray_node, small_weights
+from tests.support.workers import build_tree, free_ports, ray_node, serve_deploy, small_weights
 from workers.scan_wire import decode_labels
 
 pytestmark = pytest.mark.slow
@@ -52,21 +50,7 @@ def test_the_shipped_serve_config_deploys_and_labels_a_scan(tmp_path):
     expected = read_labels(tmp_path / "pred" / "sequences" / "08" / "predictions" / "000000.label")
     url = f"http://127.0.0.1:{port}/rangeret"
     with ray_node(tmp_path, num_cpus=2) as head:
-        serve = str(head.bindir / "serve")
-        subprocess.run([serve, "deploy", str(path), "-a", head.dashboard], env=head.env, check=True)
-        deadline = time.monotonic() + 180
-        while time.monotonic() < deadline:
-            try:
-                if httpx.get(f"{url}/info", timeout=5).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            time.sleep(1)
-        else:
-            status = subprocess.run(
-                [serve, "status", "-a", head.dashboard], env=head.env, capture_output=True
-            )
-            pytest.fail(f"deploy/serve.yaml did not deploy:\n{status.stdout.decode()}")
+        serve_deploy(head, path, [url], timeout=180)
         answer = httpx.post(
             f"{url}/scans",
             content=scan.read_bytes(),

@@ -122,6 +122,28 @@ class RayNode:
     proc: subprocess.Popen
 
 
+def serve_deploy(head: RayNode, config: Path, urls: list[str], timeout: float = 240) -> None:
+    """`serve deploy CONFIG` on the cluster of `head`, once every one of `urls` answers
+    `/info` with 200; the test fails with `serve status` when one does not in time."""
+    import httpx
+    import pytest
+
+    serve = str(head.bindir / "serve")
+    subprocess.run([serve, "deploy", str(config), "-a", head.dashboard], env=head.env, check=True)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            if all(httpx.get(f"{url}/info", timeout=5).status_code == 200 for url in urls):
+                return
+        except httpx.TransportError:
+            pass
+        time.sleep(1)
+    status = subprocess.run(
+        [serve, "status", "-a", head.dashboard], env=head.env, capture_output=True
+    )
+    pytest.fail(f"{config} did not deploy:\n{status.stdout.decode()}")
+
+
 @contextlib.contextmanager
 def ray_node(
     folder: Path,

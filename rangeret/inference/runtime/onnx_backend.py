@@ -36,7 +36,6 @@ from rangeret.inference.runtime.onnx_export import (
     load_model,
     metadata_of,
     onnx_metadata,
-    read_metadata,
     weights_digest_problem,
     write_export,
 )
@@ -95,42 +94,61 @@ def export_mismatch(source: Path | bytes, expected: dict) -> str | None:
     """Why the export at `source` (its file or bytes) is not the one `expected` describes (its
     weights' SHA-256 named, with the one asked for), or None when its metadata agrees on
     `CHECKED_FIELDS` and its graph holds the weights its metadata records a digest of."""
+    return _inspect(source, expected)[1]
+
+
+def _inspect(source: Path | bytes, expected: dict) -> tuple[dict | None, str | None]:
+    """An export's metadata (None where it has none) and why it is not the one `expected`
+    describes (None when it is: see `export_mismatch`), its model parsed once."""
     try:
         proto = load_model(source)
         found = metadata_of(proto, "the model" if isinstance(source, bytes) else str(source))
     except ValueError as exc:
-        return str(exc)
+        return None, str(exc)
     if found.get("checkpoint_sha256") != expected["checkpoint_sha256"]:
-        return (
+        return found, (
             f"was made from checkpoint sha256 {found.get('checkpoint_sha256')}, not from "
             f"sha256 {expected['checkpoint_sha256']}"
         )
     for field in CHECKED_FIELDS[1:]:
         if found.get(field) != expected[field]:
-            return f"records another {field.replace('_', ' ')} than the one asked for"
-    return weights_digest_problem(proto, found)
+            return found, f"records another {field.replace('_', ' ')} than the one asked for"
+    return found, weights_digest_problem(proto, found)
 
 
 def cached_export(
     network: torch.nn.Module, profile: DatasetProfile, checkpoint_sha256: str | None
 ) -> Path:
-    """The cached export of `network` for `profile`, made (and checked) first if missing, and
-    made again when the file there records other weights, network, projection or profile than
-    these (a file copied over another); weights that come from no file are known by
-    `state_sha256`. Without the onnx extra, `MissingExtraError` before anything is exported."""
+    """The cached export of `network` for `profile` (`checked_cache`)."""
+    return checked_cache(network, profile, checkpoint_sha256)[0]
+
+
+def checked_cache(
+    network: torch.nn.Module, profile: DatasetProfile, checkpoint_sha256: str | None
+) -> tuple[Path, bytes]:
+    """The cached export of `network` for `profile` and the bytes of it that were checked, made
+    (and checked) first if missing, and made again when the file there records other weights,
+    network, projection or profile than these (a file copied over another); weights that come
+    from no file are known by `state_sha256`. Without the onnx extra, `MissingExtraError`
+    before anything is exported."""
     require_extra("--backend onnxruntime", "onnx")
     sha = checkpoint_sha256 or state_sha256(network)
     path = export_path(network, profile, sha)
+    expected = onnx_metadata(network, profile, dynamic_batch=True, checkpoint_sha256=sha)
     if path.exists():
-        expected = onnx_metadata(network, profile, dynamic_batch=True, checkpoint_sha256=sha)
-        problem = export_mismatch(path, expected)
+        data = read_regular(path, "an ONNX export")
+        problem = export_mismatch(data, expected)
         if problem is None:
-            return path
+            return path, data
         log.warning("the cached export %s %s: exporting it again", path, problem)
     with export_progress(network.config.name, path):
         check = write_export(network, profile, path, dynamic_batch=True, checkpoint_sha256=sha)
     log.info("%s", check.text())
-    return path
+    data = read_regular(path, "an ONNX export")
+    problem = export_mismatch(data, expected)
+    if problem is not None:  # replaced since it was written
+        raise ExportFileError(f"the export {path} {problem}")
+    return path, data
 
 
 class ExportFileError(RangeRetError, ValueError):
@@ -143,27 +161,31 @@ def given_export(
     profile: DatasetProfile,
     checkpoint_sha256: str | None,
     batch_size: int,
-) -> Path:
-    """`path`, an export `rangeret export` wrote, once it records these weights, network,
-    projection and profile, and takes batches of `batch_size`; an `ExportFileError` naming what
-    differs otherwise."""
+) -> bytes:
+    """The bytes of `path`, an export `rangeret export` wrote, read once and checked: they must
+    record these weights, network, projection and profile, hold the weights they record, and
+    take batches of `batch_size`; an `ExportFileError` naming what differs otherwise."""
     require_extra("--backend onnxruntime", "onnx")
     if not path.exists():
         raise ExportFileError(f"--onnx {path}: no such file")
     sha = checkpoint_sha256 or state_sha256(network)
     expected = onnx_metadata(network, profile, dynamic_batch=True, checkpoint_sha256=sha)
-    problem = export_mismatch(path, expected)
+    try:
+        data = read_regular(path, "an ONNX export")
+    except ValueError as exc:
+        raise ExportFileError(f"--onnx {exc}") from None
+    found, problem = _inspect(data, expected)
     if problem is not None:
         raise ExportFileError(
             f"--onnx {path} {problem}: export this checkpoint again with rangeret export, or "
             "leave --onnx out to use the cached export"
         )
-    if batch_size > 1 and not read_metadata(path).get("dynamic_batch"):
+    if batch_size > 1 and not (found or {}).get("dynamic_batch"):
         raise ExportFileError(
             f"--onnx {path} takes batches of 1 scan and this run makes batches of {batch_size}: "
             "export it with --dynamic-batch, or pass --batch-size 1"
         )
-    return path
+    return data
 
 
 @contextlib.contextmanager
@@ -219,18 +241,12 @@ class OnnxForward:
         export: Path | None = None,
         batch_size: int = 1,
     ) -> None:
-        self.path = (
-            cached_export(network, profile, checkpoint_sha256)
-            if export is None
-            else given_export(export, network, profile, checkpoint_sha256, batch_size)
-        )
-        # The bytes that run are the bytes checked: read once, checked again, then loaded.
-        data = read_regular(self.path, "an ONNX export")
-        sha = checkpoint_sha256 or state_sha256(network)
-        expected = onnx_metadata(network, profile, dynamic_batch=True, checkpoint_sha256=sha)
-        problem = export_mismatch(data, expected)
-        if problem is not None:
-            raise ExportFileError(f"the export {self.path} {problem}")
+        # The bytes that run are the bytes checked: read once, checked, then loaded.
+        if export is None:
+            self.path, data = checked_cache(network, profile, checkpoint_sha256)
+        else:
+            self.path = export
+            data = given_export(export, network, profile, checkpoint_sha256, batch_size)
         try:
             self.session = make_session(data, device)
         except ValueError:
