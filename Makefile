@@ -56,7 +56,7 @@ PODMAN_INSTALL := apt-get update && apt-get install -y podman buildah runc mmdeb
 
 .PHONY: demo test check lint web browser netns bench gpu-check clean wheelhouse image podman image-test
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml setup.py rangeret/inference/csrc/knn_vote.c rangeret/inference/csrc/knn_vote_body.h
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -qq --upgrade pip
 	$(BIN)/python -m pip install -qq "$(TORCH_SPEC)"

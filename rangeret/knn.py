@@ -38,9 +38,9 @@ def refine(
     point. proj_argmax: (H, W) integer classes in [0, num_classes). proj_x, proj_y: (N,) column and
     row of each point, proj_x == -1 for points that were not projected (they get `unprojected`).
     k neighbours among the search x search window; Gaussian weight `sigma`; neighbours farther than
-    `cutoff` do not vote (no cutoff when it is <= 0). chunk_size bounds the points processed at
-    once (default: CPU_CHUNK_SIZE on the CPU, CUDA_CHUNK_SIZE elsewhere). Classes votes_from..C-1
-    vote; a point without a vote gets class `votes_from`.
+    `cutoff` do not vote (no cutoff when it is <= 0). chunk_size bounds the points the exact rule
+    in torch takes at once (on devices other than the CPU; default CHUNK_SIZE). Classes
+    votes_from..C-1 vote; a point without a vote gets class `votes_from`.
 
     Returns (N,) int64 classes: a numpy array when every input is a numpy array, otherwise a
     torch tensor on the device of the tensor inputs. Ranges are compared in float32, as the

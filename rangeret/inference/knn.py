@@ -23,20 +23,18 @@ neighbour distances of each point are found by an insertion network made of `cla
 sorted list is updated with one neighbour at a time, for all points at once, which is much faster
 than a per-point `topk`.
 
-On devices other than the CPU every point goes through the exact rule (`knn_rule.Window`):
-everything stays on the device and the work never waits for its results (no data-dependent
-shapes; the host arrays are copied from pinned memory on CUDA). On the CPU, where the host is the
-device, a fast path (`knn_cpu`) settles all but about 1 % of the real scan's points (at k 7) from
-int16 keys, one network finding the voters and their classes at once, and the exact rule settles
-the rest: the same labels, ties included.
+On the CPU a compiled vote (`knn_native`, `csrc/knn_vote.c`) runs the same rule one point per
+vector lane, split over torch's intra-op threads; it is several times faster than any sequence of
+torch operations, whose every step goes through memory. Elsewhere, and on the CPU where the
+library was not built or a scan holds ranges that are not numbers, the exact rule runs in torch
+(`knn_rule.Window`): everything stays on the device and the work never waits for its results (no
+data-dependent shapes; the host arrays are copied from pinned memory on CUDA). Both give the same
+labels, ties included.
 
-Threads: on the CPU the work is a few hundred operations per scan, each parallelised over torch's
-intra-op threads (larger pieces and chunks with more threads, so that each operation outweighs
-its fork and join). That is the fastest on cores of its own (`benchmarks/bench_knn.py` measures
-it on one thread and on all), but when another process keeps the same cores busy with its own
-spinning OpenMP threads, every operation can wait for a time slice and a call may take far
-longer. A caller that shares its cores (a pipeline running the network beside it) should run it
-with `torch.set_num_threads(1)`, or give it cores of its own.
+Threads: on the CPU each scan's points are split between torch's intra-op threads. That is the
+fastest on cores of their own (`benchmarks/bench_knn.py` measures it on one thread and on all);
+a caller that shares its cores (a pipeline running the network beside it) should run it with
+`torch.set_num_threads(1)`, or give it cores of its own.
 """
 
 from __future__ import annotations
@@ -46,29 +44,21 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from rangeret.inference.knn_cpu import refine_on_cpu
+from rangeret.inference.knn_native import vote_on_cpu
 from rangeret.inference.knn_rule import Window, gaussian_kernel, to_device
 from rangeret.inference.settings import KnnSettings
 
 __all__ = [
-    "CPU_CHUNK_SIZE",
-    "CPU_PIECE_SIZE",
-    "CUDA_CHUNK_SIZE",
+    "CHUNK_SIZE",
     "flat_pixels",
     "gaussian_kernel",
     "refine_batch",
     "to_device",
 ]
 
-#: Most points (or columns of a dense layer) per network call on the CPU, per thread: large
-#: enough to keep the per-call overhead small, small enough for the network's int16 rows to stay
-#: in a core's cache.
-CPU_CHUNK_SIZE = 40_000
-#: Points or columns whose float32 distances are worked out at once on the CPU, per thread
-#: (about 800 kB at S = 7, so they stay in cache between the few elementwise steps).
-CPU_PIECE_SIZE = 4_096
-#: Points per chunk on other devices, where fewer and larger kernels pay off (about 80 MB at S = 7).
-CUDA_CHUNK_SIZE = 262_144
+#: Points the exact rule takes at once in torch, where fewer and larger kernels pay off (about
+#: 80 MB at S = 7).
+CHUNK_SIZE = 262_144
 
 
 @torch.no_grad()
@@ -91,36 +81,69 @@ def refine_batch(
     Each scan's arrays are those of its `Projection`: (H, W) proj_range, (N_b,) unproj_range,
     proj_x (-1 for a point without a pixel, which gets `unprojected`) and proj_y. Classes
     votes_from..C-1 vote; a point without a vote gets `votes_from`. chunk_size bounds the points
-    (or pixels) processed at once (default: CPU_CHUNK_SIZE per thread on the CPU,
-    CUDA_CHUNK_SIZE elsewhere). The device never waits on the host: the only wait is the
-    caller's read of the result.
+    the exact rule in torch takes at once (default CHUNK_SIZE; the compiled vote streams). The
+    device never waits on the host: the only wait is the caller's read of the result.
     """
     device = argmax.device
-    scans, height, width = argmax.shape
     ends = np.cumsum([0, *(len(x) for x in proj_x)]).tolist()
-    if device.type == "cpu":
-        result = torch.full((ends[-1],), unprojected, dtype=torch.int64)
-        classes = argmax.to(torch.int64).numpy()
-        threads = torch.get_num_threads()
-        chunk = CPU_CHUNK_SIZE * threads if chunk_size is None else chunk_size
-        for scan in range(scans):
-            if ends[scan] < ends[scan + 1]:
-                refine_on_cpu(
-                    result[ends[scan] : ends[scan + 1]].numpy(),
-                    classes[scan],
-                    np.asarray(proj_range[scan], dtype=np.float32),
-                    np.asarray(unproj_range[scan], dtype=np.float32),
-                    np.asarray(proj_x[scan]),
-                    np.asarray(proj_y[scan]),
-                    knn,
-                    num_classes,
-                    votes_from,
-                    chunk,
-                    min(CPU_PIECE_SIZE * threads, chunk),
-                )
-        return result
-    if chunk_size is None:
-        chunk_size = CUDA_CHUNK_SIZE
+    if device.type != "cpu":
+        return _exact(
+            argmax,
+            proj_range,
+            unproj_range,
+            proj_x,
+            proj_y,
+            knn,
+            num_classes,
+            votes_from,
+            unprojected,
+            chunk_size,
+        )
+    # numpy, not torch: a torch operation here would leave its OpenMP threads spinning on the
+    # cores the vote's threads are about to use
+    result = torch.from_numpy(np.full(ends[-1], unprojected, dtype=np.int64))
+    classes = argmax.numpy()
+    for scan in range(argmax.shape[0]):
+        part = slice(ends[scan], ends[scan + 1])
+        arrays = (proj_range[scan], unproj_range[scan], proj_x[scan], proj_y[scan])
+        image, ranges, x, y = (np.asarray(a) for a in arrays)
+        done = vote_on_cpu(
+            result[part].numpy(), classes[scan], image, ranges, x, y, knn, num_classes, votes_from
+        )
+        if not done:
+            result[part] = _exact(
+                argmax[scan : scan + 1],
+                [image],
+                [ranges],
+                [x],
+                [y],
+                knn,
+                num_classes,
+                votes_from,
+                unprojected,
+                chunk_size,
+            )
+    return result
+
+
+def _exact(
+    argmax: torch.Tensor,
+    proj_range: Sequence[np.ndarray],
+    unproj_range: Sequence[np.ndarray],
+    proj_x: Sequence[np.ndarray],
+    proj_y: Sequence[np.ndarray],
+    knn: KnnSettings,
+    num_classes: int,
+    votes_from: int,
+    unprojected: int,
+    chunk_size: int | None,
+) -> torch.Tensor:
+    """`refine_batch` by the exact rule in torch, on argmax's device, `chunk_size` points at a
+    time (default CHUNK_SIZE)."""
+    device = argmax.device
+    _, height, width = argmax.shape
+    total = sum(len(x) for x in proj_x)
+    chunk_size = chunk_size or CHUNK_SIZE
     pinned = device.type == "cuda"
     pixels = flat_pixels(proj_x, proj_y, height, width, device)
     images = to_device([r[None] for r in proj_range], torch.float32, device, pinned=pinned)
@@ -128,9 +151,9 @@ def refine_batch(
     window = Window.of_images(
         images, argmax.to(torch.int64), knn.search, knn.sigma, num_classes, votes_from
     )
-    result = torch.empty(ends[-1], dtype=torch.int64, device=device)
-    for start in range(0, ends[-1], chunk_size):
-        stop = min(start + chunk_size, ends[-1])
+    result = torch.empty(total, dtype=torch.int64, device=device)
+    for start in range(0, total, chunk_size):
+        stop = min(start + chunk_size, total)
         columns = pixels[start:stop].clamp(min=0)
         result[start:stop] = window.vote(ranges[start:stop], columns, knn.k, knn.cutoff)
     return torch.where(pixels >= 0, result, unprojected)

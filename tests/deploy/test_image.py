@@ -215,7 +215,10 @@ def test_a_wheelhouse_installs_everything_with_no_index(tmp_path):
 
 def test_the_system_packages_come_from_apt_only_when_the_base_lacks_them():
     (run,) = [r for r in _runs() if "dpkg -s" in r]
-    assert 'packages="${PYTHON} ${PYTHON}-venv tini ca-certificates rsync openssh-client"' in run
+    assert (
+        'packages="${PYTHON} ${PYTHON}-venv tini ca-certificates rsync openssh-client gcc libc6-dev"'
+        in run
+    )
     assert (
         'if [ -n "$missing" ]' in run
         and "apt-get install -y --no-install-recommends $missing" in run
@@ -241,7 +244,7 @@ def test_every_package_pyproject_installs_is_copied():
     for group in config["project"]["entry-points"].values():
         for target in group.values():
             assert target.split(".")[0] in _pyproject_packages(), target
-    assert "COPY pyproject.toml README.md /app/" in text
+    assert "COPY pyproject.toml setup.py README.md /app/" in text
     for source in re.findall(r"^COPY (?!--from=)(.+) \S+$", text, flags=re.M):
         for item in source.split():
             assert (REPO / item).exists(), item
@@ -352,7 +355,7 @@ def _repo_files() -> list[str]:
 
 def test_dockerignore_lets_exactly_what_the_image_takes_into_the_build_context():
     """Of the npm packages `make web` installs, only the files the gateway serves (and three.js's
-    licence and package.json); the project's packages, pyproject.toml and README.md; of deploy/,
+    licence and package.json); the project's packages, pyproject.toml, setup.py and README.md; of deploy/,
     the files the image copies and the wheelhouse; nothing else (no tests, docs, .venv, runs)."""
     from service.page_assets import VENDOR_FILES
 
@@ -382,7 +385,7 @@ def test_dockerignore_lets_exactly_what_the_image_takes_into_the_build_context()
     for path in kept:
         assert (
             path.startswith(packages)
-            or path in ("pyproject.toml", "README.md")
+            or path in ("pyproject.toml", "setup.py", "README.md")
             or path.startswith("deploy/wheelhouse/")
             or path in {f"deploy/{n}" for n in ("constraints.txt", "requirements.txt",
                                                 "entrypoint.sh", "healthcheck.py")}

@@ -4,7 +4,9 @@ published output, the rule itself, types, errors.
 The published post-processing's output on a real scan (`tests/data/knn-semantickitti-scan.npz`)
 is the main check; a slow per-point version of the rule written directly from the rule checks
 everything else, ties included, on random images. A batch (`refine_batch`) must give each scan's
-`refine` result bit for bit (`test_knn_batch.py`); `test_knn_cpu.py` checks the CPU's fast path.
+`refine` result bit for bit (`test_knn_batch.py`). Every test here runs twice on the CPU: with the
+compiled vote and with the exact rule in torch (the devices' path); `test_knn_native.py` checks
+the compiled vote's own cases.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 
+from rangeret.inference import knn
 from rangeret.inference.knn import gaussian_kernel
 from rangeret.inference.settings import KnnSettings
 from rangeret.knn import refine
@@ -21,6 +24,19 @@ from tests.support.paths import data_path
 FIXTURE = "knn-semantickitti-scan.npz"
 INPUTS = ("proj_range", "unproj_range", "proj_argmax", "proj_x", "proj_y")
 PUBLISHED = {(7, 7): "expected_knn7_search7", (5, 5): "expected_knn5_search5"}
+
+
+@pytest.fixture(autouse=True, params=["compiled", "torch"])
+def cpu_path(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Each test with the compiled vote, then with the exact rule in torch on the CPU."""
+    if request.param == "torch":
+        torch_rule_only(monkeypatch)
+    return request.param
+
+
+def torch_rule_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Turn the compiled vote off: the CPU runs the exact rule in torch, as devices do."""
+    monkeypatch.setattr(knn, "vote_on_cpu", lambda *args, **kwargs: False)
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +48,8 @@ def scan() -> dict[str, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def refined(scan: dict[str, np.ndarray]) -> dict[tuple[int, int], np.ndarray]:
-    """`refine` on the fixture for both published parameter sets (k, search), computed once."""
+    """`refine` on the fixture for both published parameter sets (k, search), computed once by
+    the path of the first test that asks (the other path must match it)."""
     return {
         (k, search): refine(*inputs(scan), k=k, search=search, sigma=1.0, cutoff=1.0)
         for k, search in PUBLISHED

@@ -1,0 +1,214 @@
+"""kNN refinement's compiled vote on the CPU: `csrc/knn_vote.c`, built with the package as the
+shared library `_knn_vote` and called through ctypes.
+
+The library holds the exact rule (`rangeret.inference.knn`) for one point per vector lane, in
+AVX-512, AVX2 or baseline instructions, whichever the CPU runs best. A scan's points are split
+into even ranges, one per torch intra-op thread, run side by side on threads of a pool (ctypes
+lets go of the GIL during the call). Where the library is missing (a build without a C compiler)
+or a scan is outside what it takes (a range that is not a number, more than `slots()` voters),
+`vote_on_cpu` says so and the caller runs the exact rule in torch.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import importlib.machinery
+import logging
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from rangeret.inference.knn_rule import gaussian_kernel, padding_code
+from rangeret.inference.settings import KnnSettings
+
+__all__ = ["ISA_NAMES", "best_isa", "built", "slots", "vote_on_cpu"]
+
+log = logging.getLogger(__name__)
+
+#: The instruction sets the library is compiled for, by the number it calls them.
+ISA_NAMES = {1: "baseline", 2: "AVX2", 3: "AVX-512"}
+#: Points per lane group: ranges split between threads start at multiples of it.
+_ALIGN = 16
+_POINTER = ctypes.c_void_p
+_I32 = ctypes.c_int32
+_I64 = ctypes.c_int64
+
+
+def _library() -> ctypes.CDLL | None:
+    """The compiled library next to this module, loaded once; None where it was not built."""
+    return _load(Path(__file__).parent)
+
+
+@cache
+def _load(folder: Path) -> ctypes.CDLL | None:
+    """The library `_knn_vote` in `folder` with its functions' types; None, logged once, where
+    there is none."""
+    for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+        path = folder / f"_knn_vote{suffix}"
+        if path.is_file():
+            library = ctypes.CDLL(str(path))
+            library.rangeret_knn_vote.argtypes = [
+                _I32,  # isa
+                _POINTER,  # far
+                _POINTER,  # codes
+                _I32,  # height
+                _I32,  # width
+                _I32,  # pad
+                _POINTER,  # offsets
+                _POINTER,  # weights
+                _I32,  # size
+                _POINTER,  # ranges
+                _POINTER,  # proj_x
+                _POINTER,  # proj_y
+                _I64,  # start
+                _I64,  # stop
+                _I32,  # wanted
+                _I32,  # use_cutoff
+                ctypes.c_float,  # cutoff
+                _I32,  # num_classes
+                _I32,  # votes_from
+                _POINTER,  # out
+            ]
+            library.rangeret_knn_vote.restype = _I32
+            library.rangeret_knn_slots.restype = _I32
+            library.rangeret_knn_best_isa.restype = _I32
+            return library
+    log.warning(
+        "kNN refinement's compiled vote (%s/_knn_vote*.so) is not built: the CPU runs the exact "
+        "rule in torch, several times slower; reinstall the package where a C compiler is found",
+        folder,
+    )
+    return None
+
+
+def built() -> bool:
+    """Whether the compiled library is there."""
+    return _library() is not None
+
+
+def slots() -> int:
+    """The most neighbours a point may keep (k - 1) in the library; 0 where it is not built."""
+    library = _library()
+    return 0 if library is None else int(library.rangeret_knn_slots())
+
+
+def best_isa() -> int:
+    """The best instruction set of `ISA_NAMES` this CPU runs the library in; 0 where it is not
+    built."""
+    library = _library()
+    return 0 if library is None else int(library.rangeret_knn_best_isa())
+
+
+class _Pool:
+    """Threads that run parts of a scan beside the calling thread, grown on demand."""
+
+    _lock = threading.Lock()
+    _executor: ThreadPoolExecutor | None = None
+    _size = 0
+
+    @classmethod
+    def get(cls, workers: int) -> ThreadPoolExecutor:
+        """A pool of at least `workers` threads."""
+        with cls._lock:
+            if cls._executor is None or cls._size < workers:
+                cls._executor = ThreadPoolExecutor(workers, thread_name_prefix="knn-vote")
+                cls._size = workers
+            return cls._executor
+
+
+def vote_on_cpu(
+    result: np.ndarray,
+    classes: np.ndarray,
+    image: np.ndarray,
+    ranges: np.ndarray,
+    proj_x: np.ndarray,
+    proj_y: np.ndarray,
+    knn: KnnSettings,
+    num_classes: int,
+    votes_from: int,
+    *,
+    threads: int | None = None,
+    isa: int = 0,
+) -> bool:
+    """Write the classes of one scan's points that have a pixel into `result` (int64) with the
+    compiled vote, on `threads` threads (default: torch's intra-op threads) in instruction set
+    `isa` (0: the best); False, with nothing written, where it does not apply.
+
+    `image` is the (H, W) range image (< 0 where empty), `classes` its (H, W) per-pixel classes,
+    `ranges`, `proj_x`, `proj_y` the points' ranges and pixels (proj_x -1 for none).
+    """
+    library = _library()
+    wanted = knn.k - 1
+    size = knn.search * knn.search - 1
+    height, width = image.shape
+    pad = knn.search // 2
+    padded = (height + 2 * pad) * (width + 2 * pad)
+    if library is None or min(wanted, size) > slots() or padded >= 2**31 or not ranges.size:
+        return False
+    ranges = np.ascontiguousarray(ranges, dtype=np.float32)
+    # NaN distances have no order; an infinite point range meets the empty pixels' +inf in NaN
+    if not (np.isfinite(ranges.min()) and np.isfinite(ranges.max())) or np.isnan(image.max()):
+        return False
+    far = np.zeros((height + 2 * pad, width + 2 * pad), dtype=np.float32)
+    inside = far[pad : pad + height, pad : pad + width]
+    np.copyto(inside, image)
+    inside[image < 0] = np.inf
+    codes = np.full(far.shape, padding_code(num_classes, votes_from), dtype=np.int32)
+    inside = codes[pad : pad + height, pad : pad + width]
+    np.subtract(num_classes + 1, classes, out=inside, casting="unsafe")
+    inside[classes < votes_from] = 0
+    rows, cols = np.divmod(np.arange(knn.search * knn.search), knn.search)
+    offsets = np.delete((rows - pad) * (width + 2 * pad) + cols - pad, size // 2)
+    offsets = offsets.astype(np.int32)
+    weights = (1.0 - gaussian_kernel(knn.search, knn.sigma)).numpy().reshape(-1)
+    weights = np.ascontiguousarray(np.delete(weights, size // 2))
+    proj_x = np.ascontiguousarray(proj_x, dtype=np.int64)
+    proj_y = np.ascontiguousarray(proj_y, dtype=np.int64)
+    cutoff = np.float32(knn.cutoff)
+    use_cutoff = bool(knn.cutoff > 0)
+    if not (result.dtype == np.int64 and result.flags.c_contiguous and result.flags.writeable):
+        raise TypeError("result must be a writable contiguous int64 array")
+
+    def part(start: int, stop: int) -> int:
+        return library.rangeret_knn_vote(
+            isa,
+            far.ctypes.data,
+            codes.ctypes.data,
+            height,
+            width,
+            pad,
+            offsets.ctypes.data,
+            weights.ctypes.data,
+            size,
+            ranges.ctypes.data,
+            proj_x.ctypes.data,
+            proj_y.ctypes.data,
+            start,
+            stop,
+            wanted,
+            use_cutoff,
+            cutoff,
+            num_classes,
+            votes_from,
+            result.ctypes.data,
+        )
+
+    count = ranges.size
+    threads = max(1, min(threads or torch.get_num_threads(), -(-count // _ALIGN)))
+    step = -(-count // threads // _ALIGN) * _ALIGN
+    bounds = [(start, min(start + step, count)) for start in range(0, count, step)]
+    futures = [_Pool.get(len(bounds) - 1).submit(part, *b) for b in bounds[1:]]
+    codes_back = [part(*bounds[0])] + [future.result() for future in futures]
+    for code in codes_back:
+        if code == -3:
+            raise ValueError(
+                f"a point's pixel lies outside the {height} x {width} range image "
+                "(proj_x or proj_y out of range)"
+            )
+        if code:
+            raise RuntimeError(f"the compiled kNN vote failed with code {code} (isa {isa})")
+    return True
