@@ -14,6 +14,7 @@ from __future__ import annotations
 import ctypes
 import importlib.machinery
 import logging
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from functools import cache
@@ -104,7 +105,8 @@ def best_isa() -> int:
 
 
 class _Pool:
-    """Threads that run parts of a scan beside the calling thread, grown on demand."""
+    """Threads that run parts of a scan beside the calling thread, grown on demand, and made
+    anew in a forked child (which has none of its parent's threads)."""
 
     _lock = threading.Lock()
     _executor: ThreadPoolExecutor | None = None
@@ -118,6 +120,16 @@ class _Pool:
                 cls._executor = ThreadPoolExecutor(workers, thread_name_prefix="knn-vote")
                 cls._size = workers
             return cls._executor
+
+    @classmethod
+    def forget(cls) -> None:
+        """Drop the pool without waiting for it: in a forked child its threads do not exist."""
+        cls._lock = threading.Lock()
+        cls._executor = None
+        cls._size = 0
+
+
+os.register_at_fork(after_in_child=_Pool.forget)
 
 
 def vote_on_cpu(

@@ -6,6 +6,10 @@ cutoff, classes that count from 0, any number of threads; it declines what it do
 
 from __future__ import annotations
 
+import os
+import signal
+import time
+
 import numpy as np
 import pytest
 import torch
@@ -181,6 +185,30 @@ def test_threads_and_instruction_sets_give_the_published_labels(real, isa, threa
     settings = KnnSettings(7, 7, 1.0, 1.0)
     labels = voted(real, settings, 20, threads=threads, isa=isa)
     assert np.array_equal(labels, real["expected_knn7_search7"])
+
+
+def test_a_forked_child_votes_on_threads_of_its_own(real):
+    """A child forked after a vote (a data loader's worker, a forking server) has none of the
+    parent's pool threads: it makes its own instead of waiting on threads that do not exist."""
+    settings = KnnSettings(7, 7, 1.0, 1.0)
+    assert np.array_equal(voted(real, settings, 20, threads=2), real["expected_knn7_search7"])
+    child = os.fork()
+    if child == 0:  # pragma: no cover - the child reports by its exit status
+        try:
+            labels = voted(real, settings, 20, threads=2)
+            os._exit(0 if np.array_equal(labels, real["expected_knn7_search7"]) else 1)
+        finally:
+            os._exit(2)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        done, status = os.waitpid(child, os.WNOHANG)
+        if done:
+            assert os.waitstatus_to_exitcode(status) == 0
+            return
+        time.sleep(0.05)
+    os.kill(child, signal.SIGKILL)
+    os.waitpid(child, 0)
+    pytest.fail("the forked child's vote did not finish within 60 s")
 
 
 def test_torchs_thread_count_is_used_and_left_alone(real):
