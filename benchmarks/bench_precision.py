@@ -10,7 +10,8 @@ whose one-time build is timed too; with --compile, `compiled` is that graph unde
 whose one-time compilation is timed. The thesis network runs with random weights; its agreement is
 measured against its own fp32 labels.
 Run by hand: `python benchmarks/bench_precision.py [--sizes 64x1024 64x512] [--threads N]
-[--compile] [--fp16]`.
+[--compile] [--fp16]`. On a CPU with AMX, `ONEDNN_MAX_CPU_ISA=AVX512_CORE_BF16` in the environment
+holds oneDNN to AVX-512 bf16, a stand-in for a CPU without AMX (docs/speed.md).
 """
 
 from __future__ import annotations
