@@ -153,6 +153,13 @@ def vote_on_cpu(
     `image` is the (H, W) range image (< 0 where empty), `classes` its (H, W) per-pixel classes,
     `ranges`, `proj_x`, `proj_y` the points' ranges and pixels (proj_x -1 for none).
     """
+    if not result.size == ranges.size == len(proj_x) == len(proj_y):
+        raise ValueError(
+            f"one result, range and pixel per point: got {result.size} results, {ranges.size} "
+            f"ranges, {len(proj_x)} proj_x and {len(proj_y)} proj_y"
+        )
+    if classes.shape != image.shape:
+        raise ValueError(f"classes of shape {classes.shape} for a range image of {image.shape}")
     library = _library()
     wanted = knn.k - 1
     size = knn.search * knn.search - 1
@@ -171,7 +178,7 @@ def vote_on_cpu(
     inside[image < 0] = np.inf
     codes = np.full(far.shape, padding_code(num_classes, votes_from), dtype=np.int32)
     inside = codes[pad : pad + height, pad : pad + width]
-    np.subtract(num_classes + 1, classes, out=inside, casting="unsafe")
+    np.subtract(num_classes + 1, classes.astype(np.int64, copy=False), out=inside, casting="unsafe")
     inside[classes < votes_from] = 0
     rows, cols = np.divmod(np.arange(knn.search * knn.search), knn.search)
     offsets = np.delete((rows - pad) * (width + 2 * pad) + cols - pad, size // 2)

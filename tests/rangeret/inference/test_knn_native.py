@@ -253,6 +253,22 @@ def test_a_pixel_outside_the_image_is_refused_not_read(column, row):
         voted(data, KnnSettings(5, 5, 1.0, 1.0), 5)
 
 
+def test_arrays_of_other_lengths_or_shapes_are_refused_not_read():
+    data = random_scan(3, 12, 40, 50, 5)
+    settings = KnnSettings(5, 5, 1.0, 1.0)
+    short = dict(data, proj_y=data["proj_y"][:-1])
+    with pytest.raises(ValueError, match="50 results, 50 ranges, 50 proj_x and 49 proj_y"):
+        voted(short, settings, 5)
+    with pytest.raises(ValueError, match=r"classes of shape \(12, 39\) for a range image"):
+        voted(dict(data, proj_argmax=data["proj_argmax"][:, 1:]), settings, 5)
+
+
+def test_narrow_class_arrays_give_the_same_labels(real):
+    settings = KnnSettings(7, 7, 1.0, 1.0)
+    narrow = dict(real, proj_argmax=real["proj_argmax"].astype(np.uint8))
+    assert np.array_equal(voted(narrow, settings, 300), voted(real, settings, 300))
+
+
 def test_a_result_it_cannot_write_in_place_is_refused():
     data = random_scan(3, 12, 40, 50, 5)
     result = np.zeros(100, dtype=np.int64)[::2]
