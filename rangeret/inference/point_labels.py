@@ -1,8 +1,8 @@
-"""From a range image's per-pixel classes to one class per point: pixel lookup or kNN refinement.
+"""From logits to one class per point: the per-pixel argmax, then pixel lookup or kNN refinement.
 
 Written once for every runner: `Predictor.refine_batch` (one call per batch) and the trainer's
-validation share `point_classes_batch`, so the labels measured during training are the labels
-served.
+validation share `pixel_classes` and `point_classes_batch`, so the labels measured during
+training are the labels served.
 """
 
 from __future__ import annotations
@@ -19,6 +19,19 @@ from rangeret.inference.settings import KnnSettings
 #: A scan's projection array: numpy, as a `Projection` holds it, or a tensor holding one (a
 #: data loader's).
 ProjectionArray = np.ndarray | torch.Tensor
+
+
+def pixel_classes(logits: torch.Tensor, first: int = 0) -> torch.Tensor:
+    """(B, H, W) int64: each pixel's class among first..C-1 of (B, C, H, W) `logits` (the first of
+    equal maxima, as `torch.argmax`).
+
+    Taken with the classes innermost: torch's argmax across the class axis of a (B, C, H, W)
+    tensor strides through memory, several times slower on the CPU than a copy to (B, H, W, C)
+    and an argmax along its rows (12 ms against under 3 ms for 20 classes at 64 x 1024).
+    """
+    scores = logits[:, first:] if first else logits
+    choice = scores.permute(0, 2, 3, 1).contiguous().argmax(dim=-1)
+    return choice + first if first else choice
 
 
 def point_classes_batch(

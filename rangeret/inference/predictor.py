@@ -27,7 +27,7 @@ from rangeret.dataset.projection import Projection, ProjectionConfig, project_wi
 from rangeret.exceptions import InputError
 from rangeret.inference.description import describe_network
 from rangeret.inference.loaded_weights import LoadedWeights, load_weights
-from rangeret.inference.point_labels import point_classes_batch, point_confidences
+from rangeret.inference.point_labels import pixel_classes, point_classes_batch, point_confidences
 from rangeret.inference.results import ScanOutcome, ScanPrediction
 from rangeret.inference.runtime.device import select_device
 from rangeret.inference.runtime.fast_graph import FastGraph, inference_graph
@@ -237,10 +237,8 @@ class Predictor:
         """Stage 3 for a batch: each scan's per-point classes from (B, C, H, W) logits, refined in
         one call so the device does not wait on the host scan by scan."""
         with self._record(times).stage("refine", len(projections)):
-            first = self.profile.benchmark.classes_from
-            choice = logits.argmax(dim=1) if not first else logits[:, first:].argmax(dim=1) + first
             classes = point_classes_batch(
-                choice,
+                pixel_classes(logits, self.profile.benchmark.classes_from),
                 [p.proj_x for p in projections],
                 [p.proj_y for p in projections],
                 [p.proj_range for p in projections],

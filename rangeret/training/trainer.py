@@ -41,6 +41,7 @@ from tqdm import tqdm
 
 from rangeret.dataset.labels import LabelConfig
 from rangeret.evaluation.metrics import ConfusionMatrix
+from rangeret.inference.point_labels import pixel_classes
 from rangeret.inference.runtime.device import select_device
 from rangeret.inference.runtime.precision import forward_precision, resolve_precision
 from rangeret.inference.settings import KnnSettings
@@ -299,7 +300,7 @@ class Trainer:
         self.scheduler.step()
         self.step += 1
         with torch.no_grad():
-            pred = logits.detach().argmax(dim=1)
+            pred = pixel_classes(logits.detach())
             cells = (pred * self.num_classes + labels).reshape(-1)
             self.epoch_confusion.index_add_(0, cells, torch.ones_like(cells))
             values = torch.stack([loss.detach(), *(t.detach() for t in terms.values())]).double()

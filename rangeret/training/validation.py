@@ -18,7 +18,7 @@ from tqdm import tqdm
 from rangeret.dataset.labels import LabelConfig
 from rangeret.dataset.profiles import DatasetProfile
 from rangeret.evaluation.metrics import ConfusionMatrix
-from rangeret.inference.point_labels import point_classes_batch
+from rangeret.inference.point_labels import pixel_classes, point_classes_batch
 from rangeret.inference.runtime.precision import forward_precision
 from rangeret.inference.settings import KnnSettings
 from rangeret.training.distributed import Ranks
@@ -71,7 +71,7 @@ def validate(
         loss, _ = criterion(logits, labels)
         loss_sum[0] += loss.double() * len(images)
         loss_sum[1] += len(images)
-        argmax = logits.argmax(dim=1)
+        argmax = pixel_classes(logits)
         counts[0] += torch.bincount((argmax * c + labels).reshape(-1), minlength=c * c)
         for i in range(len(images)):
             truth = batch["point_labels"][i].to(device)

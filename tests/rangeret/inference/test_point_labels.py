@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from rangeret.inference.point_labels import point_classes_batch
+from rangeret.inference.point_labels import pixel_classes, point_classes_batch
 from rangeret.inference.settings import DEFAULT_KNN, KnnSettings
 from tests.support.host_syncs import SYNCS_PER_BATCH, host_syncs
 from tests.support.paths import data_path
@@ -166,3 +166,18 @@ def test_a_predictor_batch_waits_on_the_host_a_fixed_number_of_times(real_scan_p
     assert sum(counts.values()) <= SYNCS_PER_BATCH
     for got, want in zip(classes, expected, strict=True):
         assert np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("first", [0, 1, 3])
+def test_pixel_classes_are_torchs_argmax_ties_and_nans_included(first):
+    rng = np.random.default_rng(first)
+    logits = torch.from_numpy(rng.integers(-3, 4, (2, 7, 5, 33)).astype(np.float32))  # ties
+    logits[0, 4, 2, 7] = float("nan")
+    logits[1, :, 3, 3] = float("nan")
+    logits[1, 5, 0, 0] = float("inf")
+    expected = logits[:, first:].argmax(dim=1) + first
+    got = pixel_classes(logits, first)
+    assert got.dtype == torch.int64 and got.shape == (2, 5, 33)
+    assert torch.equal(got, expected)
+    if first <= 4:
+        assert got[0, 2, 7] == 4  # a NaN is the maximum, as torch.argmax has it
