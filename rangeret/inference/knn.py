@@ -104,6 +104,8 @@ def refine_batch(
     result = torch.from_numpy(np.full(ends[-1], unprojected, dtype=np.int64))
     classes = argmax.numpy()
     for scan in range(argmax.shape[0]):
+        if ends[scan] == ends[scan + 1]:
+            continue
         part = slice(ends[scan], ends[scan + 1])
         arrays = (proj_range[scan], unproj_range[scan], proj_x[scan], proj_y[scan])
         image, ranges, x, y = (np.asarray(a) for a in arrays)

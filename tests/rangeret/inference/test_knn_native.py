@@ -294,3 +294,18 @@ def test_the_network_gives_the_smallest_in_order():
         rest = torch.cat([values[:4], values[5:], torch.full((max(0, count - 8), 40), 99)])
         expected = rest.to(torch.int16).sort(0).values[:count]
         assert torch.equal(got, expected), count
+
+
+def test_a_batch_with_a_scan_of_no_points_never_leaves_the_compiled_vote(monkeypatch):
+    scans = [random_scan(seed, 12, 40, 300, 5) for seed in (1, 2)]
+    empty = {name: value[:0] for name, value in random_scan(3, 12, 40, 10, 5).items()}
+    empty.update(proj_range=scans[0]["proj_range"], proj_argmax=scans[0]["proj_argmax"])
+    settings = KnnSettings(5, 5, 1.0, 1.0)
+    expected = np.concatenate([voted(s, settings, 5) for s in scans])
+
+    def no_torch_rule(*args, **kwargs):
+        raise AssertionError("the torch rule ran")
+
+    monkeypatch.setattr(knn, "_exact", no_torch_rule)
+    result = batch_refined([scans[0], empty, scans[1]], settings, 5)
+    assert np.array_equal(result.numpy(), expected)
