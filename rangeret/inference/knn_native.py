@@ -26,7 +26,7 @@ import torch
 from rangeret.inference.knn_rule import gaussian_kernel, padding_code
 from rangeret.inference.settings import KnnSettings
 
-__all__ = ["ISA_NAMES", "best_isa", "built", "slots", "vote_on_cpu"]
+__all__ = ["ISA_NAMES", "best_isa", "built", "describe", "slots", "vote_on_cpu"]
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +102,17 @@ def best_isa() -> int:
     built."""
     library = _library()
     return 0 if library is None else int(library.rangeret_knn_best_isa())
+
+
+def describe(device: str = "cpu") -> str:
+    """Where and how kNN refinement votes on `device`, in one clause for people."""
+    if device.split(":", 1)[0] != "cpu":
+        return f"the exact rule in torch on {device}"
+    isa = best_isa()
+    if not isa:
+        return "the exact rule in torch: the compiled vote is not built (no C compiler at install)"
+    lanes = {1: 4, 2: 8, 3: 16}[isa]
+    return f"the compiled vote, {ISA_NAMES[isa]} ({lanes} points a vector)"
 
 
 class _Pool:

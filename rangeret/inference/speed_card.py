@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from rangeret.extras import extra_installed
+from rangeret.inference.knn_native import describe as describe_knn
 from rangeret.inference.predictor import Predictor
 from rangeret.inference.runtime.cpu_features import FLAG_NAMES, FLAGS, cpu_features
 from rangeret.inference.runtime.device import select_device
@@ -47,7 +48,8 @@ DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
 
 def machine(device: torch.device) -> dict[str, Any]:
     """The machine as the card names it: device, CPU (model, flags, threads), the GPU where the
-    network runs on one, and the versions of torch and onnxruntime."""
+    network runs on one, how kNN refinement votes there, and the versions of torch and
+    onnxruntime."""
     gpu = None
     if device.type == "cuda":
         index = device.index if device.index is not None else torch.cuda.current_device()
@@ -66,6 +68,7 @@ def machine(device: torch.device) -> dict[str, Any]:
         "device": str(device),
         "cpu": cpu_features().to_dict(),
         "gpu": gpu,
+        "knn_vote": describe_knn(str(device)),
         "python": platform.python_version(),
         "torch": torch.__version__,
         "onnxruntime": onnx,
@@ -243,6 +246,7 @@ class SpeedCard:
                 f"gpu       {g['name']} (compute capability {g['capability']}, "
                 f"{g['memory_gib']} GiB)"
             )
+        lines.append(f"knn       {m['knn_vote']}")
         lines.append(f"auto      {self.auto['precision']}: {self.auto['reason']}")
         weights = net["weights"] if net["note"] is None else f"{net['weights']} ({net['note']})"
         lines += [

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from rangeret.cli.main import main
+from rangeret.inference import knn_native
 from rangeret.inference.runtime.cpu_features import FLAGS
 from rangeret.inference.runtime.precision import auto_choice
 from rangeret.inference.speed_inputs import DEFAULT_MODEL, bench_weights
@@ -40,6 +41,8 @@ def test_random_weights_give_a_card_with_fp32_agreeing_with_itself(capsys):
     assert machine["device"] == "cpu" and machine["gpu"] is None
     assert set(machine["cpu"]["flags"]) == set(FLAGS)
     assert machine["cpu"]["torch_threads"] == torch.get_num_threads()
+    isa = knn_native.ISA_NAMES[knn_native.best_isa()]
+    assert machine["knn_vote"].startswith(f"the compiled vote, {isa} (")
     auto = auto_choice("cpu")
     assert card["auto_precision"] == {"precision": auto.precision, "reason": auto.reason}
     network = card["network"]
@@ -73,6 +76,7 @@ def test_a_checkpoint_on_the_real_scan_prints_a_table(tmp_path, capsys, real_sca
         [f"AMX bf16 {amx}", f"AVX-512 bf16 {avx}"] for amx in ("yes", "no") for avx in ("yes", "no")
     )
     assert any(line.startswith("auto ") for line in lines)
+    assert any(line.startswith("knn ") and "the compiled vote" in line for line in lines)
     assert any(line.startswith("weights ") and str(weights) in line for line in lines)
     assert any(line.startswith("scan ") and "123,389 points" in line for line in lines)
     header = next(i for i, line in enumerate(lines) if line.startswith("backend "))

@@ -309,3 +309,16 @@ def test_a_batch_with_a_scan_of_no_points_never_leaves_the_compiled_vote(monkeyp
     monkeypatch.setattr(knn, "_exact", no_torch_rule)
     result = batch_refined([scans[0], empty, scans[1]], settings, 5)
     assert np.array_equal(result.numpy(), expected)
+
+
+def test_the_way_it_votes_is_described_for_people(monkeypatch, tmp_path):
+    isa = knn_native.best_isa()
+    lanes = {1: 4, 2: 8, 3: 16}[isa]
+    assert knn_native.describe() == (
+        f"the compiled vote, {knn_native.ISA_NAMES[isa]} ({lanes} points a vector)"
+    )
+    assert knn_native.describe("cuda:1") == "the exact rule in torch on cuda:1"
+    monkeypatch.setattr(knn_native, "_library", lambda: knn_native._load(tmp_path))
+    assert knn_native.describe() == (
+        "the exact rule in torch: the compiled vote is not built (no C compiler at install)"
+    )
