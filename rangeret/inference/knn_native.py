@@ -4,7 +4,10 @@ shared library `_knn_vote` and called through ctypes.
 The library holds the exact rule (`rangeret.inference.knn`) for one point per vector lane, in
 AVX-512, AVX2 or baseline instructions, whichever the CPU runs best. A scan's points are split
 into even ranges, one per torch intra-op thread, run side by side on threads of a pool (ctypes
-lets go of the GIL during the call). Where the library is missing (a build without a C compiler)
+lets go of the GIL during the call). The library is looked for beside this module, then in the
+other copies of the package on the import path (a Ray job running from an uploaded copy of the
+sources, which holds no compiled file, takes the installed one's), and taken only when its
+functions are this module's version (`ABI`). Where there is none (a build without a C compiler)
 or a scan is outside what it takes (a range that is not a number, more than `slots()` voters),
 `vote_on_cpu` says so and the caller runs the exact rule in torch.
 """
@@ -15,6 +18,7 @@ import ctypes
 import importlib.machinery
 import logging
 import os
+import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from functools import cache
@@ -26,10 +30,13 @@ import torch
 from rangeret.inference.knn_rule import gaussian_kernel, padding_code
 from rangeret.inference.settings import KnnSettings
 
-__all__ = ["ISA_NAMES", "best_isa", "built", "describe", "slots", "vote_on_cpu"]
+__all__ = ["ABI", "ISA_NAMES", "best_isa", "built", "describe", "slots", "vote_on_cpu"]
 
 log = logging.getLogger(__name__)
 
+#: The version of the library's functions this module calls (`rangeret_knn_abi`): raised with
+#: every change to their arguments, so that a library built from other sources is left out.
+ABI = 1
 #: The instruction sets the library is compiled for, by the number it calls them.
 ISA_NAMES = {1: "baseline", 2: "AVX2", 3: "AVX-512"}
 #: Points per lane group: ranges split between threads start at multiples of it.
@@ -39,51 +46,92 @@ _I32 = ctypes.c_int32
 _I64 = ctypes.c_int64
 
 
+@cache
 def _library() -> ctypes.CDLL | None:
-    """The compiled library next to this module, loaded once; None where it was not built."""
-    return _load(Path(__file__).parent)
+    """The compiled library, looked for and loaded once; None where none was built."""
+    return _load(tuple(_folders()))
+
+
+def _folders() -> list[Path]:
+    """Where the library may be, first found first: beside this module, then in every other
+    copy of the package this interpreter could import (an installed one, where a Ray job runs
+    from an uploaded copy of the sources, which holds no compiled file)."""
+    here = Path(__file__).resolve().parent
+    found = [here]
+    places = [Path(entry) / "rangeret" for entry in sys.path if entry]
+    for finder in sys.meta_path:
+        find_spec = getattr(finder, "find_spec", None)
+        try:
+            spec = find_spec("rangeret", None) if find_spec else None
+        except (ImportError, TypeError, ValueError):
+            spec = None
+        places += [Path(p) for p in (spec.submodule_search_locations or [])] if spec else []
+    for place in places:
+        folder = (place / "inference").resolve()
+        if folder not in found and folder.is_dir():
+            found.append(folder)
+    return found
 
 
 @cache
-def _load(folder: Path) -> ctypes.CDLL | None:
-    """The library `_knn_vote` in `folder` with its functions' types; None, logged once, where
-    there is none."""
-    for suffix in importlib.machinery.EXTENSION_SUFFIXES:
-        path = folder / f"_knn_vote{suffix}"
-        if path.is_file():
-            library = ctypes.CDLL(str(path))
-            library.rangeret_knn_vote.argtypes = [
-                _I32,  # isa
-                _POINTER,  # far
-                _POINTER,  # codes
-                _I32,  # height
-                _I32,  # width
-                _I32,  # pad
-                _POINTER,  # offsets
-                _POINTER,  # weights
-                _I32,  # size
-                _POINTER,  # ranges
-                _POINTER,  # proj_x
-                _POINTER,  # proj_y
-                _I64,  # start
-                _I64,  # stop
-                _I32,  # wanted
-                _I32,  # use_cutoff
-                ctypes.c_float,  # cutoff
-                _I32,  # num_classes
-                _I32,  # votes_from
-                _POINTER,  # out
-            ]
-            library.rangeret_knn_vote.restype = _I32
-            library.rangeret_knn_slots.restype = _I32
-            library.rangeret_knn_best_isa.restype = _I32
-            return library
+def _load(folders: tuple[Path, ...]) -> ctypes.CDLL | None:
+    """The first library `_knn_vote` of this version (`ABI`) in `folders`, with its functions'
+    types; None, logged once, where there is none."""
+    for folder in folders:
+        for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+            path = folder / f"_knn_vote{suffix}"
+            library = _opened(path) if path.is_file() else None
+            if library is not None:
+                if folder != folders[0]:
+                    log.info("kNN refinement's compiled vote comes from %s", path)
+                return library
     log.warning(
         "kNN refinement's compiled vote (%s/_knn_vote*.so) is not built: the CPU runs the exact "
         "rule in torch, several times slower; reinstall the package where a C compiler is found",
-        folder,
+        folders[0],
     )
     return None
+
+
+def _opened(path: Path) -> ctypes.CDLL | None:
+    """The library at `path` with its functions' types, or None where it is of another version
+    or cannot be loaded (logged)."""
+    try:
+        library = ctypes.CDLL(str(path))
+        version = library.rangeret_knn_abi
+    except (OSError, AttributeError) as error:
+        log.info("kNN refinement's compiled vote at %s is left out: %s", path, error)
+        return None
+    version.restype = _I32
+    if version() != ABI:
+        log.info("kNN refinement's compiled vote at %s is version %d, not %d", path, version(), ABI)
+        return None
+    library.rangeret_knn_vote.argtypes = [
+        _I32,  # isa
+        _POINTER,  # far
+        _POINTER,  # codes
+        _I32,  # height
+        _I32,  # width
+        _I32,  # pad
+        _POINTER,  # offsets
+        _POINTER,  # weights
+        _I32,  # size
+        _POINTER,  # ranges
+        _POINTER,  # proj_x
+        _POINTER,  # proj_y
+        _I64,  # start
+        _I64,  # stop
+        _I32,  # wanted
+        _I32,  # use_cutoff
+        ctypes.c_float,  # cutoff
+        _I32,  # num_classes
+        _I32,  # votes_from
+        _POINTER,  # out
+    ]
+    library.rangeret_knn_vote.restype = _I32
+    library.rangeret_knn_slots.restype = _I32
+    library.rangeret_knn_best_isa.restype = _I32
+    return library
 
 
 def built() -> bool:

@@ -80,6 +80,9 @@ typedef int32_t vi16 __attribute__((vector_size(64)));
 #include "knn_vote_body.h"
 #endif
 
+/* The version of these functions' arguments (knn_native.ABI must be the same). */
+int32_t rangeret_knn_abi(void) { return 1; }
+
 /* The most neighbours a point may keep. */
 int32_t rangeret_knn_slots(void) { return MAX_SLOTS; }
 

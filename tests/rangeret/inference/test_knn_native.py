@@ -6,9 +6,14 @@ cutoff, classes that count from 0, any number of threads; it declines what it do
 
 from __future__ import annotations
 
+import importlib.machinery
 import os
+import shutil
 import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -89,7 +94,7 @@ def test_the_library_is_built_for_this_cpu():
 def test_without_the_library_the_torch_rule_labels_and_it_is_said_once(
     monkeypatch, tmp_path, caplog, real
 ):
-    monkeypatch.setattr(knn_native, "_library", lambda: knn_native._load(tmp_path))
+    monkeypatch.setattr(knn_native, "_library", lambda: knn_native._load((tmp_path,)))
     with caplog.at_level("WARNING", logger=knn_native.__name__):
         assert not knn_native.built() and knn_native.slots() == 0
         assert voted(real, KnnSettings(7, 7, 1.0, 1.0), 20) is None
@@ -318,7 +323,54 @@ def test_the_way_it_votes_is_described_for_people(monkeypatch, tmp_path):
         f"the compiled vote, {knn_native.ISA_NAMES[isa]} ({lanes} points a vector)"
     )
     assert knn_native.describe("cuda:1") == "the exact rule in torch on cuda:1"
-    monkeypatch.setattr(knn_native, "_library", lambda: knn_native._load(tmp_path))
+    monkeypatch.setattr(knn_native, "_library", lambda: knn_native._load((tmp_path,)))
     assert knn_native.describe() == (
         "the exact rule in torch: the compiled vote is not built (no C compiler at install)"
     )
+
+
+def test_a_copy_of_the_sources_first_on_the_path_takes_the_installed_library(tmp_path):
+    """A Ray job runs from an uploaded copy of the sources, which holds no compiled file: the
+    copy's module finds the library the interpreter's installed package was built with."""
+    copy = tmp_path / "job"
+    shutil.copytree(
+        Path(knn_native.__file__).parents[1],
+        copy / "rangeret",
+        ignore=shutil.ignore_patterns("*.so", "__pycache__"),
+    )
+    probe = (
+        "from rangeret.inference import knn_native as k; "
+        "print(k.__file__); print(k._library()._name); print(k.describe())"
+    )
+    env = {**os.environ, "PYTHONPATH": str(copy)}
+    out = subprocess.run(
+        [sys.executable, "-c", probe], cwd=copy, env=env, capture_output=True, text=True, check=True
+    ).stdout.splitlines()
+    assert out[0].startswith(str(copy)), out
+    assert not out[1].startswith(str(copy)) and Path(out[1]).name.startswith("_knn_vote"), out
+    assert out[2] == knn_native.describe()
+
+
+def test_a_library_of_another_version_or_another_library_is_left_out(tmp_path, caplog):
+    suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
+    built = {}
+    for name, code in [
+        ("older", "int rangeret_knn_abi(void) { return 99; }"),
+        ("unrelated", "int something_else(void) { return 0; }"),
+    ]:
+        (tmp_path / f"{name}.c").write_text(code + "\n")
+        built[name] = tmp_path / name / f"_knn_vote{suffix}"
+        built[name].parent.mkdir()
+        cc = ["cc", "-shared", "-fPIC", "-o", str(built[name]), str(tmp_path / f"{name}.c")]
+        subprocess.run(cc, check=True)
+    installed = Path(knn_native._library()._name)
+    with caplog.at_level("INFO", logger=knn_native.__name__):
+        assert knn_native._opened(built["older"]) is None
+        assert knn_native._opened(built["unrelated"]) is None
+        assert knn_native._load((built["older"].parent, built["unrelated"].parent)) is None
+        folders = (built["older"].parent, installed.parent)
+        assert knn_native._load(folders) is not None
+    said = " ".join(r.getMessage() for r in caplog.records)
+    assert f"{built['older']} is version 99, not {knn_native.ABI}" in said
+    assert f"{built['unrelated']} is left out" in said
+    assert f"compiled vote comes from {installed}" in said
