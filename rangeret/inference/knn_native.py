@@ -21,7 +21,7 @@ import os
 import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from functools import cache
+from functools import cache, lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -191,6 +191,21 @@ class _Pool:
 os.register_at_fork(after_in_child=_Pool.forget)
 
 
+@lru_cache(maxsize=16)
+def _window(search: int, sigma: float, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """The neighbours of a search x search window, centre left out, in rows of `stride` values:
+    their int32 offsets from the centre and float32 weights (1 - the Gaussian), made once per
+    window and image width (read only)."""
+    pad = search // 2
+    rows, cols = np.divmod(np.arange(search * search), search)
+    centre = search * search // 2
+    offsets = np.delete((rows - pad) * stride + cols - pad, centre).astype(np.int32)
+    weights = (1.0 - gaussian_kernel(search, sigma)).numpy().reshape(-1)
+    weights = np.ascontiguousarray(np.delete(weights, centre))
+    offsets.flags.writeable = weights.flags.writeable = False
+    return offsets, weights
+
+
 def vote_on_cpu(
     result: np.ndarray,
     classes: np.ndarray,
@@ -239,11 +254,7 @@ def vote_on_cpu(
     inside = codes[pad : pad + height, pad : pad + width]
     np.subtract(num_classes + 1, classes.astype(np.int64, copy=False), out=inside, casting="unsafe")
     inside[classes < votes_from] = 0
-    rows, cols = np.divmod(np.arange(knn.search * knn.search), knn.search)
-    offsets = np.delete((rows - pad) * (width + 2 * pad) + cols - pad, size // 2)
-    offsets = offsets.astype(np.int32)
-    weights = (1.0 - gaussian_kernel(knn.search, knn.sigma)).numpy().reshape(-1)
-    weights = np.ascontiguousarray(np.delete(weights, size // 2))
+    offsets, weights = _window(knn.search, knn.sigma, width + 2 * pad)
     proj_x = np.ascontiguousarray(proj_x, dtype=np.int64)
     proj_y = np.ascontiguousarray(proj_y, dtype=np.int64)
     cutoff = np.float32(knn.cutoff)

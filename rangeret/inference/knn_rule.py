@@ -1,5 +1,6 @@
-"""The exact rule of kNN refinement (`rangeret.inference.knn`) and the pieces its paths share:
-the window weights, the insertion network, the vote, host arrays to the device.
+"""The exact rule of kNN refinement in torch (`rangeret.inference.knn`) and the pieces the
+compiled vote shares with it: the window weights, the padding's class code, host arrays to the
+device.
 
 `Window` holds the S x S neighbourhood of a set of columns (pixels of range images, or points
 whose windows were gathered) and applies the rule, ties included, to chunks of points: the
@@ -10,7 +11,7 @@ data-dependent shapes, so on a device the host never waits for it.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from functools import lru_cache
 
 import numpy as np
@@ -18,7 +19,6 @@ import torch
 import torch.nn.functional as F
 
 __all__ = [
-    "Take",
     "Window",
     "gaussian_kernel",
     "majority",
@@ -27,14 +27,6 @@ __all__ = [
     "smallest",
     "to_device",
 ]
-
-#: Gives a buffer by name, shape and dtype for an operation's `out` (None: let it allocate).
-Take = Callable[[str, tuple[int, ...], torch.dtype], "torch.Tensor | None"]
-
-
-def _allocate(name: str, shape: tuple[int, ...], dtype: torch.dtype) -> None:
-    """No buffer: the operation allocates its result."""
-
 
 #: Most voters whose counts `majority` takes from all pairs at once.
 _BROADCAST_VOTERS = 16
@@ -216,15 +208,8 @@ def small_int_dtype(largest: int) -> torch.dtype:
     return torch.int32
 
 
-def smallest(
-    values: torch.Tensor,
-    count: int,
-    fill: float | int,
-    skip: int | None = None,
-    out: tuple[torch.Tensor, torch.Tensor] | None = None,
-) -> torch.Tensor:
-    """The `count` smallest of each column of (m, n) `values` (row `skip` left out), ascending,
-    as (count, n); `out` may give the two (count + 1, n) buffers it works in.
+def smallest(values: torch.Tensor, count: int, fill: float | int) -> torch.Tensor:
+    """The `count` smallest of each column of (m, n) `values`, ascending, as (count, n).
 
     An insertion network: `current` holds the smallest so far behind a lower-bound guard row, and
     adding x makes row i min(row i, max(row i-1, x)) = clamp(x, row i-1, row i), all rows in one
@@ -233,16 +218,11 @@ def smallest(
     """
     n = values.shape[1]
     low = -float("inf") if values.dtype.is_floating_point else torch.iinfo(values.dtype).min
-    if out is None:
-        current = torch.empty((count + 1, n), dtype=values.dtype, device=values.device)
-        spare = torch.empty_like(current)
-    else:
-        current, spare = out
+    current = torch.empty((count + 1, n), dtype=values.dtype, device=values.device)
     current[1:] = fill
-    spare[1:] = fill
     current[0] = low
-    spare[0] = low
-    rows = [row for j, row in enumerate(values.unbind(0)) if j != skip]
+    spare = current.clone()
+    rows = values.unbind(0)
     # the two buffers take turns: views of both directions made once
     steps = [(current[:-1], current[1:], spare[1:]), (spare[:-1], spare[1:], current[1:])]
     for i, row in enumerate(rows):
@@ -253,32 +233,22 @@ def smallest(
     return (spare if len(rows) % 2 else current)[1:]
 
 
-def majority(
-    codes: torch.Tensor,
-    num_classes: int,
-    votes_from: int,
-    take: Take | None = None,
-    out: torch.Tensor | None = None,
-) -> torch.Tensor:
+def majority(codes: torch.Tensor, num_classes: int, votes_from: int) -> torch.Tensor:
     """Most frequent class of each column of (k, n) voter `codes` among classes votes_from..C-1.
 
     A code is C + 1 - class, and 0 for a voter that abstains. Ties go to the lowest class id (the
     highest code); a column without a vote gets class `votes_from`. Each voter scores
     count * (C + 2) + code (0 when it abstains): the largest score is the most votes, then the
-    lowest class, and a lookup table turns it back into a class. Temporaries in the buffers that
-    `take` gives, where there is one; the classes in `out` when given.
+    lowest class, and a lookup table turns it back into a class.
     """
-    k, n = codes.shape
-    take = take or _allocate
+    k, _ = codes.shape
     base = num_classes + 2
     top = k * base + num_classes + 1
     dtype = small_int_dtype(top)
     codes = codes.to(dtype)
     if k <= _BROADCAST_VOTERS:  # all k x k comparisons in one call, k^2 bytes a column
-        same = torch.eq(codes[None], codes[:, None], out=take("pairs", (k, k, n), torch.bool))
-        counts = torch.sum(
-            same.view(torch.uint8), 0, dtype=dtype, out=take("counts", (k, n), dtype)
-        )
+        same = torch.eq(codes[None], codes[:, None])
+        counts = torch.sum(same.view(torch.uint8), 0, dtype=dtype)
     else:
         counts = torch.zeros_like(codes)
         same = torch.empty(codes.shape, dtype=torch.bool, device=codes.device)
@@ -286,14 +256,11 @@ def majority(
             torch.eq(codes, row, out=same)
             counts += same
     # an abstaining voter (code 0) scores 0: multiplied by min(code, 1)
-    scores = torch.add(codes, counts, alpha=base, out=take("scores", (k, n), dtype))
-    scores.mul_(torch.clamp(codes, max=1, out=take("voting", (k, n), dtype)))
-    best = torch.amax(scores, 0, out=take("best", (n,), dtype))
+    scores = torch.add(codes, counts, alpha=base).mul_(codes.clamp(max=1))
+    best = torch.amax(scores, 0)
     classes = _score_classes(top, num_classes, votes_from, codes.device)
     index_dtype = torch.int32 if top < 2**31 else torch.int64
-    index = take("index", (n,), index_dtype)
-    index = best.to(index_dtype) if index is None else index.copy_(best)
-    return torch.index_select(classes, 0, index, out=out)
+    return torch.index_select(classes, 0, best.to(index_dtype))
 
 
 @lru_cache(maxsize=64)
